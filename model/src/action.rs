@@ -1,0 +1,56 @@
+//! The BWM action encoder (`WanVideoActionEncoder`, ti2v2 path). `action_mlp1` turns every pixel
+//! frame's action into one cross-attention token; `action_mlp2` turns each group of G actions
+//! (after prepending P copies of a_0) into one vector per latent frame, added to the time embedding.
+
+use anyhow::{ensure, Result};
+use tch::Tensor;
+
+use crate::config::ActionConfig;
+use crate::dit::Mlp2;
+use crate::vb::Vb;
+
+pub struct ActionEncoder {
+    pub cfg: ActionConfig,
+    /// Linear(d_a, D) -> GELU (exact) -> Linear(D, D)
+    pub action_mlp1: Mlp2,
+    /// Linear(G*d_a, G*D) -> SiLU -> Linear(G*D, D)
+    pub action_mlp2: Mlp2,
+}
+
+/// What the encoder gives the DiT.
+pub struct ActionEmbedding {
+    /// [B, F_pixel, D]: the cross-attention context.
+    pub context: Tensor,
+    /// [B, F_latent, D]: added to the time embedding of each latent frame.
+    pub frame: Tensor,
+}
+
+impl ActionEncoder {
+    pub fn new(vb: &Vb, cfg: &ActionConfig, dim: i64) -> Result<Self> {
+        cfg.validate()?;
+        let (da, g) = (cfg.action_dim, cfg.group);
+        Ok(Self {
+            cfg: cfg.clone(),
+            action_mlp1: Mlp2::new(&vb.pp("action_mlp1"), da, dim, dim)?,
+            action_mlp2: Mlp2::new(&vb.pp("action_mlp2"), g * da, g * dim, dim)?,
+        })
+    }
+
+    /// actions [B, F, d_a], normalized, with F = G*k + (G - P).
+    pub fn forward(&self, actions: &Tensor) -> Result<ActionEmbedding> {
+        let s = actions.size();
+        ensure!(
+            s.len() == 3 && s[2] == self.cfg.action_dim,
+            "actions must be [B, F, {}], got shape {:?}",
+            self.cfg.action_dim,
+            s
+        );
+        let latent_frames = self.cfg.latent_frames(s[1])?;
+        let actions = actions.to_kind(self.action_mlp1.l0.weight.kind());
+        let context = self.action_mlp1.l2.forward(&self.action_mlp1.l0.forward(&actions).gelu("none"));
+        let first = actions.narrow(1, 0, 1).repeat([1, self.cfg.prepend, 1]);
+        let grouped = Tensor::cat(&[first, actions], 1).reshape([s[0], latent_frames, self.cfg.group * s[2]]);
+        let frame = self.action_mlp2.l2.forward(&self.action_mlp2.l0.forward(&grouped).silu());
+        Ok(ActionEmbedding { context, frame })
+    }
+}

@@ -1,0 +1,98 @@
+//! The BWM world model: the Wan2.2 DiT driven by the action encoder instead of text.
+
+use std::path::Path;
+use std::rc::Rc;
+
+use anyhow::{Context, Result};
+use tch::{Device, Kind, Tensor};
+
+use crate::action::ActionEncoder;
+use crate::config::ModelConfig;
+use crate::dit::WanDit;
+use crate::vb::ParamStore;
+use crate::weights::{RenamedSource, SafetensorsSource, WeightSource};
+
+/// Key layouts of checkpoints this model loads directly.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Layout {
+    /// Wan-native DiT names at the root, the action encoder under `action_encoder.`.
+    WanNative,
+    /// The public BWM release (`step-12000.safetensors`): Wan-native DiT names without
+    /// `text_embedding`, the action encoder under `pipe.action_encoder.`.
+    BwmRelease,
+}
+
+/// Keys the action-conditioned model may find absent or leave unused.
+pub const ACTION_MODE_OPTIONAL: &[&str] = &["text_embedding."];
+
+pub struct BwmModel {
+    pub cfg: ModelConfig,
+    pub dit: WanDit,
+    pub action_encoder: ActionEncoder,
+    pub store: Rc<ParamStore>,
+}
+
+impl BwmModel {
+    /// Builds the module tree from `store` (random, shape-only, or a weight file).
+    pub fn build(store: &Rc<ParamStore>, cfg: &ModelConfig) -> Result<Self> {
+        cfg.validate()?;
+        let root = store.root();
+        let dit = WanDit::new(&root, &cfg.dit)?;
+        let action_encoder = ActionEncoder::new(&root.pp("action_encoder"), &cfg.action, cfg.dit.dim)?;
+        store.check_all_consumed()?;
+        Ok(Self { cfg: cfg.clone(), dit, action_encoder, store: store.clone() })
+    }
+
+    /// Random weights drawn after `tch::manual_seed(seed)`.
+    pub fn random(cfg: &ModelConfig, kind: Kind, device: Device, seed: i64) -> Result<Self> {
+        tch::manual_seed(seed);
+        Self::build(&ParamStore::random(kind, device), cfg)
+    }
+
+    /// Weights read by name from a safetensors file, shard index or directory.
+    pub fn load(path: &Path, layout: Layout, cfg: &ModelConfig, kind: Kind, device: Device) -> Result<Self> {
+        let file = SafetensorsSource::open(path)?;
+        let source: Box<dyn WeightSource> = match layout {
+            Layout::WanNative => Box::new(file),
+            Layout::BwmRelease => Box::new(RenamedSource::new(file, |k| {
+                Some(k.strip_prefix("pipe.").unwrap_or(k).to_string())
+            })),
+        };
+        let store = ParamStore::from_weights(source, ACTION_MODE_OPTIONAL, kind, device);
+        Self::build(&store, cfg).with_context(|| format!("loading model weights from {}", path.display()))
+    }
+
+    /// Velocity prediction [B, C, F, H, W] (fp32) from latents [B, C, F, H, W], per-latent-frame
+    /// timesteps [B, F] and normalized actions [B, 1+4k, d_a].
+    pub fn forward(&self, latents: &Tensor, frame_timesteps: &Tensor, actions: &Tensor) -> Result<Tensor> {
+        self.forward_traced(latents, frame_timesteps, actions, &mut |_, _| {})
+    }
+
+    /// As `forward`, showing intermediates to `trace` (`action_context`, `action_mod`, then the
+    /// DiT's).
+    pub fn forward_traced(
+        &self,
+        latents: &Tensor,
+        frame_timesteps: &Tensor,
+        actions: &Tensor,
+        trace: &mut dyn FnMut(&str, &Tensor),
+    ) -> Result<Tensor> {
+        let emb = self.action_encoder.forward(actions)?;
+        trace("action_context", &emb.context);
+        trace("action_mod", &emb.frame);
+        self.dit.forward_traced(latents, frame_timesteps, Some(&emb.frame), &emb.context, trace)
+    }
+}
+
+/// Per-latent-frame timesteps [B, F]: 0 on the first `condition_frames` frames, `t[b]` after.
+pub fn frame_timesteps(t: &Tensor, frames: i64, condition_frames: i64) -> Tensor {
+    let b = t.size()[0];
+    let mask = Tensor::cat(
+        &[
+            Tensor::zeros([condition_frames], (Kind::Float, t.device())),
+            Tensor::ones([frames - condition_frames], (Kind::Float, t.device())),
+        ],
+        0,
+    );
+    t.to_kind(Kind::Float).view([b, 1]) * mask.view([1, frames])
+}

@@ -1,0 +1,18 @@
+//! The BWM model: the Wan2.2-TI2V-5B DiT with the BWM action interface, the flow-matching
+//! schedule, and weight loading by checkpoint name. No data, distribution or logging here.
+
+pub mod action;
+pub mod bwm;
+pub mod config;
+pub mod dit;
+pub mod nn;
+pub mod rope;
+pub mod schedule;
+pub mod vb;
+pub mod weights;
+
+pub use bwm::{frame_timesteps, BwmModel, Layout};
+pub use config::{ActionConfig, DitConfig, ModelConfig};
+pub use schedule::FlowSchedule;
+pub use vb::{ParamStore, Vb};
+pub use weights::{SafetensorsSource, WeightSource, WeightsError};

@@ -1,0 +1,99 @@
+//! The small layers the DiT and VAE are made of. Parameters are named as in PyTorch
+//! (`weight`, `bias`), so the module path plus the field is the checkpoint key.
+
+use tch::{Kind, Tensor};
+
+use crate::vb::{Init, Vb};
+use crate::weights::WeightsError;
+
+/// `nn.Linear(in, out)`; weight [out, in].
+pub struct Linear {
+    pub weight: Tensor,
+    pub bias: Tensor,
+}
+
+impl Linear {
+    pub fn new(vb: &Vb, in_dim: i64, out_dim: i64) -> Result<Self, WeightsError> {
+        let bound = 1.0 / (in_dim as f64).sqrt();
+        Ok(Self {
+            weight: vb.get(&[out_dim, in_dim], "weight", Init::Uniform { bound })?,
+            bias: vb.get(&[out_dim], "bias", Init::Uniform { bound })?,
+        })
+    }
+
+    /// In the parameters' dtype; `x` is cast to it.
+    pub fn forward(&self, x: &Tensor) -> Tensor {
+        x.to_kind(self.weight.kind()).linear(&self.weight, Some(&self.bias))
+    }
+
+    /// In fp32 whatever the parameters' dtype (time embedding, as the reference keeps it in fp32).
+    pub fn forward_f32(&self, x: &Tensor) -> Tensor {
+        x.to_kind(Kind::Float).linear(&self.weight.to_kind(Kind::Float), Some(&self.bias.to_kind(Kind::Float)))
+    }
+}
+
+/// LayerNorm over the last dimension, computed in fp32 (the reference's `WanLayerNorm`);
+/// `affine` = (weight, bias) for `norm3`.
+pub fn layer_norm_f32(x: &Tensor, affine: Option<(&Tensor, &Tensor)>, eps: f64) -> Tensor {
+    let d = *x.size().last().expect("layer_norm on a 0-d tensor");
+    let x = x.to_kind(Kind::Float);
+    match affine {
+        Some((w, b)) => x.layer_norm([d], Some(w.to_kind(Kind::Float)), Some(b.to_kind(Kind::Float)), eps, true),
+        None => x.layer_norm([d], None::<Tensor>, None::<Tensor>, eps, true),
+    }
+}
+
+/// `nn.LayerNorm(dim, elementwise_affine=True)`.
+pub struct AffineLayerNorm {
+    pub weight: Tensor,
+    pub bias: Tensor,
+    eps: f64,
+}
+
+impl AffineLayerNorm {
+    pub fn new(vb: &Vb, dim: i64, eps: f64) -> Result<Self, WeightsError> {
+        Ok(Self { weight: vb.get(&[dim], "weight", Init::Ones)?, bias: vb.get(&[dim], "bias", Init::Zeros)?, eps })
+    }
+
+    /// fp32 result.
+    pub fn forward(&self, x: &Tensor) -> Tensor {
+        layer_norm_f32(x, Some((&self.weight, &self.bias)), self.eps)
+    }
+}
+
+/// RMSNorm over the last dimension with a learned scale (Wan's q/k norm, over the full width):
+/// normalized in fp32, cast back to the input dtype, then scaled.
+pub struct RmsNorm {
+    pub weight: Tensor,
+    eps: f64,
+}
+
+impl RmsNorm {
+    pub fn new(vb: &Vb, dim: i64, eps: f64) -> Result<Self, WeightsError> {
+        Ok(Self { weight: vb.get(&[dim], "weight", Init::Ones)?, eps })
+    }
+
+    pub fn forward(&self, x: &Tensor) -> Tensor {
+        let xf = x.to_kind(Kind::Float);
+        let rms = (xf.square().mean_dim(-1, true, Kind::Float) + self.eps).rsqrt();
+        (xf * rms).to_kind(x.kind()) * &self.weight
+    }
+}
+
+/// Scaled dot-product attention over [B, L, heads*head_dim] inputs (no mask, default scale).
+pub fn attention(q: &Tensor, k: &Tensor, v: &Tensor, num_heads: i64) -> Tensor {
+    let (b, lq, d) = q.size3().expect("attention: q must be [B, L, D]");
+    let lk = k.size()[1];
+    let hd = d / num_heads;
+    let q = q.view([b, lq, num_heads, hd]).transpose(1, 2);
+    let k = k.view([b, lk, num_heads, hd]).transpose(1, 2);
+    let v = v.view([b, lk, num_heads, hd]).transpose(1, 2);
+    Tensor::scaled_dot_product_attention(&q, &k, &v, None::<Tensor>, 0.0, false, None, false)
+        .transpose(1, 2)
+        .reshape([b, lq, d])
+}
+
+/// `x * (1 + scale) + shift`
+pub fn modulate(x: &Tensor, shift: &Tensor, scale: &Tensor) -> Tensor {
+    x * (scale + 1.0) + shift
+}

@@ -1,0 +1,55 @@
+//! Wan's 3-axis rotary position embedding: within each head, adjacent channel pairs (2j, 2j+1)
+//! rotate; the first pairs by the latent-frame index, then by the row, then by the column. Each
+//! axis has its own frequencies theta^(-2j/D_axis). Angles are computed in f64.
+
+use tch::{Device, Kind, Tensor};
+
+/// cos and sin tables, each [L, 1, head_dim/2] in fp32, for a token grid (f, h, w) in row-major order.
+pub struct Rope {
+    cos: Tensor,
+    sin: Tensor,
+}
+
+impl Rope {
+    pub fn new(grid: (i64, i64, i64), axes: [i64; 3], theta: f64, device: Device) -> Self {
+        let (f, h, w) = grid;
+        let freqs: Vec<Vec<f64>> = axes
+            .iter()
+            .map(|&d| (0..d / 2).map(|j| theta.powf(-(2 * j) as f64 / d as f64)).collect())
+            .collect();
+        let pairs: usize = freqs.iter().map(|v| v.len()).sum();
+        let len = (f * h * w) as usize;
+        let mut cos = Vec::with_capacity(len * pairs);
+        let mut sin = Vec::with_capacity(len * pairs);
+        for fi in 0..f {
+            for hi in 0..h {
+                for wi in 0..w {
+                    for (pos, axis) in [fi, hi, wi].iter().zip(&freqs) {
+                        for &om in axis {
+                            let angle = *pos as f64 * om;
+                            cos.push(angle.cos() as f32);
+                            sin.push(angle.sin() as f32);
+                        }
+                    }
+                }
+            }
+        }
+        let shape = [len as i64, 1, pairs as i64];
+        Self {
+            cos: Tensor::from_slice(&cos).view(shape).to_device(device),
+            sin: Tensor::from_slice(&sin).view(shape).to_device(device),
+        }
+    }
+
+    /// Rotates x [B, L, heads, head_dim] in fp32 and returns it in x's dtype.
+    pub fn apply(&self, x: &Tensor) -> Tensor {
+        let size = x.size();
+        let (b, l, n, d) = (size[0], size[1], size[2], size[3]);
+        let xf = x.to_kind(Kind::Float).view([b, l, n, d / 2, 2]);
+        let x0 = xf.select(-1, 0);
+        let x1 = xf.select(-1, 1);
+        let r0 = &x0 * &self.cos - &x1 * &self.sin;
+        let r1 = x0 * &self.sin + x1 * &self.cos;
+        Tensor::stack(&[r0, r1], -1).view([b, l, n, d]).to_kind(x.kind())
+    }
+}

@@ -1,0 +1,33 @@
+//! Helpers shared by the model's integration tests.
+#![allow(dead_code)]
+
+use std::path::PathBuf;
+
+use tch::{Kind, Tensor};
+
+/// `../shared/golden` beside the repository (override with BWM_SHARED=<path to shared>).
+pub fn golden(name: &str) -> PathBuf {
+    let shared = std::env::var_os("BWM_SHARED")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared"));
+    let path = shared.join("golden").join(name);
+    assert!(path.exists(), "golden file {} not found (set BWM_SHARED to the shared/ directory)", path.display());
+    path
+}
+
+/// ||a - b|| / ||b||
+pub fn rel_err(a: &Tensor, b: &Tensor) -> f64 {
+    let a = a.to_kind(Kind::Double);
+    let b = b.to_kind(Kind::Double);
+    assert_eq!(a.size(), b.size(), "shape mismatch");
+    let num = (&a - &b).norm().double_value(&[]);
+    let den = b.norm().double_value(&[]);
+    num / den.max(1e-30)
+}
+
+pub fn tmp_dir(tag: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("bwm-test-{tag}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}

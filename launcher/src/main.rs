@@ -1,1 +1,38 @@
-fn main() {}
+//! `bwm`: the one command of the BWM trainer.
+
+mod bench;
+mod demo;
+mod devices;
+
+use anyhow::Result;
+use clap::{Parser, Subcommand};
+
+#[derive(Parser)]
+#[command(name = "bwm", version, about = "Boundless World Model: post-train Wan2.2-TI2V-5B into an action-conditioned robot simulator")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Run the tiny model on the bundled episodes and print what it does (the README's first command).
+    Demo(demo::DemoArgs),
+    /// Print a model preset's module tree summary: tensors and parameters (nothing is allocated).
+    Info(bench::InfoArgs),
+    /// Time the DiT forward on random weights of a preset at a given clip size.
+    BenchForward(bench::BenchForwardArgs),
+}
+
+fn main() {
+    let cli = Cli::parse();
+    let result: Result<()> = match cli.command {
+        Command::Demo(a) => demo::run(a),
+        Command::Info(a) => bench::info(a),
+        Command::BenchForward(a) => bench::forward(a),
+    };
+    if let Err(e) = result {
+        eprintln!("error: {e:#}");
+        std::process::exit(1);
+    }
+}

@@ -3,7 +3,7 @@
 use std::path::Path;
 use std::rc::Rc;
 
-use anyhow::{Context, Result};
+use anyhow::{ensure, Result};
 use tch::{Device, Kind, Tensor};
 
 use crate::action::ActionEncoder;
@@ -59,7 +59,7 @@ impl BwmModel {
             })),
         };
         let store = ParamStore::from_weights(source, ACTION_MODE_OPTIONAL, kind, device);
-        Self::build(&store, cfg).with_context(|| format!("loading model weights from {}", path.display()))
+        Self::build(&store, cfg)
     }
 
     /// Velocity prediction [B, C, F, H, W] (fp32) from latents [B, C, F, H, W], per-latent-frame
@@ -78,6 +78,13 @@ impl BwmModel {
         trace: &mut dyn FnMut(&str, &Tensor),
     ) -> Result<Tensor> {
         let emb = self.action_encoder.forward(actions)?;
+        let action_frames = emb.frame.size()[1];
+        let latent_frames = latents.size().get(2).copied().unwrap_or(0) / self.cfg.dit.patch_size[0];
+        ensure!(
+            action_frames == latent_frames,
+            "actions for {} pixel frames cover {action_frames} latent frames, but the latents have {latent_frames}",
+            actions.size()[1]
+        );
         trace("action_context", &emb.context);
         trace("action_mod", &emb.frame);
         self.dit.forward_traced(latents, frame_timesteps, Some(&emb.frame), &emb.context, trace)

@@ -7,6 +7,7 @@ pub mod config;
 pub mod dit;
 pub mod nn;
 pub mod rope;
+pub mod sampler;
 pub mod schedule;
 pub mod vb;
 pub mod weights;

@@ -1,0 +1,114 @@
+//! `bwm info` and `bwm bench-forward`.
+
+use std::time::Instant;
+
+use anyhow::{ensure, Result};
+use bwm_model::{frame_timesteps, BwmModel, ModelConfig, ParamStore};
+use clap::Args;
+use tch::{Device, Kind, Tensor};
+
+use crate::devices::{parse_device, parse_kind};
+
+#[derive(Args)]
+pub struct InfoArgs {
+    /// Model preset: wan22_ti2v_5b or tiny.
+    #[arg(long, default_value = "wan22_ti2v_5b")]
+    preset: String,
+}
+
+pub fn info(args: InfoArgs) -> Result<()> {
+    let cfg = ModelConfig::preset(&args.preset)?;
+    let store = ParamStore::shapes_only(Kind::BFloat16);
+    BwmModel::build(&store, &cfg)?;
+    let params = store.named_parameters();
+    let count = |pred: &dyn Fn(&str) -> bool| -> (usize, i64) {
+        let sel: Vec<_> = params.iter().filter(|(n, _)| pred(n)).collect();
+        (sel.len(), sel.iter().map(|(_, t)| t.size().iter().product::<i64>()).sum())
+    };
+    let (dt, dp) = count(&|n| !n.starts_with("action_encoder."));
+    let (at, ap) = count(&|n| n.starts_with("action_encoder."));
+    println!("preset {}: {:?}", args.preset, cfg.dit);
+    println!("DiT:            {dt:>4} tensors  {dp:>14} parameters");
+    println!("action encoder: {at:>4} tensors  {ap:>14} parameters");
+    println!("total:          {:>4} tensors  {:>14} parameters ({:.2} GB in bf16)", dt + at, dp + ap, (dp + ap) as f64 * 2e-9);
+    Ok(())
+}
+
+#[derive(Args)]
+pub struct BenchForwardArgs {
+    #[arg(long, default_value = "wan22_ti2v_5b")]
+    preset: String,
+    #[arg(long, default_value = "cuda")]
+    device: String,
+    #[arg(long, default_value = "bf16")]
+    dtype: String,
+    /// Pixel frames of the clip (1 + H + K); must be 1+4k.
+    #[arg(long, default_value_t = 81)]
+    frames: i64,
+    #[arg(long, default_value_t = 480)]
+    height: i64,
+    #[arg(long, default_value_t = 640)]
+    width: i64,
+    /// Condition latents (x0 + history) that get timestep 0.
+    #[arg(long, default_value_t = 3)]
+    condition_latents: i64,
+    #[arg(long, default_value_t = 1)]
+    batch: i64,
+    #[arg(long, default_value_t = 2)]
+    warmup: usize,
+    #[arg(long, default_value_t = 5)]
+    iters: usize,
+}
+
+pub fn forward(args: BenchForwardArgs) -> Result<()> {
+    let device = parse_device(&args.device)?;
+    let kind = parse_kind(&args.dtype)?;
+    let cfg = ModelConfig::preset(&args.preset)?;
+    ensure!(args.frames % 4 == 1, "--frames {} must be 1+4k", args.frames);
+    ensure!(args.height % 32 == 0 && args.width % 32 == 0, "--height and --width must be multiples of 32");
+    let latent_frames = (args.frames - 1) / 4 + 1;
+    let (lh, lw) = (args.height / 16, args.width / 16);
+    let tokens = latent_frames * (lh / 2) * (lw / 2);
+    let t0 = Instant::now();
+    let model = BwmModel::random(&cfg, kind, device, 0)?;
+    sync(device);
+    eprintln!("built {} random weights ({} parameters) in {:.1}s", args.preset, model.store.num_parameters(), t0.elapsed().as_secs_f64());
+
+    let latents = Tensor::randn([args.batch, cfg.dit.in_dim, latent_frames, lh, lw], (Kind::Float, device));
+    let actions = Tensor::rand([args.batch, args.frames, cfg.action.action_dim], (Kind::Float, device)) * 2.0 - 1.0;
+    let t = frame_timesteps(&Tensor::full([args.batch], 700.0, (Kind::Float, device)), latent_frames, args.condition_latents);
+    let mut times = Vec::new();
+    for i in 0..args.warmup + args.iters {
+        let start = Instant::now();
+        let v = tch::no_grad(|| model.forward(&latents, &t, &actions))?;
+        sync(device);
+        let dt = start.elapsed().as_secs_f64();
+        ensure!(v.isfinite().all().int64_value(&[]) == 1, "non-finite output");
+        if i >= args.warmup {
+            times.push(dt);
+        }
+    }
+    let mean = times.iter().sum::<f64>() / times.len() as f64;
+    let min = times.iter().cloned().fold(f64::INFINITY, f64::min);
+    // Spec section 9.2: 295.70 MFLOP per token per block for the linears (with 512 context rows),
+    // 4*N^2*D for self-attention; here the context is the action tokens, so count it exactly.
+    let d = cfg.dit.dim as f64;
+    let n = (tokens * args.batch) as f64;
+    let lc = args.frames as f64;
+    let per_block = n * (2.0 * 4.0 * d * d + 2.0 * 2.0 * d * d + 2.0 * 2.0 * d * cfg.dit.ffn_dim as f64 + 4.0 * lc * d)
+        + 2.0 * 2.0 * lc * d * d * args.batch as f64
+        + 4.0 * (tokens as f64).powi(2) * d * args.batch as f64;
+    let flops = per_block * cfg.dit.num_layers as f64;
+    println!(
+        "bench-forward preset={} device={:?} dtype={} clip={}x{}x{} latents=[{},{},{},{},{}] tokens={} : mean {:.4}s min {:.4}s over {} iters, {:.1} TFLOP/s (model FLOPs {:.2} TFLOP)",
+        args.preset, device, args.dtype, args.frames, args.height, args.width,
+        args.batch, cfg.dit.in_dim, latent_frames, lh, lw, tokens, mean, min, times.len(), flops / mean / 1e12, flops / 1e12
+    );
+    Ok(())
+}
+
+fn sync(device: Device) {
+    if let Device::Cuda(i) = device {
+        tch::Cuda::synchronize(i as i64);
+    }
+}

@@ -9,6 +9,7 @@ pub mod nn;
 pub mod rope;
 pub mod sampler;
 pub mod schedule;
+pub mod vae;
 pub mod vb;
 pub mod weights;
 

@@ -445,6 +445,7 @@ impl Encoder {
     fn new(vb: &Vb, cfg: &VaeConfig) -> Result<Self, WeightsError> {
         let dims: Vec<i64> = std::iter::once(1).chain(cfg.dim_mult.iter().copied()).map(|m| cfg.dim * m).collect();
         let stages = cfg.dim_mult.len();
+        let conv1 = CausalConv3d::k3(&vb.pp("conv1"), 12, dims[0])?;
         let mut downsamples = Vec::new();
         for i in 0..stages {
             let (cin, cout) = (dims[i], dims[i + 1]);
@@ -462,7 +463,7 @@ impl Encoder {
         }
         let top = dims[stages];
         Ok(Self {
-            conv1: CausalConv3d::k3(&vb.pp("conv1"), 12, dims[0])?,
+            conv1,
             downsamples,
             middle: middle(&vb.pp("middle"), top)?,
             head_norm: RmsNorm::new(&vb.pp("head").pp(0), top, false)?,
@@ -497,6 +498,8 @@ impl Decoder {
             std::iter::once(top).chain(cfg.dim_mult.iter().rev().copied()).map(|m| cfg.dec_dim * m).collect();
         let stages = cfg.dim_mult.len();
         let temporal_up: Vec<bool> = cfg.temporal_downsample.iter().rev().copied().collect();
+        let conv1 = CausalConv3d::k3(&vb.pp("conv1"), cfg.z_dim, dims[0])?;
+        let middle = middle(&vb.pp("middle"), dims[0])?;
         let mut upsamples = Vec::new();
         for i in 0..stages {
             let (cin, cout) = (dims[i], dims[i + 1]);
@@ -514,8 +517,8 @@ impl Decoder {
         }
         let out = dims[stages];
         Ok(Self {
-            conv1: CausalConv3d::k3(&vb.pp("conv1"), cfg.z_dim, dims[0])?,
-            middle: middle(&vb.pp("middle"), dims[0])?,
+            conv1,
+            middle,
             upsamples,
             head_norm: RmsNorm::new(&vb.pp("head").pp(0), out, false)?,
             head_conv: CausalConv3d::k3(&vb.pp("head").pp(2), out, 12)?,

@@ -1,0 +1,90 @@
+//! Properties of the VAE that do not need reference numbers: causality, bounded streaming
+//! memory, and clear errors on bad input.
+
+mod common;
+
+use bwm_model::vae::{VaeConfig, WanVae};
+use common::{rel_err, tmp_dir};
+use tch::{Device, Kind, Tensor};
+
+fn small() -> VaeConfig {
+    VaeConfig::with_width(8, 8)
+}
+
+fn video(frames: i64, h: i64, w: i64, seed: i64) -> Tensor {
+    tch::manual_seed(seed);
+    Tensor::rand([1, 3, frames, h, w], (Kind::Float, Device::Cpu)) * 2.0 - 1.0
+}
+
+#[test]
+fn encoding_is_causal() {
+    let (vae, _) = WanVae::random(&small(), Kind::Float, Device::Cpu, 1).unwrap();
+    let long = video(13, 32, 48, 2);
+    let full = tch::no_grad(|| vae.encode(&long)).unwrap();
+    assert_eq!(full.size(), [1, 48, 4, 2, 3]);
+    for frames in [1, 5, 9] {
+        let prefix = tch::no_grad(|| vae.encode(&long.narrow(2, 0, frames))).unwrap();
+        let k = prefix.size()[2];
+        // Equal up to float rounding: the final 1x1x1 conv runs over a different number of frames.
+        let e = rel_err(&prefix, &full.narrow(2, 0, k));
+        assert!(e < 1e-6, "first {frames} frames: rel err {e}");
+    }
+    // Changing later frames leaves latent 0 (frame 0 alone) untouched.
+    let other = Tensor::cat(&[long.narrow(2, 0, 1), video(12, 32, 48, 3)], 2);
+    let z = tch::no_grad(|| vae.encode(&other)).unwrap();
+    assert!(rel_err(&z.narrow(2, 0, 1), &full.narrow(2, 0, 1)) < 1e-6);
+    assert!(rel_err(&z.narrow(2, 1, 1), &full.narrow(2, 1, 1)) > 1e-3);
+}
+
+#[test]
+fn streaming_decode_memory_does_not_grow_with_length() {
+    let (vae, _) = WanVae::random(&small(), Kind::Float, Device::Cpu, 4).unwrap();
+    tch::manual_seed(5);
+    let latents = Tensor::randn([1, 48, 24, 2, 3], (Kind::Float, Device::Cpu));
+    let mut stream = vae.decoder_stream();
+    let mut frames = Vec::new();
+    let mut cache_sizes = Vec::new();
+    tch::no_grad(|| {
+        for i in 0..24 {
+            let out = stream.next(&latents.narrow(2, i, 1)).unwrap();
+            assert_eq!(out.size()[2], if i == 0 { 1 } else { 4 });
+            frames.push(out);
+            cache_sizes.push(stream.cache_bytes());
+        }
+    });
+    assert!(cache_sizes[2..].iter().all(|&b| b == cache_sizes[2]), "cache bytes per chunk: {cache_sizes:?}");
+    let streamed = Tensor::cat(&frames, 2);
+    let whole = tch::no_grad(|| vae.decode(&latents)).unwrap();
+    assert_eq!(whole.size(), [1, 3, 1 + 4 * 23, 32, 48]);
+    assert_eq!(rel_err(&streamed, &whole), 0.0);
+}
+
+#[test]
+fn bad_inputs_are_clear_errors() {
+    let (vae, store) = WanVae::random(&small(), Kind::Float, Device::Cpu, 6).unwrap();
+    let err = |r: anyhow::Result<Tensor>| format!("{:#}", r.err().expect("should fail"));
+    let e = err(vae.encode(&video(8, 32, 48, 0)));
+    assert!(e.contains("8 frames") && e.contains("1+4k"), "{e}");
+    let e = err(vae.encode(&video(5, 40, 48, 0)));
+    assert!(e.contains("40x48") && e.contains("multiples of 16"), "{e}");
+    let nan = video(5, 32, 48, 0);
+    let _ = nan.narrow(2, 3, 1).fill_(f64::NAN);
+    let e = err(vae.encode(&nan));
+    assert!(e.contains("NaN"), "{e}");
+    let e = err(vae.decode(&Tensor::zeros([1, 16, 2, 2, 3], (Kind::Float, Device::Cpu))));
+    assert!(e.contains("[B, 48, T, h, w]"), "{e}");
+
+    let dir = tmp_dir("vae-bad");
+    let path = dir.join("vae.safetensors");
+    Tensor::write_safetensors(&store.named_parameters(), &path).unwrap();
+    let bytes = std::fs::read(&path).unwrap();
+    std::fs::write(&path, &bytes[..bytes.len() / 2]).unwrap();
+    let e = format!("{:#}", WanVae::load(&path, &small(), Kind::Float, Device::Cpu).err().unwrap());
+    assert!(e.contains("vae.safetensors") && e.contains("not a valid safetensors file"), "{e}");
+    // A state dict of another width names the first mismatching key.
+    let wide = dir.join("wide.safetensors");
+    let (_, wide_store) = WanVae::random(&VaeConfig::with_width(16, 16), Kind::Float, Device::Cpu, 7).unwrap();
+    Tensor::write_safetensors(&wide_store.named_parameters(), &wide).unwrap();
+    let e = format!("{:#}", WanVae::load(&wide, &small(), Kind::Float, Device::Cpu).err().unwrap());
+    assert!(e.contains("encoder.conv1.weight") && e.contains("expected [8, 12, 3, 3, 3]"), "{e}");
+}

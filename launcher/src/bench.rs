@@ -112,3 +112,77 @@ fn sync(device: Device) {
         tch::Cuda::synchronize(i as i64);
     }
 }
+
+#[derive(Args)]
+pub struct BenchVaeArgs {
+    #[arg(long, default_value = "cuda")]
+    device: String,
+    #[arg(long, default_value = "bf16")]
+    dtype: String,
+    /// Pixel frames to encode and decode (1+4k).
+    #[arg(long, default_value_t = 81)]
+    frames: i64,
+    #[arg(long, default_value_t = 480)]
+    height: i64,
+    #[arg(long, default_value_t = 640)]
+    width: i64,
+    #[arg(long, default_value_t = 3)]
+    iters: usize,
+    /// Then stream-decode this many seconds of video (0 to skip), moving frames to the host.
+    #[arg(long, default_value_t = 30.0)]
+    stream_seconds: f64,
+    #[arg(long, default_value_t = 24.0)]
+    fps: f64,
+}
+
+pub fn vae(args: BenchVaeArgs) -> Result<()> {
+    use bwm_model::vae::{VaeConfig, WanVae};
+    let device = parse_device(&args.device)?;
+    let kind = parse_kind(&args.dtype)?;
+    let (vae, _store) = WanVae::random(&VaeConfig::wan22(), kind, device, 0)?;
+    let video = Tensor::rand([1, 3, args.frames, args.height, args.width], (Kind::Float, device)) * 2.0 - 1.0;
+    let time = |f: &mut dyn FnMut() -> Result<Tensor>| -> Result<(f64, Tensor)> {
+        let start = Instant::now();
+        let out = tch::no_grad(|| f())?;
+        sync(device);
+        Ok((start.elapsed().as_secs_f64(), out))
+    };
+    let mut latents = None;
+    for i in 0..args.iters {
+        let (te, z) = time(&mut || vae.encode(&video))?;
+        let (td, x) = time(&mut || vae.decode(&z))?;
+        ensure!(x.size()[2] == args.frames, "decoded {} frames", x.size()[2]);
+        println!(
+            "bench-vae iter {i}: encode {}x{}x{} {:?} -> {:?} in {te:.3}s; decode in {td:.3}s",
+            args.frames, args.height, args.width, args.dtype, z.size()
+        );
+        latents = Some(z);
+    }
+    if args.stream_seconds > 0.0 {
+        let z = latents.expect("at least one iteration");
+        let frames = (args.stream_seconds * args.fps).ceil() as i64;
+        let chunks = (frames - 1 + 3) / 4 + 1;
+        let mut stream = vae.decoder_stream();
+        let start = Instant::now();
+        let mut produced = 0;
+        for i in 0..chunks {
+            let latent = z.narrow(2, i % z.size()[2], 1);
+            let out = tch::no_grad(|| stream.next(&latent))?.to_device(Device::Cpu);
+            produced += out.size()[2];
+            if i == 0 || (i + 1) % 20 == 0 || i + 1 == chunks {
+                sync(device);
+                println!(
+                    "stream-decode chunk {}/{chunks} at {:.2}s: {produced} frames so far, feature cache {:.1} MiB",
+                    i + 1,
+                    start.elapsed().as_secs_f64(),
+                    stream.cache_bytes() as f64 / (1 << 20) as f64
+                );
+            }
+        }
+        println!(
+            "stream-decode: {produced} frames ({:.1} s at {} fps) of {}x{} in {:.2}s",
+            produced as f64 / args.fps, args.fps, args.height, args.width, start.elapsed().as_secs_f64()
+        );
+    }
+    Ok(())
+}

@@ -22,6 +22,8 @@ enum Command {
     Info(bench::InfoArgs),
     /// Time the DiT forward on random weights of a preset at a given clip size.
     BenchForward(bench::BenchForwardArgs),
+    /// Time the Wan2.2 VAE encode/decode on random weights, then a long streaming decode.
+    BenchVae(bench::BenchVaeArgs),
 }
 
 fn main() {
@@ -30,6 +32,7 @@ fn main() {
         Command::Demo(a) => demo::run(a),
         Command::Info(a) => bench::info(a),
         Command::BenchForward(a) => bench::forward(a),
+        Command::BenchVae(a) => bench::vae(a),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

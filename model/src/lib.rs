@@ -6,6 +6,7 @@ pub mod bwm;
 pub mod config;
 pub mod dit;
 pub mod nn;
+pub mod pth;
 pub mod rope;
 pub mod sampler;
 pub mod schedule;

@@ -690,10 +690,10 @@ impl WanVae {
         Ok((Self::new(&store.root(), cfg)?, store))
     }
 
-    /// Weights by name (the keys of `Wan2.2_VAE.pth`) from safetensors.
+    /// Weights by name (the keys of `Wan2.2_VAE.pth`) from the `.pth` itself or safetensors.
     pub fn load(path: &std::path::Path, cfg: &VaeConfig, kind: Kind, device: tch::Device) -> Result<Self> {
-        let source = crate::weights::SafetensorsSource::open(path)?;
-        let store = crate::vb::ParamStore::from_weights(Box::new(source), &[], kind, device);
+        let source = crate::weights::open_source(path)?;
+        let store = crate::vb::ParamStore::from_weights(source, &[], kind, device);
         let vae = Self::new(&store.root(), cfg)?;
         store.check_all_consumed()?;
         Ok(vae)

@@ -1,0 +1,107 @@
+//! `.pth` files written by PyTorch's own `torch.save` (the project virtualenv's torch, driven by
+//! a small Python helper below) read by the Rust loader.
+
+mod common;
+
+use std::path::Path;
+use std::process::Command;
+
+use bwm_model::pth::PthSource;
+use bwm_model::vae::{VaeConfig, WanVae};
+use common::{rel_err, tmp_dir};
+use tch::{Device, Kind, Tensor};
+
+/// Python of the project virtualenv (scripts/env.sh exports VIRTUAL_ENV; BWM_VENV also works).
+fn python() -> String {
+    for var in ["VIRTUAL_ENV", "BWM_VENV"] {
+        if let Some(v) = std::env::var_os(var) {
+            let p = Path::new(&v).join("bin/python");
+            if p.exists() {
+                return p.display().to_string();
+            }
+        }
+    }
+    panic!("run the tests through `make test` (or `source scripts/env.sh`) so the virtualenv's python with torch is found");
+}
+
+/// Converts a safetensors file to a `.pth` with torch.save; `extras` adds a bf16 tensor, a
+/// transposed (non-contiguous) view and a view sharing its storage with another tensor.
+fn torch_save(from: &Path, to: &Path, wrap: Option<&str>) {
+    let script = r#"
+import sys, collections, torch
+from safetensors.torch import load_file
+sd = collections.OrderedDict(sorted(load_file(sys.argv[1]).items()))
+base = torch.arange(24, dtype=torch.float32).reshape(4, 6)
+sd["extra.bf16"] = (base / 7).to(torch.bfloat16)
+sd["extra.transposed"] = base.t()
+sd["extra.row_view"] = base[2]
+sd["extra.base"] = base
+obj = {sys.argv[3]: sd} if sys.argv[3] != "-" else sd
+torch.save(obj, sys.argv[2])
+"#;
+    let status = Command::new(python())
+        .args(["-c", script, &from.display().to_string(), &to.display().to_string(), wrap.unwrap_or("-")])
+        .status()
+        .unwrap();
+    assert!(status.success(), "torch.save helper failed");
+}
+
+#[test]
+fn torch_saved_state_dicts_load() {
+    let dir = tmp_dir("pth");
+    let cfg = VaeConfig::with_width(8, 8);
+    let (vae, store) = WanVae::random(&cfg, Kind::Float, Device::Cpu, 9).unwrap();
+    let st = dir.join("vae.safetensors");
+    Tensor::write_safetensors(&store.named_parameters(), &st).unwrap();
+    let pth = dir.join("Wan2.2_VAE.pth");
+    torch_save(&st, &pth, None);
+
+    let source = PthSource::open(&pth).unwrap();
+    let t = source.tensors();
+    for (name, original) in store.named_parameters() {
+        assert_eq!(rel_err(&t[&name], &original), 0.0, "{name}");
+    }
+    let base = Tensor::arange(24, (Kind::Float, Device::Cpu)).reshape([4, 6]);
+    assert_eq!(t["extra.bf16"].kind(), Kind::BFloat16);
+    assert_eq!(rel_err(&t["extra.transposed"], &base.tr()), 0.0);
+    assert_eq!(rel_err(&t["extra.row_view"], &base.get(2)), 0.0);
+
+    // The VAE loads straight from the .pth (extra keys make a strict load fail, so strip them).
+    let clean = dir.join("clean.pth");
+    let clean_st = dir.join("clean.safetensors");
+    Tensor::write_safetensors(&store.named_parameters(), &clean_st).unwrap();
+    let script = "import sys, torch\nfrom safetensors.torch import load_file\ntorch.save(load_file(sys.argv[1]), sys.argv[2])";
+    assert!(Command::new(python()).args(["-c", script, &clean_st.display().to_string(), &clean.display().to_string()]).status().unwrap().success());
+    let loaded = WanVae::load(&clean, &cfg, Kind::Float, Device::Cpu).unwrap();
+    tch::manual_seed(1);
+    let video = Tensor::rand([1, 3, 5, 32, 32], (Kind::Float, Device::Cpu)) * 2.0 - 1.0;
+    let (a, b) = tch::no_grad(|| (vae.encode(&video).unwrap(), loaded.encode(&video).unwrap()));
+    assert_eq!(rel_err(&a, &b), 0.0);
+    let e = format!("{:#}", WanVae::load(&pth, &cfg, Kind::Float, Device::Cpu).err().unwrap());
+    assert!(e.contains("unexpected key 'extra."), "{e}");
+
+    // A state dict wrapped as {"state_dict": ...} is found.
+    let wrapped = dir.join("wrapped.pth");
+    torch_save(&st, &wrapped, Some("state_dict"));
+    assert!(PthSource::open(&wrapped).unwrap().tensors().contains_key("encoder.conv1.weight"));
+}
+
+#[test]
+fn broken_pth_files_are_clear_errors() {
+    let dir = tmp_dir("pth-bad");
+    let cfg = VaeConfig::with_width(8, 8);
+    let (_, store) = WanVae::random(&cfg, Kind::Float, Device::Cpu, 10).unwrap();
+    let st = dir.join("vae.safetensors");
+    Tensor::write_safetensors(&store.named_parameters(), &st).unwrap();
+    let pth = dir.join("vae.pth");
+    torch_save(&st, &pth, None);
+    let bytes = std::fs::read(&pth).unwrap();
+    let cut = dir.join("cut.pth");
+    std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
+    let e = format!("{}", PthSource::open(&cut).err().unwrap());
+    assert!(e.contains("cut.pth"), "{e}");
+    let text = dir.join("text.pth");
+    std::fs::write(&text, b"not a zip").unwrap();
+    let e = format!("{}", PthSource::open(&text).err().unwrap());
+    assert!(e.contains("text.pth") && e.contains("not a PyTorch zip archive"), "{e}");
+}

@@ -34,10 +34,9 @@ pub fn info(args: InfoArgs) -> Result<()> {
     Ok(())
 }
 
+/// Where and at what clip size a benchmark runs.
 #[derive(Args)]
-pub struct BenchForwardArgs {
-    #[arg(long, default_value = "wan22_ti2v_5b")]
-    preset: String,
+pub struct BenchRun {
     #[arg(long, default_value = "cuda")]
     device: String,
     #[arg(long, default_value = "bf16")]
@@ -49,6 +48,14 @@ pub struct BenchForwardArgs {
     height: i64,
     #[arg(long, default_value_t = 640)]
     width: i64,
+}
+
+#[derive(Args)]
+pub struct BenchForwardArgs {
+    #[arg(long, default_value = "wan22_ti2v_5b")]
+    preset: String,
+    #[command(flatten)]
+    run: BenchRun,
     /// Condition latents (x0 + history) that get timestep 0.
     #[arg(long, default_value_t = 3)]
     condition_latents: i64,
@@ -61,13 +68,13 @@ pub struct BenchForwardArgs {
 }
 
 pub fn forward(args: BenchForwardArgs) -> Result<()> {
-    let device = parse_device(&args.device)?;
-    let kind = parse_kind(&args.dtype)?;
+    let device = parse_device(&args.run.device)?;
+    let kind = parse_kind(&args.run.dtype)?;
     let cfg = ModelConfig::preset(&args.preset)?;
-    ensure!(args.frames % 4 == 1, "--frames {} must be 1+4k", args.frames);
-    ensure!(args.height % 32 == 0 && args.width % 32 == 0, "--height and --width must be multiples of 32");
-    let latent_frames = (args.frames - 1) / 4 + 1;
-    let (lh, lw) = (args.height / 16, args.width / 16);
+    ensure!(args.run.frames % 4 == 1, "--frames {} must be 1+4k", args.run.frames);
+    ensure!(args.run.height % 32 == 0 && args.run.width % 32 == 0, "--height and --width must be multiples of 32");
+    let latent_frames = (args.run.frames - 1) / 4 + 1;
+    let (lh, lw) = (args.run.height / 16, args.run.width / 16);
     let tokens = latent_frames * (lh / 2) * (lw / 2);
     let t0 = Instant::now();
     let model = BwmModel::random(&cfg, kind, device, 0)?;
@@ -75,7 +82,7 @@ pub fn forward(args: BenchForwardArgs) -> Result<()> {
     eprintln!("built {} random weights ({} parameters) in {:.1}s", args.preset, model.store.num_parameters(), t0.elapsed().as_secs_f64());
 
     let latents = Tensor::randn([args.batch, cfg.dit.in_dim, latent_frames, lh, lw], (Kind::Float, device));
-    let actions = Tensor::rand([args.batch, args.frames, cfg.action.action_dim], (Kind::Float, device)) * 2.0 - 1.0;
+    let actions = Tensor::rand([args.batch, args.run.frames, cfg.action.action_dim], (Kind::Float, device)) * 2.0 - 1.0;
     let t = frame_timesteps(&Tensor::full([args.batch], 700.0, (Kind::Float, device)), latent_frames, args.condition_latents);
     let mut times = Vec::new();
     for i in 0..args.warmup + args.iters {
@@ -94,14 +101,14 @@ pub fn forward(args: BenchForwardArgs) -> Result<()> {
     // 4*N^2*D for self-attention; here the context is the action tokens, so count it exactly.
     let d = cfg.dit.dim as f64;
     let n = (tokens * args.batch) as f64;
-    let lc = args.frames as f64;
+    let lc = args.run.frames as f64;
     let per_block = n * (2.0 * 4.0 * d * d + 2.0 * 2.0 * d * d + 2.0 * 2.0 * d * cfg.dit.ffn_dim as f64 + 4.0 * lc * d)
         + 2.0 * 2.0 * lc * d * d * args.batch as f64
         + 4.0 * (tokens as f64).powi(2) * d * args.batch as f64;
     let flops = per_block * cfg.dit.num_layers as f64;
     println!(
         "bench-forward preset={} device={:?} dtype={} clip={}x{}x{} latents=[{},{},{},{},{}] tokens={} : mean {:.4}s min {:.4}s over {} iters, {:.1} TFLOP/s (model FLOPs {:.2} TFLOP)",
-        args.preset, device, args.dtype, args.frames, args.height, args.width,
+        args.preset, device, args.run.dtype, args.run.frames, args.run.height, args.run.width,
         args.batch, cfg.dit.in_dim, latent_frames, lh, lw, tokens, mean, min, times.len(), flops / mean / 1e12, flops / 1e12
     );
     Ok(())
@@ -115,17 +122,8 @@ fn sync(device: Device) {
 
 #[derive(Args)]
 pub struct BenchVaeArgs {
-    #[arg(long, default_value = "cuda")]
-    device: String,
-    #[arg(long, default_value = "bf16")]
-    dtype: String,
-    /// Pixel frames to encode and decode (1+4k).
-    #[arg(long, default_value_t = 81)]
-    frames: i64,
-    #[arg(long, default_value_t = 480)]
-    height: i64,
-    #[arg(long, default_value_t = 640)]
-    width: i64,
+    #[command(flatten)]
+    run: BenchRun,
     #[arg(long, default_value_t = 3)]
     iters: usize,
     /// Then stream-decode this many seconds of video (0 to skip), moving frames to the host.
@@ -137,10 +135,10 @@ pub struct BenchVaeArgs {
 
 pub fn vae(args: BenchVaeArgs) -> Result<()> {
     use bwm_model::vae::{VaeConfig, WanVae};
-    let device = parse_device(&args.device)?;
-    let kind = parse_kind(&args.dtype)?;
+    let device = parse_device(&args.run.device)?;
+    let kind = parse_kind(&args.run.dtype)?;
     let (vae, _store) = WanVae::random(&VaeConfig::wan22(), kind, device, 0)?;
-    let video = Tensor::rand([1, 3, args.frames, args.height, args.width], (Kind::Float, device)) * 2.0 - 1.0;
+    let video = Tensor::rand([1, 3, args.run.frames, args.run.height, args.run.width], (Kind::Float, device)) * 2.0 - 1.0;
     let time = |f: &mut dyn FnMut() -> Result<Tensor>| -> Result<(f64, Tensor)> {
         let start = Instant::now();
         let out = tch::no_grad(|| f())?;
@@ -151,10 +149,10 @@ pub fn vae(args: BenchVaeArgs) -> Result<()> {
     for i in 0..args.iters {
         let (te, z) = time(&mut || vae.encode(&video))?;
         let (td, x) = time(&mut || vae.decode(&z))?;
-        ensure!(x.size()[2] == args.frames, "decoded {} frames", x.size()[2]);
+        ensure!(x.size()[2] == args.run.frames, "decoded {} frames", x.size()[2]);
         println!(
             "bench-vae iter {i}: encode {}x{}x{} {:?} -> {:?} in {te:.3}s; decode in {td:.3}s",
-            args.frames, args.height, args.width, args.dtype, z.size()
+            args.run.frames, args.run.height, args.run.width, args.run.dtype, z.size()
         );
         latents = Some(z);
     }
@@ -181,7 +179,7 @@ pub fn vae(args: BenchVaeArgs) -> Result<()> {
         }
         println!(
             "stream-decode: {produced} frames ({:.1} s at {} fps) of {}x{} in {:.2}s",
-            produced as f64 / args.fps, args.fps, args.height, args.width, start.elapsed().as_secs_f64()
+            produced as f64 / args.fps, args.fps, args.run.height, args.run.width, start.elapsed().as_secs_f64()
         );
     }
     Ok(())

@@ -699,3 +699,64 @@ impl WanVae {
         Ok(vae)
     }
 }
+
+/// The diffusers `AutoencoderKLWan` name of a `Wan2.2_VAE.pth` key (spec section 6.10).
+pub fn diffusers_key(wan: &str) -> String {
+    let parts: Vec<&str> = wan.split('.').collect();
+    let resnet = |rest: &[&str]| -> String {
+        let tail = rest.join(".");
+        match rest.first().copied() {
+            Some("residual") => {
+                let layer = match rest.get(1).copied() {
+                    Some("0") => "norm1",
+                    Some("2") => "conv1",
+                    Some("3") => "norm2",
+                    _ => "conv2",
+                };
+                format!("{layer}.{}", rest[2..].join("."))
+            }
+            Some("shortcut") => format!("conv_shortcut.{}", rest[1..].join(".")),
+            _ => tail,
+        }
+    };
+    let middle = |side: &str, rest: &[&str]| -> String {
+        match rest[0] {
+            "1" => format!("{side}.mid_block.attentions.0.{}", rest[1..].join(".")),
+            i => format!("{side}.mid_block.resnets.{}.{}", if i == "0" { 0 } else { 1 }, resnet(&rest[1..])),
+        }
+    };
+    match parts.as_slice() {
+        ["conv1", rest @ ..] => format!("quant_conv.{}", rest.join(".")),
+        ["conv2", rest @ ..] => format!("post_quant_conv.{}", rest.join(".")),
+        [side, "conv1", rest @ ..] => format!("{side}.conv_in.{}", rest.join(".")),
+        [side, "head", "0", rest @ ..] => format!("{side}.norm_out.{}", rest.join(".")),
+        [side, "head", "2", rest @ ..] => format!("{side}.conv_out.{}", rest.join(".")),
+        [side, "middle", rest @ ..] => middle(side, rest),
+        [side, stage @ ("downsamples" | "upsamples"), i, _, j, rest @ ..] => {
+            let (blocks, sampler) = if *stage == "downsamples" { ("down_blocks", "downsampler") } else { ("up_blocks", "upsampler") };
+            if rest.first().is_some_and(|r| *r == "resample" || *r == "time_conv") {
+                format!("{side}.{blocks}.{i}.{sampler}.{}", rest.join("."))
+            } else {
+                format!("{side}.{blocks}.{i}.resnets.{j}.{}", resnet(rest))
+            }
+        }
+        _ => wan.to_string(),
+    }
+}
+
+impl WanVae {
+    /// Weights from a diffusers `AutoencoderKLWan` safetensors file (renamed to Wan names).
+    pub fn load_diffusers(path: &std::path::Path, cfg: &VaeConfig, kind: Kind, device: tch::Device) -> Result<Self> {
+        let shapes = crate::vb::ParamStore::shapes_only(Kind::Float);
+        Self::new(&shapes.root(), cfg)?;
+        let to_wan: std::collections::BTreeMap<String, String> =
+            shapes.named_parameters().into_iter().map(|(n, _)| (diffusers_key(&n), n)).collect();
+        let source = crate::weights::RenamedSource::new(crate::weights::SafetensorsSource::open(path)?, |k| {
+            Some(to_wan.get(k).cloned().unwrap_or_else(|| k.to_string()))
+        });
+        let store = crate::vb::ParamStore::from_weights(Box::new(source), &[], kind, device);
+        let vae = Self::new(&store.root(), cfg)?;
+        store.check_all_consumed()?;
+        Ok(vae)
+    }
+}

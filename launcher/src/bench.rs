@@ -1,4 +1,4 @@
-//! `bwm info` and `bwm bench-forward`.
+//! `bwm info`, `bwm bench-forward` and `bwm bench-vae`.
 
 use std::time::Instant;
 
@@ -50,6 +50,12 @@ pub struct BenchRun {
     width: i64,
 }
 
+impl BenchRun {
+    fn device_and_kind(&self) -> Result<(Device, Kind)> {
+        Ok((parse_device(&self.device)?, parse_kind(&self.dtype)?))
+    }
+}
+
 #[derive(Args)]
 pub struct BenchForwardArgs {
     #[arg(long, default_value = "wan22_ti2v_5b")]
@@ -68,8 +74,7 @@ pub struct BenchForwardArgs {
 }
 
 pub fn forward(args: BenchForwardArgs) -> Result<()> {
-    let device = parse_device(&args.run.device)?;
-    let kind = parse_kind(&args.run.dtype)?;
+    let (device, kind) = args.run.device_and_kind()?;
     let cfg = ModelConfig::preset(&args.preset)?;
     ensure!(args.run.frames % 4 == 1, "--frames {} must be 1+4k", args.run.frames);
     ensure!(args.run.height % 32 == 0 && args.run.width % 32 == 0, "--height and --width must be multiples of 32");
@@ -135,8 +140,7 @@ pub struct BenchVaeArgs {
 
 pub fn vae(args: BenchVaeArgs) -> Result<()> {
     use bwm_model::vae::{VaeConfig, WanVae};
-    let device = parse_device(&args.run.device)?;
-    let kind = parse_kind(&args.run.dtype)?;
+    let (device, kind) = args.run.device_and_kind()?;
     let (vae, _store) = WanVae::random(&VaeConfig::wan22(), kind, device, 0)?;
     let video = Tensor::rand([1, 3, args.run.frames, args.run.height, args.run.width], (Kind::Float, device)) * 2.0 - 1.0;
     let time = |f: &mut dyn FnMut() -> Result<Tensor>| -> Result<(f64, Tensor)> {

@@ -79,7 +79,7 @@ impl BwmModel {
     ) -> Result<Tensor> {
         let emb = self.action_encoder.forward(actions)?;
         let action_frames = emb.frame.size()[1];
-        let latent_frames = latents.size().get(2).copied().unwrap_or(0) / self.cfg.dit.patch_size[0];
+        let (latent_frames, _, _) = self.dit.token_grid(latents)?;
         ensure!(
             action_frames == latent_frames,
             "actions for {} pixel frames cover {action_frames} latent frames, but the latents have {latent_frames}",

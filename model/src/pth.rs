@@ -366,11 +366,7 @@ impl WeightSource for PthSource {
         self.tensors.get(name).map(|t| t.size())
     }
     fn load(&self, name: &str, kind: Kind, device: Device) -> Result<Tensor, WeightsError> {
-        let t = self.tensors.get(name).ok_or_else(|| WeightsError::Missing {
-            file: self.describe(),
-            key: name.to_string(),
-            expected: vec![],
-        })?;
+        let t = self.tensors.get(name).ok_or_else(|| WeightsError::missing(self.describe(), name))?;
         Ok(t.to_device(device).to_kind(kind))
     }
 }

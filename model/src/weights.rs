@@ -25,6 +25,13 @@ pub enum WeightsError {
     File { file: String, message: String },
 }
 
+impl WeightsError {
+    /// A key the model asked for that the file does not hold.
+    pub fn missing(file: String, key: &str) -> Self {
+        WeightsError::Missing { file, key: key.to_string(), expected: vec![] }
+    }
+}
+
 /// Anything tensors can be read from by checkpoint name.
 pub trait WeightSource {
     /// Names the file(s), for error messages.
@@ -165,11 +172,7 @@ impl WeightSource for SafetensorsSource {
     }
 
     fn load(&self, name: &str, kind: Kind, device: Device) -> Result<Tensor, WeightsError> {
-        let entry = self.entries.get(name).ok_or_else(|| WeightsError::Missing {
-            file: self.description.clone(),
-            key: name.to_string(),
-            expected: vec![],
-        })?;
+        let entry = self.entries.get(name).ok_or_else(|| WeightsError::missing(self.describe(), name))?;
         let (path, mmap) = &self.files[entry.file];
         let tensors = SafeTensors::deserialize(mmap).map_err(|e| file_error(path, e))?;
         let view = tensors.tensor(name).map_err(|e| file_error(path, e))?;
@@ -210,11 +213,7 @@ impl<S: WeightSource> WeightSource for RenamedSource<S> {
         self.to_file.get(name).and_then(|f| self.inner.shape(f))
     }
     fn load(&self, name: &str, kind: Kind, device: Device) -> Result<Tensor, WeightsError> {
-        let file_name = self.to_file.get(name).ok_or_else(|| WeightsError::Missing {
-            file: self.describe(),
-            key: name.to_string(),
-            expected: vec![],
-        })?;
+        let file_name = self.to_file.get(name).ok_or_else(|| WeightsError::missing(self.describe(), name))?;
         self.inner.load(file_name, kind, device)
     }
 }

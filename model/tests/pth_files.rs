@@ -24,6 +24,13 @@ fn python() -> String {
     panic!("run the tests through `make test` (or `source scripts/env.sh`) so the virtualenv's python with torch is found");
 }
 
+/// Runs a Python snippet with the virtualenv's torch; panics if it fails.
+fn run_python(script: &str, args: &[&Path]) {
+    let args: Vec<String> = args.iter().map(|p| p.display().to_string()).collect();
+    let status = Command::new(python()).arg("-c").arg(script).args(&args).status().unwrap();
+    assert!(status.success(), "python helper failed");
+}
+
 /// Converts a safetensors file to a `.pth` with torch.save; `extras` adds a bf16 tensor, a
 /// transposed (non-contiguous) view and a view sharing its storage with another tensor.
 fn torch_save(from: &Path, to: &Path, wrap: Option<&str>) {
@@ -39,11 +46,7 @@ sd["extra.base"] = base
 obj = {sys.argv[3]: sd} if sys.argv[3] != "-" else sd
 torch.save(obj, sys.argv[2])
 "#;
-    let status = Command::new(python())
-        .args(["-c", script, &from.display().to_string(), &to.display().to_string(), wrap.unwrap_or("-")])
-        .status()
-        .unwrap();
-    assert!(status.success(), "torch.save helper failed");
+    run_python(script, &[from, to, Path::new(wrap.unwrap_or("-"))]);
 }
 
 #[test]
@@ -71,7 +74,7 @@ fn torch_saved_state_dicts_load() {
     let clean_st = dir.join("clean.safetensors");
     Tensor::write_safetensors(&store.named_parameters(), &clean_st).unwrap();
     let script = "import sys, torch\nfrom safetensors.torch import load_file\ntorch.save(load_file(sys.argv[1]), sys.argv[2])";
-    assert!(Command::new(python()).args(["-c", script, &clean_st.display().to_string(), &clean.display().to_string()]).status().unwrap().success());
+    run_python(script, &[&clean_st, &clean]);
     let loaded = WanVae::load(&clean, &cfg, Kind::Float, Device::Cpu).unwrap();
     tch::manual_seed(1);
     let video = Tensor::rand([1, 3, 5, 32, 32], (Kind::Float, Device::Cpu)) * 2.0 - 1.0;

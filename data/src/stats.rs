@@ -52,11 +52,31 @@ impl ActionStats {
         x.iter()
             .enumerate()
             .map(|(i, &v)| {
-                let (lo, hi) = if self.p99[i] > self.p01[i] { (self.p01[i], self.p99[i]) } else { (self.min[i], self.max[i]) };
+                let (lo, hi) = self.range(i);
                 let n = 2.0 * (v as f64 - lo) / (hi - lo + 1e-8) - 1.0;
                 n.clamp(-1.0, 1.0) as f32
             })
             .collect()
+    }
+
+    /// The inverse of `normalize` for values in [-1, 1] (values clipped there come back as the
+    /// range's ends).
+    pub fn denormalize(&self, y: &[f32]) -> Vec<f32> {
+        y.iter()
+            .enumerate()
+            .map(|(i, &v)| {
+                let (lo, hi) = self.range(i);
+                ((f64::from(v) + 1.0) / 2.0 * (hi - lo + 1e-8) + lo) as f32
+            })
+            .collect()
+    }
+
+    fn range(&self, i: usize) -> (f64, f64) {
+        if self.p99[i] > self.p01[i] {
+            (self.p01[i], self.p99[i])
+        } else {
+            (self.min[i], self.max[i])
+        }
     }
 }
 
@@ -289,6 +309,9 @@ mod tests {
         assert!((n[0] - 1.0).abs() < 1e-6);
         assert!((n[1] - 1.0).abs() < 1e-6, "empty p01..p99 falls back to min..max");
         assert_eq!(s.normalize(&[-3.0, 0.0]), vec![-1.0, -1.0]);
+        let x = [0.25f32, 0.75];
+        let back = s.denormalize(&s.normalize(&x));
+        assert!(back.iter().zip(&x).all(|(a, b)| (a - b).abs() < 1e-6), "{back:?}");
     }
 
     #[test]

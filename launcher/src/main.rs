@@ -10,6 +10,7 @@ mod prepare;
 mod stats;
 mod train;
 mod train_vae;
+mod world_model;
 
 use anyhow::Result;
 use clap::{Parser, Subcommand};

@@ -8,14 +8,15 @@ use crate::bwm::{frame_timesteps, BwmModel};
 use crate::schedule::FlowSchedule;
 
 /// Samples latents [B, C, F, H, W] from `noise` of that shape. `prefix` [B, C, P, H, W] holds the
-/// condition latents (timestep 0); `actions` [B, 1+4k, d_a]. `on_step(i, velocity)` sees each step.
+/// condition latents (timestep 0); `actions` [B, 1+4k, d_a]. `on_step(i, model_input, velocity)` sees
+/// each step.
 pub fn sample_chunk(
     model: &BwmModel,
     prefix: &Tensor,
     noise: &Tensor,
     actions: &Tensor,
     schedule: &FlowSchedule,
-    on_step: &mut dyn FnMut(usize, &Tensor),
+    on_step: &mut dyn FnMut(usize, &Tensor, &Tensor),
 ) -> Result<Tensor> {
     let (ps, ns) = (prefix.size(), noise.size());
     ensure!(
@@ -29,7 +30,7 @@ pub fn sample_chunk(
         latents = Tensor::cat(&[prefix.shallow_clone(), latents.narrow(2, p, future)], 2);
         let t = Tensor::full([b], schedule.timesteps[i], (tch::Kind::Float, noise.device()));
         let v = model.forward(&latents, &frame_timesteps(&t, frames, p), actions)?;
-        on_step(i, &v);
+        on_step(i, &latents, &v);
         latents = schedule.euler_step(&latents, &v, i);
     }
     Ok(Tensor::cat(&[prefix.shallow_clone(), latents.narrow(2, p, future)], 2))

@@ -7,7 +7,8 @@ pub mod devices;
 pub mod dist;
 pub mod flops;
 pub mod image_metrics;
-pub mod keyed_rng;
+/// Keyed random draws live with the model (the rollout sampler uses them too).
+pub use bwm_model::keyed_rng;
 pub mod metrics;
 pub mod objective;
 pub mod optim;

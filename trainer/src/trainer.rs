@@ -217,13 +217,21 @@ impl Trainer {
 
     /// Trains to `train.steps`, checkpointing and validating as configured.
     pub fn run(&mut self) -> Result<()> {
+        self.run_until(&std::sync::atomic::AtomicBool::new(false)).map(|_| ())
+    }
+
+    /// As [`Trainer::run`], and after each optimizer step the ranks agree whether any of them saw
+    /// `stop` set (a signal): then they all stop at that step, rank 0 checkpoints it, and the
+    /// checkpoint folder is returned. `None` when the run reached `train.steps`.
+    pub fn run_until(&mut self, stop: &std::sync::atomic::AtomicBool) -> Result<Option<PathBuf>> {
         let total = self.cfg.train.steps;
         if self.state.step >= total {
             println!("run already at step {} of {total}; nothing to do", self.state.step);
-            return Ok(());
+            return Ok(None);
         }
         let lead = self.comm.rank() == 0;
         let mut progress = Progress::new(self.state.step, total, self.cfg.log.progress && lead);
+        let mut stopped = None;
         while self.state.step < total {
             let m = self.train_step()?;
             progress.update(self.state.step, &m);
@@ -237,22 +245,35 @@ impl Trainer {
                 let report = validation::run(self, step)?;
                 progress.println(&report.summary_line(step));
             }
+            self.history.push(m);
+            let mut requested = stop.load(std::sync::atomic::Ordering::SeqCst);
+            if self.comm.world_size() > 1 {
+                let mut flag = Tensor::from_slice(&[requested as i32 as f32]).to_device(self.device);
+                self.comm.all_reduce_sum(&mut flag).context("agreeing whether a rank was asked to stop")?;
+                requested = flag.double_value(&[0]) > 0.0;
+            }
             let ck = self.cfg.checkpoint.every;
-            if (ck > 0 && step % ck == 0) || step == total {
+            if (ck > 0 && step % ck == 0) || step == total || requested {
                 // The optimizer state is replicated: rank 0 writes, the others wait for it.
-                if lead {
+                let dir = if lead {
                     let dir = self.save_checkpoint()?;
                     progress.println(&format!("checkpoint {}", dir.display()));
-                }
+                    dir
+                } else {
+                    self.checkpoints.root.join(format!("step-{step:08}"))
+                };
                 self.comm.barrier().context("waiting for the checkpoint of rank 0")?;
+                if requested && step < total {
+                    stopped = Some(dir);
+                    break;
+                }
             }
-            self.history.push(m);
         }
         progress.finish();
         if let Some(ev) = self.events.as_mut() {
             ev.flush()?;
         }
-        Ok(())
+        Ok(stopped)
     }
 
     /// One optimizer step over `grad_accum` micro-batches.

@@ -49,7 +49,7 @@ pub fn rollout_clip(trainer: &Trainer, clean: &Tensor, actions: &Tensor, key: u6
     let schedule = FlowSchedule::inference(steps, trainer.cfg.objective.shift);
     let kind = trainer.model.store.kind();
     let out = tch::no_grad(|| {
-        sample_chunk(&trainer.model, &prefix.to_kind(kind), &noise.to_kind(kind), actions, &schedule, &mut |_, _| {})
+        sample_chunk(&trainer.model, &prefix.to_kind(kind), &noise.to_kind(kind), actions, &schedule, &mut |_, _, _| {})
     })?;
     Ok(out.to_kind(Kind::Float))
 }

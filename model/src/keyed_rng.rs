@@ -15,6 +15,8 @@ pub enum Purpose {
     Shuffle = 4,
     Validation = 5,
     Augment = 6,
+    RolloutNoise = 7,
+    RolloutHistoryNoise = 8,
 }
 
 pub fn rng(seed: u64, index: u64, purpose: Purpose) -> ChaCha12Rng {

@@ -1,0 +1,169 @@
+//! What `bwm rollout`, `bwm evaluate` and `bwm serve` share: the trained model, the VAE, the
+//! action statistics and the rollout settings, from one set of flags.
+
+use std::path::PathBuf;
+
+use anyhow::{bail, ensure, Context, Result};
+use bwm_data::ActionStats;
+use bwm_model::rollout::{default_history_sigma, Rollout, RolloutSpec};
+use bwm_model::vae::{VaeConfig, WanVae};
+use bwm_model::{BwmModel, ModelConfig};
+use bwm_trainer::devices::{parse_device, parse_kind};
+use clap::Args;
+use tch::{Device, Kind, Tensor};
+
+#[derive(Args, Clone, Debug)]
+pub struct WorldModelArgs {
+    /// Trained BWM weights: a checkpoint folder or file, or an exported repo (local or Hub id), in
+    /// any layout `bwm convert` knows.
+    #[arg(long, required_unless_present = "random_weights")]
+    pub checkpoint: Option<String>,
+    /// Random weights of a model preset instead of a checkpoint (timing and smoke tests only).
+    #[arg(long, conflicts_with = "checkpoint", value_name = "PRESET")]
+    pub random_weights: Option<String>,
+    /// Model preset when the checkpoint carries no config (tiny, wan22_ti2v_5b).
+    #[arg(long)]
+    pub model_preset: Option<String>,
+    /// VAE weights: Wan2.2_VAE.pth, its safetensors, or a `bwm train-vae` output.
+    #[arg(long, required_unless_present = "random_vae")]
+    pub vae: Option<PathBuf>,
+    /// A random full-width Wan2.2 VAE instead (timing only).
+    #[arg(long, conflicts_with = "vae")]
+    pub random_vae: bool,
+    /// The stat.json the model was trained with (turns raw actions into the model's [-1, 1]).
+    #[arg(long)]
+    pub stats: Option<PathBuf>,
+    /// Statistics group of the action definition (state_pose for eef_abs).
+    #[arg(long, default_value = "state_pose")]
+    pub stats_group: String,
+    #[arg(long, default_value = "auto")]
+    pub device: String,
+    /// Weights and activations: auto (bf16 on CUDA, f32 on CPU), bf16 or f32.
+    #[arg(long, default_value = "auto")]
+    pub dtype: String,
+    /// History frames H in each chunk's condition (the training clips' H).
+    #[arg(long, default_value_t = 8)]
+    pub history: usize,
+    /// Frames K generated per chunk (the training clips' K).
+    #[arg(long, default_value_t = 72)]
+    pub future: usize,
+    /// Euler steps per chunk.
+    #[arg(long, default_value_t = 50)]
+    pub sample_steps: usize,
+    #[arg(long, default_value_t = bwm_model::schedule::DEFAULT_SHIFT)]
+    pub shift: f64,
+    /// Noise level of the history latents (default: the training level, 0.2083); 0 turns it off.
+    #[arg(long)]
+    pub history_sigma: Option<f64>,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+}
+
+pub struct WorldModel {
+    pub model: BwmModel,
+    pub vae: WanVae,
+    pub stats: Option<ActionStats>,
+    pub spec: RolloutSpec,
+    pub device: Device,
+}
+
+impl WorldModelArgs {
+    pub fn spec(&self) -> Result<RolloutSpec> {
+        let sigma = self.history_sigma.unwrap_or_else(default_history_sigma);
+        let spec = RolloutSpec {
+            history: self.history,
+            future: self.future,
+            steps: self.sample_steps,
+            shift: self.shift,
+            history_sigma: (sigma > 0.0).then_some(sigma),
+            seed: self.seed,
+        };
+        spec.validate().context("rollout settings (--history/--future/--sample-steps/--shift/--history-sigma)")?;
+        Ok(spec)
+    }
+
+    pub fn load(&self) -> Result<WorldModel> {
+        let spec = self.spec()?;
+        let device = parse_device(&self.device)?;
+        let kind = match self.dtype.as_str() {
+            "auto" if device.is_cuda() => Kind::BFloat16,
+            "auto" => Kind::Float,
+            s => parse_kind(s)?,
+        };
+        let preset = self.model_preset.as_deref().map(ModelConfig::preset).transpose()?;
+        let model = match (&self.checkpoint, &self.random_weights) {
+            (Some(ckpt), _) => bwm_checkpoints::open::load_model(ckpt, preset.as_ref(), kind, device)
+                .with_context(|| format!("--checkpoint {ckpt}"))?,
+            (None, Some(name)) => BwmModel::random(&ModelConfig::preset(name)?, kind, device, self.seed as i64)?,
+            (None, None) => bail!("pass --checkpoint (trained weights) or --random-weights PRESET"),
+        };
+        let vae = match &self.vae {
+            Some(path) => WanVae::load_any(path, kind, device).with_context(|| format!("--vae {}", path.display()))?,
+            None => WanVae::random(&VaeConfig::wan22(), kind, device, self.seed as i64)?.0,
+        };
+        ensure!(
+            vae.cfg.z_dim == model.cfg.dit.in_dim,
+            "the VAE's latents have {} channels but the model takes {}",
+            vae.cfg.z_dim,
+            model.cfg.dit.in_dim
+        );
+        let stats = match &self.stats {
+            Some(path) => {
+                let s = ActionStats::read(path, &self.stats_group)?;
+                ensure!(
+                    s.dim() as i64 == model.cfg.action.action_dim,
+                    "{} group '{}' has {} dimensions, the model takes {} action values",
+                    path.display(),
+                    self.stats_group,
+                    s.dim(),
+                    model.cfg.action.action_dim
+                );
+                Some(s)
+            }
+            None => None,
+        };
+        Ok(WorldModel { model, vae, stats, spec, device })
+    }
+}
+
+impl WorldModel {
+    pub fn action_dim(&self) -> usize {
+        self.model.cfg.action.action_dim as usize
+    }
+
+    /// Raw action rows to the model's normalized [rows, d_a] tensor (needs --stats).
+    pub fn normalize(&self, rows: &[Vec<f32>]) -> Result<Tensor> {
+        let stats = self.stats.as_ref().context("raw actions need the training statistics: pass --stats stat.json")?;
+        self.rows_to_tensor(rows.iter().map(|r| stats.normalize(r)).collect())
+    }
+
+    /// Normalized rows back to raw units (needs --stats).
+    pub fn denormalize(&self, normalized: &Tensor) -> Result<Vec<Vec<f32>>> {
+        let stats = self.stats.as_ref().context("raw actions need the training statistics: pass --stats stat.json")?;
+        Ok(tensor_rows(normalized)?.iter().map(|r| stats.denormalize(r)).collect())
+    }
+
+    /// Rows already in the model's [-1, 1] space.
+    pub fn rows_to_tensor(&self, rows: Vec<Vec<f32>>) -> Result<Tensor> {
+        let d = self.action_dim();
+        ensure!(!rows.is_empty(), "no action rows");
+        if let Some((i, r)) = rows.iter().enumerate().find(|(_, r)| r.len() != d) {
+            bail!("action row {i} has {} values; the model takes {d}", r.len());
+        }
+        let flat: Vec<f32> = rows.into_iter().flatten().collect();
+        Ok(Tensor::from_slice(&flat).view([-1, d as i64]))
+    }
+
+    /// A rollout from x0 [3, H, W] in [-1, 1] and its normalized action a0 [d_a].
+    pub fn rollout(&self, x0: &Tensor, a0: &Tensor) -> Result<Rollout<'_>> {
+        Rollout::new(&self.model, &self.vae, self.spec.clone(), x0, a0)
+    }
+}
+
+/// A [rows, d] float tensor as rows of f32.
+pub fn tensor_rows(t: &Tensor) -> Result<Vec<Vec<f32>>> {
+    let s = t.size();
+    ensure!(s.len() == 2, "expected [rows, d] actions, got {s:?}");
+    let flat = Vec::<f32>::try_from(t.to_device(Device::Cpu).to_kind(Kind::Float).contiguous().view([-1]))?;
+    Ok(flat.chunks(s[1].max(1) as usize).map(|c| c.to_vec()).collect())
+}

@@ -1,0 +1,259 @@
+//! Autoregressive rollout (the lightweight inference module): from the episode's first frame x0,
+//! optional history frames and a sequence of normalized actions, generate the video chunk by
+//! chunk. Each chunk is conditioned on a freshly encoded clip [x0, h1..hH] of the last H frames
+//! actually shown (generated latents are never reused directly), with the actions that were
+//! actually applied to those frames; slots before the episode start hold x0 and action a0.
+//! Pixel frames are [3, F, H, W] f32 in [-1, 1]; actions are [rows, d_a], normalized.
+
+use std::collections::VecDeque;
+use std::time::Instant;
+
+use anyhow::{ensure, Context, Result};
+use tch::{Device, Kind, Tensor};
+
+use crate::bwm::BwmModel;
+use crate::keyed_rng::{self, Purpose};
+use crate::sampler::sample_chunk;
+use crate::schedule::{FlowSchedule, DEFAULT_SHIFT, NUM_TRAIN_TIMESTEPS};
+use crate::vae::WanVae;
+
+/// The history-noise level the BWM release trains and samples with (`FlowSchedule::history_sigma`).
+pub fn default_history_sigma() -> f64 {
+    FlowSchedule::training(NUM_TRAIN_TIMESTEPS, DEFAULT_SHIFT).history_sigma()
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct RolloutSpec {
+    /// H: history pixel frames in each chunk's condition (a multiple of 4, may be 0).
+    pub history: usize,
+    /// K: pixel frames generated per chunk (a positive multiple of 4).
+    pub future: usize,
+    /// Euler steps per chunk.
+    pub steps: usize,
+    pub shift: f64,
+    /// Noise level of the history latents in the prefix (drawn once per chunk); None: clean.
+    pub history_sigma: Option<f64>,
+    pub seed: u64,
+}
+
+impl RolloutSpec {
+    /// BWM defaults: 50 steps, shift 5, history noise 0.2083.
+    pub fn new(history: usize, future: usize) -> Self {
+        Self { history, future, steps: 50, shift: DEFAULT_SHIFT, history_sigma: Some(default_history_sigma()), seed: 0 }
+    }
+
+    pub fn validate(&self) -> Result<()> {
+        ensure!(self.future > 0 && self.future % 4 == 0, "rollout future {} must be a positive multiple of 4", self.future);
+        ensure!(self.history % 4 == 0, "rollout history {} must be a multiple of 4", self.history);
+        ensure!(self.steps > 0, "rollout needs at least one sampler step");
+        ensure!(self.shift > 0.0, "sampler shift {} must be positive", self.shift);
+        if let Some(s) = self.history_sigma {
+            ensure!((0.0..=1.0).contains(&s), "history sigma {s} must lie in [0, 1]");
+        }
+        Ok(())
+    }
+
+    /// Latent frames of the condition prefix: x0, then H/4 history latents.
+    pub fn condition_latents(&self) -> usize {
+        1 + self.history / 4
+    }
+}
+
+/// One generated chunk and the actions that produced it, row by row.
+pub struct Chunk {
+    /// 0 for the first chunk of the rollout.
+    pub index: usize,
+    /// [3, n, H, W] f32 in [-1, 1] on the CPU; n = the number of actions asked for.
+    pub frames: Tensor,
+    /// [n, d_a] f32 on the CPU.
+    pub actions: Tensor,
+    /// Seconds in the encode of the condition clip, the sampler (DiT) and the decode.
+    pub encode_seconds: f64,
+    pub dit_seconds: f64,
+    pub decode_seconds: f64,
+}
+
+pub struct Rollout<'m> {
+    model: &'m BwmModel,
+    vae: &'m WanVae,
+    spec: RolloutSpec,
+    schedule: FlowSchedule,
+    x0: Tensor,
+    a0: Tensor,
+    /// The last H frames shown ([3, H, W] each, CPU) with the action applied to each.
+    history: VecDeque<(Tensor, Tensor)>,
+    chunks: usize,
+    /// Synchronizes the device before reading a timer (CUDA work is asynchronous).
+    sync: Box<dyn Fn()>,
+}
+
+impl<'m> Rollout<'m> {
+    /// Starts a rollout at the episode's first frame `x0` [3, H, W] with its action `a0` [d_a].
+    pub fn new(model: &'m BwmModel, vae: &'m WanVae, spec: RolloutSpec, x0: &Tensor, a0: &Tensor) -> Result<Self> {
+        spec.validate()?;
+        let d = model.cfg.action.action_dim;
+        let xs = x0.size();
+        ensure!(xs.len() == 3 && xs[0] == 3, "x0 must be [3, H, W], got {xs:?}");
+        ensure!(a0.size() == [d], "a0 must hold {d} action values, got shape {:?}", a0.size());
+        ensure!(
+            xs[1] % 32 == 0 && xs[2] % 32 == 0,
+            "frames are {}x{} (HxW); rollouts need multiples of 32 (DiT patch x VAE stride)",
+            xs[1],
+            xs[2]
+        );
+        let device = model.store.device();
+        let sync: Box<dyn Fn()> = match device {
+            Device::Cuda(i) => Box::new(move || tch::Cuda::synchronize(i as i64)),
+            _ => Box::new(|| {}),
+        };
+        Ok(Self {
+            model,
+            vae,
+            schedule: FlowSchedule::inference(spec.steps, spec.shift),
+            spec,
+            x0: x0.to_device(Device::Cpu).to_kind(Kind::Float),
+            a0: a0.to_device(Device::Cpu).to_kind(Kind::Float),
+            history: VecDeque::new(),
+            chunks: 0,
+            sync,
+        })
+    }
+
+    /// Frames already seen after x0 ([3, T, H, W]) with their actions ([T, d_a]); the last H are
+    /// kept as the first chunk's history.
+    pub fn with_history(mut self, frames: &Tensor, actions: &Tensor) -> Result<Self> {
+        let (fs, as_) = (frames.size(), actions.size());
+        ensure!(
+            fs.len() == 4 && fs[0] == 3 && fs[2..] == self.x0.size()[1..],
+            "history frames must be [3, T, {}, {}], got {fs:?}",
+            self.x0.size()[1],
+            self.x0.size()[2]
+        );
+        ensure!(
+            as_.len() == 2 && as_[0] == fs[1] && as_[1] == self.a0.size()[0],
+            "history actions must be [{}, {}] (one per history frame), got {as_:?}",
+            fs[1],
+            self.a0.size()[0]
+        );
+        for t in 0..fs[1] {
+            self.push(frames.select(1, t), actions.get(t));
+        }
+        Ok(self)
+    }
+
+    pub fn spec(&self) -> &RolloutSpec {
+        &self.spec
+    }
+
+    fn push(&mut self, frame: Tensor, action: Tensor) {
+        self.history.push_back((frame.to_device(Device::Cpu).to_kind(Kind::Float), action.to_device(Device::Cpu).to_kind(Kind::Float)));
+        while self.history.len() > self.spec.history {
+            self.history.pop_front();
+        }
+    }
+
+    /// The condition clip [3, 1+H, H, W] and its actions [1+H, d_a]: x0, then the last H frames,
+    /// padded with x0 (action a0) where fewer have been shown.
+    pub fn condition(&self) -> (Tensor, Tensor) {
+        let pad = self.spec.history - self.history.len();
+        let mut frames: Vec<Tensor> = (0..=pad).map(|_| self.x0.shallow_clone()).collect();
+        let mut actions: Vec<Tensor> = (0..=pad).map(|_| self.a0.shallow_clone()).collect();
+        for (f, a) in &self.history {
+            frames.push(f.shallow_clone());
+            actions.push(a.shallow_clone());
+        }
+        (Tensor::stack(&frames, 1), Tensor::stack(&actions, 0))
+    }
+
+    /// Generates the next chunk for `actions` [n, d_a], 1 <= n <= K. A window shorter than K is
+    /// padded with its last action and the output trimmed to n frames.
+    pub fn next_chunk(&mut self, actions: &Tensor) -> Result<Chunk> {
+        self.next_chunk_traced(actions, &mut |_, _, _| {})
+    }
+
+    /// As `next_chunk`, showing each sampler step's model input and velocity to `on_step`.
+    pub fn next_chunk_traced(&mut self, actions: &Tensor, on_step: &mut dyn FnMut(usize, &Tensor, &Tensor)) -> Result<Chunk> {
+        let (k, d) = (self.spec.future as i64, self.a0.size()[0]);
+        let s = actions.size();
+        ensure!(
+            s.len() == 2 && s[1] == d && s[0] >= 1 && s[0] <= k,
+            "chunk actions must be [n, {d}] with 1 <= n <= {k}, got {s:?}"
+        );
+        let actions = actions.to_device(Device::Cpu).to_kind(Kind::Float);
+        ensure!(bool::try_from(actions.isfinite().all())?, "chunk actions hold NaN or infinite values");
+        let n = s[0];
+        let future_actions = if n < k {
+            Tensor::cat(&[actions.shallow_clone(), actions.get(n - 1).unsqueeze(0).expand([k - n, d], false)], 0)
+        } else {
+            actions.shallow_clone()
+        };
+        let (cond_frames, cond_actions) = self.condition();
+        let device = self.model.store.device();
+        let kind = self.model.store.kind();
+        let chunk = self.chunks as u64;
+
+        let start = Instant::now();
+        let clean = tch::no_grad(|| self.vae.encode(&cond_frames.unsqueeze(0).to_device(device)))
+            .context("encoding the condition clip [x0, history]")?
+            .to_kind(Kind::Float);
+        (self.sync)();
+        let encode_seconds = start.elapsed().as_secs_f64();
+
+        let p = self.spec.condition_latents() as i64;
+        let cs = clean.size();
+        let prefix = match self.spec.history_sigma {
+            Some(sh) if p > 1 => {
+                let eps = keyed_rng::normal(&[cs[0], cs[1], p - 1, cs[3], cs[4]], self.spec.seed, chunk, Purpose::RolloutHistoryNoise).to_device(device);
+                Tensor::cat(&[clean.narrow(2, 0, 1), FlowSchedule::add_noise(&clean.narrow(2, 1, p - 1), &eps, sh)], 2)
+            }
+            _ => clean,
+        };
+        let noise_shape = [cs[0], cs[1], p + k / 4, cs[3], cs[4]];
+        let noise = keyed_rng::normal(&noise_shape, self.spec.seed, chunk, Purpose::RolloutNoise).to_device(device);
+        let all_actions = Tensor::cat(&[cond_actions, future_actions], 0).unsqueeze(0).to_device(device);
+        let start = Instant::now();
+        let latents = tch::no_grad(|| {
+            sample_chunk(self.model, &prefix.to_kind(kind), &noise.to_kind(kind), &all_actions, &self.schedule, on_step)
+        })?;
+        (self.sync)();
+        let dit_seconds = start.elapsed().as_secs_f64();
+
+        // The causal decoder runs through the prefix latents for its cache; their pixels are dropped.
+        let start = Instant::now();
+        let frames = tch::no_grad(|| -> Result<Tensor> {
+            let mut stream = self.vae.decoder_stream();
+            let mut future = Vec::new();
+            for i in 0..latents.size()[2] {
+                let px = stream.next(&latents.narrow(2, i, 1))?;
+                if i >= p {
+                    future.push(px.to_device(Device::Cpu).to_kind(Kind::Float));
+                }
+            }
+            Ok(Tensor::cat(&future, 2).squeeze_dim(0).clamp(-1.0, 1.0).narrow(1, 0, n))
+        })
+        .context("decoding the generated chunk")?;
+        (self.sync)();
+        let decode_seconds = start.elapsed().as_secs_f64();
+
+        for t in 0..n {
+            self.push(frames.select(1, t), actions.get(t));
+        }
+        self.chunks += 1;
+        Ok(Chunk { index: self.chunks - 1, frames, actions, encode_seconds, dit_seconds, decode_seconds })
+    }
+
+    /// Rolls out a whole action sequence [T, d_a] in chunks of K (the last one shorter), handing
+    /// each chunk to `on_chunk` as soon as it exists so callers can stream it out.
+    pub fn run(&mut self, actions: &Tensor, on_chunk: &mut dyn FnMut(Chunk) -> Result<()>) -> Result<()> {
+        let total = actions.size()[0];
+        let k = self.spec.future as i64;
+        let mut start = 0;
+        while start < total {
+            let n = k.min(total - start);
+            let chunk = self.next_chunk(&actions.narrow(0, start, n))?;
+            on_chunk(chunk)?;
+            start += n;
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,156 @@
+//! The rollout loop on the tiny model and a small random VAE (CPU): chunk shapes, seeded
+//! determinism, x0 padding of the history at the episode start, the prefix held fixed through
+//! every sampler step, the short last window, bf16.
+
+use bwm_model::rollout::{Rollout, RolloutSpec};
+use bwm_model::vae::{VaeConfig, WanVae};
+use bwm_model::{BwmModel, ModelConfig};
+use tch::{Device, Kind, Tensor};
+
+const SIDE: i64 = 32;
+
+fn parts(kind: Kind) -> (BwmModel, WanVae) {
+    let model = BwmModel::random(&ModelConfig::preset("tiny").unwrap(), kind, Device::Cpu, 3).unwrap();
+    let (vae, _) = WanVae::random(&VaeConfig::with_width(16, 16), Kind::Float, Device::Cpu, 4).unwrap();
+    (model, vae)
+}
+
+fn spec(history: usize, future: usize, seed: u64) -> RolloutSpec {
+    RolloutSpec { steps: 3, seed, ..RolloutSpec::new(history, future) }
+}
+
+fn inputs(d: i64, rows: i64) -> (Tensor, Tensor, Tensor) {
+    tch::manual_seed(11);
+    let x0 = Tensor::rand([3, SIDE, SIDE], (Kind::Float, Device::Cpu)) * 2.0 - 1.0;
+    let a0 = Tensor::rand([d], (Kind::Float, Device::Cpu)) * 2.0 - 1.0;
+    let actions = Tensor::rand([rows, d], (Kind::Float, Device::Cpu)) * 2.0 - 1.0;
+    (x0, a0, actions)
+}
+
+fn roll(model: &BwmModel, vae: &WanVae, spec: RolloutSpec, actions: &Tensor) -> Vec<(Tensor, Tensor)> {
+    let d = model.cfg.action.action_dim;
+    let (x0, a0, _) = inputs(d, 1);
+    let mut r = Rollout::new(model, vae, spec, &x0, &a0).unwrap();
+    let mut out = Vec::new();
+    r.run(actions, &mut |c| {
+        out.push((c.frames, c.actions));
+        Ok(())
+    })
+    .unwrap();
+    out
+}
+
+#[test]
+fn chunks_have_the_asked_shapes_and_a_seed_fixes_them() {
+    let (model, vae) = parts(Kind::Float);
+    let d = model.cfg.action.action_dim;
+    let (_, _, actions) = inputs(d, 10);
+    let a = roll(&model, &vae, spec(4, 4, 5), &actions);
+    assert_eq!(a.iter().map(|(f, _)| f.size()).collect::<Vec<_>>(), vec![vec![3, 4, SIDE, SIDE], vec![3, 4, SIDE, SIDE], vec![3, 2, SIDE, SIDE]]);
+    let applied = Tensor::cat(&a.iter().map(|(_, a)| a.shallow_clone()).collect::<Vec<_>>(), 0);
+    assert!(applied.equal(&actions), "each chunk carries the actions that drove it, row by row");
+    for (f, _) in &a {
+        assert!(f.max().double_value(&[]) <= 1.0 && f.min().double_value(&[]) >= -1.0);
+    }
+    let b = roll(&model, &vae, spec(4, 4, 5), &actions);
+    assert!(a.iter().zip(&b).all(|(x, y)| x.0.equal(&y.0)), "same seed, same video");
+    let c = roll(&model, &vae, spec(4, 4, 6), &actions);
+    assert!(!a[0].0.equal(&c[0].0), "another seed, another video");
+}
+
+#[test]
+fn history_is_padded_with_x0_and_a0_then_filled_with_what_was_shown() {
+    let (model, vae) = parts(Kind::Float);
+    let d = model.cfg.action.action_dim;
+    let (x0, a0, actions) = inputs(d, 4);
+    let mut r = Rollout::new(&model, &vae, spec(8, 4, 1), &x0, &a0).unwrap();
+    let (frames, acts) = r.condition();
+    assert_eq!(frames.size(), [3, 9, SIDE, SIDE]);
+    for t in 0..9 {
+        assert!(frames.select(1, t).equal(&x0) && acts.get(t).equal(&a0), "slot {t} before any frame is x0 / a0");
+    }
+    let chunk = r.next_chunk(&actions).unwrap();
+    let (frames, acts) = r.condition();
+    for t in 0..5 {
+        assert!(frames.select(1, t).equal(&x0) && acts.get(t).equal(&a0), "slot {t} still padding");
+    }
+    assert!(frames.narrow(1, 5, 4).equal(&chunk.frames), "the generated frames become the history");
+    assert!(acts.narrow(0, 5, 4).equal(&actions), "with the actions applied to them");
+
+    // Given history replaces padding, newest last; only the last H are kept.
+    let hist = Tensor::rand([3, 10, SIDE, SIDE], (Kind::Float, Device::Cpu));
+    let hist_actions = Tensor::rand([10, d], (Kind::Float, Device::Cpu));
+    let r = Rollout::new(&model, &vae, spec(8, 4, 1), &x0, &a0).unwrap().with_history(&hist, &hist_actions).unwrap();
+    let (frames, acts) = r.condition();
+    assert!(frames.select(1, 0).equal(&x0));
+    assert!(frames.narrow(1, 1, 8).equal(&hist.narrow(1, 2, 8)));
+    assert!(acts.narrow(0, 1, 8).equal(&hist_actions.narrow(0, 2, 8)));
+    assert!(Rollout::new(&model, &vae, spec(8, 4, 1), &x0, &a0).unwrap().with_history(&hist, &hist_actions.narrow(0, 0, 9)).is_err());
+}
+
+#[test]
+fn the_prefix_is_the_same_at_every_sampler_step() {
+    let (model, vae) = parts(Kind::Float);
+    let d = model.cfg.action.action_dim;
+    let (x0, a0, actions) = inputs(d, 4);
+    let s = spec(4, 4, 2);
+    let p = s.condition_latents() as i64;
+    let mut r = Rollout::new(&model, &vae, s, &x0, &a0).unwrap();
+    let mut prefixes = Vec::new();
+    r.next_chunk_traced(&actions, &mut |_, input, _| prefixes.push(input.narrow(2, 0, p).copy())).unwrap();
+    assert_eq!(prefixes.len(), 3);
+    assert!(prefixes.iter().all(|x| x.equal(&prefixes[0])));
+    // The history part is noised (sigma_h > 0): it differs from the clean encode; x0 does not.
+    let clean = tch::no_grad(|| vae.encode(&Tensor::stack(&(0..5).map(|_| x0.shallow_clone()).collect::<Vec<_>>(), 1).unsqueeze(0)).unwrap());
+    assert!(prefixes[0].narrow(2, 0, 1).allclose(&clean.narrow(2, 0, 1), 1e-5, 1e-5, false), "x0 latent stays clean");
+    assert!(!prefixes[0].narrow(2, 1, 1).allclose(&clean.narrow(2, 1, 1), 1e-3, 1e-3, false), "history latent is perturbed");
+
+    let mut clean_run = Rollout::new(&model, &vae, RolloutSpec { history_sigma: None, ..spec(4, 4, 2) }, &x0, &a0).unwrap();
+    let mut first = None;
+    clean_run.next_chunk_traced(&actions, &mut |i, input, _| if i == 0 { first = Some(input.narrow(2, 0, p).copy()) }).unwrap();
+    assert!(first.unwrap().allclose(&clean, 1e-5, 1e-5, false), "history noise switched off: the clean prefix");
+}
+
+#[test]
+fn a_short_last_window_is_padded_with_its_last_action_and_trimmed() {
+    let (model, vae) = parts(Kind::Float);
+    let d = model.cfg.action.action_dim;
+    let (_, _, actions) = inputs(d, 2);
+    let short = roll(&model, &vae, spec(4, 4, 9), &actions);
+    let padded = Tensor::cat(&[actions.shallow_clone(), actions.get(1).unsqueeze(0).expand([2, d], false)], 0);
+    let full = roll(&model, &vae, spec(4, 4, 9), &padded);
+    assert_eq!(short[0].0.size(), [3, 2, SIDE, SIDE]);
+    assert!(short[0].0.allclose(&full[0].0.narrow(1, 0, 2), 1e-6, 1e-6, false));
+    assert!(short[0].1.equal(&actions));
+}
+
+#[test]
+fn bad_inputs_are_errors() {
+    let (model, vae) = parts(Kind::Float);
+    let d = model.cfg.action.action_dim;
+    let (x0, a0, actions) = inputs(d, 4);
+    assert!(Rollout::new(&model, &vae, spec(3, 4, 0), &x0, &a0).is_err(), "history not a multiple of 4");
+    assert!(Rollout::new(&model, &vae, spec(4, 0, 0), &x0, &a0).is_err(), "no future");
+    assert!(Rollout::new(&model, &vae, spec(4, 4, 0), &x0.narrow(1, 0, 16), &a0).is_err(), "height not a multiple of 32");
+    assert!(Rollout::new(&model, &vae, spec(4, 4, 0), &x0, &a0.narrow(0, 0, d - 1)).is_err(), "action width");
+    let mut r = Rollout::new(&model, &vae, spec(4, 4, 0), &x0, &a0).unwrap();
+    assert!(r.next_chunk(&Tensor::cat(&[actions.shallow_clone(), actions.shallow_clone()], 0)).is_err(), "more than K actions");
+    let nan = actions.copy();
+    let _ = nan.get(0).get(0).fill_(f64::NAN);
+    let e = r.next_chunk(&nan).err().expect("NaN actions are refused").to_string();
+    assert!(e.contains("NaN"), "{e}");
+}
+
+#[test]
+fn bf16_model_rolls_out_finite_frames_close_to_f32() {
+    let (m32, vae) = parts(Kind::Float);
+    let (m16, _) = parts(Kind::BFloat16);
+    let d = m32.cfg.action.action_dim;
+    let (_, _, actions) = inputs(d, 4);
+    let a = roll(&m32, &vae, spec(4, 4, 1), &actions);
+    let b = roll(&m16, &vae, spec(4, 4, 1), &actions);
+    assert_eq!(b[0].0.kind(), Kind::Float);
+    assert!(bool::try_from(b[0].0.isfinite().all()).unwrap());
+    let diff = (&a[0].0 - &b[0].0).abs().mean(Kind::Float).double_value(&[]);
+    assert!(diff < 0.05, "bf16 vs f32 mean abs pixel difference {diff}");
+}

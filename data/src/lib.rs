@@ -8,6 +8,7 @@ pub mod defect;
 pub mod frames;
 pub mod latent_cache;
 pub mod lerobot;
+pub mod lerobot_writer;
 pub mod robotwin;
 pub mod source;
 pub mod stats;

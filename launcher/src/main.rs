@@ -7,6 +7,7 @@ mod demo;
 mod export;
 mod launch;
 mod prepare;
+mod rollout;
 mod stats;
 mod train;
 mod train_vae;
@@ -30,6 +31,9 @@ enum Command {
     Stats(stats::StatsArgs),
     /// Cut a dataset into action-aligned clips and encode them into a latent cache for training.
     Prepare(prepare::PrepareArgs),
+    /// Data engine: roll the world model out from each episode's first frame with recorded, file or
+    /// perturbed actions, and write the result as a LeRobot v2.1 dataset.
+    Rollout(rollout::RolloutArgs),
     /// Start one process per GPU (or N CPU processes) with torchrun's variables and supervise
     /// them: `bwm launch --nproc-per-node 2 -- train --config ...`.
     Launch(launch::LaunchArgs),
@@ -58,6 +62,7 @@ fn main() {
         Command::Demo(a) => demo::run(a),
         Command::Stats(a) => stats::run(a),
         Command::Prepare(a) => prepare::run(a),
+        Command::Rollout(a) => rollout::run(a),
         Command::Launch(a) => launch::run(a),
         Command::Train(a) => train::run(a),
         Command::TrainVae(a) => train_vae::run(a),

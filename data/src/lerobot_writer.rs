@@ -1,0 +1,336 @@
+//! Writes a LeRobotDataset v2.1 (what policy trainers read): one parquet per episode with
+//! `action`, `observation.state`, `timestamp`, `frame_index`, `episode_index`, `index`,
+//! `task_index`, one mp4 per episode for the camera, and `meta/{info.json, episodes.jsonl,
+//! tasks.jsonl, episodes_stats.jsonl}`. Each episode's files are written under temporary names
+//! and renamed when complete, and the metadata is rewritten after every episode, so an
+//! interrupted run leaves a readable dataset of the finished episodes that `resume` continues.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use anyhow::{bail, ensure, Context, Result};
+use arrow_array::builder::{FixedSizeListBuilder, Float32Builder};
+use arrow_array::{ArrayRef, Float32Array, Int64Array, RecordBatch};
+use image::RgbImage;
+use serde_json::{json, Value};
+
+use crate::video;
+
+pub const CODEBASE_VERSION: &str = "v2.1";
+const CHUNKS_SIZE: usize = 1000;
+const DATA_PATH: &str = "data/chunk-{episode_chunk:03d}/episode_{episode_index:06d}.parquet";
+const VIDEO_PATH: &str = "videos/chunk-{episode_chunk:03d}/{video_key}/episode_{episode_index:06d}.mp4";
+
+/// Names of the vector features' dimensions (LeRobot's `names`).
+#[derive(Debug, Clone)]
+pub struct DatasetFeatures {
+    pub action_names: Vec<String>,
+    pub state_names: Vec<String>,
+    /// e.g. `observation.images.head`.
+    pub video_key: String,
+    /// Frame width and height.
+    pub size: (u32, u32),
+    pub fps: f64,
+    pub robot_type: String,
+}
+
+#[derive(Debug, Clone, PartialEq, Eq)]
+struct EpisodeMeta {
+    index: usize,
+    length: usize,
+    task: String,
+}
+
+pub struct LeRobotWriter {
+    root: PathBuf,
+    features: DatasetFeatures,
+    episodes: Vec<EpisodeMeta>,
+    tasks: Vec<String>,
+    stats_lines: Vec<String>,
+    codec: &'static str,
+}
+
+impl LeRobotWriter {
+    /// A new dataset at `root`, which must not hold one already (see `resume`).
+    pub fn create(root: &Path, features: DatasetFeatures) -> Result<Self> {
+        ensure!(
+            !root.join("meta/info.json").exists(),
+            "{} already holds a dataset; continue it (resume) or pick another output folder",
+            root.display()
+        );
+        Self::check(&features)?;
+        std::fs::create_dir_all(root.join("meta")).with_context(|| format!("creating {}", root.display()))?;
+        let codec = codec_name(video::Mp4Encoder::best()?);
+        Ok(Self { root: root.to_path_buf(), features, episodes: Vec::new(), tasks: Vec::new(), stats_lines: Vec::new(), codec })
+    }
+
+    /// Continues a dataset this writer started: the episodes listed in its metadata are kept,
+    /// anything else under `root` (an episode cut short) is overwritten when written again.
+    pub fn resume(root: &Path, features: DatasetFeatures) -> Result<Self> {
+        if !root.join("meta/info.json").exists() {
+            return Self::create(root, features);
+        }
+        Self::check(&features)?;
+        let read = |name: &str| -> Result<Vec<Value>> {
+            let path = root.join("meta").join(name);
+            let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+            text.lines().filter(|l| !l.trim().is_empty()).map(|l| serde_json::from_str(l).with_context(|| format!("{}: bad line", path.display()))).collect()
+        };
+        let info: Value = serde_json::from_str(&std::fs::read_to_string(root.join("meta/info.json"))?).context("meta/info.json")?;
+        let shape = &info["features"][&features.video_key]["shape"];
+        ensure!(
+            shape == &json!([features.size.1, features.size.0, 3]),
+            "{}: its frames are {shape}, this run makes {}x{} (HxW) frames",
+            root.display(),
+            features.size.1,
+            features.size.0
+        );
+        let tasks: Vec<String> = read("tasks.jsonl")?.iter().map(|t| t["task"].as_str().unwrap_or_default().to_string()).collect();
+        let episodes = read("episodes.jsonl")?
+            .iter()
+            .enumerate()
+            .map(|(i, e)| {
+                let task = e["tasks"].get(0).and_then(Value::as_str).unwrap_or_default().to_string();
+                let length = e["length"].as_u64().with_context(|| format!("episodes.jsonl line {}: no length", i + 1))? as usize;
+                Ok(EpisodeMeta { index: i, length, task })
+            })
+            .collect::<Result<Vec<_>>>()?;
+        let stats_lines = std::fs::read_to_string(root.join("meta/episodes_stats.jsonl"))
+            .unwrap_or_default()
+            .lines()
+            .filter(|l| !l.trim().is_empty())
+            .map(str::to_string)
+            .take(episodes.len())
+            .collect();
+        let codec = codec_name(video::Mp4Encoder::best()?);
+        Ok(Self { root: root.to_path_buf(), features, episodes, tasks, stats_lines, codec })
+    }
+
+    fn check(f: &DatasetFeatures) -> Result<()> {
+        ensure!(f.fps.is_finite() && f.fps > 0.0, "frame rate {} is not a positive number", f.fps);
+        ensure!(!f.action_names.is_empty(), "no action dimensions");
+        ensure!(f.size.0 > 0 && f.size.1 > 0 && f.size.0 % 2 == 0 && f.size.1 % 2 == 0, "frame size {:?} must be even", f.size);
+        ensure!(!f.video_key.is_empty(), "empty video key");
+        Ok(())
+    }
+
+    pub fn root(&self) -> &Path {
+        &self.root
+    }
+
+    /// Episodes already in the dataset.
+    pub fn len(&self) -> usize {
+        self.episodes.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.episodes.is_empty()
+    }
+
+    /// Appends one episode: `frames[t]` was shown while `actions[t]` was applied and the robot was
+    /// in `states[t]`.
+    pub fn add_episode(&mut self, frames: &[RgbImage], actions: &[Vec<f32>], states: &[Vec<f32>], task: &str) -> Result<usize> {
+        let n = frames.len();
+        ensure!(n > 0, "an episode needs at least one frame");
+        ensure!(actions.len() == n && states.len() == n, "{n} frames but {} actions and {} states", actions.len(), states.len());
+        let (da, ds) = (self.features.action_names.len(), self.features.state_names.len());
+        if let Some((t, _)) = actions.iter().enumerate().find(|(_, a)| a.len() != da) {
+            bail!("action row {t} has {} values, the dataset declares {da}", actions[t].len());
+        }
+        if let Some((t, _)) = states.iter().enumerate().find(|(_, s)| s.len() != ds) {
+            bail!("state row {t} has {} values, the dataset declares {ds}", states[t].len());
+        }
+        let (w, h) = self.features.size;
+        if let Some((t, f)) = frames.iter().enumerate().find(|(_, f)| f.dimensions() != (w, h)) {
+            bail!("frame {t} is {}x{}, the dataset's frames are {w}x{h}", f.width(), f.height());
+        }
+        let episode = self.episodes.len();
+        let task_index = match self.tasks.iter().position(|t| t == task) {
+            Some(i) => i,
+            None => {
+                self.tasks.push(task.to_string());
+                self.tasks.len() - 1
+            }
+        };
+        let first_index: usize = self.episodes.iter().map(|e| e.length).sum();
+        let fps = self.features.fps;
+
+        let data = self.root.join(fill(DATA_PATH, episode, None));
+        let video_path = self.root.join(fill(VIDEO_PATH, episode, Some(&self.features.video_key)));
+        for p in [&data, &video_path] {
+            std::fs::create_dir_all(p.parent().expect("templated paths have folders"))?;
+        }
+        video::write_mp4(&video_path, frames, fps)?;
+        let batch = RecordBatch::try_from_iter([
+            ("action", vectors(actions, da)?),
+            ("observation.state", vectors(states, ds)?),
+            ("timestamp", Arc::new(Float32Array::from_iter_values((0..n).map(|t| (t as f64 / fps) as f32))) as ArrayRef),
+            ("frame_index", int_column((0..n).map(|t| t as i64))),
+            ("episode_index", int_column((0..n).map(|_| episode as i64))),
+            ("index", int_column((0..n).map(|t| (first_index + t) as i64))),
+            ("task_index", int_column((0..n).map(|_| task_index as i64))),
+        ])?;
+        write_parquet(&data, &batch)?;
+
+        self.stats_lines.push(
+            json!({
+                "episode_index": episode,
+                "stats": {
+                    "action": vector_stats(actions),
+                    "observation.state": vector_stats(states),
+                    "frame_index": scalar_stats((0..n).map(|t| t as f64)),
+                    "timestamp": scalar_stats((0..n).map(|t| t as f64 / fps)),
+                    "episode_index": scalar_stats((0..n).map(|_| episode as f64)),
+                    "index": scalar_stats((0..n).map(|t| (first_index + t) as f64)),
+                    "task_index": scalar_stats((0..n).map(|_| task_index as f64)),
+                    self.features.video_key.clone(): image_stats(frames),
+                }
+            })
+            .to_string(),
+        );
+        self.episodes.push(EpisodeMeta { index: episode, length: n, task: task.to_string() });
+        self.write_meta()?;
+        Ok(episode)
+    }
+
+    fn write_meta(&self) -> Result<()> {
+        let f = &self.features;
+        let names = |v: &[String]| json!({ "dtype": "float32", "shape": [v.len()], "names": v });
+        let scalar = |dtype: &str| json!({ "dtype": dtype, "shape": [1], "names": null });
+        let total_frames: usize = self.episodes.iter().map(|e| e.length).sum();
+        let info = json!({
+            "codebase_version": CODEBASE_VERSION,
+            "robot_type": f.robot_type,
+            "total_episodes": self.episodes.len(),
+            "total_frames": total_frames,
+            "total_tasks": self.tasks.len(),
+            "total_videos": self.episodes.len(),
+            "total_chunks": self.episodes.len().div_ceil(CHUNKS_SIZE),
+            "chunks_size": CHUNKS_SIZE,
+            "fps": f.fps,
+            "splits": { "train": format!("0:{}", self.episodes.len()) },
+            "data_path": DATA_PATH,
+            "video_path": VIDEO_PATH,
+            "features": {
+                "action": names(&f.action_names),
+                "observation.state": names(&f.state_names),
+                f.video_key.clone(): {
+                    "dtype": "video",
+                    "shape": [f.size.1, f.size.0, 3],
+                    "names": ["height", "width", "channels"],
+                    "info": {
+                        "video.height": f.size.1, "video.width": f.size.0, "video.codec": self.codec,
+                        "video.pix_fmt": "yuv420p", "video.is_depth_map": false, "video.fps": f.fps,
+                        "video.channels": 3, "has_audio": false
+                    }
+                },
+                "timestamp": scalar("float32"),
+                "frame_index": scalar("int64"),
+                "episode_index": scalar("int64"),
+                "index": scalar("int64"),
+                "task_index": scalar("int64"),
+            }
+        });
+        let lines = |items: Vec<String>| items.into_iter().map(|l| l + "\n").collect::<String>();
+        let episodes = lines(self.episodes.iter().map(|e| json!({"episode_index": e.index, "tasks": [e.task], "length": e.length}).to_string()).collect());
+        let tasks = lines(self.tasks.iter().enumerate().map(|(i, t)| json!({"task_index": i, "task": t}).to_string()).collect());
+        let meta = self.root.join("meta");
+        // info.json last: a reader that finds it finds the episode lists it counts.
+        write_atomic(&meta.join("tasks.jsonl"), tasks.as_bytes())?;
+        write_atomic(&meta.join("episodes_stats.jsonl"), lines(self.stats_lines.clone()).as_bytes())?;
+        write_atomic(&meta.join("episodes.jsonl"), episodes.as_bytes())?;
+        write_atomic(&meta.join("info.json"), serde_json::to_string_pretty(&info)?.as_bytes())
+    }
+}
+
+fn codec_name(e: video::Mp4Encoder) -> &'static str {
+    match e {
+        video::Mp4Encoder::H264 => "h264",
+        video::Mp4Encoder::Mpeg4 => "mpeg4",
+    }
+}
+
+/// LeRobot's path templates with the values of one episode.
+fn fill(template: &str, episode: usize, video_key: Option<&str>) -> String {
+    let s = template
+        .replace("{episode_chunk:03d}", &format!("{:03}", episode / CHUNKS_SIZE))
+        .replace("{episode_index:06d}", &format!("{episode:06}"));
+    match video_key {
+        Some(k) => s.replace("{video_key}", k),
+        None => s,
+    }
+}
+
+/// Fixed-size float lists: Hugging Face `datasets.Sequence(length=d)`, as LeRobot declares them.
+fn vectors(rows: &[Vec<f32>], d: usize) -> Result<ArrayRef> {
+    let mut b = FixedSizeListBuilder::new(Float32Builder::new(), i32::try_from(d)?);
+    for r in rows {
+        b.values().append_slice(r);
+        b.append(true);
+    }
+    Ok(Arc::new(b.finish()))
+}
+
+fn int_column(v: impl Iterator<Item = i64>) -> ArrayRef {
+    Arc::new(Int64Array::from_iter_values(v))
+}
+
+fn write_parquet(path: &Path, batch: &RecordBatch) -> Result<()> {
+    let tmp = path.with_extension("parquet.tmp");
+    let write = || -> Result<()> {
+        let file = std::fs::File::create(&tmp)?;
+        let mut w = parquet::arrow::ArrowWriter::try_new(file, batch.schema(), None)?;
+        w.write(batch)?;
+        w.close()?;
+        std::fs::rename(&tmp, path)?;
+        Ok(())
+    };
+    write().with_context(|| format!("writing {}", path.display()))
+}
+
+fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    let tmp = path.with_extension("tmp");
+    std::fs::write(&tmp, bytes).and_then(|_| std::fs::rename(&tmp, path)).with_context(|| format!("writing {}", path.display()))
+}
+
+fn moments(values: impl Iterator<Item = f64>) -> (f64, f64, f64, f64, usize) {
+    let (mut min, mut max, mut sum, mut sq, mut n) = (f64::INFINITY, f64::NEG_INFINITY, 0.0, 0.0, 0usize);
+    for v in values {
+        min = min.min(v);
+        max = max.max(v);
+        sum += v;
+        sq += v * v;
+        n += 1;
+    }
+    let mean = sum / n.max(1) as f64;
+    (min, max, mean, (sq / n.max(1) as f64 - mean * mean).max(0.0).sqrt(), n)
+}
+
+fn scalar_stats(values: impl Iterator<Item = f64>) -> Value {
+    let (min, max, mean, std, n) = moments(values);
+    json!({ "min": [min], "max": [max], "mean": [mean], "std": [std], "count": [n] })
+}
+
+fn vector_stats(rows: &[Vec<f32>]) -> Value {
+    let d = rows.first().map_or(0, Vec::len);
+    let per: Vec<_> = (0..d).map(|j| moments(rows.iter().map(|r| f64::from(r[j])))).collect();
+    json!({
+        "min": per.iter().map(|m| m.0).collect::<Vec<_>>(),
+        "max": per.iter().map(|m| m.1).collect::<Vec<_>>(),
+        "mean": per.iter().map(|m| m.2).collect::<Vec<_>>(),
+        "std": per.iter().map(|m| m.3).collect::<Vec<_>>(),
+        "count": [rows.len()],
+    })
+}
+
+/// Per-channel statistics of pixel values in [0, 1], shaped [3, 1, 1] as LeRobot stores them.
+fn image_stats(frames: &[RgbImage]) -> Value {
+    let per: Vec<_> = (0..3)
+        .map(|c| moments(frames.iter().flat_map(|f| f.pixels().map(move |p| f64::from(p.0[c]) / 255.0))))
+        .collect();
+    let wrap = |f: fn(&(f64, f64, f64, f64, usize)) -> f64| per.iter().map(|m| vec![vec![f(m)]]).collect::<Vec<_>>();
+    json!({
+        "min": wrap(|m| m.0), "max": wrap(|m| m.1), "mean": wrap(|m| m.2), "std": wrap(|m| m.3),
+        "count": [frames.len()],
+    })
+}

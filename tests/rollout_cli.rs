@@ -1,0 +1,140 @@
+//! `bwm rollout` (data engine) end to end on CPU: the tiny model with random weights and a small
+//! random VAE drive episode 0 of the bundled dataset with its recorded actions; the output is a
+//! LeRobot v2.1 dataset that pyarrow and ffprobe read (frame count = row count, actions equal to
+//! the recorded ones row by row, source fps), that the project's own LeRobot reader opens, with a
+//! side-by-side video and PSNR/SSIM; `--resume` adds episodes without touching finished ones.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use bwm_data::source::{open_dataset, CameraSelection};
+use bwm_data::ActionSpec;
+use bwm_model::vae::{VaeConfig, WanVae};
+use bwm_trainer::vae_train::{save_trained_vae, TrainedVae, VaeTrainReport};
+use tch::{Device, Kind};
+
+fn bwm() -> PathBuf {
+    let exe = std::env::current_exe().unwrap();
+    let path = exe.parent().unwrap().parent().unwrap().join("bwm");
+    assert!(path.exists(), "{} not built (run through `cargo test --workspace`)", path.display());
+    path
+}
+
+fn python() -> String {
+    for var in ["VIRTUAL_ENV", "BWM_VENV"] {
+        if let Some(v) = std::env::var_os(var) {
+            let p = Path::new(&v).join("bin/python");
+            if p.exists() {
+                return p.display().to_string();
+            }
+        }
+    }
+    Path::new(env!("CARGO_MANIFEST_DIR")).join(".venv/bin/python").display().to_string()
+}
+
+fn demo_data() -> PathBuf {
+    let shared = std::env::var_os("BWM_SHARED").map(PathBuf::from).unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared"));
+    shared.join("data/bwm-demo")
+}
+
+fn write_random_vae(path: &Path) {
+    let (vae, store) = WanVae::random(&VaeConfig::with_width(16, 16), Kind::Float, Device::Cpu, 5).unwrap();
+    let params = store.named_parameters();
+    let report = VaeTrainReport { train_psnr: 0.0, holdout_psnr: 0.0, seconds: 0.0, steps: 0 };
+    save_trained_vae(&TrainedVae { vae, params, report }, path).unwrap();
+}
+
+fn rollout(args: &[&str]) -> std::process::Output {
+    let out = Command::new(bwm())
+        .arg("rollout")
+        .args(["--random-weights", "tiny", "--history", "4", "--future", "4", "--sample-steps", "2", "--resolution", "64x32"])
+        .args(["--device", "cpu", "--max-frames", "11"])
+        .args(args)
+        .output()
+        .unwrap();
+    println!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    out
+}
+
+#[test]
+fn data_engine_writes_a_lerobot_dataset_aligned_row_by_row() {
+    let dir = std::env::temp_dir().join(format!("bwm-rollout-cli-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let vae = dir.join("vae.safetensors");
+    write_random_vae(&vae);
+    let data = demo_data();
+    let out = dir.join("generated");
+    let common = ["--vae", vae.to_str().unwrap(), "--data", data.to_str().unwrap(), "--out", out.to_str().unwrap()];
+    let first = rollout(&[&common[..], &["--episodes", "0"]].concat());
+    assert!(first.status.success());
+
+    // The recorded actions of episode 0, as the model was driven with them.
+    let source = open_dataset(&data).unwrap();
+    let recorded = source.vectors(0, &ActionSpec::eef_abs()).unwrap();
+    let fps = source.fps(0).unwrap();
+
+    let check = format!(
+        r#"
+import json, subprocess, sys, pyarrow.parquet as pq
+root = sys.argv[1]
+t = pq.read_table(f"{{root}}/data/chunk-000/episode_000000.parquet").to_pydict()
+info = json.load(open(f"{{root}}/meta/info.json"))
+assert info["codebase_version"] == "v2.1" and info["total_episodes"] == 1 and info["total_frames"] == 11, info
+assert t["frame_index"] == list(range(11)) and t["index"] == list(range(11)), t["frame_index"]
+assert all(abs(ts - i / {fps}) < 1e-4 for i, ts in enumerate(t["timestamp"]))
+video = f"{{root}}/videos/chunk-000/observation.images.generated/episode_000000.mp4"
+probe = subprocess.run(["ffprobe", "-v", "error", "-count_frames", "-select_streams", "v:0", "-show_entries",
+    "stream=nb_read_frames,width,height,r_frame_rate", "-of", "json", video], capture_output=True, text=True, check=True)
+s = json.loads(probe.stdout)["streams"][0]
+num, den = map(int, s["r_frame_rate"].split("/"))
+assert int(s["nb_read_frames"]) == len(t["action"]) == 11 and (s["width"], s["height"]) == (64, 32), s
+assert abs(num / den - {fps}) < 1e-3, s
+print(json.dumps(t["action"]))
+"#
+    );
+    let py = Command::new(python()).args(["-c", &check, out.to_str().unwrap()]).output().unwrap();
+    assert!(py.status.success(), "{}", String::from_utf8_lossy(&py.stderr));
+    let actions: Vec<Vec<f32>> = serde_json::from_slice(&py.stdout).unwrap();
+    assert_eq!(actions.len(), 11);
+    for (t, (a, r)) in actions.iter().zip(&recorded).enumerate() {
+        assert!(a.iter().zip(r).all(|(x, y)| (x - y).abs() < 1e-6), "row {t}: {a:?} vs recorded {r:?}");
+    }
+
+    // The project's own LeRobot reader opens it; frame 0 is the real x0.
+    let generated = open_dataset(&out).unwrap();
+    assert_eq!(generated.episodes()[0].length, 11);
+    let frames = generated.frames(0, 0..11, &CameraSelection::default()).unwrap();
+    assert_eq!(frames.len(), 11);
+    let metrics = std::fs::read_to_string(out.join("compare/metrics.jsonl")).unwrap();
+    let m: serde_json::Value = serde_json::from_str(metrics.lines().next().unwrap()).unwrap();
+    assert!(m["psnr"].as_f64().unwrap().is_finite() && m["ssim"].as_f64().is_some(), "{m}");
+    assert!(out.join("compare/episode_000000.mp4").exists());
+
+    // A fresh run refuses to overwrite; --resume adds episode 1 and keeps episode 0's files.
+    let before = std::fs::read(out.join("data/chunk-000/episode_000000.parquet")).unwrap();
+    let again = rollout(&[&common[..], &["--episodes", "0,1"]].concat());
+    assert!(!again.status.success());
+    assert!(String::from_utf8_lossy(&again.stderr).contains("already holds a dataset"));
+    let resumed = rollout(&[&common[..], &["--episodes", "0,1", "--resume"]].concat());
+    assert!(resumed.status.success());
+    assert_eq!(open_dataset(&out).unwrap().episodes().len(), 2);
+    assert_eq!(before, std::fs::read(out.join("data/chunk-000/episode_000000.parquet")).unwrap());
+
+    // Perturbed actions stay within the recorded range's normalization and differ from it.
+    let perturbed = dir.join("perturbed");
+    let p = rollout(&["--vae", vae.to_str().unwrap(), "--data", data.to_str().unwrap(), "--out", perturbed.to_str().unwrap(), "--episodes", "0", "--drive", "perturbed", "--perturb-std", "0.1"]);
+    assert!(p.status.success());
+    let got = open_dataset(&perturbed).unwrap();
+    let spec = ActionSpec { column: "action".into(), indices: (0..14).collect(), stats_group: "state_pose".into(), quat_to_euler: vec![], absolute_to_delta: vec![] };
+    let rows = got.vectors(0, &spec).unwrap();
+    assert!(rows.iter().zip(&recorded).any(|(a, r)| a.iter().zip(r).any(|(x, y)| (x - y).abs() > 1e-4)));
+
+    // Bad input: clear errors, nothing written.
+    let bad = rollout(&["--vae", vae.to_str().unwrap(), "--data", data.to_str().unwrap(), "--out", dir.join("bad").to_str().unwrap(), "--drive", "file"]);
+    assert!(!bad.status.success() && String::from_utf8_lossy(&bad.stderr).contains("--actions-dir"));
+    let bad = rollout(&["--vae", vae.to_str().unwrap(), "--data", data.to_str().unwrap(), "--out", dir.join("bad").to_str().unwrap(), "--episodes", "7"]);
+    assert!(!bad.status.success() && String::from_utf8_lossy(&bad.stderr).contains("3 episodes"));
+    assert!(!dir.join("bad/meta/info.json").exists());
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -217,6 +217,17 @@ fn two_ranks_train_the_weights_of_one_and_resume_across_world_sizes() {
     let two = write_config_named(&dir, "two.toml", &dir.join("two"), 3, 1);
     train_ranks(&two, 2, "no");
     assert_close(&final_weights(&dir.join("one")), &final_weights(&dir.join("two")), "2 ranks vs 1");
+    // Each rank wrote its half of the optimizer state; replicated state gives the same weights.
+    let last = |run: &str| dir.join(run).join("checkpoints").join(std::fs::read_to_string(dir.join(run).join("checkpoints/latest")).unwrap().trim());
+    for shard in ["optimizer-00000-of-00002.safetensors", "optimizer-00001-of-00002.safetensors"] {
+        assert!(last("two").join(shard).is_file(), "{shard} in {}", last("two").display());
+    }
+    let replicated = write_config_named(&dir, "replicated.toml", &dir.join("replicated"), 3, 1);
+    let text = std::fs::read_to_string(&replicated).unwrap().replace("[train]\n", "[train]\nshard_optimizer = false\n");
+    std::fs::write(&replicated, text).unwrap();
+    train_ranks(&replicated, 2, "no");
+    assert!(last("replicated").join("optimizer-00000-of-00001.safetensors").is_file(), "replicated state is written once");
+    assert_close(&final_weights(&dir.join("two")), &final_weights(&dir.join("replicated")), "sharded vs replicated optimizer state");
     // The same 2 ranks started by `bwm launch`.
     let launched = write_config_named(&dir, "launched.toml", &dir.join("launched"), 3, 1);
     let port = free_port().to_string();

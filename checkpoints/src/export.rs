@@ -26,7 +26,7 @@ use crate::repo::{
     DIFFUSERS_BASE, MODEL_BASE, README_FILE, TRANSFORMER_DIR,
 };
 use crate::run_info::{CheckpointState, RunInfo};
-use crate::sources::{MappedSource, UnionSource};
+use crate::sources::UnionSource;
 
 /// Stored dtype of an export.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -182,19 +182,7 @@ pub fn prepare(input: &str, opts: &ExportOptions) -> Result<Prepared> {
             let model_file = path.join("model.safetensors");
             ensure!(model_file.is_file(), "{input}: no model.safetensors; not a complete training checkpoint");
             let source: Box<dyn WeightSource> = if opts.ema {
-                let opt_file = path.join("optimizer.safetensors");
-                let file = SafetensorsSource::open(&opt_file).with_context(|| format!("{input}: --ema reads optimizer.safetensors"))?;
-                let pairs: Vec<(String, String)> =
-                    file.names().into_iter().filter_map(|n| n.strip_prefix("ema.").map(|w| (w.to_string(), n.clone()))).collect();
-                ensure!(
-                    !pairs.is_empty(),
-                    "{input}: --ema, but optimizer.safetensors holds no ema.* tensors (the run had no optim.ema_decay)"
-                );
-                let trained = SafetensorsSource::open(&model_file)?.names();
-                for n in &trained {
-                    ensure!(pairs.iter().any(|(w, _)| w == n), "{input}: --ema, but there is no ema.{n} for the trained tensor '{n}'");
-                }
-                Box::new(MappedSource::new(Box::new(file), pairs)?)
+                Box::new(ema_weights(path, &model_file).with_context(|| format!("{input}: --ema"))?)
             } else {
                 Box::new(SafetensorsSource::open(&model_file)?)
             };
@@ -795,4 +783,25 @@ pub fn export(input: &str, out: &Path, opts: &ExportOptions, progress: &mut dyn 
         })
     })?;
     Ok(report)
+}
+
+/// The EMA weights of a training checkpoint, shaped like its `model.safetensors`: the `ema` slices
+/// of the optimizer shard files (or `ema.<name>` of an unsharded `optimizer.safetensors`).
+fn ema_weights(dir: &Path, model_file: &Path) -> Result<crate::sources::TensorSource> {
+    use crate::optimizer_shards::{stored_layout, OptimizerState, LEGACY_FILE};
+    let model = SafetensorsSource::open(model_file)?;
+    let layout = if dir.join(LEGACY_FILE).is_file() {
+        let numel = |n: &str| model.shape(n).map_or(0, |s| s.iter().product::<i64>() as usize);
+        model.names().into_iter().map(|n| (n.clone(), numel(&n))).collect()
+    } else {
+        stored_layout(dir)?
+    };
+    let state = OptimizerState::open(dir, &layout)?;
+    ensure!(state.has("ema")?, "the optimizer state holds no EMA weights (the run had no optim.ema_decay)");
+    let mut tensors = Vec::new();
+    for (name, flat) in state.read_named("ema", tch::Device::Cpu)? {
+        let shape = model.shape(&name).with_context(|| format!("{}: no '{name}' for the EMA tensor", model_file.display()))?;
+        tensors.push((name, flat.view(shape.as_slice())));
+    }
+    Ok(crate::sources::TensorSource::new(tensors, format!("EMA weights of {}", dir.display())))
 }

@@ -9,6 +9,7 @@ pub mod export;
 pub mod hub;
 pub mod keymap;
 pub mod open;
+pub mod optimizer_shards;
 pub mod repo;
 pub mod run_dir;
 pub mod run_info;

@@ -223,6 +223,10 @@ pub struct TrainSection {
     /// Recompute each DiT block in backward instead of keeping its activations.
     #[serde(default = "yes")]
     pub recompute: bool,
+    /// With several data-parallel ranks, each keeps 1/world of the optimizer state (fp32 master
+    /// and moments; ZeRO-1) instead of all of it.
+    #[serde(default = "yes")]
+    pub shard_optimizer: bool,
     /// Parameter-name patterns (`*` matches anything) of the trained set.
     #[serde(default = "default_trainable")]
     pub trainable: Vec<String>,

@@ -1,22 +1,43 @@
-//! The trained parameter set and AdamW with fp32 master weights: model parameters (bf16 or f32)
-//! get gradients; after each micro-step those are added into fp32 accumulators; the optimizer
-//! step averages them, clips the global norm, updates the fp32 master weights and moments, and
-//! copies the masters back into the model's dtype. Optional EMA of the masters.
+//! The trained parameter set and AdamW with fp32 master weights, on flat buffers: the trained
+//! tensors are packed end to end (in the model dtype; the model's parameters become views of that
+//! buffer), their gradients are added after each micro-step into one fp32 flat accumulator, and
+//! the optimizer state (fp32 master, moments, optional EMA) covers the slice this rank owns.
+//! The step reduces the accumulated gradients (reduce-scatter when the state is sharded across
+//! data-parallel ranks, all-reduce when it is replicated), clips by the global norm, updates the
+//! slice with a few whole-buffer operations, and all-gathers the new weights.
 
-use anyhow::{bail, Result};
+use std::ops::Range;
+
+use anyhow::{bail, Context, Result};
+use bwm_checkpoints::optimizer_shards::{Layout, OptimizerState};
 use tch::{Kind, Tensor};
 
 use crate::config::{LrSchedule, OptimSection};
+use crate::dist::{Collective, FlatBuffer};
 
 pub struct TrainParam {
     pub name: String,
-    /// The model's tensor (requires grad), in the model dtype.
+    /// The model's tensor (requires grad), in the model dtype: a view of the flat weights.
     pub param: Tensor,
-    pub master: Tensor,
+    /// Its fp32 gradient accumulator: a view of the flat gradient.
     pub grad: Tensor,
-    pub exp_avg: Tensor,
-    pub exp_avg_sq: Tensor,
-    pub ema: Option<Tensor>,
+}
+
+/// How the optimizer state is spread over the data-parallel ranks.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Sharding {
+    pub rank: usize,
+    pub world: usize,
+    /// Each rank keeps 1/world of the state (ZeRO-1); otherwise every rank keeps all of it.
+    pub sharded: bool,
+}
+
+impl Sharding {
+    pub const SINGLE: Self = Self {
+        rank: 0,
+        world: 1,
+        sharded: false,
+    };
 }
 
 pub struct AdamW {
@@ -25,6 +46,17 @@ pub struct AdamW {
     /// Optimizer steps taken (bias correction and the LR schedule count these).
     pub step: u64,
     pub total_steps: u64,
+    pub sharding: Sharding,
+    weights: FlatBuffer,
+    grads: FlatBuffer,
+    /// The elements of the flat buffers this rank's state covers.
+    slice: Range<usize>,
+    /// The reduced gradient of `slice` (reduce-scatter output; unused when replicated).
+    reduced: Tensor,
+    pub master: Tensor,
+    pub exp_avg: Tensor,
+    pub exp_avg_sq: Tensor,
+    pub ema: Option<Tensor>,
 }
 
 /// What one optimizer step did.
@@ -38,7 +70,9 @@ pub struct StepReport {
 
 /// Whether `name` matches a pattern where `*` matches any run of characters.
 pub fn name_matches(pattern: &str, name: &str) -> bool {
-    glob::Pattern::new(pattern).map(|p| p.matches(name)).unwrap_or(pattern == name)
+    glob::Pattern::new(pattern)
+        .map(|p| p.matches(name))
+        .unwrap_or(pattern == name)
 }
 
 /// Names of `named` picked by `trainable` patterns and not by `frozen` ones.
@@ -54,7 +88,10 @@ pub fn select_trainable<'a>(
     }
     let picked: Vec<_> = named
         .iter()
-        .filter(|(n, _)| trainable.iter().any(|p| name_matches(p, n)) && !frozen.iter().any(|p| name_matches(p, n)))
+        .filter(|(n, _)| {
+            trainable.iter().any(|p| name_matches(p, n))
+                && !frozen.iter().any(|p| name_matches(p, n))
+        })
         .collect();
     if picked.is_empty() {
         bail!("train.trainable {trainable:?} minus train.frozen {frozen:?} selects no parameter");
@@ -62,34 +99,113 @@ pub fn select_trainable<'a>(
     Ok(picked)
 }
 
+/// (start, length) pieces of a flat buffer of `n` elements for the chunked update.
+fn chunk_ranges(n: usize) -> Vec<(i64, i64)> {
+    const CHUNK: usize = 1 << 26;
+    (0..n)
+        .step_by(CHUNK)
+        .map(|s| (s as i64, CHUNK.min(n - s) as i64))
+        .collect()
+}
+
 impl AdamW {
-    /// Marks the picked parameters trainable (the rest frozen) and creates their fp32 state.
-    pub fn new(named: &[(String, Tensor)], trainable: &[String], frozen: &[String], cfg: &OptimSection, total_steps: u64) -> Result<Self> {
+    /// Marks the picked parameters trainable (the rest frozen), moves them into one flat buffer
+    /// (the model keeps using them, now as views) and creates the fp32 state of this rank's slice.
+    pub fn new(
+        named: &[(String, Tensor)],
+        trainable: &[String],
+        frozen: &[String],
+        cfg: &OptimSection,
+        total_steps: u64,
+        sharding: Sharding,
+    ) -> Result<Self> {
         let picked = select_trainable(named, trainable, frozen)?;
         for (_, t) in named {
             let _ = t.set_requires_grad(false);
         }
-        let params = picked
-            .into_iter()
-            .map(|(name, t)| {
-                let _ = t.set_requires_grad(true);
-                let master = t.detach().to_kind(Kind::Float).copy();
-                TrainParam {
-                    name: name.clone(),
-                    param: t.shallow_clone(),
-                    grad: master.zeros_like(),
-                    exp_avg: master.zeros_like(),
-                    exp_avg_sq: master.zeros_like(),
-                    ema: cfg.ema_decay.map(|_| master.copy()),
-                    master,
-                }
-            })
-            .collect();
-        Ok(Self { cfg: cfg.clone(), params, step: 0, total_steps })
+        let first = &picked[0].1;
+        let (kind, device) = (first.kind(), first.device());
+        if let Some((n, t)) = picked
+            .iter()
+            .find(|(_, t)| t.kind() != kind || t.device() != device)
+        {
+            bail!(
+                "trained tensor '{n}' is {:?} on {:?}; the others are {kind:?} on {device:?}",
+                t.kind(),
+                t.device()
+            );
+        }
+        let tensors: Vec<Tensor> = picked.iter().map(|(_, t)| t.shallow_clone()).collect();
+        let world = sharding.world.max(1);
+        let weights = FlatBuffer::pack_as(&tensors, world, kind, device)
+            .context("packing the trained weights")?;
+        let layout: Vec<(Vec<i64>, Kind)> =
+            tensors.iter().map(|t| (t.size(), Kind::Float)).collect();
+        let grads = FlatBuffer::zeros(&layout, world, Kind::Float, device)?;
+        let mut params = Vec::with_capacity(picked.len());
+        for (i, (name, t)) in picked.iter().enumerate() {
+            let mut t = t.shallow_clone();
+            // The parameter (and every module holding it) now reads the flat buffer's storage.
+            let view = weights.view(i)?;
+            tch::no_grad(|| t.set_data(&view));
+            let _ = t.set_requires_grad(true);
+            params.push(TrainParam {
+                name: name.clone(),
+                param: t,
+                grad: grads.view(i)?,
+            });
+        }
+        let slice = if sharding.sharded && world > 1 {
+            weights.shard_range(sharding.rank)
+        } else {
+            0..weights.len()
+        };
+        let master = weights
+            .flat()
+            .narrow(0, slice.start as i64, slice.len() as i64)
+            .to_kind(Kind::Float);
+        let reduced = if sharding.sharded && world > 1 {
+            master.zeros_like()
+        } else {
+            Tensor::zeros([0], (Kind::Float, device))
+        };
+        Ok(Self {
+            cfg: cfg.clone(),
+            params,
+            step: 0,
+            total_steps,
+            sharding: Sharding { world, ..sharding },
+            weights,
+            grads,
+            exp_avg: master.zeros_like(),
+            exp_avg_sq: master.zeros_like(),
+            ema: cfg.ema_decay.map(|_| master.copy()),
+            master,
+            slice,
+            reduced,
+        })
+    }
+
+    /// Whether each rank keeps only its slice of the state.
+    pub fn is_sharded(&self) -> bool {
+        self.sharding.sharded && self.sharding.world > 1
     }
 
     pub fn num_trainable(&self) -> i64 {
-        self.params.iter().map(|p| p.master.numel() as i64).sum()
+        self.weights.numel() as i64
+    }
+
+    /// The packing order of the flat buffers (what the checkpoint's shard files record).
+    pub fn layout(&self) -> Layout {
+        self.params
+            .iter()
+            .map(|p| (p.name.clone(), p.grad.numel()))
+            .collect()
+    }
+
+    /// The elements of the flat state this rank keeps.
+    pub fn slice(&self) -> Range<usize> {
+        self.slice.clone()
     }
 
     /// Moves the model gradients of the last micro-step into the fp32 accumulators.
@@ -98,7 +214,7 @@ impl AdamW {
             for p in &mut self.params {
                 let mut g = p.param.grad();
                 if g.defined() {
-                    let _ = p.grad.g_add_(&g.to_kind(Kind::Float));
+                    let _ = p.grad.g_add_(&g);
                     let _ = g.zero_();
                 }
             }
@@ -108,17 +224,11 @@ impl AdamW {
     /// Drops the accumulated gradients (a skipped step).
     pub fn discard_grads(&mut self) {
         tch::no_grad(|| {
+            let _ = self.grads.flat_mut().zero_();
             for p in &mut self.params {
-                let _ = p.grad.zero_();
                 p.param.zero_grad();
             }
         });
-    }
-
-    /// Global L2 norm of the accumulated gradients times `scale`.
-    pub fn grad_norm(&self, scale: f64) -> f64 {
-        let sq: f64 = self.params.iter().map(|p| p.grad.square().sum(Kind::Double).double_value(&[])).sum();
-        sq.sqrt() * scale
     }
 
     /// The learning rate of optimizer step `step` (1-based).
@@ -133,98 +243,165 @@ impl AdamW {
                 let span = self.total_steps.saturating_sub(c.warmup_steps).max(1) as f64;
                 let progress = ((step - c.warmup_steps) as f64 / span).min(1.0);
                 let floor = c.min_lr_ratio;
-                c.lr * (floor + (1.0 - floor) * 0.5 * (1.0 + (std::f64::consts::PI * progress).cos()))
+                c.lr * (floor
+                    + (1.0 - floor) * 0.5 * (1.0 + (std::f64::consts::PI * progress).cos()))
             }
         }
     }
 
-    /// One AdamW step on the accumulated gradients divided by `grad_divisor` (micro-steps times
-    /// ranks). Returns `None` (and drops the gradients) when their norm is not finite.
-    pub fn step(&mut self, grad_divisor: f64) -> Option<StepReport> {
+    /// Sums the accumulated gradients over the ranks (this rank's slice when sharded) and
+    /// returns that slice of the sum.
+    fn reduce(&mut self, comm: &mut dyn Collective) -> Result<Tensor> {
+        if self.is_sharded() {
+            comm.reduce_scatter_sum(self.grads.flat(), &mut self.reduced)
+                .context("reduce-scatter of the gradients")?;
+            Ok(self.reduced.shallow_clone())
+        } else {
+            if self.sharding.world > 1 {
+                comm.all_reduce_sum(self.grads.flat_mut())
+                    .context("all-reduce of the gradients")?;
+            }
+            Ok(self.grads.flat().shallow_clone())
+        }
+    }
+
+    /// One AdamW step on the gradients accumulated on every rank, divided by `grad_divisor`
+    /// (micro-steps times ranks). Returns `None` (and drops the gradients) when their norm is not
+    /// finite; every rank takes the same decision.
+    pub fn step(
+        &mut self,
+        grad_divisor: f64,
+        comm: &mut dyn Collective,
+    ) -> Result<Option<StepReport>> {
         let scale = 1.0 / grad_divisor;
-        let grad_norm = self.grad_norm(scale);
+        let g = self.reduce(comm)?;
+        let chunks = chunk_ranges(g.numel());
+        let sq: f64 = chunks
+            .iter()
+            .map(|r| {
+                g.narrow(0, r.0, r.1)
+                    .square()
+                    .sum(Kind::Double)
+                    .double_value(&[])
+            })
+            .sum();
+        let mut sq = Tensor::from_slice(&[sq]).to_device(g.device());
+        if self.is_sharded() {
+            comm.all_reduce_sum(&mut sq)
+                .context("all-reduce of the gradient norm")?;
+        }
+        let grad_norm = sq.double_value(&[0]).sqrt() * scale;
         if !grad_norm.is_finite() {
             self.discard_grads();
-            return None;
+            return Ok(None);
         }
         let clip = self.cfg.grad_clip;
         let clipped = clip > 0.0 && grad_norm > clip;
-        let grad_scale = if clipped { scale * clip / (grad_norm + 1e-6) } else { scale };
+        let grad_scale = if clipped {
+            scale * clip / (grad_norm + 1e-6)
+        } else {
+            scale
+        };
         self.step += 1;
         let lr = self.lr_at(self.step);
         let [b1, b2] = self.cfg.betas;
         let bc1 = 1.0 - b1.powi(self.step as i32);
         let bc2 = 1.0 - b2.powi(self.step as i32);
         let (wd, eps, ema) = (self.cfg.weight_decay, self.cfg.eps, self.cfg.ema_decay);
+        // Whole-buffer operations, in chunks so that the temporaries stay small.
         tch::no_grad(|| {
-            for p in &mut self.params {
-                let g = p.grad.g_mul_scalar(grad_scale);
-                let _ = p.exp_avg.lerp_(&g, 1.0 - b1);
-                let _ = p.exp_avg_sq.g_mul_scalar_(b2);
-                let _ = p.exp_avg_sq.g_add_(&(g.square() * (1.0 - b2)));
-                let denom = (p.exp_avg_sq.sqrt() / bc2.sqrt()) + eps;
+            for &(start, len) in &chunks {
+                let part = |t: &Tensor| t.narrow(0, start, len);
+                let (mut master, mut m, mut v) = (
+                    part(&self.master),
+                    part(&self.exp_avg),
+                    part(&self.exp_avg_sq),
+                );
+                let g = part(&g) * grad_scale;
+                let _ = m.lerp_(&g, 1.0 - b1);
+                let _ = v.g_mul_scalar_(b2);
+                let _ = v.addcmul_(&g, &(&g * (1.0 - b2)));
+                let denom = (v.sqrt() / bc2.sqrt()) + eps;
                 if wd > 0.0 {
-                    let _ = p.master.g_mul_scalar_(1.0 - lr * wd);
+                    let _ = master.g_mul_scalar_(1.0 - lr * wd);
                 }
-                let _ = p.master.g_sub_(&(&p.exp_avg / denom * (lr / bc1)));
-                if let (Some(e), Some(d)) = (p.ema.as_mut(), ema) {
-                    let _ = e.lerp_(&p.master, 1.0 - d);
+                let _ = master.g_sub_(&(&m / denom * (lr / bc1)));
+                if let (Some(e), Some(d)) = (self.ema.as_ref(), ema) {
+                    let _ = part(e).lerp_(&master, 1.0 - d);
                 }
-                p.param.copy_(&p.master.to_kind(p.param.kind()));
-                let _ = p.grad.zero_();
             }
         });
-        Some(StepReport { lr, grad_norm, clipped })
+        self.publish_weights(comm)?;
+        tch::no_grad(|| {
+            let _ = self.grads.flat_mut().zero_();
+        });
+        Ok(Some(StepReport {
+            lr,
+            grad_norm,
+            clipped,
+        }))
     }
 
-    /// Optimizer state under checkpoint names: `master.<p>`, `exp_avg.<p>`, `exp_avg_sq.<p>`,
-    /// `ema.<p>`.
+    /// Writes the masters into the model's weights on every rank (all-gather when sharded).
+    fn publish_weights(&mut self, comm: &mut dyn Collective) -> Result<()> {
+        let kind = self.weights.flat().kind();
+        if self.is_sharded() {
+            let mine = self.master.to_kind(kind);
+            comm.all_gather(&mine, self.weights.flat_mut())
+                .context("all-gather of the updated weights")?;
+        } else {
+            tch::no_grad(|| self.weights.flat_mut().copy_(&self.master));
+        }
+        Ok(())
+    }
+
+    /// This rank's optimizer state as 1-D tensors named `master`, `exp_avg`, `exp_avg_sq`, `ema`
+    /// (the slice `slice()` of the flat state).
     pub fn state_tensors(&self) -> Vec<(String, Tensor)> {
-        let mut out = Vec::with_capacity(self.params.len() * 4);
-        for p in &self.params {
-            out.push((format!("master.{}", p.name), p.master.shallow_clone()));
-            out.push((format!("exp_avg.{}", p.name), p.exp_avg.shallow_clone()));
-            out.push((format!("exp_avg_sq.{}", p.name), p.exp_avg_sq.shallow_clone()));
-            if let Some(e) = &p.ema {
-                out.push((format!("ema.{}", p.name), e.shallow_clone()));
-            }
+        let mut out = vec![
+            ("master".to_string(), self.master.shallow_clone()),
+            ("exp_avg".to_string(), self.exp_avg.shallow_clone()),
+            ("exp_avg_sq".to_string(), self.exp_avg_sq.shallow_clone()),
+        ];
+        if let Some(e) = &self.ema {
+            out.push(("ema".to_string(), e.shallow_clone()));
         }
         out
     }
 
-    /// Restores the state written by `state_tensors`; every trained parameter must be present
-    /// with its shape, and the model weights are set from the masters.
-    pub fn load_state(&mut self, state: &std::collections::BTreeMap<String, Tensor>, step: u64) -> Result<usize> {
-        let mut loaded = 0;
-        for p in &mut self.params {
-            let fetch = |kind: &str| -> Result<&Tensor> {
-                let key = format!("{kind}.{}", p.name);
-                let t = state.get(&key).ok_or_else(|| anyhow::anyhow!("optimizer state lacks '{key}'"))?;
-                if t.size() != p.master.size() {
-                    bail!("optimizer state '{key}' has shape {:?}, the model's parameter {:?}", t.size(), p.master.size());
-                }
-                Ok(t)
-            };
-            let (m, a, s) = (fetch("master")?, fetch("exp_avg")?, fetch("exp_avg_sq")?);
-            tch::no_grad(|| {
-                p.master.copy_(m);
-                p.exp_avg.copy_(a);
-                p.exp_avg_sq.copy_(s);
-                p.param.copy_(&p.master.to_kind(p.param.kind()));
-            });
-            loaded += 3;
-            if let Some(e) = p.ema.as_mut() {
-                let key = format!("ema.{}", p.name);
-                match state.get(&key) {
-                    Some(t) => {
-                        tch::no_grad(|| e.copy_(t));
-                        loaded += 1;
-                    }
-                    None => tch::no_grad(|| e.copy_(&p.master)),
-                }
+    /// Restores this rank's slice from a checkpoint's optimizer state (written by any number of
+    /// ranks) and sets the model weights from the masters. Returns the state tensors loaded.
+    pub fn load_state(
+        &mut self,
+        state: &OptimizerState,
+        step: u64,
+        comm: &mut dyn Collective,
+    ) -> Result<usize> {
+        let device = self.master.device();
+        let read = |key: &str| {
+            state
+                .read_range(key, self.slice.clone(), device)
+                .with_context(|| format!("optimizer state '{key}'"))
+        };
+        let (m, a, s) = (read("master")?, read("exp_avg")?, read("exp_avg_sq")?);
+        let mut loaded = 3;
+        let ema = match (&self.ema, state.has("ema")?) {
+            (Some(_), true) => {
+                loaded += 1;
+                Some(read("ema")?)
             }
-        }
+            _ => None,
+        };
+        tch::no_grad(|| {
+            self.master.copy_(&m);
+            self.exp_avg.copy_(&a);
+            self.exp_avg_sq.copy_(&s);
+            if let Some(e) = self.ema.as_mut() {
+                e.copy_(ema.as_ref().unwrap_or(&m));
+            }
+        });
         self.step = step;
+        self.publish_weights(comm)?;
         Ok(loaded)
     }
 }
@@ -232,6 +409,7 @@ impl AdamW {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::dist::LocalCollective;
     use tch::Device;
 
     fn cfg() -> OptimSection {
@@ -242,11 +420,13 @@ mod tests {
     fn matches_the_adamw_update_rule() {
         let w = Tensor::from_slice(&[1.0f32, -2.0]);
         let named = vec![("w".to_string(), w.shallow_clone())];
-        let mut opt = AdamW::new(&named, &["*".into()], &[], &cfg(), 10).unwrap();
+        let mut opt = AdamW::new(&named, &["*".into()], &[], &cfg(), 10, Sharding::SINGLE).unwrap();
         for _ in 0..2 {
-            (&opt.params[0].param * Tensor::from_slice(&[3.0f32, 0.5])).sum(Kind::Float).backward();
+            (&opt.params[0].param * Tensor::from_slice(&[3.0f32, 0.5]))
+                .sum(Kind::Float)
+                .backward();
             opt.collect_grads();
-            opt.step(1.0).unwrap();
+            opt.step(1.0, &mut LocalCollective::new()).unwrap().unwrap();
         }
         // Two AdamW steps by hand with a constant gradient g: m_hat = g, v_hat = g^2 each step.
         let mut expect = [1.0f64, -2.0];
@@ -256,7 +436,11 @@ mod tests {
                 *x -= 0.1 * g / (g.abs() + 1e-8);
             }
         }
-        let got: Vec<f64> = Vec::<f32>::try_from(&w).unwrap().iter().map(|&v| v as f64).collect();
+        let got: Vec<f64> = Vec::<f32>::try_from(&w)
+            .unwrap()
+            .iter()
+            .map(|&v| v as f64)
+            .collect();
         for (a, b) in got.iter().zip(expect) {
             assert!((a - b).abs() < 1e-6, "{got:?} vs {expect:?}");
         }
@@ -268,14 +452,13 @@ mod tests {
         let named = vec![("w".to_string(), w.shallow_clone())];
         let mut c = cfg();
         c.grad_clip = 1.0;
-        let mut opt = AdamW::new(&named, &["*".into()], &[], &c, 10).unwrap();
+        let mut opt = AdamW::new(&named, &["*".into()], &[], &c, 10, Sharding::SINGLE).unwrap();
         let _ = opt.params[0].grad.fill_(3.0);
-        assert!((opt.grad_norm(1.0) - 6.0).abs() < 1e-9);
-        let r = opt.step(1.0).unwrap();
+        let r = opt.step(1.0, &mut LocalCollective::new()).unwrap().unwrap();
         assert!(r.clipped && (r.grad_norm - 6.0).abs() < 1e-9);
         // After clipping the gradient is 0.5 per element; Adam's first step moves by lr regardless,
         // so check the first moment instead: (1 - b1) * 0.5.
-        let m = opt.params[0].exp_avg.double_value(&[0]);
+        let m = opt.exp_avg.double_value(&[0]);
         assert!((m - 0.1 * 0.5).abs() < 1e-6, "{m}");
     }
 
@@ -283,18 +466,28 @@ mod tests {
     fn non_finite_gradients_skip_the_step() {
         let w = Tensor::ones([2], (Kind::Float, Device::Cpu));
         let named = vec![("w".to_string(), w.shallow_clone())];
-        let mut opt = AdamW::new(&named, &["*".into()], &[], &cfg(), 10).unwrap();
+        let mut opt = AdamW::new(&named, &["*".into()], &[], &cfg(), 10, Sharding::SINGLE).unwrap();
         let _ = opt.params[0].grad.fill_(f64::NAN);
-        assert!(opt.step(1.0).is_none());
+        assert!(opt
+            .step(1.0, &mut LocalCollective::new())
+            .unwrap()
+            .is_none());
         assert_eq!(opt.step, 0);
         assert!(w.equal(&Tensor::ones([2], (Kind::Float, Device::Cpu))));
-        assert_eq!(opt.params[0].grad.abs().sum(Kind::Float).double_value(&[]), 0.0);
+        assert_eq!(
+            opt.params[0].grad.abs().sum(Kind::Float).double_value(&[]),
+            0.0
+        );
     }
 
     #[test]
     fn trainable_selection_by_pattern() {
         let t = || Tensor::zeros([1], (Kind::Float, Device::Cpu));
-        let named = vec![("blocks.0.q.weight".to_string(), t()), ("text_embedding.0.weight".to_string(), t()), ("action_encoder.x".to_string(), t())];
+        let named = vec![
+            ("blocks.0.q.weight".to_string(), t()),
+            ("text_embedding.0.weight".to_string(), t()),
+            ("action_encoder.x".to_string(), t()),
+        ];
         let picked = select_trainable(&named, &["*".into()], &["text_embedding.*".into()]).unwrap();
         let names: Vec<&str> = picked.iter().map(|(n, _)| n.as_str()).collect();
         assert_eq!(names, vec!["blocks.0.q.weight", "action_encoder.x"]);
@@ -307,8 +500,11 @@ mod tests {
         c.warmup_steps = 10;
         c.schedule = LrSchedule::Cosine;
         c.min_lr_ratio = 0.1;
-        let named = vec![("w".to_string(), Tensor::zeros([1], (Kind::Float, Device::Cpu)))];
-        let opt = AdamW::new(&named, &["*".into()], &[], &c, 110).unwrap();
+        let named = vec![(
+            "w".to_string(),
+            Tensor::zeros([1], (Kind::Float, Device::Cpu)),
+        )];
+        let opt = AdamW::new(&named, &["*".into()], &[], &c, 110, Sharding::SINGLE).unwrap();
         assert!((opt.lr_at(5) - 0.05).abs() < 1e-12);
         assert!((opt.lr_at(10) - 0.1).abs() < 1e-12);
         assert!((opt.lr_at(60) - 0.1 * (0.1 + 0.9 * 0.5)).abs() < 1e-9);

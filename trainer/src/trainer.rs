@@ -7,8 +7,10 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{bail, ensure, Context, Result};
-use bwm_checkpoints::{read_tensors, write_tensors, CheckpointRoot};
+use bwm_checkpoints::optimizer_shards::OptimizerState;
+use bwm_checkpoints::{write_tensors, CheckpointRoot};
 use bwm_data::latent_cache::{clip_for_sample, global_sample_index, LatentCache};
+use bwm_model::weights::{SafetensorsSource, WeightSource};
 use bwm_model::{BwmModel, ModelConfig, ParamStore};
 use serde::{Deserialize, Serialize};
 use tch::{Device, Kind, Tensor};
@@ -18,7 +20,7 @@ use crate::dist::{Backend, Collective, DistEnv};
 use crate::flops;
 use crate::metrics::{Progress, StepMetrics};
 use crate::objective::Objective;
-use crate::optim::AdamW;
+use crate::optim::{AdamW, Sharding};
 use crate::recompute::forward_backward;
 use crate::tensorboard::EventWriter;
 use crate::validation;
@@ -179,7 +181,8 @@ impl Trainer {
 
         let model = build_model(&cfg, &model_cfg, device)?;
         let named = model.store.named_parameters();
-        let mut opt = AdamW::new(&named, &cfg.train.trainable, &cfg.train.frozen, &cfg.optim, cfg.train.steps)?;
+        let sharding = Sharding { rank: comm.rank(), world: comm.world_size(), sharded: cfg.train.shard_optimizer };
+        let mut opt = AdamW::new(&named, &cfg.train.trainable, &cfg.train.frozen, &cfg.optim, cfg.train.steps, sharding)?;
         let objective = Objective::new(&cfg.objective, cfg.run.seed);
         let config_text = cfg.to_toml()?;
         let mut state = TrainState {
@@ -193,7 +196,7 @@ impl Trainer {
             config: config_text,
         };
         if let Some(dir) = &resume_from {
-            state = restore(dir, &cfg, &mut opt, &state.trainable, device)?;
+            state = restore(dir, &cfg, &mut opt, &state.trainable, comm.as_mut())?;
         }
         state.world_size = comm.world_size();
         check_identical_weights(comm.as_mut(), &opt)?;
@@ -221,8 +224,8 @@ impl Trainer {
     }
 
     /// As [`Trainer::run`], and after each optimizer step the ranks agree whether any of them saw
-    /// `stop` set (a signal): then they all stop at that step, rank 0 checkpoints it, and the
-    /// checkpoint folder is returned. `None` when the run reached `train.steps`.
+    /// `stop` set (a signal): then they all stop at that step with a checkpoint of it, whose
+    /// folder is returned. `None` when the run reached `train.steps`.
     pub fn run_until(&mut self, stop: &std::sync::atomic::AtomicBool) -> Result<Option<PathBuf>> {
         let total = self.cfg.train.steps;
         if self.state.step >= total {
@@ -254,15 +257,10 @@ impl Trainer {
             }
             let ck = self.cfg.checkpoint.every;
             if (ck > 0 && step % ck == 0) || step == total || requested {
-                // The optimizer state is replicated: rank 0 writes, the others wait for it.
-                let dir = if lead {
-                    let dir = self.save_checkpoint()?;
+                let dir = self.save_checkpoint()?;
+                if lead {
                     progress.println(&format!("checkpoint {}", dir.display()));
-                    dir
-                } else {
-                    self.checkpoints.root.join(format!("step-{step:08}"))
-                };
-                self.comm.barrier().context("waiting for the checkpoint of rank 0")?;
+                }
                 if requested && step < total {
                     stopped = Some(dir);
                     break;
@@ -319,15 +317,12 @@ impl Trainer {
             .to_device(self.device);
         if world > 1 {
             self.comm.all_reduce_sum(&mut flags).context("agreeing on the step's losses")?;
-            if flags.double_value(&[0]) == 0.0 {
-                for p in &mut self.opt.params {
-                    self.comm.all_reduce_sum(&mut p.grad).with_context(|| format!("reducing the gradient of {}", p.name))?;
-                }
-            }
         }
         let all_finite = flags.double_value(&[0]) == 0.0;
         let global_loss = flags.double_value(&[1]) / world as f64;
-        let report = if all_finite { self.opt.step((accum * world) as f64) } else {
+        let report = if all_finite {
+            self.opt.step((accum * world) as f64, self.comm.as_mut())?
+        } else {
             self.opt.discard_grads();
             None
         };
@@ -404,10 +399,37 @@ impl Trainer {
         self.events.as_mut()
     }
 
-    /// Writes a checkpoint of the current step (see `checkpoints`).
+    /// Writes a checkpoint of the current step (see `checkpoints`); every rank takes part. Each
+    /// rank writes its slice of the optimizer state into a staging folder; rank 0 then writes the
+    /// weights and the training state and moves the slices into the checkpoint, which appears
+    /// whole (temporary folder, fsync, rename) or not at all.
     pub fn save_checkpoint(&mut self) -> Result<PathBuf> {
+        let rank = self.comm.rank();
+        // Replicated state is written once, by rank 0.
+        let writers = if self.opt.is_sharded() { self.comm.world_size() } else { 1 };
+        let step = self.state.step;
+        let staging = self.checkpoints.root.join(format!(".step-{step:08}.optimizer-shards"));
+        std::fs::create_dir_all(&staging).with_context(|| format!("creating {}", staging.display()))?;
+        if rank < writers {
+            let shard_dir = staging.join(format!(".rank-{rank}.tmp"));
+            std::fs::create_dir_all(&shard_dir)?;
+            let shard = bwm_checkpoints::optimizer_shards::write_shard(&shard_dir, rank, writers, self.opt.slice(), &self.opt.layout(), &self.opt.state_tensors())?;
+            let name = bwm_checkpoints::optimizer_shards::shard_file_name(rank, writers);
+            std::fs::rename(&shard, staging.join(&name)).with_context(|| format!("moving {}", shard.display()))?;
+            std::fs::remove_dir_all(&shard_dir).ok();
+        }
+        self.comm.barrier().context("waiting for every rank's optimizer shard")?;
+        let written = if rank == 0 { self.commit_checkpoint(&staging, writers).map(Some) } else { Ok(None) };
+        // Every rank learns whether rank 0 succeeded before going on.
+        let mut ok = Tensor::from_slice(&[written.is_ok() as i32 as f32]).to_device(self.device);
+        self.comm.broadcast(&mut ok, 0).context("waiting for the checkpoint of rank 0")?;
+        let dir = written?.unwrap_or_else(|| self.checkpoints.root.join(format!("step-{step:08}")));
+        ensure!(ok.double_value(&[0]) > 0.0, "rank 0 failed to write the checkpoint of step {step}");
+        Ok(dir)
+    }
+
+    fn commit_checkpoint(&mut self, staging: &Path, writers: usize) -> Result<PathBuf> {
         let weights: Vec<(String, Tensor)> = self.opt.params.iter().map(|p| (p.name.clone(), p.param.shallow_clone())).collect();
-        let optimizer = self.opt.state_tensors();
         let state = serde_json::to_string_pretty(&self.state)?;
         let config = self.cfg.to_toml()?;
         let meta = BTreeMap::from([("format".to_string(), "pt".to_string()), ("step".to_string(), self.state.step.to_string())]);
@@ -419,21 +441,16 @@ impl Trainer {
                 eprintln!("checkpoint: writing {}", tmp.display());
                 std::thread::sleep(std::time::Duration::from_millis(ms));
             }
-            write_tensors(&tmp.join("optimizer.safetensors"), &optimizer, &BTreeMap::new())?;
+            for r in 0..writers {
+                let name = bwm_checkpoints::optimizer_shards::shard_file_name(r, writers);
+                std::fs::rename(staging.join(&name), tmp.join(&name)).with_context(|| format!("moving the optimizer shard of rank {r}"))?;
+            }
             std::fs::write(tmp.join("config.toml"), &config)?;
             std::fs::write(tmp.join(bwm_checkpoints::run_dir::STATE_FILE), &state)?;
             Ok(())
         })?;
+        std::fs::remove_dir_all(staging).ok();
         Ok(dir.path)
-    }
-
-    /// The trained weights (EMA when configured) under checkpoint names.
-    pub fn export_weights(&self) -> Vec<(String, Tensor)> {
-        self.opt
-            .params
-            .iter()
-            .map(|p| (p.name.clone(), p.ema.as_ref().map(|e| e.to_kind(p.param.kind())).unwrap_or_else(|| p.param.shallow_clone())))
-            .collect()
     }
 
     pub fn out_path(&self, name: &str) -> PathBuf {
@@ -456,8 +473,8 @@ fn check_identical_weights(comm: &mut dyn Collective, opt: &AdamW) -> Result<()>
     if world == 1 {
         return Ok(());
     }
-    let sum: f64 = opt.params.iter().map(|p| p.master.sum(Kind::Double).double_value(&[]) + p.master.abs().sum(Kind::Double).double_value(&[]) * 1e-3).sum();
-    let device = opt.params[0].master.device();
+    let sum: f64 = opt.params.iter().map(|p| p.param.sum(Kind::Double).double_value(&[]) + p.param.abs().sum(Kind::Double).double_value(&[]) * 1e-3).sum();
+    let device = opt.params[0].param.device();
     let mine = Tensor::from_slice(&[sum as f32]).to_device(device);
     let mut all = Tensor::zeros([world as i64], (Kind::Float, device));
     comm.all_gather(&mine, &mut all).context("comparing initial weights across ranks")?;
@@ -470,7 +487,7 @@ fn check_identical_weights(comm: &mut dyn Collective, opt: &AdamW) -> Result<()>
 }
 
 /// Loads a checkpoint into `opt` after checking it belongs to this config.
-fn restore(dir: &Path, cfg: &RunConfig, opt: &mut AdamW, trainable: &[String], device: Device) -> Result<TrainState> {
+fn restore(dir: &Path, cfg: &RunConfig, opt: &mut AdamW, trainable: &[String], comm: &mut dyn Collective) -> Result<TrainState> {
     let state_path = dir.join(bwm_checkpoints::run_dir::STATE_FILE);
     let text = std::fs::read_to_string(&state_path).with_context(|| format!("reading {}", state_path.display()))?;
     let state: TrainState = serde_json::from_str(&text).with_context(|| format!("parsing {}", state_path.display()))?;
@@ -498,19 +515,19 @@ fn restore(dir: &Path, cfg: &RunConfig, opt: &mut AdamW, trainable: &[String], d
             eprintln!("warning: {what} was {a} in the checkpoint and is {b} now; the continuation will not match an uninterrupted run");
         }
     }
-    let opt_state = read_tensors(&dir.join("optimizer.safetensors"), device)?;
-    let weights = read_tensors(&dir.join("model.safetensors"), device)?;
-    let loaded = opt.load_state(&opt_state, state.optimizer_step)?;
+    let opt_state = OptimizerState::open(dir, &opt.layout())?;
+    let loaded = opt.load_state(&opt_state, state.optimizer_step, comm)?;
     let expected = opt.state_tensors().len();
+    let weights = SafetensorsSource::open(dir.join("model.safetensors"))?;
     for p in &opt.params {
-        ensure!(weights.contains_key(&p.name), "{}: model.safetensors lacks '{}'", dir.display(), p.name);
+        ensure!(weights.shape(&p.name).is_some(), "{}: model.safetensors lacks '{}'", dir.display(), p.name);
     }
     println!(
         "resumed from {} at step {}: {loaded}/{expected} optimizer tensors, {}/{} weight tensors loaded",
         dir.display(),
         state.step,
         opt.params.len(),
-        weights.len()
+        weights.names().len()
     );
     Ok(state)
 }

@@ -14,7 +14,8 @@ use tch::{Device, Kind, Tensor};
 use crate::config::OptimSection;
 use crate::image_metrics::psnr;
 use crate::keyed_rng::{self, Purpose};
-use crate::optim::AdamW;
+use crate::dist::LocalCollective;
+use crate::optim::{AdamW, Sharding};
 
 pub struct VaeTrainSettings {
     pub cfg: VaeConfig,
@@ -92,7 +93,7 @@ pub fn train_vae(data: &FrameSets, s: &VaeTrainSettings, on_log: &mut dyn FnMut(
     vae.set_latent_stats(&identity.0, &identity.1)?;
     let optim: OptimSection =
         toml::from_str(&format!("lr = {}\nweight_decay = 0.0\ngrad_clip = 1.0\nwarmup_steps = 20\nschedule = \"cosine\"\nmin_lr_ratio = 0.05", s.lr))?;
-    let mut opt = AdamW::new(&store.named_parameters(), &["*".into()], &[], &optim, s.steps)?;
+    let mut opt = AdamW::new(&store.named_parameters(), &["*".into()], &[], &optim, s.steps, Sharding::SINGLE)?;
     let start = Instant::now();
     for step in 0..s.steps {
         let picks: Vec<(usize, i64)> = (0..s.batch)
@@ -115,7 +116,7 @@ pub fn train_vae(data: &FrameSets, s: &VaeTrainSettings, on_log: &mut dyn FnMut(
         let loss = &mse + &kl * s.kl_weight;
         loss.f_backward()?;
         opt.collect_grads();
-        let report = opt.step(1.0);
+        let report = opt.step(1.0, &mut LocalCollective::new())?;
         let last = step + 1 == s.steps;
         if (step + 1) % 50 == 0 || last || report.is_none() {
             let m = mse.double_value(&[]);

@@ -7,11 +7,12 @@ set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 VENV="${BWM_VENV:-$ROOT/.venv}"
 TORCH_VERSION="2.11.0"
-PY_PACKAGES=(numpy safetensors tensorboard "torchaudio==2.11.0" "diffsynth==2.0.11" "diffusers==0.42.1" pyarrow h5py opencv-python-headless)
+PY_PACKAGES=(numpy safetensors tensorboard "torchaudio==2.11.0" "diffsynth==2.0.11" "diffusers==0.42.1" pyarrow h5py opencv-python-headless websockets msgpack)
 # Debian packages the build needs: FFmpeg's libraries for bwm-data's `video` feature (found with
 # pkg-config, bindings generated with libclang), libhdf5 for its `hdf5` feature, and the ffmpeg CLI
-# that scripts/make_fixtures.py encodes the test datasets with.
-APT_PACKAGES=(libavcodec-dev libavformat-dev libavutil-dev libswscale-dev libclang-dev pkg-config libhdf5-dev ffmpeg)
+# that scripts/make_fixtures.py encodes the test datasets with; Slurm (controller, node daemon,
+# client commands) and munge for the one-host test cluster of tests/slurm.rs (scripts/slurm/).
+APT_PACKAGES=(libavcodec-dev libavformat-dev libavutil-dev libswscale-dev libclang-dev pkg-config libhdf5-dev ffmpeg slurm-wlm munge)
 
 missing=()
 if command -v dpkg >/dev/null 2>&1; then
@@ -33,7 +34,7 @@ if [ ${#missing[@]} -gt 0 ]; then
 fi
 
 if [ -x "$VENV/bin/python" ] && "$VENV/bin/python" - "$TORCH_VERSION" <<'PY' 2>/dev/null
-import sys, torch, numpy, safetensors, tensorboard, pyarrow, h5py, cv2, torchaudio, diffsynth, diffusers
+import sys, torch, numpy, safetensors, tensorboard, pyarrow, h5py, cv2, torchaudio, diffsynth, diffusers, websockets, msgpack
 sys.exit(0 if torch.__version__.split("+")[0] == sys.argv[1] else 1)
 PY
 then

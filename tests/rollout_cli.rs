@@ -4,45 +4,17 @@
 //! the recorded ones row by row, source fps), that the project's own LeRobot reader opens, with a
 //! side-by-side video and PSNR/SSIM; `--resume` adds episodes without touching finished ones.
 
-use std::path::{Path, PathBuf};
+mod common;
+
 use std::process::Command;
 
 use bwm_data::source::{open_dataset, CameraSelection};
 use bwm_data::ActionSpec;
-use bwm_model::vae::{VaeConfig, WanVae};
-use bwm_trainer::vae_train::{save_trained_vae, TrainedVae, VaeTrainReport};
-use tch::{Device, Kind};
+use common::{bwm, demo_data, python, write_random_vae};
 
-fn bwm() -> PathBuf {
-    let exe = std::env::current_exe().unwrap();
-    let path = exe.parent().unwrap().parent().unwrap().join("bwm");
-    assert!(path.exists(), "{} not built (run through `cargo test --workspace`)", path.display());
-    path
-}
 
-fn python() -> String {
-    for var in ["VIRTUAL_ENV", "BWM_VENV"] {
-        if let Some(v) = std::env::var_os(var) {
-            let p = Path::new(&v).join("bin/python");
-            if p.exists() {
-                return p.display().to_string();
-            }
-        }
-    }
-    Path::new(env!("CARGO_MANIFEST_DIR")).join(".venv/bin/python").display().to_string()
-}
 
-fn demo_data() -> PathBuf {
-    let shared = std::env::var_os("BWM_SHARED").map(PathBuf::from).unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared"));
-    shared.join("data/bwm-demo")
-}
 
-fn write_random_vae(path: &Path) {
-    let (vae, store) = WanVae::random(&VaeConfig::with_width(16, 16), Kind::Float, Device::Cpu, 5).unwrap();
-    let params = store.named_parameters();
-    let report = VaeTrainReport { train_psnr: 0.0, holdout_psnr: 0.0, seconds: 0.0, steps: 0 };
-    save_trained_vae(&TrainedVae { vae, params, report }, path).unwrap();
-}
 
 fn rollout(args: &[&str]) -> std::process::Output {
     let out = Command::new(bwm())
@@ -62,7 +34,7 @@ fn data_engine_writes_a_lerobot_dataset_aligned_row_by_row() {
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
     let vae = dir.join("vae.safetensors");
-    write_random_vae(&vae);
+    write_random_vae(&vae, 5);
     let data = demo_data();
     let out = dir.join("generated");
     let common = ["--vae", vae.to_str().unwrap(), "--data", data.to_str().unwrap(), "--out", out.to_str().unwrap()];

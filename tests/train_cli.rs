@@ -3,93 +3,18 @@
 //! checkpoint loadable and `--resume auto` continues from it; the TensorBoard event files are
 //! read back by the `tensorboard` package's EventAccumulator with the expected tags and steps.
 
+mod common;
+
 use std::io::{BufRead, BufReader};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Command, Stdio};
 
-use bwm_data::latent_cache::{CacheIndex, CacheWriter, ClipEntry};
-use tch::{Device, Kind, Tensor};
+use common::{assert_close, bwm, final_weights, free_port, python, write_cache, write_config};
 
-fn bwm() -> PathBuf {
-    // target/<profile>/deps/train_cli-* -> target/<profile>/bwm
-    let exe = std::env::current_exe().unwrap();
-    let path = exe.parent().unwrap().parent().unwrap().join("bwm");
-    assert!(path.exists(), "{} not built (run through `cargo test --workspace`)", path.display());
-    path
-}
 
-fn python() -> String {
-    for var in ["VIRTUAL_ENV", "BWM_VENV"] {
-        if let Some(v) = std::env::var_os(var) {
-            let p = Path::new(&v).join("bin/python");
-            if p.exists() {
-                return p.display().to_string();
-            }
-        }
-    }
-    Path::new(env!("CARGO_MANIFEST_DIR")).join(".venv/bin/python").display().to_string()
-}
 
-fn write_cache(dir: &Path) {
-    tch::manual_seed(0);
-    let index = CacheIndex {
-        version: 1,
-        latent_shape: vec![48, 4, 4, 4],
-        action_dim: 14,
-        pixel_frames: 13,
-        history_frames: 8,
-        future_frames: 4,
-        resolution: [64, 64],
-        fps: 30.0,
-        vae: "synthetic".into(),
-        has_frames: false,
-        clips: vec![],
-    };
-    let mut w = CacheWriter::create(dir, index).unwrap();
-    for episode in 0..3 {
-        let latents = Tensor::randn([48, 4, 4, 4], (Kind::Float, Device::Cpu));
-        let actions = Tensor::rand([13, 14], (Kind::Float, Device::Cpu)) * 2.0 - 1.0;
-        w.add(ClipEntry { file: String::new(), episode, frames: (0..13).collect(), task: "t".into() }, &latents, &actions, None).unwrap();
-    }
-    w.finish().unwrap();
-}
 
-fn write_config(dir: &Path) -> PathBuf {
-    write_config_named(dir, "run.toml", &dir.join("run"), 3, 1)
-}
 
-fn write_config_named(dir: &Path, name: &str, out: &Path, steps: u64, grad_accum: usize) -> PathBuf {
-    let path = dir.join(name);
-    std::fs::write(
-        &path,
-        format!(
-            r#"[run]
-name = "cli"
-out_dir = "{out}"
-device = "cpu"
-[model]
-preset = "tiny"
-dtype = "f32"
-[data]
-latent_cache = "{cache}"
-[optim]
-lr = 1e-3
-[train]
-steps = {steps}
-grad_accum = {grad_accum}
-[checkpoint]
-every = 1
-keep_last = 5
-[log]
-progress = false
-"#,
-            out = out.display(),
-            cache = dir.join("cache").display()
-        ),
-    )
-    .unwrap();
-    path
-}
 
 #[test]
 fn kill_during_checkpoint_write_then_resume_auto_and_tensorboard_read_back() {
@@ -97,7 +22,7 @@ fn kill_during_checkpoint_write_then_resume_auto_and_tensorboard_read_back() {
     std::fs::remove_dir_all(&dir).ok();
     std::fs::create_dir_all(&dir).unwrap();
     write_cache(&dir.join("cache"));
-    let config = write_config(&dir);
+    let config = write_config(&dir, "run.toml", &dir.join("run"), 3, 1);
 
     // First run: killed with SIGKILL while it writes its second checkpoint.
     let mut child = Command::new(bwm())
@@ -161,9 +86,6 @@ print(json.dumps({t: [e.step for e in acc.Scalars(t)] for t in tags}))
     std::fs::remove_dir_all(&dir).ok();
 }
 
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
-}
 
 /// `bwm train` as ranks 0..world of one job (torchrun's variables set by hand), waiting for all.
 fn train_ranks(config: &Path, world: usize, resume: &str) {
@@ -189,21 +111,7 @@ fn train_ranks(config: &Path, world: usize, resume: &str) {
     }
 }
 
-fn final_weights(run: &Path) -> Vec<(String, Tensor)> {
-    let latest = std::fs::read_to_string(run.join("checkpoints/latest")).unwrap();
-    let mut t = Tensor::read_safetensors(run.join("checkpoints").join(latest.trim()).join("model.safetensors")).unwrap();
-    t.sort_by(|a, b| a.0.cmp(&b.0));
-    t
-}
 
-fn assert_close(a: &[(String, Tensor)], b: &[(String, Tensor)], what: &str) {
-    assert_eq!(a.len(), b.len(), "{what}");
-    for ((n, x), (m, y)) in a.iter().zip(b) {
-        assert_eq!(n, m);
-        let d = (x - y).abs().max().double_value(&[]);
-        assert!(d <= 1e-5, "{what}: {n} differs by {d}");
-    }
-}
 
 #[test]
 fn two_ranks_train_the_weights_of_one_and_resume_across_world_sizes() {
@@ -212,9 +120,9 @@ fn two_ranks_train_the_weights_of_one_and_resume_across_world_sizes() {
     std::fs::create_dir_all(&dir).unwrap();
     write_cache(&dir.join("cache"));
     // One process, accumulation 2 == two ranks, accumulation 1: the same global batch of 2.
-    let one = write_config_named(&dir, "one.toml", &dir.join("one"), 3, 2);
+    let one = write_config(&dir, "one.toml", &dir.join("one"), 3, 2);
     train_ranks(&one, 1, "no");
-    let two = write_config_named(&dir, "two.toml", &dir.join("two"), 3, 1);
+    let two = write_config(&dir, "two.toml", &dir.join("two"), 3, 1);
     train_ranks(&two, 2, "no");
     assert_close(&final_weights(&dir.join("one")), &final_weights(&dir.join("two")), "2 ranks vs 1");
     // Each rank wrote its half of the optimizer state; replicated state gives the same weights.
@@ -222,14 +130,14 @@ fn two_ranks_train_the_weights_of_one_and_resume_across_world_sizes() {
     for shard in ["optimizer-00000-of-00002.safetensors", "optimizer-00001-of-00002.safetensors"] {
         assert!(last("two").join(shard).is_file(), "{shard} in {}", last("two").display());
     }
-    let replicated = write_config_named(&dir, "replicated.toml", &dir.join("replicated"), 3, 1);
+    let replicated = write_config(&dir, "replicated.toml", &dir.join("replicated"), 3, 1);
     let text = std::fs::read_to_string(&replicated).unwrap().replace("[train]\n", "[train]\nshard_optimizer = false\n");
     std::fs::write(&replicated, text).unwrap();
     train_ranks(&replicated, 2, "no");
     assert!(last("replicated").join("optimizer-00000-of-00001.safetensors").is_file(), "replicated state is written once");
     assert_close(&final_weights(&dir.join("two")), &final_weights(&dir.join("replicated")), "sharded vs replicated optimizer state");
     // The same 2 ranks started by `bwm launch`.
-    let launched = write_config_named(&dir, "launched.toml", &dir.join("launched"), 3, 1);
+    let launched = write_config(&dir, "launched.toml", &dir.join("launched"), 3, 1);
     let port = free_port().to_string();
     let out = Command::new(bwm())
         .args(["launch", "--nproc-per-node", "2", "--master-port", &port, "--", "train", "--config"])
@@ -240,14 +148,14 @@ fn two_ranks_train_the_weights_of_one_and_resume_across_world_sizes() {
     assert_close(&final_weights(&dir.join("one")), &final_weights(&dir.join("launched")), "bwm launch, 2 ranks vs 1");
 
     // 2 ranks for 2 steps, then 1 rank resumes to step 3; and 1 rank for 2 steps, then 2 ranks.
-    let a2 = write_config_named(&dir, "a2.toml", &dir.join("a"), 2, 1);
+    let a2 = write_config(&dir, "a2.toml", &dir.join("a"), 2, 1);
     train_ranks(&a2, 2, "no");
-    let a3 = write_config_named(&dir, "a3.toml", &dir.join("a"), 3, 2);
+    let a3 = write_config(&dir, "a3.toml", &dir.join("a"), 3, 2);
     train_ranks(&a3, 1, "auto");
     assert_close(&final_weights(&dir.join("one")), &final_weights(&dir.join("a")), "2 ranks then 1");
-    let b2 = write_config_named(&dir, "b2.toml", &dir.join("b"), 2, 2);
+    let b2 = write_config(&dir, "b2.toml", &dir.join("b"), 2, 2);
     train_ranks(&b2, 1, "no");
-    let b3 = write_config_named(&dir, "b3.toml", &dir.join("b"), 3, 1);
+    let b3 = write_config(&dir, "b3.toml", &dir.join("b"), 3, 1);
     train_ranks(&b3, 2, "auto");
     assert_close(&final_weights(&dir.join("one")), &final_weights(&dir.join("b")), "1 rank then 2");
     std::fs::remove_dir_all(&dir).ok();

@@ -222,6 +222,49 @@ pub fn read_clip_frames(source: &dyn EpisodeSource, episode: usize, window: &Cli
         .collect()
 }
 
+/// The frames several windows of one episode need, each decoded once: x0, and the contiguous
+/// span from the first to the last frame after x0 that any of the windows uses.
+#[derive(Debug, Clone)]
+pub struct EpisodeFrames {
+    pub x0: RgbImage,
+    /// Episode frame number of `span[0]`.
+    pub first: usize,
+    pub span: Vec<RgbImage>,
+}
+
+impl EpisodeFrames {
+    /// Reads the frames of `windows` (two reads: x0, then the span).
+    pub fn read(source: &dyn EpisodeSource, episode: usize, windows: &[ClipWindow], cameras: &CameraSelection) -> Result<Self> {
+        let frames = || windows.iter().flat_map(|w| w.frames.iter().copied());
+        let Some(last) = frames().max() else { bail!("no windows to read frames for") };
+        let first = frames().filter(|&f| f > 0).min().unwrap_or(1).max(1);
+        let Some(x0) = source.frames(episode, 0..1, cameras)?.pop() else { bail!("frame 0 of the episode was not read") };
+        let span = if last >= first { source.frames(episode, first..last + 1, cameras)? } else { Vec::new() };
+        ensure!(span.len() == (last + 1).saturating_sub(first), "read {} frames of {first}..={last}", span.len());
+        Ok(Self { x0, first, span })
+    }
+
+    /// Frame `f` of the episode (0 = x0).
+    pub fn get(&self, f: usize) -> Result<&RgbImage> {
+        if f == 0 {
+            return Ok(&self.x0);
+        }
+        f.checked_sub(self.first)
+            .and_then(|i| self.span.get(i))
+            .ok_or_else(|| anyhow::anyhow!("frame {f} is outside the frames read ({}..{})", self.first, self.first + self.span.len()))
+    }
+
+    /// The frames of a window, in its order.
+    pub fn window(&self, window: &ClipWindow) -> Result<Vec<&RgbImage>> {
+        window.frames.iter().map(|&f| self.get(f)).collect()
+    }
+
+    /// Every frame through `f` (e.g. resized), x0 included.
+    pub fn map(self, mut f: impl FnMut(&RgbImage) -> RgbImage) -> Self {
+        Self { x0: f(&self.x0), first: self.first, span: self.span.iter().map(&mut f).collect() }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -1,12 +1,19 @@
-//! The latent cache `bwm prepare` writes and the trainer reads: one safetensors file per clip
-//! (`latents` [C, F, h, w] f32, `actions` [F_pixel, d_a] normalized f32, optionally `frames`
-//! [3, F_pixel, H, W] u8 for validation against real pixels) and an `index.json` describing them.
+//! The latent cache `bwm prepare` writes and the trainer reads, and an `index.json` describing it.
 //! The trainer never decodes video.
+//!
+//! Layout (version 2): shard files `shard-NNNNN.safetensors`, each holding n clips stacked:
+//! `latents` [n, C, F, h, w] bf16, `actions` [n, F_pixel, d_a] normalized f32, `episode` [n] i64,
+//! `frame_ids` [n, F_pixel] i64 and, when the cache keeps pixels, `frames` [n, 3, F_pixel, H, W]
+//! u8 (validation against real pixels). `index.json` lists the clips in order; a clip's `file`
+//! names its shard, and its row in the shard is its position among the index's clips of that
+//! file. Version 1 caches (one f32 file per clip, unstacked) still load.
 //!
 //! Sample order: global sample index g -> epoch g / N, slot g % N of a permutation of the N
 //! training clips keyed by (seed, epoch); so a run resumes at any sample index, and any number of
 //! ranks sharing a global batch read the same clips.
 
+use std::collections::{BTreeMap, HashMap};
+use std::io::{Read, Seek, SeekFrom};
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, ensure, Context, Result};
@@ -14,6 +21,8 @@ use serde::{Deserialize, Serialize};
 use tch::{Device, Kind, Tensor};
 
 pub const INDEX_FILE: &str = "index.json";
+/// The layout `CacheWriter` and `write_shard` produce.
+pub const CACHE_VERSION: u32 = 2;
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -46,6 +55,81 @@ pub struct CacheIndex {
     pub clips: Vec<ClipEntry>,
 }
 
+/// What `bwm prepare` records in `index.json` besides `CacheIndex`'s fields, at the same level;
+/// every field is optional, so indexes written without them load.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct IndexExtras {
+    /// The distinct sizes [width, height] of the source frames (cameras composed, before any
+    /// resizing) of the cached episodes.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub source_resolution: Vec<[u32; 2]>,
+    /// Hash of `plan`: a rerun of `bwm prepare` continues this cache only when its plan hashes
+    /// the same.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub plan_hash: Option<String>,
+    /// The arguments, statistics and clip list the cache was prepared from.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub plan: Option<serde_json::Value>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub clips_per_shard: Option<usize>,
+}
+
+impl IndexExtras {
+    /// The JSON keys of the fields above.
+    pub const KEYS: [&'static str; 4] = ["source_resolution", "plan_hash", "plan", "clips_per_shard"];
+}
+
+/// Reads an index file: `CacheIndex`'s fields (unknown ones are an error) and the extras.
+pub fn read_index(path: &Path) -> Result<(CacheIndex, IndexExtras)> {
+    let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let mut value: serde_json::Value = serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
+    let object = value.as_object_mut().with_context(|| format!("{}: not a JSON object", path.display()))?;
+    let mut extras = serde_json::Map::new();
+    for key in IndexExtras::KEYS {
+        if let Some(v) = object.remove(key) {
+            extras.insert(key.to_string(), v);
+        }
+    }
+    let index: CacheIndex = serde_json::from_value(value).with_context(|| format!("parsing {}", path.display()))?;
+    let extras: IndexExtras = serde_json::from_value(serde_json::Value::Object(extras)).with_context(|| format!("parsing {}", path.display()))?;
+    Ok((index, extras))
+}
+
+/// Writes `dir/name` whole or not at all (temporary file, fsync, rename).
+pub fn write_index(dir: &Path, name: &str, index: &CacheIndex, extras: &IndexExtras) -> Result<()> {
+    let mut value = serde_json::to_value(index)?;
+    let object = value.as_object_mut().context("the index serializes to a JSON object")?;
+    if let serde_json::Value::Object(more) = serde_json::to_value(extras)? {
+        object.extend(more);
+    }
+    write_atomically(dir, name, serde_json::to_string_pretty(&value)?.as_bytes())
+}
+
+/// Writes `dir/name` through a temporary file of this process, fsynced, then renamed over it.
+pub fn write_atomically(dir: &Path, name: &str, bytes: &[u8]) -> Result<()> {
+    let tmp = dir.join(format!(".{name}.{}.tmp", std::process::id()));
+    let written = (|| -> Result<()> {
+        let mut f = std::fs::File::create(&tmp)?;
+        std::io::Write::write_all(&mut f, bytes)?;
+        f.sync_all()?;
+        Ok(())
+    })();
+    if let Err(e) = written.and_then(|_| Ok(std::fs::rename(&tmp, dir.join(name))?)) {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(e.context(format!("writing {}", dir.join(name).display())));
+    }
+    sync_dir(dir);
+    Ok(())
+}
+
+/// Makes renames in `dir` durable; best effort (not every filesystem allows syncing a folder).
+fn sync_dir(dir: &Path) {
+    if let Ok(d) = std::fs::File::open(dir) {
+        let _ = d.sync_all();
+    }
+}
+
 /// One clip as the trainer sees it.
 pub struct Clip {
     pub latents: Tensor,
@@ -53,22 +137,46 @@ pub struct Clip {
     pub frames: Option<Tensor>,
 }
 
+/// One clip's latents and actions as f32 values (row-major, shapes as in the index), read
+/// without any tensor operation, for loader threads.
+pub struct ClipValues {
+    pub latents: Vec<f32>,
+    pub actions: Vec<f32>,
+}
+
+#[derive(Debug, Clone)]
 pub struct LatentCache {
     pub dir: PathBuf,
     pub index: CacheIndex,
+    pub extras: IndexExtras,
+    /// Each clip's row in its file.
+    rows: Vec<usize>,
 }
 
 impl LatentCache {
     pub fn open(dir: &Path) -> Result<Self> {
         let path = dir.join(INDEX_FILE);
-        let text = std::fs::read_to_string(&path).with_context(|| {
-            format!("reading {} (create the cache with `bwm prepare`)", path.display())
-        })?;
-        let index: CacheIndex = serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
-        ensure!(index.version == 1, "{}: cache version {} is not supported (expected 1)", path.display(), index.version);
+        if !path.is_file() {
+            bail!("{} does not exist (create the cache with `bwm prepare`)", path.display());
+        }
+        let (index, extras) = read_index(&path)?;
+        ensure!(
+            index.version == 1 || index.version == CACHE_VERSION,
+            "{}: cache version {} is not supported (expected 1 or {CACHE_VERSION})",
+            path.display(),
+            index.version
+        );
         ensure!(!index.clips.is_empty(), "{}: the cache holds no clips", path.display());
         ensure!(index.latent_shape.len() == 4, "{}: latent_shape must be [C, F, h, w]", path.display());
-        Ok(Self { dir: dir.to_path_buf(), index })
+        let mut seen: HashMap<&str, usize> = HashMap::new();
+        let mut rows = Vec::with_capacity(index.clips.len());
+        for (i, c) in index.clips.iter().enumerate() {
+            let row = seen.entry(c.file.as_str()).or_insert(0);
+            ensure!(index.version > 1 || *row == 0, "{}: clips {i} and an earlier one share the file {} (version 1 has one file per clip)", path.display(), c.file);
+            rows.push(*row);
+            *row += 1;
+        }
+        Ok(Self { dir: dir.to_path_buf(), index, extras, rows })
     }
 
     pub fn len(&self) -> usize {
@@ -98,86 +206,279 @@ impl LatentCache {
         Ok(self.index.clips.iter().filter(|c| !held.contains(&c.episode)).count())
     }
 
-    /// Reads clip `i`, checking its shapes against the index.
+    /// Reads clip `i` (latents and actions as f32, frames as u8), checking its shapes against
+    /// the index. Only the clip's rows of its shard are read.
     pub fn load(&self, i: usize, device: Device) -> Result<Clip> {
-        let entry = self.index.clips.get(i).with_context(|| format!("clip {i} out of range ({} clips)", self.len()))?;
-        let path = self.dir.join(&entry.file);
-        let tensors = Tensor::read_safetensors(&path).with_context(|| format!("reading clip {}", path.display()))?;
-        let get = |name: &str| tensors.iter().find(|(n, _)| n == name).map(|(_, t)| t.shallow_clone());
-        let latents = get("latents").with_context(|| format!("{}: no 'latents' tensor", path.display()))?;
-        let actions = get("actions").with_context(|| format!("{}: no 'actions' tensor", path.display()))?;
-        ensure!(
-            latents.size() == self.index.latent_shape,
-            "{}: latents have shape {:?}, the index says {:?}",
-            path.display(),
-            latents.size(),
-            self.index.latent_shape
-        );
-        ensure!(
-            actions.size() == [self.index.pixel_frames as i64, self.index.action_dim],
-            "{}: actions have shape {:?}, expected [{}, {}]",
-            path.display(),
-            actions.size(),
-            self.index.pixel_frames,
-            self.index.action_dim
-        );
+        let (mut file, row) = self.open_clip(i)?;
+        let latents = self.field(&mut file, "latents", row)?;
+        let actions = self.field(&mut file, "actions", row)?;
+        let frames = file.read("frames", row)?;
+        let path = file.path.clone();
+        let tensor = |f: Field| Tensor::f_from_data_size(&f.bytes, &f.shape, f.kind).with_context(|| format!("{}: '{}'", path.display(), f.name));
         Ok(Clip {
-            latents: latents.to_kind(Kind::Float).to_device(device),
-            actions: actions.to_kind(Kind::Float).to_device(device),
-            frames: get("frames").map(|f| f.to_device(device)),
+            latents: tensor(latents)?.to_kind(Kind::Float).to_device(device),
+            actions: tensor(actions)?.to_kind(Kind::Float).to_device(device),
+            frames: frames.map(tensor).transpose()?.map(|f| f.to_device(device)),
+        })
+    }
+
+    /// Clip `i`'s latents and actions as f32 values, converted without tensor operations.
+    pub fn load_values(&self, i: usize) -> Result<ClipValues> {
+        let (mut file, row) = self.open_clip(i)?;
+        let latents = self.field(&mut file, "latents", row)?.to_f32()?;
+        let actions = self.field(&mut file, "actions", row)?.to_f32()?;
+        Ok(ClipValues { latents, actions })
+    }
+
+    /// The file of clip `i`, and its row there (None: version 1, the whole tensors).
+    fn open_clip(&self, i: usize) -> Result<(ShardReader, Option<usize>)> {
+        let entry = self.index.clips.get(i).with_context(|| format!("clip {i} out of range ({} clips)", self.len()))?;
+        let file = ShardReader::open(&self.dir.join(&entry.file))?;
+        Ok((file, (self.index.version > 1).then(|| self.rows[i])))
+    }
+
+    /// `latents` or `actions` of a clip, checked against the index's shapes.
+    fn field(&self, file: &mut ShardReader, name: &str, row: Option<usize>) -> Result<Field> {
+        let f = file.read(name, row)?.with_context(|| format!("{}: no '{name}' tensor", file.path.display()))?;
+        let expected = match name {
+            "latents" => self.index.latent_shape.clone(),
+            _ => vec![self.index.pixel_frames as i64, self.index.action_dim],
+        };
+        ensure!(f.shape == expected, "{}: {name} have shape {:?}, the index says {expected:?}", file.path.display(), f.shape);
+        Ok(f)
+    }
+}
+
+/// Bytes of one tensor (or one row of it) of a safetensors file.
+struct Field {
+    name: String,
+    kind: Kind,
+    shape: Vec<i64>,
+    bytes: Vec<u8>,
+}
+
+impl Field {
+    fn to_f32(&self) -> Result<Vec<f32>> {
+        Ok(match self.kind {
+            Kind::Float => self.bytes.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect(),
+            // bf16 is the upper half of an f32.
+            Kind::BFloat16 => self.bytes.chunks_exact(2).map(|b| f32::from_bits((u16::from_le_bytes([b[0], b[1]]) as u32) << 16)).collect(),
+            Kind::Double => self.bytes.chunks_exact(8).map(|b| f64::from_le_bytes(b.try_into().unwrap_or_default()) as f32).collect(),
+            k => bail!("'{}' is {k:?}; expected f32, bf16 or f64", self.name),
         })
     }
 }
 
-/// Writes the cache: clips first (each to a temporary name, then renamed), the index last, so
-/// a cache with an index is complete.
+/// Where one tensor of a safetensors file lies.
+struct Slot {
+    kind: Kind,
+    shape: Vec<i64>,
+    /// Byte range within the data section.
+    start: u64,
+    end: u64,
+}
+
+/// Reads single rows (index along the first dimension) of a safetensors file's tensors without
+/// reading the rest of the file.
+struct ShardReader {
+    path: PathBuf,
+    file: std::fs::File,
+    slots: BTreeMap<String, Slot>,
+    data_start: u64,
+}
+
+impl ShardReader {
+    fn open(path: &Path) -> Result<Self> {
+        let mut file = std::fs::File::open(path).with_context(|| format!("opening shard {}", path.display()))?;
+        let mut len = [0u8; 8];
+        file.read_exact(&mut len).with_context(|| format!("{}: reading the safetensors header", path.display()))?;
+        let n = u64::from_le_bytes(len);
+        let file_len = file.metadata()?.len();
+        ensure!(n < file_len && n <= 100 << 20, "{}: safetensors header of {n} bytes in a file of {file_len}", path.display());
+        let mut header = vec![0u8; n as usize];
+        file.read_exact(&mut header).with_context(|| format!("{}: reading the safetensors header", path.display()))?;
+        let entries: BTreeMap<String, serde_json::Value> =
+            serde_json::from_slice(&header).with_context(|| format!("{}: parsing the safetensors header", path.display()))?;
+        let mut slots = BTreeMap::new();
+        for (name, v) in entries {
+            if name == "__metadata__" {
+                continue;
+            }
+            let dtype = v.get("dtype").and_then(|d| d.as_str()).unwrap_or_default();
+            let kind = match dtype {
+                "BF16" => Kind::BFloat16,
+                "F16" => Kind::Half,
+                "F32" => Kind::Float,
+                "F64" => Kind::Double,
+                "U8" => Kind::Uint8,
+                "I64" => Kind::Int64,
+                "I32" => Kind::Int,
+                other => bail!("{}: tensor '{name}' has dtype '{other}', which the cache does not use", path.display()),
+            };
+            let shape: Vec<i64> = serde_json::from_value(v.get("shape").cloned().unwrap_or_default())
+                .with_context(|| format!("{}: tensor '{name}': shape", path.display()))?;
+            let [start, end]: [u64; 2] = serde_json::from_value(v.get("data_offsets").cloned().unwrap_or_default())
+                .with_context(|| format!("{}: tensor '{name}': data_offsets", path.display()))?;
+            let bytes = shape.iter().product::<i64>() as u64 * kind.elt_size_in_bytes() as u64;
+            ensure!(end >= start && end - start == bytes && 8 + n + end <= file_len, "{}: tensor '{name}' does not fit its byte range", path.display());
+            slots.insert(name, Slot { kind, shape, start, end });
+        }
+        Ok(Self { path: path.to_path_buf(), file, slots, data_start: 8 + n })
+    }
+
+    /// Row `row` of tensor `name` (the whole tensor when `row` is None), or None when the file
+    /// has no such tensor.
+    fn read(&mut self, name: &str, row: Option<usize>) -> Result<Option<Field>> {
+        let Some(slot) = self.slots.get(name) else { return Ok(None) };
+        let path = self.path.display();
+        let (offset, len, shape) = match row {
+            None => (0, slot.end - slot.start, slot.shape.clone()),
+            Some(row) => {
+                ensure!(!slot.shape.is_empty() && (row as i64) < slot.shape[0], "{path}: tensor '{name}' of shape {:?} has no row {row}", slot.shape);
+                let row_bytes = (slot.end - slot.start) / slot.shape[0] as u64;
+                (row as u64 * row_bytes, row_bytes, slot.shape[1..].to_vec())
+            }
+        };
+        let mut bytes = vec![0u8; len as usize];
+        self.file.seek(SeekFrom::Start(self.data_start + slot.start + offset))?;
+        self.file.read_exact(&mut bytes).with_context(|| format!("{path}: reading '{name}'"))?;
+        Ok(Some(Field { name: name.to_string(), kind: slot.kind, shape, bytes }))
+    }
+}
+
+/// One clip for a shard, on any device and of any float kind.
+pub struct ShardClip {
+    pub entry: ClipEntry,
+    pub latents: Tensor,
+    pub actions: Tensor,
+    pub frames: Option<Tensor>,
+}
+
+pub fn shard_file_name(shard: usize) -> String {
+    format!("shard-{shard:05}.safetensors")
+}
+
+/// Checks a clip's tensors against the index.
+fn check_clip(index: &CacheIndex, c: &ShardClip) -> Result<()> {
+    ensure!(c.latents.size() == index.latent_shape, "latents {:?} do not match the cache's {:?}", c.latents.size(), index.latent_shape);
+    ensure!(
+        c.actions.size() == [index.pixel_frames as i64, index.action_dim],
+        "actions {:?} do not match [{}, {}]",
+        c.actions.size(),
+        index.pixel_frames,
+        index.action_dim
+    );
+    ensure!(c.entry.frames.len() == index.pixel_frames, "the clip lists {} frame ids, the cache has {} pixel frames", c.entry.frames.len(), index.pixel_frames);
+    if index.has_frames {
+        let Some(f) = &c.frames else { bail!("this cache keeps pixel frames; a clip of episode {} has none", c.entry.episode) };
+        let [w, h] = index.resolution;
+        ensure!(
+            f.size() == [3, index.pixel_frames as i64, h as i64, w as i64],
+            "pixel frames {:?} do not match [3, {}, {h}, {w}]",
+            f.size(),
+            index.pixel_frames
+        );
+    }
+    Ok(())
+}
+
+/// Writes `clips` as the shard `dir/name` (see the module doc), whole or not at all: a temporary
+/// file of this process, fsynced, then renamed. Returns the clips' index entries.
+pub fn write_shard(dir: &Path, index: &CacheIndex, name: &str, clips: &[ShardClip]) -> Result<Vec<ClipEntry>> {
+    ensure!(!clips.is_empty(), "shard {name}: no clips");
+    for c in clips {
+        check_clip(index, c).with_context(|| format!("shard {name}"))?;
+    }
+    let cpu = |t: &Tensor, kind: Kind| t.to_device(Device::Cpu).to_kind(kind);
+    let stack = |f: &dyn Fn(&ShardClip) -> Tensor| Tensor::stack(&clips.iter().map(f).collect::<Vec<_>>(), 0).contiguous();
+    let episodes: Vec<i64> = clips.iter().map(|c| c.entry.episode).collect();
+    let frame_ids: Vec<i64> = clips.iter().flat_map(|c| c.entry.frames.iter().map(|&f| f as i64)).collect();
+    let mut tensors = vec![
+        ("latents".to_string(), stack(&|c| cpu(&c.latents, Kind::BFloat16))),
+        ("actions".to_string(), stack(&|c| cpu(&c.actions, Kind::Float))),
+        ("episode".to_string(), Tensor::from_slice(&episodes)),
+        ("frame_ids".to_string(), Tensor::from_slice(&frame_ids).view([clips.len() as i64, index.pixel_frames as i64])),
+    ];
+    if index.has_frames {
+        let frames = clips.iter().map(|c| c.frames.as_ref().map(|f| cpu(f, Kind::Uint8)).context("a clip has no pixel frames")).collect::<Result<Vec<_>>>()?;
+        tensors.push(("frames".to_string(), Tensor::stack(&frames, 0).contiguous()));
+    }
+    let tmp = dir.join(format!(".{name}.{}.tmp", std::process::id()));
+    let written = (|| -> Result<()> {
+        Tensor::write_safetensors(&tensors, &tmp)?;
+        std::fs::File::open(&tmp)?.sync_all()?;
+        std::fs::rename(&tmp, dir.join(name))?;
+        Ok(())
+    })();
+    if let Err(e) = written {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(e.context(format!("writing shard {}", dir.join(name).display())));
+    }
+    sync_dir(dir);
+    Ok(clips.iter().map(|c| ClipEntry { file: name.to_string(), ..c.entry.clone() }).collect())
+}
+
+/// Writes a cache in one process: clips are buffered into shards of `clips_per_shard`, each
+/// written whole (`write_shard`); the index comes last, so a cache with an index is complete.
 pub struct CacheWriter {
     dir: PathBuf,
     index: CacheIndex,
+    pub extras: IndexExtras,
+    clips_per_shard: usize,
+    /// Files named `clip-NNNNNN.safetensors` after their clip (one clip per file), as in
+    /// version 1, instead of `shard-NNNNN.safetensors`.
+    clip_names: bool,
+    pending: Vec<ShardClip>,
+    shards: usize,
 }
 
 impl CacheWriter {
-    pub fn create(dir: &Path, mut index: CacheIndex) -> Result<Self> {
+    /// One clip per file, named after the clip as version 1 named its files (small synthetic
+    /// caches whose files are addressed by clip); `with_shard_size` for shards.
+    pub fn create(dir: &Path, index: CacheIndex) -> Result<Self> {
+        let mut w = Self::with_shard_size(dir, index, 1)?;
+        w.clip_names = true;
+        Ok(w)
+    }
+
+    pub fn with_shard_size(dir: &Path, mut index: CacheIndex, clips_per_shard: usize) -> Result<Self> {
+        ensure!(clips_per_shard > 0, "clips per shard must be positive");
         if dir.join(INDEX_FILE).exists() {
             std::fs::remove_file(dir.join(INDEX_FILE)).with_context(|| format!("replacing the cache in {}", dir.display()))?;
         }
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        index.version = CACHE_VERSION;
         index.clips.clear();
-        Ok(Self { dir: dir.to_path_buf(), index })
+        let extras = IndexExtras { clips_per_shard: Some(clips_per_shard), ..Default::default() };
+        Ok(Self { dir: dir.to_path_buf(), index, extras, clips_per_shard, clip_names: false, pending: Vec::new(), shards: 0 })
     }
 
-    pub fn add(&mut self, mut entry: ClipEntry, latents: &Tensor, actions: &Tensor, frames: Option<&Tensor>) -> Result<()> {
-        ensure!(latents.size() == self.index.latent_shape, "latents {:?} do not match the cache's {:?}", latents.size(), self.index.latent_shape);
-        ensure!(
-            actions.size() == [self.index.pixel_frames as i64, self.index.action_dim],
-            "actions {:?} do not match [{}, {}]",
-            actions.size(),
-            self.index.pixel_frames,
-            self.index.action_dim
-        );
-        if self.index.has_frames && frames.is_none() {
-            bail!("this cache keeps pixel frames; clip {} has none", self.index.clips.len());
+    pub fn add(&mut self, entry: ClipEntry, latents: &Tensor, actions: &Tensor, frames: Option<&Tensor>) -> Result<()> {
+        let clip = ShardClip { entry, latents: latents.shallow_clone(), actions: actions.shallow_clone(), frames: frames.map(Tensor::shallow_clone) };
+        check_clip(&self.index, &clip).with_context(|| format!("clip {}", self.index.clips.len() + self.pending.len()))?;
+        self.pending.push(clip);
+        if self.pending.len() == self.clips_per_shard {
+            self.flush()?;
         }
-        entry.file = format!("clip-{:06}.safetensors", self.index.clips.len());
-        let mut tensors = vec![
-            ("latents".to_string(), latents.to_kind(Kind::Float).to_device(Device::Cpu).contiguous()),
-            ("actions".to_string(), actions.to_kind(Kind::Float).to_device(Device::Cpu).contiguous()),
-        ];
-        if let (true, Some(f)) = (self.index.has_frames, frames) {
-            tensors.push(("frames".to_string(), f.to_kind(Kind::Uint8).to_device(Device::Cpu).contiguous()));
-        }
-        let tmp = self.dir.join(format!(".{}.tmp", entry.file));
-        Tensor::write_safetensors(&tensors, &tmp).with_context(|| format!("writing {}", tmp.display()))?;
-        std::fs::rename(&tmp, self.dir.join(&entry.file))?;
-        self.index.clips.push(entry);
         Ok(())
     }
 
-    pub fn finish(self) -> Result<CacheIndex> {
+    fn flush(&mut self) -> Result<()> {
+        if self.pending.is_empty() {
+            return Ok(());
+        }
+        let name = if self.clip_names { format!("clip-{:06}.safetensors", self.index.clips.len()) } else { shard_file_name(self.shards) };
+        let entries = write_shard(&self.dir, &self.index, &name, &self.pending)?;
+        self.index.clips.extend(entries);
+        self.shards += 1;
+        self.pending.clear();
+        Ok(())
+    }
+
+    pub fn finish(mut self) -> Result<CacheIndex> {
+        self.flush()?;
         ensure!(!self.index.clips.is_empty(), "no clips were written");
-        let tmp = self.dir.join(format!(".{INDEX_FILE}.tmp"));
-        std::fs::write(&tmp, serde_json::to_string_pretty(&self.index)?)?;
-        std::fs::rename(&tmp, self.dir.join(INDEX_FILE))?;
+        write_index(&self.dir, INDEX_FILE, &self.index, &self.extras)?;
         Ok(self.index)
     }
 }
@@ -237,5 +538,104 @@ mod tests {
         assert_eq!(batch2, vec![10, 11]);
         assert_eq!(batch2, accum2);
         assert_eq!(batch2, ranks2);
+    }
+
+    fn tmp(tag: &str) -> PathBuf {
+        let d = std::env::temp_dir().join(format!("bwm-latent-cache-{tag}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&d);
+        std::fs::create_dir_all(&d).unwrap();
+        d
+    }
+
+    fn index(has_frames: bool) -> CacheIndex {
+        CacheIndex {
+            version: 1,
+            latent_shape: vec![4, 2, 2, 3],
+            action_dim: 2,
+            pixel_frames: 5,
+            history_frames: 0,
+            future_frames: 4,
+            resolution: [48, 32],
+            fps: 10.0,
+            vae: "test".into(),
+            has_frames,
+            clips: vec![],
+        }
+    }
+
+    #[test]
+    fn shards_round_trip_row_by_row_with_bf16_latents() {
+        let dir = tmp("shards");
+        let mut w = CacheWriter::with_shard_size(&dir, index(true), 2).unwrap();
+        let mut written = Vec::new();
+        for i in 0..5i64 {
+            let latents = Tensor::randn([4, 2, 2, 3], (Kind::Float, Device::Cpu)) * 3.0;
+            let actions = Tensor::rand([5, 2], (Kind::Float, Device::Cpu));
+            let frames = Tensor::randint(256, [3, 5, 32, 48], (Kind::Uint8, Device::Cpu));
+            let entry = ClipEntry { file: String::new(), episode: i / 2, frames: vec![0, 1, 2, 3, 4 + i as usize], task: "t".into() };
+            w.add(entry, &latents, &actions, Some(&frames)).unwrap();
+            written.push((latents, actions, frames));
+        }
+        let bad = Tensor::zeros([4, 2, 2, 2], (Kind::Float, Device::Cpu));
+        assert!(w.add(ClipEntry { file: String::new(), episode: 9, frames: vec![0; 5], task: String::new() }, &bad, &written[0].1, Some(&written[0].2)).is_err());
+        let idx = w.finish().unwrap();
+        assert_eq!(idx.version, CACHE_VERSION);
+        let files: Vec<&str> = idx.clips.iter().map(|c| c.file.as_str()).collect();
+        assert_eq!(files, ["shard-00000.safetensors", "shard-00000.safetensors", "shard-00001.safetensors", "shard-00001.safetensors", "shard-00002.safetensors"]);
+        let cache = LatentCache::open(&dir).unwrap();
+        assert_eq!(cache.extras.clips_per_shard, Some(2));
+        for (i, (l, a, f)) in written.iter().enumerate() {
+            let c = cache.load(i, Device::Cpu).unwrap();
+            assert_eq!(c.latents.kind(), Kind::Float);
+            assert!(c.latents.equal(&l.to_kind(Kind::BFloat16).to_kind(Kind::Float)), "clip {i}: latents are the bf16 rounding of what was written");
+            let rel = (&c.latents - l).abs().max().double_value(&[]) / l.abs().max().double_value(&[]);
+            assert!(rel <= 1.0 / 256.0, "clip {i}: {rel}");
+            assert!(c.actions.equal(a), "clip {i}: actions are stored in f32");
+            assert!(c.frames.unwrap().equal(f), "clip {i}: frames");
+            let v = cache.load_values(i).unwrap();
+            assert_eq!(v.latents, Vec::<f32>::try_from(c.latents.view([-1])).unwrap());
+            assert_eq!(v.actions, Vec::<f32>::try_from(c.actions.view([-1])).unwrap());
+        }
+        let shard = Tensor::read_safetensors(dir.join("shard-00001.safetensors")).unwrap();
+        let get = |n: &str| shard.iter().find(|(k, _)| k == n).unwrap().1.shallow_clone();
+        assert_eq!(Vec::<i64>::try_from(get("episode")).unwrap(), [1, 1]);
+        assert_eq!(Vec::<i64>::try_from(get("frame_ids").narrow(0, 1, 1).view([-1])).unwrap(), [0, 1, 2, 3, 7]);
+        assert_eq!(get("latents").kind(), Kind::BFloat16);
+        assert!(cache.load(5, Device::Cpu).is_err());
+        assert!(!dir.read_dir().unwrap().any(|e| e.unwrap().file_name().to_string_lossy().ends_with(".tmp")));
+    }
+
+    #[test]
+    fn version_1_caches_and_indexes_without_extras_still_load() {
+        let dir = tmp("v1");
+        let latents = Tensor::randn([4, 2, 2, 3], (Kind::Float, Device::Cpu));
+        let actions = Tensor::rand([5, 2], (Kind::Float, Device::Cpu));
+        Tensor::write_safetensors(&[("latents", &latents), ("actions", &actions)], dir.join("clip-000000.safetensors")).unwrap();
+        let mut idx = index(false);
+        idx.clips.push(ClipEntry { file: "clip-000000.safetensors".into(), episode: 0, frames: vec![0; 5], task: String::new() });
+        std::fs::write(dir.join(INDEX_FILE), serde_json::to_string(&idx).unwrap()).unwrap();
+        let cache = LatentCache::open(&dir).unwrap();
+        assert_eq!(cache.extras, IndexExtras::default());
+        let c = cache.load(0, Device::Cpu).unwrap();
+        assert!(c.latents.equal(&latents) && c.actions.equal(&actions));
+        assert_eq!(cache.load_values(0).unwrap().latents, Vec::<f32>::try_from(latents.view([-1])).unwrap());
+
+        // Extras sit next to the index's fields and come back; an unknown key is an error.
+        let extras = IndexExtras {
+            source_resolution: vec![[640, 480]],
+            plan_hash: Some("abc".into()),
+            plan: Some(serde_json::json!({"stride": 8})),
+            clips_per_shard: Some(3),
+        };
+        let mut keys: Vec<String> = serde_json::to_value(&extras).unwrap().as_object().unwrap().keys().cloned().collect();
+        keys.sort();
+        let mut expected: Vec<String> = IndexExtras::KEYS.iter().map(|k| k.to_string()).collect();
+        expected.sort();
+        assert_eq!(keys, expected, "IndexExtras::KEYS lists every field");
+        write_index(&dir, INDEX_FILE, &idx, &extras).unwrap();
+        assert_eq!(read_index(&dir.join(INDEX_FILE)).unwrap(), (idx.clone(), extras));
+        let text = std::fs::read_to_string(dir.join(INDEX_FILE)).unwrap().replacen("\"fps\"", "\"fsp\": 1, \"fps\"", 1);
+        std::fs::write(dir.join(INDEX_FILE), text).unwrap();
+        assert!(LatentCache::open(&dir).is_err());
     }
 }

@@ -188,3 +188,55 @@ pub fn vae(args: BenchVaeArgs) -> Result<()> {
     }
     Ok(())
 }
+
+#[derive(Args)]
+pub struct BenchRolloutArgs {
+    #[command(flatten)]
+    wm: crate::world_model::WorldModelArgs,
+    /// Frame size of the rollout.
+    #[arg(long, default_value_t = 480)]
+    height: i64,
+    #[arg(long, default_value_t = 640)]
+    width: i64,
+    /// Chunks to generate (the first includes one-time CUDA start-up costs).
+    #[arg(long, default_value_t = 2)]
+    chunks: usize,
+}
+
+/// Times whole rollout chunks (condition encode, the sampler's DiT steps, decode) on a random x0
+/// and random actions.
+pub fn rollout(args: BenchRolloutArgs) -> Result<()> {
+    let wm = args.wm.load()?;
+    let d = wm.action_dim() as i64;
+    tch::manual_seed(0);
+    let x0 = Tensor::rand([3, args.height, args.width], (Kind::Float, Device::Cpu)) * 2.0 - 1.0;
+    let a0 = Tensor::zeros([d], (Kind::Float, Device::Cpu));
+    let mut rollout = wm.rollout(&x0, &a0)?;
+    let spec = rollout.spec().clone();
+    println!(
+        "bench-rollout: {:?} {:?}, {}x{}, x0 + {} history frames, {} frames per chunk, {} Euler steps",
+        wm.device,
+        wm.model.store.kind(),
+        args.width,
+        args.height,
+        spec.history,
+        spec.future,
+        spec.steps
+    );
+    for i in 0..args.chunks {
+        let actions = Tensor::rand([spec.future as i64, d], (Kind::Float, Device::Cpu)) * 2.0 - 1.0;
+        let start = Instant::now();
+        let c = rollout.next_chunk(&actions)?;
+        let total = start.elapsed().as_secs_f64();
+        println!(
+            "chunk {i}: {total:.2} s = encode {:.2} s + DiT {:.2} s ({:.3} s/step) + decode {:.2} s; {} frames; device memory {}",
+            c.encode_seconds,
+            c.dit_seconds,
+            c.dit_seconds / spec.steps as f64,
+            c.decode_seconds,
+            c.frames.size()[1],
+            bwm_trainer::device_memory::used_mib(wm.device).map_or("n/a".to_string(), |m| format!("{m:.0} MiB used"))
+        );
+    }
+    Ok(())
+}

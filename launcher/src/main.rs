@@ -4,11 +4,15 @@ mod bench;
 mod bench_train;
 mod convert;
 mod demo;
+mod evaluate;
 mod export;
 mod launch;
+mod msgpack_numpy;
 mod prepare;
 mod rollout;
+mod serve;
 mod stats;
+mod submit;
 mod train;
 mod train_vae;
 mod world_model;
@@ -17,7 +21,11 @@ use anyhow::Result;
 use clap::{Parser, Subcommand};
 
 #[derive(Parser)]
-#[command(name = "bwm", version, about = "Boundless World Model: post-train Wan2.2-TI2V-5B into an action-conditioned robot simulator")]
+#[command(
+    name = "bwm",
+    version,
+    about = "Boundless World Model: post-train Wan2.2-TI2V-5B into an action-conditioned robot simulator"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -34,9 +42,17 @@ enum Command {
     /// Data engine: roll the world model out from each episode's first frame with recorded, file or
     /// perturbed actions, and write the result as a LeRobot v2.1 dataset.
     Rollout(rollout::RolloutArgs),
+    /// Evaluate policies served over openpi's websocket protocol in closed loop with the world
+    /// model: success judge, per-task success rates, agreement with reference rates.
+    Evaluate(evaluate::EvaluateArgs),
+    /// Serve the world model over HTTP, one chunk per request (POST /v1/chunk, GET /health).
+    Serve(serve::ServeArgs),
     /// Start one process per GPU (or N CPU processes) with torchrun's variables and supervise
     /// them: `bwm launch --nproc-per-node 2 -- train --config ...`.
     Launch(launch::LaunchArgs),
+    /// Write a Slurm batch script that runs `bwm launch` on every node (checkpoint, requeue and
+    /// resume before the time limit) and submit it: `bwm submit --nodes 2 --gpus-per-node 8 -- train ...`.
+    Submit(submit::SubmitArgs),
     /// Post-train the model on a prepared latent cache (`--config configs/tiny.toml`).
     Train(train::TrainArgs),
     /// Fit a small Wan2.2-architecture VAE to a dataset's frames (real pixels for CPU runs).
@@ -49,6 +65,8 @@ enum Command {
     BenchTrain(bench_train::BenchTrainArgs),
     /// Time the Wan2.2 VAE encode/decode on random weights, then a long streaming decode.
     BenchVae(bench::BenchVaeArgs),
+    /// Time whole rollout chunks (condition encode, sampler, decode) of the world model.
+    BenchRollout(bench::BenchRolloutArgs),
     /// Export a training checkpoint as a Hugging Face model repo folder (config, shards, action
     /// encoder, action stats, model card); --push uploads it.
     Export(export::ExportArgs),
@@ -63,12 +81,16 @@ fn main() {
         Command::Stats(a) => stats::run(a),
         Command::Prepare(a) => prepare::run(a),
         Command::Rollout(a) => rollout::run(a),
+        Command::Evaluate(a) => evaluate::run(a),
+        Command::Serve(a) => serve::run(a),
         Command::Launch(a) => launch::run(a),
+        Command::Submit(a) => submit::run(a),
         Command::Train(a) => train::run(a),
         Command::TrainVae(a) => train_vae::run(a),
         Command::Info(a) => bench::info(a),
         Command::BenchForward(a) => bench::forward(a),
         Command::BenchVae(a) => bench::vae(a),
+        Command::BenchRollout(a) => bench::rollout(a),
         Command::BenchTrain(a) => bench_train::run(a),
         Command::Export(a) => export::run(a),
         Command::Convert(a) => convert::run(a),

@@ -1,8 +1,10 @@
 //! `bwm train`: post-train the BWM model on a prepared latent cache.
 
 use std::path::PathBuf;
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use bwm_trainer::{Resume, RunConfig, Trainer};
 use clap::Args;
 
@@ -22,6 +24,13 @@ pub struct TrainArgs {
 }
 
 pub fn run(args: TrainArgs) -> Result<()> {
+    // SIGTERM (Slurm's preemption and time-limit warning, `bwm launch` stopping its ranks) and
+    // SIGINT stop the run after the current optimizer step, with a checkpoint of that step.
+    let stop = Arc::new(AtomicBool::new(false));
+    for sig in [signal_hook::consts::SIGTERM, signal_hook::consts::SIGINT] {
+        signal_hook::flag::register(sig, stop.clone())
+            .context("installing the SIGTERM/SIGINT handler")?;
+    }
     let cfg = RunConfig::load(&args.config, &args.overrides)?;
     let mut trainer = Trainer::new(cfg, args.resume)?;
     let c = &trainer.cfg;
@@ -41,16 +50,34 @@ pub fn run(args: TrainArgs) -> Result<()> {
         if c.train.recompute { "on" } else { "off" }
     );
     println!("outputs in {}", trainer.out_dir.display());
-    trainer.run()?;
-    println!("done: step {} (checkpoints in {})", trainer.state.step, trainer.checkpoints.root.display());
+    if let Some(dir) = trainer.run_until(&stop)? {
+        println!(
+            "stopped by signal at step {}; checkpoint {}",
+            trainer.state.step,
+            dir.display()
+        );
+        return Ok(());
+    }
+    println!(
+        "done: step {} (checkpoints in {})",
+        trainer.state.step,
+        trainer.checkpoints.root.display()
+    );
     let losses = bwm_trainer::report::read_losses(&trainer.out_path("metrics.jsonl"))?;
     let plot = trainer.out_path("loss.svg");
-    bwm_trainer::report::loss_plot(&losses, &format!("{}: training loss", trainer.cfg.run.name), &plot)?;
+    bwm_trainer::report::loss_plot(
+        &losses,
+        &format!("{}: training loss", trainer.cfg.run.name),
+        &plot,
+    )?;
     println!("loss curve: {}", plot.display());
     if let Some(vae) = trainer.cfg.validation.vae.clone() {
         let video = trainer.out_path("rollout.mp4");
         bwm_trainer::report::rollout_video(&trainer, &vae, &video)?;
-        println!("rollout of a held-out clip (ground truth left, model right): {}", video.display());
+        println!(
+            "rollout of a held-out clip (ground truth left, model right): {}",
+            video.display()
+        );
     }
     Ok(())
 }

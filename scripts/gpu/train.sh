@@ -6,5 +6,5 @@
 set -uo pipefail
 source "$(dirname "${BASH_SOURCE[0]}")/common.sh"
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee "$OUT/gpu.txt"
-mem train5b dist/bwm bench-train --config configs/bwm-wan22-ti2v-5b.toml --set train.grad_accum=1 --steps ${STEPS:-4} --out /tmp/bench-train
-mem train5b_accum2 dist/bwm bench-train --config configs/bwm-wan22-ti2v-5b.toml --set train.grad_accum=2 --steps 2 --out /tmp/bench-train2
+mem train5b dist/bwm bench-train --config configs/bwm-wan22-ti2v-5b.toml --set run.device=\"cuda\" --set train.grad_accum=1 --steps ${STEPS:-4} --out /tmp/bench-train
+mem train5b_accum2 dist/bwm bench-train --config configs/bwm-wan22-ti2v-5b.toml --set run.device=\"cuda\" --set train.grad_accum=2 --steps 2 --out /tmp/bench-train2

@@ -29,6 +29,10 @@ pub struct StepMetrics {
     pub mfu: Option<f64>,
     /// Device memory in use at the end of the step, MiB (CUDA only).
     pub peak_memory_mib: Option<f64>,
+    /// Time the step waited for its batches (the background loader was behind), and its share
+    /// of the step time.
+    pub loader_wait_s: f64,
+    pub loader_wait_share: f64,
 }
 
 impl StepMetrics {
@@ -62,7 +66,14 @@ impl StepMetrics {
             tflops,
             mfu: peak_tflops.map(|p| tflops / p),
             peak_memory_mib: crate::device_memory::used_mib(device),
+            loader_wait_s: 0.0,
+            loader_wait_share: 0.0,
         }
+    }
+
+    pub fn set_loader_wait(&mut self, seconds: f64) {
+        self.loader_wait_s = seconds;
+        self.loader_wait_share = if self.seconds > 0.0 { seconds / self.seconds } else { 0.0 };
     }
 
     /// (tag, value) pairs for TensorBoard.
@@ -73,6 +84,8 @@ impl StepMetrics {
             ("perf/tokens_per_s".to_string(), self.tokens_per_s),
             ("perf/tflops".to_string(), self.tflops),
             ("train/nonfinite_total".to_string(), self.nonfinite_total as f64),
+            ("perf/loader_wait_s".to_string(), self.loader_wait_s),
+            ("perf/loader_wait_share".to_string(), self.loader_wait_share),
         ];
         if let Some(lr) = self.lr {
             out.push(("train/lr".into(), lr));
@@ -111,6 +124,7 @@ impl StepMetrics {
         if let Some(m) = self.peak_memory_mib {
             s += &format!("  mem {m:.0} MiB");
         }
+        s += &format!("  loader wait {:.3} s ({:.1}%)", self.loader_wait_s, 100.0 * self.loader_wait_share);
         s
     }
 }

@@ -51,8 +51,6 @@ pub struct AdamW {
     grads: FlatBuffer,
     /// The elements of the flat buffers this rank's state covers.
     slice: Range<usize>,
-    /// The reduced gradient of `slice` (reduce-scatter output; unused when replicated).
-    reduced: Tensor,
     pub master: Tensor,
     pub exp_avg: Tensor,
     pub exp_avg_sq: Tensor,
@@ -164,11 +162,6 @@ impl AdamW {
             .flat()
             .narrow(0, slice.start as i64, slice.len() as i64)
             .to_kind(Kind::Float);
-        let reduced = if sharding.sharded && world > 1 {
-            master.zeros_like()
-        } else {
-            Tensor::zeros([0], (Kind::Float, device))
-        };
         Ok(Self {
             cfg: cfg.clone(),
             params,
@@ -182,7 +175,6 @@ impl AdamW {
             ema: cfg.ema_decay.map(|_| master.copy()),
             master,
             slice,
-            reduced,
         })
     }
 
@@ -253,9 +245,12 @@ impl AdamW {
     /// returns that slice of the sum.
     fn reduce(&mut self, comm: &mut dyn Collective) -> Result<Tensor> {
         if self.is_sharded() {
-            comm.reduce_scatter_sum(self.grads.flat(), &mut self.reduced)
+            // In place: this rank's slice of the flat gradient receives the sum (NCCL allows an
+            // output at input + rank * n).
+            let mut mine = self.grads.shard(self.sharding.rank)?;
+            comm.reduce_scatter_sum(self.grads.flat(), &mut mine)
                 .context("reduce-scatter of the gradients")?;
-            Ok(self.reduced.shallow_clone())
+            Ok(mine)
         } else {
             if self.sharding.world > 1 {
                 comm.all_reduce_sum(self.grads.flat_mut())

@@ -5,17 +5,44 @@
 //! cut into leaves; the blocks run without autograd keeping only each block's input; the head and
 //! the loss run with autograd and backward; then the blocks are walked in reverse, each recomputed
 //! from its saved input with autograd and backpropagated with the incoming gradient; finally the
-//! gradients gathered on the leaves flow back through the preparation graph. After each block's
-//! backward its parameters' gradients are final for this micro-step: `on_block_done` is where
-//! data-parallel reduction of that block can start.
+//! gradients gathered on the leaves flow back through the preparation graph. Each block's backward
+//! hands the gradients of that block's parameters to a [`BlockGradSink`] instead of accumulating
+//! them in `.grad`, so at most one block's model-dtype gradients exist at a time; they are final
+//! for this micro-step there, which is also where data-parallel reduction of a block can start.
 
 use anyhow::Result;
 use bwm_model::dit::Conditioning;
 use bwm_model::BwmModel;
 use tch::{Kind, Tensor};
 
-/// Runs forward and backward, accumulating parameter gradients; returns the detached loss.
-/// `loss_fn` maps the model's prediction [B, C, F, H, W] to a scalar.
+/// Receives the gradients of the DiT blocks' parameters during the recomputing backward walk.
+pub trait BlockGradSink {
+    /// The parameters of block `block` whose gradients go to `block_grads` (the others, and all
+    /// parameters outside the blocks, accumulate in `.grad`).
+    fn block_params(&self, block: usize) -> Vec<Tensor>;
+    /// Gradients of `block_params(block)`, in order; undefined for a parameter the block did not use.
+    fn block_grads(&mut self, block: usize, grads: &[Tensor]) -> Result<()>;
+}
+
+/// Every gradient accumulates in `.grad`; the blocks' backward order is recorded.
+#[derive(Default)]
+pub struct GradsInParams {
+    pub blocks_done: Vec<usize>,
+}
+
+impl BlockGradSink for GradsInParams {
+    fn block_params(&self, _: usize) -> Vec<Tensor> {
+        Vec::new()
+    }
+    fn block_grads(&mut self, block: usize, _: &[Tensor]) -> Result<()> {
+        self.blocks_done.push(block);
+        Ok(())
+    }
+}
+
+/// Runs forward and backward; returns the detached loss. `loss_fn` maps the model's prediction
+/// [B, C, F, H, W] to a scalar. Without recomputation every gradient accumulates in `.grad` and
+/// `sink` is not called.
 pub fn forward_backward(
     model: &BwmModel,
     latents: &Tensor,
@@ -23,15 +50,12 @@ pub fn forward_backward(
     actions: &Tensor,
     recompute: bool,
     loss_fn: &dyn Fn(&Tensor) -> Tensor,
-    on_block_done: &mut dyn FnMut(usize),
+    sink: &mut dyn BlockGradSink,
 ) -> Result<Tensor> {
     if !recompute {
         let prediction = model.forward(latents, frame_timesteps, actions)?;
         let loss = loss_fn(&prediction);
         loss.f_backward()?;
-        for i in (0..model.dit.blocks.len()).rev() {
-            on_block_done(i);
-        }
         return Ok(loss.detach());
     }
 
@@ -62,19 +86,47 @@ pub fn forward_backward(
     let loss = loss_fn(&model.dit.finish(&x_last, &cut));
     loss.f_backward()?;
     let mut grad = x_last.grad();
+    // Gradients of the conditioning leaves from the blocks whose parameters go to the sink (the
+    // head's and the other blocks' accumulate in the leaves' `.grad`).
+    let mut cond_grads: Vec<Tensor> = (0..3).map(|_| Tensor::new()).collect();
+    let add = |acc: &mut Tensor, g: &Tensor| {
+        if g.defined() {
+            *acc = if acc.defined() { &*acc + g } else { g.shallow_clone() };
+        }
+    };
     for (i, block) in model.dit.blocks.iter().enumerate().rev() {
         let x_in = leaf(&block_inputs[i]);
         block_inputs.truncate(i);
         let out = block.forward(&x_in, &cut);
-        (out * &grad).sum(Kind::Float).f_backward()?;
-        grad = x_in.grad();
-        on_block_done(i);
+        let target = (out * &grad).sum(Kind::Float);
+        let params = sink.block_params(i);
+        if params.is_empty() {
+            target.f_backward()?;
+            grad = x_in.grad();
+            sink.block_grads(i, &[])?;
+            continue;
+        }
+        let mut wrt = vec![x_in.shallow_clone(), cut.e.shallow_clone(), cut.e0.shallow_clone(), cut.context.shallow_clone()];
+        wrt.extend(params.iter().map(Tensor::shallow_clone));
+        let grads = Tensor::f_run_backward(&[target], &wrt, false, false)?;
+        grad = grads[0].shallow_clone();
+        for (acc, g) in cond_grads.iter_mut().zip(&grads[1..4]) {
+            add(acc, g);
+        }
+        sink.block_grads(i, &grads[4..])?;
+    }
+    for (acc, leaf) in cond_grads.iter_mut().zip([&cut.e, &cut.e0, &cut.context]) {
+        add(acc, &leaf.grad());
     }
 
-    let upstream = (tokens * grad).sum(Kind::Float)
-        + (e * cut.e.grad()).sum(Kind::Float)
-        + (e0 * cut.e0.grad()).sum(Kind::Float)
-        + (context.to_kind(Kind::Float) * cut.context.grad().to_kind(Kind::Float)).sum(Kind::Float);
+    let term = |value: &Tensor, g: &Tensor| -> Tensor {
+        if g.defined() {
+            (value.to_kind(Kind::Float) * g.to_kind(Kind::Float)).sum(Kind::Float)
+        } else {
+            Tensor::zeros([], (Kind::Float, value.device()))
+        }
+    };
+    let upstream = (tokens * grad).sum(Kind::Float) + term(&e, &cond_grads[0]) + term(&e0, &cond_grads[1]) + term(&context, &cond_grads[2]);
     // Nothing upstream requires grad when the action encoder and embeddings are all frozen.
     if upstream.requires_grad() {
         upstream.f_backward()?;

@@ -10,6 +10,7 @@ use anyhow::{bail, ensure, Context, Result};
 use bwm_checkpoints::optimizer_shards::OptimizerState;
 use bwm_checkpoints::{write_tensors, CheckpointRoot};
 use bwm_data::latent_cache::{clip_for_sample, global_sample_index, LatentCache};
+use bwm_data::prefetch::{load_clips, ClipBatch, Prefetcher};
 use bwm_model::weights::{SafetensorsSource, WeightSource};
 use bwm_model::{BwmModel, ModelConfig, ParamStore};
 use serde::{Deserialize, Serialize};
@@ -21,7 +22,7 @@ use crate::flops;
 use crate::metrics::{Progress, StepMetrics};
 use crate::objective::Objective;
 use crate::optim::{AdamW, Sharding};
-use crate::recompute::forward_backward;
+use crate::recompute::{forward_backward, BlockGradSink};
 use crate::tensorboard::EventWriter;
 use crate::validation;
 
@@ -73,6 +74,8 @@ pub struct Trainer {
     pub opt: AdamW,
     pub objective: Objective,
     pub cache: LatentCache,
+    /// Reads the next micro-batches in the background (started by the first `load_batch`).
+    loader: std::sync::Mutex<Loader>,
     pub train_clips: usize,
     pub device: Device,
     pub state: TrainState,
@@ -84,6 +87,8 @@ pub struct Trainer {
     pub comm: Box<dyn Collective>,
     /// Where each step's summary goes (stdout by default; tests capture it).
     pub history: Vec<StepMetrics>,
+    /// Per DiT block, the indices in `opt.params` of its trained parameters.
+    block_params: Vec<Vec<usize>>,
 }
 
 fn build_model(cfg: &RunConfig, model_cfg: &ModelConfig, device: Device) -> Result<BwmModel> {
@@ -183,6 +188,12 @@ impl Trainer {
         let named = model.store.named_parameters();
         let sharding = Sharding { rank: comm.rank(), world: comm.world_size(), sharded: cfg.train.shard_optimizer };
         let mut opt = AdamW::new(&named, &cfg.train.trainable, &cfg.train.frozen, &cfg.optim, cfg.train.steps, sharding)?;
+        let block_params: Vec<Vec<usize>> = (0..model.dit.blocks.len())
+            .map(|b| {
+                let prefix = format!("blocks.{b}.");
+                opt.params.iter().enumerate().filter(|(_, p)| p.name.starts_with(&prefix)).map(|(k, _)| k).collect()
+            })
+            .collect();
         let objective = Objective::new(&cfg.objective, cfg.run.seed);
         let config_text = cfg.to_toml()?;
         let mut state = TrainState {
@@ -215,7 +226,7 @@ impl Trainer {
         } else {
             None
         };
-        Ok(Self { cfg, model, opt, objective, cache, train_clips, device, state, out_dir, checkpoints, events, metrics_file, comm, history: Vec::new() })
+        Ok(Self { cfg, model, opt, objective, cache, loader: Default::default(), train_clips, device, state, out_dir, checkpoints, events, metrics_file, comm, history: Vec::new(), block_params })
     }
 
     /// Trains to `train.steps`, checkpointing and validating as configured.
@@ -303,7 +314,8 @@ impl Trainer {
                 l.mean(Kind::Float)
             };
             let input = prepared.input.to_kind(self.model.store.kind());
-            let loss = forward_backward(&self.model, &input, &prepared.frame_timesteps, &batch.actions, cfg.train.recompute, &loss_fn, &mut |_| {})?;
+            let mut sink = BlockAccumulators { opt: &self.opt, blocks: &self.block_params };
+            let loss = forward_backward(&self.model, &input, &prepared.frame_timesteps, &batch.actions, cfg.train.recompute, &loss_fn, &mut sink)?;
             let value = loss.double_value(&[]);
             finite &= value.is_finite();
             let per: Vec<f32> = Vec::<f32>::try_from(per_sample.into_inner().expect("loss ran").to_device(Device::Cpu))?;
@@ -354,32 +366,69 @@ impl Trainer {
         let mut m = StepMetrics::new(self.state.step, &losses, &tids, report, seconds, tokens * world as i64, model_flops, peak, self.state.nonfinite_total, self.device);
         m.samples_per_s *= world as f64;
         m.loss = global_loss;
+        m.set_loader_wait(self.take_loader_wait());
         Ok(m)
     }
 
+    /// The micro-batch of global samples `indices`: from the background loader when it is the
+    /// next one of the sequence the loader reads ahead (every micro-batch from the current step to
+    /// `train.steps`); otherwise the loader is restarted at it (a new run, a resume), or, for a
+    /// batch outside the sequence, it is read here.
     fn load_batch(&self, indices: &[u64]) -> Result<Batch> {
-        let mut latents = Vec::new();
-        let mut actions = Vec::new();
-        let mut noise = Vec::new();
-        let mut history_noise = Vec::new();
-        let mut tids = Vec::new();
-        for &g in indices {
-            let clip = self.cache.load(clip_for_sample(self.cfg.run.seed, g, self.train_clips), Device::Cpu)?;
-            let draw = self.objective.draw(g, &self.cache.index.latent_shape);
-            latents.push(clip.latents);
-            actions.push(clip.actions);
-            noise.push(draw.noise);
-            history_noise.push(draw.history_noise);
-            tids.push(draw.timestep_index);
+        let mut loader = self.loader.lock().map_err(|_| anyhow::anyhow!("the batch loader's lock is poisoned"))?;
+        let key = indices.to_vec();
+        let mut staged = loader.prefetch.as_mut().and_then(|p| p.next(&key));
+        if staged.is_none() {
+            loader.collect_wait();
+            loader.prefetch = self.start_loader(&key)?;
+            staged = loader.prefetch.as_mut().and_then(|p| p.next(&key));
         }
+        loader.collect_wait();
+        let staged = match staged {
+            Some(s) => s?,
+            None => {
+                let start = Instant::now();
+                let s = stage_batch(&self.cache, &self.objective, self.cfg.run.seed, self.train_clips, indices);
+                loader.waited += start.elapsed();
+                s?
+            }
+        };
+        let shape: Vec<i64> = std::iter::once(indices.len() as i64).chain(self.cache.index.latent_shape.iter().copied()).collect();
+        let (latents, actions) = staged.clips.tensors(&self.cache);
         let d = self.device;
         Ok(Batch {
-            latents: Tensor::stack(&latents, 0).to_device(d),
-            actions: Tensor::stack(&actions, 0).to_device(d),
-            noise: Tensor::stack(&noise, 0).to_device(d),
-            history_noise: Tensor::stack(&history_noise, 0).to_device(d),
-            tids,
+            latents: latents.to_device(d),
+            actions: actions.to_device(d),
+            noise: Tensor::from_slice(&staged.noise).view(shape.as_slice()).to_device(d),
+            history_noise: Tensor::from_slice(&staged.history_noise).view(shape.as_slice()).to_device(d),
+            tids: staged.tids,
         })
+    }
+
+    /// A loader reading the micro-batches from the one whose samples are `first` (a micro-batch
+    /// of the current step) to the end of the run; None when `first` is no such micro-batch.
+    fn start_loader(&self, first: &[u64]) -> Result<Option<Prefetcher<Vec<u64>, Staged>>> {
+        let (mb, accum) = (self.cfg.train.micro_batch, self.cfg.train.grad_accum);
+        let (rank, world) = (self.comm.rank(), self.comm.world_size());
+        let (step, total) = (self.state.step, self.cfg.train.steps);
+        let samples = move |s: u64, m: usize| -> Vec<u64> { (0..mb).map(|i| global_sample_index(s, m, rank, i, mb, accum, world)).collect() };
+        let Some(micro) = (0..accum).find(|&m| samples(step, m) == first) else { return Ok(None) };
+        let sequence = (step..total.max(step + 1)).flat_map(move |s| (0..accum).map(move |m| samples(s, m))).skip(micro);
+        let cache = self.cache.clone();
+        let objective = Objective::new(&self.cfg.objective, self.cfg.run.seed);
+        let (seed, n) = (self.cfg.run.seed, self.train_clips);
+        Prefetcher::spawn(LOADER_DEPTH, sequence, move |g: &Vec<u64>| stage_batch(&cache, &objective, seed, n, g)).map(Some)
+    }
+
+    /// Seconds the training thread waited for batches since the last call.
+    fn take_loader_wait(&self) -> f64 {
+        match self.loader.lock() {
+            Ok(mut l) => {
+                l.collect_wait();
+                std::mem::take(&mut l.waited).as_secs_f64()
+            }
+            Err(_) => 0.0,
+        }
     }
 
     fn log_metrics(&mut self, m: &StepMetrics) -> Result<()> {
@@ -458,12 +507,76 @@ impl Trainer {
     }
 }
 
+/// Adds each block's gradients into the fp32 accumulators as the recomputing backward walk
+/// produces them, so no model-dtype gradient of a block outlives its backward.
+struct BlockAccumulators<'a> {
+    opt: &'a AdamW,
+    blocks: &'a [Vec<usize>],
+}
+
+impl BlockGradSink for BlockAccumulators<'_> {
+    fn block_params(&self, block: usize) -> Vec<Tensor> {
+        self.blocks[block].iter().map(|&k| self.opt.params[k].param.shallow_clone()).collect()
+    }
+
+    fn block_grads(&mut self, block: usize, grads: &[Tensor]) -> Result<()> {
+        tch::no_grad(|| {
+            for (&k, g) in self.blocks[block].iter().zip(grads) {
+                if g.defined() {
+                    let _ = self.opt.params[k].grad.shallow_clone().g_add_(g);
+                }
+            }
+        });
+        Ok(())
+    }
+}
+
 struct Batch {
     latents: Tensor,
     actions: Tensor,
     noise: Tensor,
     history_noise: Tensor,
     tids: Vec<usize>,
+}
+
+/// Micro-batches the loader holds ready.
+const LOADER_DEPTH: usize = 2;
+
+/// The background reader of the next micro-batches, and the time the step waited for batches.
+#[derive(Default)]
+struct Loader {
+    prefetch: Option<Prefetcher<Vec<u64>, Staged>>,
+    waited: std::time::Duration,
+}
+
+impl Loader {
+    fn collect_wait(&mut self) {
+        if let Some(p) = self.prefetch.as_mut() {
+            self.waited += p.take_waited();
+        }
+    }
+}
+
+/// A micro-batch as plain values (clips, noise, timesteps), built without tensor operations so
+/// that the loader thread does not compete with the training thread's OpenMP workers.
+struct Staged {
+    clips: ClipBatch,
+    noise: Vec<f32>,
+    history_noise: Vec<f32>,
+    tids: Vec<usize>,
+}
+
+/// The clips and the per-sample draws of global samples `indices`.
+fn stage_batch(cache: &LatentCache, objective: &Objective, seed: u64, train_clips: usize, indices: &[u64]) -> Result<Staged> {
+    let clips: Vec<usize> = indices.iter().map(|&g| clip_for_sample(seed, g, train_clips)).collect();
+    let mut staged = Staged { clips: load_clips(cache, &clips)?, noise: Vec::new(), history_noise: Vec::new(), tids: Vec::new() };
+    for &g in indices {
+        let draw = objective.draw(g, &cache.index.latent_shape);
+        staged.noise.extend(Vec::<f32>::try_from(draw.noise.view([-1]))?);
+        staged.history_noise.extend(Vec::<f32>::try_from(draw.history_noise.view([-1]))?);
+        staged.tids.push(draw.timestep_index);
+    }
+    Ok(staged)
 }
 
 /// Every rank must start from the same weights: a checksum of the trained tensors is gathered and

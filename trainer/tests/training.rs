@@ -4,7 +4,7 @@
 mod common;
 
 use bwm_trainer::objective::Objective;
-use bwm_trainer::recompute::forward_backward;
+use bwm_trainer::recompute::{forward_backward, BlockGradSink, GradsInParams};
 use bwm_trainer::{Resume, Trainer};
 use common::*;
 use tch::{Kind, Tensor};
@@ -115,26 +115,63 @@ fn recomputation_gives_the_same_gradients() {
     let hist = Tensor::stack(&draws.iter().map(|d| d.history_noise.shallow_clone()).collect::<Vec<_>>(), 0);
     let tids: Vec<usize> = draws.iter().map(|d| d.timestep_index).collect();
     let p = t.objective.prepare(&latents, &noise, &hist, &tids).unwrap();
-    let grads = |recompute: bool| -> (f64, Vec<Tensor>) {
+    // Captures the blocks' gradients handed out by the recomputing walk.
+    struct Capture<'a> {
+        params: &'a [(String, Tensor)],
+        got: std::collections::BTreeMap<String, Tensor>,
+    }
+    impl BlockGradSink for Capture<'_> {
+        fn block_params(&self, block: usize) -> Vec<Tensor> {
+            self.mine(block).map(|(_, t)| t.shallow_clone()).collect()
+        }
+        fn block_grads(&mut self, block: usize, grads: &[Tensor]) -> anyhow::Result<()> {
+            let names: Vec<String> = self.mine(block).map(|(n, _)| n.clone()).collect();
+            for (n, g) in names.into_iter().zip(grads) {
+                self.got.insert(n, g.copy());
+            }
+            Ok(())
+        }
+    }
+    impl Capture<'_> {
+        fn mine(&self, block: usize) -> impl Iterator<Item = &(String, Tensor)> {
+            let prefix = format!("blocks.{block}.");
+            self.params.iter().filter(move |(n, _)| n.starts_with(&prefix))
+        }
+    }
+    let named: Vec<(String, Tensor)> = t.opt.params.iter().map(|q| (q.name.clone(), q.param.shallow_clone())).collect();
+    let grads = |recompute: bool, capture: bool| -> (f64, Vec<Tensor>) {
         for q in &t.opt.params {
             let mut g = q.param.grad();
             if g.defined() {
                 let _ = g.zero_();
             }
         }
-        let mut blocks_done = Vec::new();
-        let loss = forward_backward(&t.model, &p.input, &p.frame_timesteps, &actions, recompute, &|pred| t.objective.loss(pred, &p), &mut |i| blocks_done.push(i)).unwrap();
-        assert_eq!(blocks_done, vec![1, 0]);
-        (loss.double_value(&[]), t.opt.params.iter().map(|q| q.param.grad().copy()).collect())
+        let run = |sink: &mut dyn BlockGradSink| {
+            forward_backward(&t.model, &p.input, &p.frame_timesteps, &actions, recompute, &|pred| t.objective.loss(pred, &p), sink).unwrap()
+        };
+        let (loss, captured) = if capture {
+            let mut sink = Capture { params: &named, got: Default::default() };
+            let loss = run(&mut sink);
+            (loss, sink.got)
+        } else {
+            let mut sink = GradsInParams::default();
+            let loss = run(&mut sink);
+            assert_eq!(sink.blocks_done, if recompute { vec![1, 0] } else { vec![] });
+            (loss, Default::default())
+        };
+        let g = t.opt.params.iter().map(|q| captured.get(&q.name).map(|g| g.copy()).unwrap_or_else(|| q.param.grad().copy())).collect();
+        (loss.double_value(&[]), g)
     };
-    let (l1, g1) = grads(false);
-    let (l2, g2) = grads(true);
-    assert!((l1 - l2).abs() <= 1e-6 * l1.abs());
-    for ((q, a), b) in t.opt.params.iter().zip(&g1).zip(&g2) {
-        let scale = a.abs().max().double_value(&[]).max(1e-12);
-        let d = max_abs_diff(a, b) / scale;
-        assert!(d < 1e-5, "gradient of {} differs by {d} (relative to its max)", q.name);
-        assert!(a.abs().sum(Kind::Float).double_value(&[]) > 0.0 || q.name.contains("bias"), "{} got no gradient", q.name);
+    let (l1, g1) = grads(false, false);
+    for (recompute, capture) in [(true, false), (true, true)] {
+        let (l2, g2) = grads(recompute, capture);
+        assert!((l1 - l2).abs() <= 1e-6 * l1.abs());
+        for ((q, a), b) in t.opt.params.iter().zip(&g1).zip(&g2) {
+            let scale = a.abs().max().double_value(&[]).max(1e-12);
+            let d = max_abs_diff(a, b) / scale;
+            assert!(d < 1e-5, "gradient of {} differs by {d} (relative to its max; captured: {capture})", q.name);
+            assert!(a.abs().sum(Kind::Float).double_value(&[]) > 0.0 || q.name.contains("bias"), "{} got no gradient", q.name);
+        }
     }
 }
 

@@ -1,0 +1,318 @@
+//! Helpers of the end-to-end tests: the `bwm` binary, the project's Python, the bundled dataset, a
+//! small random VAE file, a synthetic latent cache written through the real cache writer, tiny CPU
+//! run configs, checkpoint comparison, and processes that die with the test.
+#![allow(dead_code)]
+
+use std::path::{Path, PathBuf};
+
+use bwm_data::latent_cache::{CacheIndex, CacheWriter, ClipEntry};
+use tch::{Device, Kind, Tensor};
+
+pub fn bwm() -> PathBuf {
+    // target/<profile>/deps/<test>-* -> target/<profile>/bwm
+    let exe = std::env::current_exe().unwrap();
+    let path = exe.parent().unwrap().parent().unwrap().join("bwm");
+    assert!(
+        path.exists(),
+        "{} not built (run through `cargo test --workspace`)",
+        path.display()
+    );
+    path
+}
+
+/// The virtualenv's python (VIRTUAL_ENV, BWM_VENV, else the repository's .venv).
+pub fn python() -> String {
+    for var in ["VIRTUAL_ENV", "BWM_VENV"] {
+        if let Some(v) = std::env::var_os(var) {
+            let p = Path::new(&v).join("bin/python");
+            if p.exists() {
+                return p.display().to_string();
+            }
+        }
+    }
+    Path::new(env!("CARGO_MANIFEST_DIR")).join(".venv/bin/python").display().to_string()
+}
+
+/// `../shared` beside the repository (BWM_SHARED overrides).
+pub fn shared() -> PathBuf {
+    std::env::var_os("BWM_SHARED").map(PathBuf::from).unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared"))
+}
+
+/// The bundled RoboTwin episodes in the BWM layout.
+pub fn demo_data() -> PathBuf {
+    shared().join("data/bwm-demo")
+}
+
+/// A small random VAE (width 16) written as `bwm train-vae` writes its output, so that
+/// `WanVae::load_any` reads it back with its config and latent statistics.
+pub fn write_random_vae(path: &Path, seed: i64) {
+    use bwm_model::vae::{VaeConfig, WanVae};
+    use bwm_trainer::vae_train::{save_trained_vae, TrainedVae, VaeTrainReport};
+    let (vae, store) = WanVae::random(&VaeConfig::with_width(16, 16), Kind::Float, Device::Cpu, seed).unwrap();
+    let params = store.named_parameters();
+    let report = VaeTrainReport { train_psnr: 0.0, holdout_psnr: 0.0, seconds: 0.0, steps: 0 };
+    save_trained_vae(&TrainedVae { vae, params, report }, path).unwrap();
+}
+
+/// A fresh folder under the system temp dir, named for the test and this process.
+pub fn temp_dir(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("bwm-{name}-{}", std::process::id()));
+    std::fs::remove_dir_all(&dir).ok();
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+pub fn write_cache(dir: &Path) {
+    tch::manual_seed(0);
+    let index = CacheIndex {
+        version: 1,
+        latent_shape: vec![48, 4, 4, 4],
+        action_dim: 14,
+        pixel_frames: 13,
+        history_frames: 8,
+        future_frames: 4,
+        resolution: [64, 64],
+        fps: 30.0,
+        vae: "synthetic".into(),
+        has_frames: false,
+        clips: vec![],
+    };
+    let mut w = CacheWriter::create(dir, index).unwrap();
+    for episode in 0..3 {
+        let latents = Tensor::randn([48, 4, 4, 4], (Kind::Float, Device::Cpu));
+        let actions = Tensor::rand([13, 14], (Kind::Float, Device::Cpu)) * 2.0 - 1.0;
+        w.add(
+            ClipEntry {
+                file: String::new(),
+                episode,
+                frames: (0..13).collect(),
+                task: "t".into(),
+            },
+            &latents,
+            &actions,
+            None,
+        )
+        .unwrap();
+    }
+    w.finish().unwrap();
+}
+
+/// A tiny CPU run reading `dir/cache`, checkpointing every step, writing to `out`.
+pub fn write_config(dir: &Path, name: &str, out: &Path, steps: u64, grad_accum: usize) -> PathBuf {
+    let path = dir.join(name);
+    std::fs::write(
+        &path,
+        format!(
+            r#"[run]
+name = "launch"
+out_dir = "{out}"
+device = "cpu"
+[model]
+preset = "tiny"
+dtype = "f32"
+[data]
+latent_cache = "{cache}"
+[optim]
+lr = 1e-3
+[train]
+steps = {steps}
+grad_accum = {grad_accum}
+[checkpoint]
+every = 1
+keep_last = 20
+[log]
+progress = false
+"#,
+            out = out.display(),
+            cache = dir.join("cache").display()
+        ),
+    )
+    .unwrap();
+    path
+}
+
+pub fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+/// Two consecutive free ports (rank 0's and the launchers' agent store's).
+pub fn free_port_pair() -> u16 {
+    loop {
+        let p = free_port();
+        if p < u16::MAX && std::net::TcpListener::bind(("127.0.0.1", p + 1)).is_ok() {
+            return p;
+        }
+    }
+}
+
+/// The step of the run's `latest` checkpoint.
+pub fn latest_step(run: &Path) -> u64 {
+    let latest = std::fs::read_to_string(run.join("checkpoints/latest")).unwrap();
+    latest
+        .trim()
+        .strip_prefix("step-")
+        .unwrap()
+        .parse()
+        .unwrap()
+}
+
+pub fn final_weights(run: &Path) -> Vec<(String, Tensor)> {
+    let latest = std::fs::read_to_string(run.join("checkpoints/latest")).unwrap();
+    let mut t = Tensor::read_safetensors(
+        run.join("checkpoints")
+            .join(latest.trim())
+            .join("model.safetensors"),
+    )
+    .unwrap();
+    t.sort_by(|a, b| a.0.cmp(&b.0));
+    t
+}
+
+pub fn assert_close(a: &[(String, Tensor)], b: &[(String, Tensor)], what: &str) {
+    assert_eq!(a.len(), b.len(), "{what}");
+    for ((n, x), (m, y)) in a.iter().zip(b) {
+        assert_eq!(n, m);
+        let d = (x - y).abs().max().double_value(&[]);
+        assert!(d <= 1e-5, "{what}: {n} differs by {d}");
+    }
+}
+
+/// A `bwm` process whose stdout and stderr lines are collected (and echoed, for failing tests) as
+/// they come; dropped, it is killed together with its children (a launcher's ranks).
+pub struct Proc {
+    pub child: std::process::Child,
+    pub name: String,
+    lines: std::sync::mpsc::Receiver<String>,
+    pub output: Vec<String>,
+}
+
+impl Proc {
+    pub fn spawn(name: &str, cmd: &mut std::process::Command) -> Proc {
+        use std::io::{BufRead, BufReader};
+        let mut child = cmd
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        let (tx, rx) = std::sync::mpsc::channel();
+        let out = child.stdout.take().unwrap();
+        let err = child.stderr.take().unwrap();
+        let tx2 = tx.clone();
+        std::thread::spawn(move || {
+            BufReader::new(out)
+                .lines()
+                .map_while(Result::ok)
+                .for_each(|l| drop(tx.send(l)))
+        });
+        std::thread::spawn(move || {
+            BufReader::new(err)
+                .lines()
+                .map_while(Result::ok)
+                .for_each(|l| drop(tx2.send(l)))
+        });
+        Proc {
+            child,
+            name: name.to_string(),
+            lines: rx,
+            output: Vec::new(),
+        }
+    }
+
+    fn take(&mut self, line: String) -> String {
+        eprintln!("[{}] {line}", self.name);
+        self.output.push(line.clone());
+        line
+    }
+
+    /// Reads lines until one satisfies `pred` (returned), or panics after `timeout`.
+    pub fn wait_for(
+        &mut self,
+        what: &str,
+        timeout: std::time::Duration,
+        pred: impl Fn(&str) -> bool,
+    ) -> String {
+        let deadline = std::time::Instant::now() + timeout;
+        loop {
+            let left = deadline.saturating_duration_since(std::time::Instant::now());
+            match self.lines.recv_timeout(left) {
+                Ok(l) => {
+                    let l = self.take(l);
+                    if pred(&l) {
+                        return l;
+                    }
+                }
+                Err(_) => panic!("{}: no line {what} within {timeout:?}", self.name),
+            }
+        }
+    }
+
+    /// Waits for the exit (killing it after `timeout`) and for the rest of its output.
+    pub fn finish(&mut self, timeout: std::time::Duration) -> std::process::ExitStatus {
+        let deadline = std::time::Instant::now() + timeout;
+        let status = loop {
+            if let Some(s) = self.child.try_wait().unwrap() {
+                break s;
+            }
+            while let Ok(l) = self.lines.try_recv() {
+                self.take(l);
+            }
+            if std::time::Instant::now() > deadline {
+                self.kill_tree();
+                panic!("{} did not exit within {timeout:?}", self.name);
+            }
+            std::thread::sleep(std::time::Duration::from_millis(50));
+        };
+        // The pipes close when the ranks that inherited them have exited too.
+        while let Ok(l) = self.lines.recv_timeout(std::time::Duration::from_secs(5)) {
+            self.take(l);
+        }
+        status
+    }
+
+    pub fn text(&self) -> String {
+        self.output.join("\n")
+    }
+
+    pub fn children(&self) -> Vec<u32> {
+        let pid = self.child.id();
+        std::fs::read_to_string(format!("/proc/{pid}/task/{pid}/children"))
+            .unwrap_or_default()
+            .split_whitespace()
+            .filter_map(|p| p.parse().ok())
+            .collect()
+    }
+
+    pub fn signal(&self, sig: &str) {
+        signal(self.child.id(), sig);
+    }
+
+    fn kill_tree(&mut self) {
+        for c in self.children() {
+            signal(c, "KILL");
+        }
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        if let Ok(None) = self.child.try_wait() {
+            self.kill_tree();
+        }
+    }
+}
+
+pub fn signal(pid: u32, sig: &str) {
+    let ok = std::process::Command::new("sh")
+        .arg("-c")
+        .arg(format!("kill -{sig} {pid}"))
+        .status()
+        .unwrap()
+        .success();
+    assert!(ok, "kill -{sig} {pid}");
+}

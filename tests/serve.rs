@@ -1,0 +1,185 @@
+//! `bwm serve` end to end on CPU (tiny random model, small random VAE) on a free loopback port:
+//! a good request round-trips through the Python client of docs/serve.md with the right shapes;
+//! a burst larger than queue + worker gets only 200s and 503s, at least one 503, none hanging;
+//! malformed, oversized and wrong-shape/dtype/size requests get 4xx with a message naming the
+//! problem; and the server still serves a good request afterwards.
+
+mod common;
+
+use common::{bwm, python, write_random_vae};
+
+use std::fs::File;
+use std::io::{Read, Write};
+use std::net::TcpStream;
+use std::process::{Child, Command, Stdio};
+use std::sync::{Arc, Barrier};
+use std::time::{Duration, Instant};
+
+use serde_json::{json, Value};
+
+
+
+/// Kills the process it holds when dropped (also when an assertion fails).
+struct Guard(Child);
+
+impl Drop for Guard {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+
+struct Reply {
+    status: u16,
+    content_type: String,
+    body: Vec<u8>,
+}
+
+impl Reply {
+    fn text(&self) -> String {
+        String::from_utf8_lossy(&self.body).into_owned()
+    }
+}
+
+/// One HTTP/1.1 exchange; `declared` overrides the Content-Length sent. A write the server cut
+/// short is not an error: its early reply is still read.
+fn http(addr: &str, method: &str, path: &str, body: &[u8], declared: Option<usize>) -> Reply {
+    let mut s = TcpStream::connect(addr).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(120))).unwrap();
+    s.set_write_timeout(Some(Duration::from_secs(30))).unwrap();
+    let head = format!(
+        "{method} {path} HTTP/1.1\r\nHost: {addr}\r\nContent-Type: application/msgpack\r\nContent-Length: {}\r\n\r\n",
+        declared.unwrap_or(body.len())
+    );
+    let _ = s.write_all(head.as_bytes()).and_then(|_| s.write_all(body));
+    let mut raw = Vec::new();
+    let read = s.read_to_end(&mut raw);
+    if raw.is_empty() {
+        panic!("no reply to {method} {path}: {read:?}");
+    }
+    let split = raw.windows(4).position(|w| w == b"\r\n\r\n").expect("reply head");
+    let head = String::from_utf8_lossy(&raw[..split]).into_owned();
+    let status = head.split(' ').nth(1).unwrap().parse().unwrap();
+    let content_type = head
+        .lines()
+        .find_map(|l| l.to_ascii_lowercase().strip_prefix("content-type:").map(|v| v.trim().to_string()))
+        .unwrap_or_default();
+    Reply { status, content_type, body: raw[split + 4..].to_vec() }
+}
+
+fn health(addr: &str) -> Value {
+    let r = http(addr, "GET", "/health", b"", None);
+    assert_eq!((r.status, r.content_type.as_str()), (200, "application/json"), "{}", r.text());
+    serde_json::from_slice(&r.body).unwrap()
+}
+
+#[test]
+fn serve_round_trips_rejects_bad_requests_and_sheds_load() {
+    let dir = std::env::temp_dir().join(format!("bwm-serve-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let vae = dir.join("vae.safetensors");
+    write_random_vae(&vae, 4);
+    let log = dir.join("serve.stdout");
+    let server = Guard(
+        Command::new(bwm())
+            .arg("serve")
+            .args(["--random-weights", "tiny", "--vae"])
+            .arg(&vae)
+            .args(["--device", "cpu", "--history", "4", "--future", "4", "--sample-steps", "2"])
+            .args(["--port", "0", "--queue", "1", "--max-body-bytes", "1000000"])
+            .stdout(File::create(&log).unwrap())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .unwrap(),
+    );
+    let start = Instant::now();
+    let addr = loop {
+        let text = std::fs::read_to_string(&log).unwrap_or_default();
+        if let Some(a) = text.lines().find_map(|l| l.strip_prefix("serve: listening on http://")) {
+            break a.trim().to_string();
+        }
+        assert!(start.elapsed() < Duration::from_secs(60), "bwm serve did not start:\n{text}");
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    let url = format!("http://{addr}");
+
+    let h = health(&addr);
+    assert_eq!((h["status"].as_str(), h["device"].as_str(), h["action_dim"].as_u64()), (Some("ok"), Some("cpu"), Some(14)), "{h}");
+    assert_eq!((h["queue_capacity"].as_u64(), h["queue_depth"].as_u64(), h["future"].as_u64()), (Some(1), Some(0), Some(4)), "{h}");
+    assert!(h["model"].as_str().unwrap().contains("tiny"), "{h}");
+
+    // The documented Python client: 3 given frames (x0 + 2 history) and 3 + 4 actions.
+    let out = Command::new(python()).arg(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/python/serve_client.py")).args(["roundtrip", &url, "3", "4", "14"]).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let reply: Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(reply["frames"], json!([[4, 32, 32, 3], "|u1"]), "{reply}");
+    assert_eq!(reply["actions"], json!([[4, 14], "<f4"]), "{reply}");
+    assert_eq!(reply["actions_echoed"], true);
+    assert_eq!(reply["same_seed_same_frames"], true);
+    assert_eq!(reply["timings"], json!(["decode_s", "dit_s", "encode_s", "queue_s", "total_s"]));
+
+    let bodies = dir.join("bodies");
+    let out = Command::new(python())
+        .arg(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/python/serve_client.py"))
+        .args(["bodies", bodies.to_str().unwrap(), "3", "4", "14"])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let body = |name: &str| std::fs::read(bodies.join(name)).unwrap();
+    let good = Arc::new(body("good.msgpack"));
+
+    // A burst of 6 at once against 1 worker + a queue of 1.
+    let t0 = Instant::now();
+    let barrier = Arc::new(Barrier::new(6));
+    let threads: Vec<_> = (0..6)
+        .map(|_| {
+            let (addr, good, barrier) = (addr.clone(), good.clone(), barrier.clone());
+            std::thread::spawn(move || {
+                barrier.wait();
+                let t = Instant::now();
+                let r = http(&addr, "POST", "/v1/chunk", &good, None);
+                (r.status, r.text(), t.elapsed())
+            })
+        })
+        .collect();
+    let results: Vec<(u16, String, Duration)> = threads.into_iter().map(|t| t.join().unwrap()).collect();
+    eprintln!("burst of 6 answered in {:.2} s: {:?}", t0.elapsed().as_secs_f64(), results.iter().map(|r| (r.0, r.2)).collect::<Vec<_>>());
+    assert!(results.iter().all(|r| r.0 == 200 || r.0 == 503), "only 200 or 503: {results:?}");
+    let busy: Vec<_> = results.iter().filter(|r| r.0 == 503).collect();
+    assert!(!busy.is_empty() && busy.len() < 6, "some served, at least one turned away: {results:?}");
+    assert!(busy.len() >= 4, "one generating + one waiting are admitted, no more: {results:?}");
+    for r in &busy {
+        assert!(r.1.contains("queue is full"), "{}", r.1);
+        assert!(r.2 < Duration::from_secs(2), "503 at once, took {:?}", r.2);
+    }
+
+    // Problems are named, with the right 4xx.
+    let cases: [(&str, Reply, u16, &str); 7] = [
+        ("malformed msgpack", http(&addr, "POST", "/v1/chunk", &body("malformed.bin"), None), 400, "not valid msgpack"),
+        ("wrong shape", http(&addr, "POST", "/v1/chunk", &body("wrong_shape.msgpack"), None), 422, "'actions' has 8 rows"),
+        ("wrong dtype", http(&addr, "POST", "/v1/chunk", &body("wrong_dtype.msgpack"), None), 422, "'frames' must be uint8, got float32"),
+        ("frame size", http(&addr, "POST", "/v1/chunk", &body("bad_size.msgpack"), None), 422, "multiples of 32"),
+        ("oversized", http(&addr, "POST", "/v1/chunk", &vec![0x90; 1_500_000], None), 413, "exceeds the limit of 1000000 bytes"),
+        ("huge declared length", http(&addr, "POST", "/v1/chunk", b"", Some(1 << 40)), 413, "exceeds the limit"),
+        ("unknown path", http(&addr, "GET", "/v2/nothing", b"", None), 404, "no endpoint"),
+    ];
+    for (what, reply, status, message) in cases {
+        assert_eq!(reply.status, status, "{what}: {}", reply.text());
+        assert_eq!(reply.content_type, "application/json", "{what}");
+        let error: Value = serde_json::from_slice(&reply.body).unwrap_or_else(|_| panic!("{what}: {}", reply.text()));
+        assert!(error["error"].as_str().unwrap().contains(message), "{what}: {error}");
+    }
+    let wrong_method = http(&addr, "GET", "/v1/chunk", b"", None);
+    assert_eq!(wrong_method.status, 405, "{}", wrong_method.text());
+
+    // Still serving.
+    let r = http(&addr, "POST", "/v1/chunk", &good, None);
+    assert_eq!((r.status, r.content_type.as_str()), (200, "application/msgpack"), "{}", r.text());
+    let h = health(&addr);
+    assert_eq!(h["queue_depth"], 0, "{h}");
+    assert!(h["served"].as_u64().unwrap() >= 4 && h["rejected_busy"].as_u64().unwrap() >= 1, "{h}");
+    drop(server);
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -41,7 +41,8 @@ pub struct ParamStore {
 }
 
 impl ParamStore {
-    /// Parameters drawn from libtorch's global generator (seed it with `tch::manual_seed`).
+    /// Parameters drawn from libtorch's global CPU generator (seed it with `tch::manual_seed`), the
+    /// same on every device.
     pub fn random(kind: Kind, device: Device) -> Rc<Self> {
         Self::with_source(Source::Random, kind, device)
     }
@@ -180,9 +181,13 @@ impl Vb {
         let random = |init: Init| match init {
             Init::Zeros => Tensor::zeros(shape, options),
             Init::Ones => Tensor::ones(shape, options),
-            Init::Randn { std } => Tensor::randn(shape, (Kind::Float, store.device)).g_mul_scalar(std).to_kind(store.kind),
+            // Drawn on the CPU whatever the device, so that a seed gives the same weights on every
+            // device (CPU and CUDA generators differ).
+            Init::Randn { std } => {
+                Tensor::randn(shape, (Kind::Float, Device::Cpu)).g_mul_scalar(std).to_kind(store.kind).to_device(store.device)
+            }
             Init::Uniform { bound } => {
-                Tensor::empty(shape, (Kind::Float, store.device)).uniform_(-bound, bound).to_kind(store.kind)
+                Tensor::empty(shape, (Kind::Float, Device::Cpu)).uniform_(-bound, bound).to_kind(store.kind).to_device(store.device)
             }
         };
         let tensor = match &store.source {

@@ -15,15 +15,20 @@ TINY=(--config /tmp/tiny-gpu.toml --set 'run.device="cuda"' --set 'model.dtype="
 dist/bwm launch --nproc-per-node 2 --master-port 29611 -- train "${TINY[@]}" --set train.steps=3 --set 'run.out_dir="/tmp/nccl-tiny"' 2>&1 | tee "$OUT/nccl-tiny.log"
 cp "/tmp/nccl-tiny/checkpoints/$(cat /tmp/nccl-tiny/checkpoints/latest)/model.safetensors" "$OUT/nccl-model.safetensors"
 
+# Started by hand, the ranks need what `bwm launch` sets up: a libnccl.so link to the torch wheel's
+# NCCL first on LD_LIBRARY_PATH (ARCHITECTURE.md).
+NL=$(python3 -c 'import nvidia.nccl,os;print(os.path.join(list(nvidia.nccl.__path__)[0],"lib"))')
+mkdir -p /tmp/nccl-link && ln -sf "$NL/libnccl.so.2" /tmp/nccl-link/libnccl.so
+export LD_LIBRARY_PATH=/tmp/nccl-link:$NL:$LD_LIBRARY_PATH
 export BWM_DIST_TIMEOUT=20 MASTER_ADDR=127.0.0.1 MASTER_PORT=29621 WORLD_SIZE=2
 for r in 0 1; do
   RANK=$r LOCAL_RANK=$r dist/bwm train "${TINY[@]}" --set train.steps=100000 --set 'run.out_dir="/tmp/kill-tiny"' > "$OUT/kill-rank$r.log" 2>&1 &
   eval "pid$r=$!"
 done
 sleep 25
-echo "killing rank 1 (pid $pid1) at $(date +%s.%N)" | tee "$OUT/kill.log"
+echo "killing rank 1 (pid $pid1)" | tee "$OUT/kill.log"
 kill -9 "$pid1"
-start=$(date +%s.%N)
+start=$(date +%s%N)
 wait "$pid0"; rc=$?
-echo "rank 0 exited with $rc after $(echo "$(date +%s.%N) - $start" | bc) s (BWM_DIST_TIMEOUT=20)" | tee -a "$OUT/kill.log"
+echo "rank 0 exited with $rc after $(( ($(date +%s%N) - start) / 1000000 )) ms (BWM_DIST_TIMEOUT=20)" | tee -a "$OUT/kill.log"
 tail -3 "$OUT/kill-rank0.log" | tee -a "$OUT/kill.log"

@@ -8,6 +8,7 @@ LeRobot v3 uses by default), h5py and OpenCV (RoboTwin HDF5 with cv2.imencode JP
 OUT_DIR/
   lerobot_v21/       LeRobot v2.1: 3 episodes (10, 12, 9 frames), cameras top (64x48) and wrist (64x32), H.264
   lerobot_v21_bad/   LeRobot v2.1 with one usable episode and one of each defect (see BAD below)
+  lerobot_v21_images/ LeRobot v2.1 with `image` features: camera top as PNG bytes in the parquet, wrist as PNG files
   lerobot_v30/       LeRobot v3.0: 3 episodes in 2 data/video files, cameras top and wrist (64x64), AV1
   robotwin/original/ RoboTwin 2.0 original layout: data/episode{0,1}.hdf5, instructions/episode{0,1}.json
   robotwin/v2026/    RoboTwin 2026 layout: episode{0,1}.hdf5
@@ -162,6 +163,50 @@ def write_v21(root, lengths, cameras, tweak=None):
         "total_tasks": len(TASKS), "total_videos": len(lengths) * len(cameras), "total_chunks": 1, "chunks_size": 1000,
         "fps": FPS, "splits": {"train": f"0:{len(lengths)}"}, "data_path": V21_DATA, "video_path": V21_VIDEO,
         "features": features(cameras, "h264"),
+    }
+    with open(f"{root}/meta/info.json", "w") as f:
+        json.dump(info, f, indent=4)
+    with open(f"{root}/meta/episodes.jsonl", "w") as f:
+        f.writelines(json.dumps(ep) + "\n" for ep in episodes)
+    with open(f"{root}/meta/tasks.jsonl", "w") as f:
+        f.writelines(json.dumps({"task_index": i, "task": t}) + "\n" for i, t in enumerate(TASKS))
+
+
+def write_v21_images(root, lengths, size):
+    """LeRobot v2.1 with `image` features (no video): camera top as PNG bytes inside the parquet
+    (Hugging Face `datasets.Image` cells: struct of bytes and path), camera wrist as PNG files the
+    cells point to."""
+    w, h = size
+    os.makedirs(f"{root}/meta", exist_ok=True)
+    image_type = pa.struct([("bytes", pa.binary()), ("path", pa.string())])
+    png = lambda img: cv2.imencode(".png", cv2.cvtColor(img, cv2.COLOR_RGB2BGR))[1].tobytes()
+    index = 0
+    episodes = []
+    for e, length in enumerate(lengths):
+        table = episode_table(e, length, index, e % len(TASKS))
+        top = [{"bytes": png(frame(w, h, EPISODE_COLORS[e], t)), "path": None} for t in range(length)]
+        wrist = []
+        for t in range(length):
+            rel = f"images/wrist/episode_{e:06d}/frame_{t:06d}.png"
+            os.makedirs(os.path.dirname(f"{root}/{rel}"), exist_ok=True)
+            with open(f"{root}/{rel}", "wb") as f:
+                f.write(png(frame(w, h, CAMERA2, t)))
+            wrist.append({"bytes": None, "path": rel})
+        table = table.append_column("observation.images.top", pa.array(top, type=image_type))
+        table = table.append_column("observation.images.wrist", pa.array(wrist, type=image_type))
+        path = f"{root}/" + V21_DATA.format(episode_chunk=0, episode_index=e)
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        pq.write_table(table, path)
+        episodes.append({"episode_index": e, "tasks": [TASKS[e % len(TASKS)]], "length": length})
+        index += length
+    feats = features({}, "h264")
+    for key in ["observation.images.top", "observation.images.wrist"]:
+        feats[key] = {"dtype": "image", "shape": [h, w, 3], "names": ["height", "width", "channel"]}
+    info = {
+        "codebase_version": "v2.1", "robot_type": "fixture", "total_episodes": len(lengths), "total_frames": index,
+        "total_tasks": len(TASKS), "total_videos": 0, "total_chunks": 1, "chunks_size": 1000,
+        "fps": FPS, "splits": {"train": f"0:{len(lengths)}"}, "data_path": V21_DATA, "video_path": None,
+        "features": feats,
     }
     with open(f"{root}/meta/info.json", "w") as f:
         json.dump(info, f, indent=4)
@@ -338,6 +383,7 @@ def main():
     os.makedirs(out)
     write_v21(f"{out}/lerobot_v21", [10, 12, 9], {"observation.images.top": (64, 48), "observation.images.wrist": (64, 32)})
     write_v21(f"{out}/lerobot_v21_bad", [12, 12, 12, 12, 3, 12], {"observation.images.top": (64, 48)}, bad_episode)
+    write_v21_images(f"{out}/lerobot_v21_images", [6, 5], (64, 48))
     write_v30(f"{out}/lerobot_v30", [10, 12, 9], {"observation.images.top": (64, 64), "observation.images.wrist": (64, 64)},
               lambda e: 0 if e < 2 else 1)
     for e, length in enumerate([8, 10]):

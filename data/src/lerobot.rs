@@ -103,19 +103,18 @@ impl LeRobotDataset {
     /// The feature key a camera name means: the key itself, or its last dotted part
     /// (`top` for `observation.images.top`).
     fn camera_key(&self, name: &str) -> Result<String> {
-        if let Some(k) = self.video_keys.iter().find(|k| *k == name || k.rsplit('.').next() == Some(name)) {
+        if let Some(k) = self.video_keys.iter().chain(&self.image_keys).find(|k| *k == name || k.rsplit('.').next() == Some(name)) {
             return Ok(k.clone());
         }
-        if self.image_keys.iter().any(|k| k == name || k.rsplit('.').next() == Some(name)) {
-            bail!("{}: camera '{name}' is stored as images inside the parquet files, which this reader does not decode", self.root.display());
-        }
-        bail!("{}: no camera '{name}' (video features: {})", self.root.display(), self.video_keys.join(", "))
+        let all: Vec<&str> = self.video_keys.iter().chain(&self.image_keys).map(String::as_str).collect();
+        bail!("{}: no camera '{name}' (video and image features: {})", self.root.display(), all.join(", "))
     }
 
     fn camera_keys(&self, cameras: &CameraSelection) -> Result<Vec<String>> {
-        let names = cameras.resolve(|| match self.video_keys.as_slice() {
+        let all: Vec<String> = self.video_keys.iter().chain(&self.image_keys).cloned().collect();
+        let names = cameras.resolve(|| match all.as_slice() {
             [only] => Ok(only.clone()),
-            [] => bail!("{}: the dataset has no video features", self.root.display()),
+            [] => bail!("{}: the dataset has no video or image features", self.root.display()),
             keys => bail!("{}: several cameras ({}); the selection must name them", self.root.display(), keys.join(", ")),
         })?;
         names.iter().map(|n| self.camera_key(n)).collect()
@@ -125,13 +124,37 @@ impl LeRobotDataset {
         ep.videos.get(key).with_context(|| format!("{what}: no video for camera {key} in the episode metadata"))
     }
 
-    /// The parquet `timestamp`s of frames `range` of the episode.
-    fn timestamps(&self, ep: &Episode, range: &Range<usize>) -> Result<Vec<f64>> {
-        let rows = match &ep.rows {
+    /// The episode's rows `range` of the data file.
+    fn rows(ep: &Episode, range: &Range<usize>) -> Range<usize> {
+        match &ep.rows {
             Some(r) => r.start + range.start..r.start + range.end,
             None => range.clone(),
-        };
-        let batches = table::read_columns(&ep.data, &["timestamp"], Some(rows))?;
+        }
+    }
+
+    /// Frames `range` of an image feature (encoded files inside the parquet, or paths to them).
+    fn image_frames(&self, ep: &Episode, key: &str, range: &Range<usize>, what: &str) -> Result<Vec<RgbImage>> {
+        let batches = table::read_columns(&ep.data, &[key], Some(Self::rows(ep, range)))?;
+        table::image_cells(&batches, key, &ep.data)?
+            .into_iter()
+            .enumerate()
+            .map(|(i, cell)| {
+                let frame = range.start + i;
+                let decoded = match cell {
+                    table::ImageCell::Bytes(b) => image::load_from_memory(&b).map_err(anyhow::Error::from),
+                    table::ImageCell::Path(p) => image::open(self.root.join(&p)).with_context(|| format!("image file {p}")),
+                };
+                match decoded {
+                    Ok(img) => Ok(img.to_rgb8()),
+                    Err(e) => defect(DefectKind::Unreadable, format!("{what}: camera {key}, frame {frame}: {e:#}")),
+                }
+            })
+            .collect()
+    }
+
+    /// The parquet `timestamp`s of frames `range` of the episode.
+    fn timestamps(&self, ep: &Episode, range: &Range<usize>) -> Result<Vec<f64>> {
+        let batches = table::read_columns(&ep.data, &["timestamp"], Some(Self::rows(ep, range)))?;
         table::floats(&batches, "timestamp", &ep.data)
     }
 }
@@ -192,10 +215,18 @@ impl EpisodeSource for LeRobotDataset {
         check_range(&range, info.length, &what)?;
         let keys = self.camera_keys(cameras)?;
         require_data(&ep.data, &what)?;
-        let stamps = self.timestamps(ep, &range).with_context(|| what.clone())?;
+        let mut stamps = None;
         let tolerance = 0.25 / self.fps;
         let mut views = Vec::with_capacity(keys.len());
         for key in &keys {
+            if self.image_keys.contains(key) {
+                views.push(self.image_frames(ep, key, &range, &what)?);
+                continue;
+            }
+            if stamps.is_none() {
+                stamps = Some(self.timestamps(ep, &range).with_context(|| what.clone())?);
+            }
+            let stamps = stamps.as_ref().expect("read above");
             let v = self.video(ep, key, &what)?;
             require_file(&v.path, &what)?;
             let times: Vec<f64> = stamps.iter().map(|t| v.from + t).collect();
@@ -211,6 +242,19 @@ impl EpisodeSource for LeRobotDataset {
         let (_, ep) = self.episode(episode)?;
         let mut count: Option<(usize, String)> = None;
         for key in self.camera_keys(cameras)? {
+            if self.image_keys.contains(&key) {
+                let n = match &ep.rows {
+                    Some(r) => r.len(),
+                    None => table::num_rows(&ep.data)?,
+                };
+                match &count {
+                    Some((m, other)) if *m != n => {
+                        return defect(DefectKind::CountMismatch, format!("{what}: camera {key} has {n} frames, camera {other} {m}"));
+                    }
+                    _ => count = Some((n, key)),
+                }
+                continue;
+            }
             let v = self.video(ep, &key, &what)?;
             let n = match v.to {
                 None => video_frame_count(&v.path, &what)?,

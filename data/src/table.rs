@@ -168,6 +168,62 @@ pub fn ints(batches: &[RecordBatch], name: &str, path: &Path) -> Result<Vec<i64>
     Ok(out)
 }
 
+/// An image column as Hugging Face `datasets.Image` stores it: per row a struct of `bytes` (the
+/// encoded file) and `path`, or plain binary. Returns the bytes, or the path where there are none.
+pub fn image_cells(batches: &[RecordBatch], name: &str, path: &Path) -> Result<Vec<ImageCell>> {
+    let binary = |a: &ArrayRef, i: usize| -> Option<Vec<u8>> {
+        if a.is_null(i) {
+            return None;
+        }
+        match a.data_type() {
+            DataType::Binary => Some(a.as_binary::<i32>().value(i).to_vec()),
+            DataType::LargeBinary => Some(a.as_binary::<i64>().value(i).to_vec()),
+            _ => None,
+        }
+    };
+    let mut out = Vec::new();
+    for batch in batches {
+        let col = column(batch, name, path)?;
+        match col.data_type() {
+            DataType::Struct(_) => {
+                let s = col.as_struct();
+                let bytes = s.column_by_name("bytes");
+                let paths = s.column_by_name("path");
+                for i in 0..s.len() {
+                    let b = bytes.and_then(|b| binary(b, i));
+                    let p = paths.filter(|p| !p.is_null(i)).and_then(|p| match p.data_type() {
+                        DataType::Utf8 => Some(p.as_string::<i32>().value(i).to_string()),
+                        DataType::LargeUtf8 => Some(p.as_string::<i64>().value(i).to_string()),
+                        _ => None,
+                    });
+                    out.push(match (b, p) {
+                        (Some(b), _) if !b.is_empty() => ImageCell::Bytes(b),
+                        (_, Some(p)) if !p.is_empty() => ImageCell::Path(p),
+                        _ => return defect(DefectKind::Unreadable, format!("{}: column '{name}' row {} holds no image", path.display(), out.len())),
+                    });
+                }
+            }
+            DataType::Binary | DataType::LargeBinary => {
+                for i in 0..col.len() {
+                    match binary(col, i) {
+                        Some(b) => out.push(ImageCell::Bytes(b)),
+                        None => return defect(DefectKind::Unreadable, format!("{}: column '{name}' row {} holds no image", path.display(), out.len())),
+                    }
+                }
+            }
+            other => bail!("{}: column '{name}' holds {other}, expected images (struct of bytes and path, or binary)", path.display()),
+        }
+    }
+    Ok(out)
+}
+
+/// One cell of an image column.
+pub enum ImageCell {
+    Bytes(Vec<u8>),
+    /// A file, relative to the dataset root unless absolute.
+    Path(String),
+}
+
 /// A list-of-strings column (or a plain string column, as 1-element lists).
 pub fn string_lists(batches: &[RecordBatch], name: &str, path: &Path) -> Result<Vec<Vec<String>>> {
     let mut out = Vec::new();

@@ -93,6 +93,29 @@ fn lerobot_v21_reads_values_and_frames() {
 }
 
 #[test]
+fn lerobot_image_features_decode_from_parquet_bytes_and_from_files() {
+    let ds = open_dataset(&fixtures().join("lerobot_v21_images")).unwrap();
+    assert_eq!(ds.episodes().iter().map(|e| e.length).collect::<Vec<_>>(), vec![6, 5]);
+    let both = CameraSelection::stacked(&["top", "wrist"]);
+    assert_eq!(ds.frame_count(1, &both).unwrap(), 5);
+    // PNG is lossless: every pixel is the one written (top half the episode colour or CAMERA2,
+    // bottom half the frame's grey).
+    for e in 0..2 {
+        let frames = ds.frames(e, 1..4, &both).unwrap();
+        assert_eq!(frames.len(), 3);
+        for (i, f) in frames.iter().enumerate() {
+            let t = 1 + i as u8;
+            assert_eq!(f.dimensions(), (64, 96));
+            assert_eq!(f.get_pixel(10, 5).0, EPISODE_COLORS[e], "episode {e} frame {t} top");
+            assert_eq!(f.get_pixel(10, 30).0, [16 + 12 * t; 3], "episode {e} frame {t} top grey");
+            assert_eq!(f.get_pixel(10, 48 + 5).0, CAMERA2, "episode {e} frame {t} wrist (from a file)");
+        }
+    }
+    let actions = ds.vectors(0, &ActionSpec { column: "action".into(), indices: (0..6).collect(), stats_group: "x".into(), quat_to_euler: vec![], absolute_to_delta: vec![] }).unwrap();
+    assert_eq!(actions.len(), 6);
+}
+
+#[test]
 fn lerobot_v30_slices_episodes_out_of_shared_av1_files() {
     let root = fixtures().join("lerobot_v30");
     let ds = open_dataset(&root).unwrap();

@@ -38,8 +38,15 @@ pub struct PrepareArgs {
     data: PathBuf,
     /// VAE: a `bwm train-vae` output, or the published Wan2.2_VAE.pth / safetensors (not needed
     /// with --merge).
-    #[arg(long)]
+    #[arg(long, conflicts_with = "random_vae")]
     vae: Option<PathBuf>,
+    /// A random full-width Wan2.2 VAE instead of --vae: for timing `prepare` where no weights are
+    /// at hand (the latents mean nothing).
+    #[arg(long)]
+    random_vae: bool,
+    /// VAE weights and activations: auto (bf16 on CUDA, f32 on CPU), bf16 or f32.
+    #[arg(long, default_value = "auto")]
+    dtype: String,
     /// Output folder of the latent cache.
     #[arg(long)]
     out: PathBuf,
@@ -189,7 +196,11 @@ pub fn run(a: PrepareArgs) -> Result<()> {
     }
     let start = Instant::now();
     let (rank, world) = rank_and_world(a.rank, a.world)?;
-    let vae_path = a.vae.clone().context("--vae is required (except with --merge)")?;
+    let vae_path = match (&a.vae, a.random_vae) {
+        (Some(p), _) => p.clone(),
+        (None, true) => PathBuf::from("random"),
+        (None, false) => bail!("--vae is required (or --random-vae for timing; not needed with --merge)"),
+    };
     let clip = ClipSpec { history: a.history, future: a.future, stride: a.stride };
     clip.validate().context("--history/--future/--stride")?;
     let size = parse_resolution(&a.resolution, 32)?;
@@ -253,7 +264,7 @@ pub fn run(a: PrepareArgs) -> Result<()> {
         holdout_episodes,
         stats_from: stats_from.clone(),
         stats: stats.clone(),
-        vae_fingerprint: file_fingerprint(&vae_path)?,
+        vae_fingerprint: if a.random_vae { "random Wan2.2 VAE, seed 0".into() } else { file_fingerprint(&vae_path)? },
         device_type: if device.is_cuda() { "cuda".into() } else { "cpu".into() },
         batch: a.batch,
         clips_per_shard: a.clips_per_shard,
@@ -292,7 +303,16 @@ pub fn run(a: PrepareArgs) -> Result<()> {
         println!("  wrote {}", a.out.join("stat.json").display());
     }
 
-    let vae = WanVae::load_any(&vae_path, Kind::Float, device).with_context(|| format!("--vae {}", vae_path.display()))?;
+    let kind = match a.dtype.as_str() {
+        "auto" if device.is_cuda() => Kind::BFloat16,
+        "auto" => Kind::Float,
+        s => bwm_trainer::devices::parse_kind(s)?,
+    };
+    let vae = if a.random_vae {
+        WanVae::random(&bwm_model::vae::VaeConfig::wan22(), kind, device, 0)?.0
+    } else {
+        WanVae::load_any(&vae_path, kind, device).with_context(|| format!("--vae {}", vae_path.display()))?
+    };
     let ts = vae.cfg.temporal_stride() as usize;
     ensure!((clip.frames_per_clip() - 1).is_multiple_of(ts), "clips of 1 + {} frames do not fit the VAE's temporal stride {ts}", a.history + a.future);
     let fps = source.fps(plan.episodes[0].episode).context("the frame rate of the first episode")?;

@@ -2,6 +2,7 @@
 //! determinism, x0 padding of the history at the episode start, the prefix held fixed through
 //! every sampler step, the short last window, bf16.
 
+use bwm_model::keyed_rng::{self, Purpose};
 use bwm_model::rollout::{Rollout, RolloutSpec};
 use bwm_model::vae::{VaeConfig, WanVae};
 use bwm_model::{BwmModel, ModelConfig};
@@ -9,7 +10,11 @@ use tch::{Device, Kind, Tensor};
 
 const SIDE: i64 = 32;
 
+/// The tiny model and a small VAE with seeded random weights; one at a time, since the seed is
+/// libtorch's global generator, shared by the test threads.
 fn parts(kind: Kind) -> (BwmModel, WanVae) {
+    static GLOBAL_GENERATOR: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    let _guard = GLOBAL_GENERATOR.lock().unwrap_or_else(|e| e.into_inner());
     let model = BwmModel::random(&ModelConfig::preset("tiny").unwrap(), kind, Device::Cpu, 3).unwrap();
     let (vae, _) = WanVae::random(&VaeConfig::with_width(16, 16), Kind::Float, Device::Cpu, 4).unwrap();
     (model, vae)
@@ -19,12 +24,11 @@ fn spec(history: usize, future: usize, seed: u64) -> RolloutSpec {
     RolloutSpec { steps: 3, seed, ..RolloutSpec::new(history, future) }
 }
 
+/// x0 [3, SIDE, SIDE], a0 [d] and `rows` actions, all in [-1, 1], from keyed draws (the tests run in
+/// parallel threads, so libtorch's global generator would give each a different interleaving).
 fn inputs(d: i64, rows: i64) -> (Tensor, Tensor, Tensor) {
-    tch::manual_seed(11);
-    let x0 = Tensor::rand([3, SIDE, SIDE], (Kind::Float, Device::Cpu)) * 2.0 - 1.0;
-    let a0 = Tensor::rand([d], (Kind::Float, Device::Cpu)) * 2.0 - 1.0;
-    let actions = Tensor::rand([rows, d], (Kind::Float, Device::Cpu)) * 2.0 - 1.0;
-    (x0, a0, actions)
+    let draw = |shape: &[i64], key: u64| keyed_rng::normal(shape, 11, key, Purpose::Augment).tanh();
+    (draw(&[3, SIDE, SIDE], 0), draw(&[d], 1), draw(&[rows, d], 2))
 }
 
 fn roll(model: &BwmModel, vae: &WanVae, spec: RolloutSpec, actions: &Tensor) -> Vec<(Tensor, Tensor)> {
@@ -78,8 +82,8 @@ fn history_is_padded_with_x0_and_a0_then_filled_with_what_was_shown() {
     assert!(acts.narrow(0, 5, 4).equal(&actions), "with the actions applied to them");
 
     // Given history replaces padding, newest last; only the last H are kept.
-    let hist = Tensor::rand([3, 10, SIDE, SIDE], (Kind::Float, Device::Cpu));
-    let hist_actions = Tensor::rand([10, d], (Kind::Float, Device::Cpu));
+    let hist = keyed_rng::normal(&[3, 10, SIDE, SIDE], 12, 0, Purpose::Augment).tanh();
+    let hist_actions = keyed_rng::normal(&[10, d], 12, 1, Purpose::Augment).tanh();
     let r = Rollout::new(&model, &vae, spec(8, 4, 1), &x0, &a0).unwrap().with_history(&hist, &hist_actions).unwrap();
     let (frames, acts) = r.condition();
     assert!(frames.select(1, 0).equal(&x0));

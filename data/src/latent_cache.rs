@@ -55,6 +55,25 @@ pub struct CacheIndex {
     pub clips: Vec<ClipEntry>,
 }
 
+impl CacheIndex {
+    /// An index without clips yet, for clips of x0 + `history` + `future` pixel frames.
+    pub fn new(latent_shape: Vec<i64>, action_dim: i64, history: usize, future: usize, resolution: [u32; 2], fps: f64, vae: impl Into<String>) -> Self {
+        Self {
+            version: CACHE_VERSION,
+            latent_shape,
+            action_dim,
+            pixel_frames: 1 + history + future,
+            history_frames: history,
+            future_frames: future,
+            resolution,
+            fps,
+            vae: vae.into(),
+            has_frames: false,
+            clips: vec![],
+        }
+    }
+}
+
 /// What `bwm prepare` records in `index.json` besides `CacheIndex`'s fields, at the same level;
 /// every field is optional, so indexes written without them load.
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
@@ -548,19 +567,7 @@ mod tests {
     }
 
     fn index(has_frames: bool) -> CacheIndex {
-        CacheIndex {
-            version: 1,
-            latent_shape: vec![4, 2, 2, 3],
-            action_dim: 2,
-            pixel_frames: 5,
-            history_frames: 0,
-            future_frames: 4,
-            resolution: [48, 32],
-            fps: 10.0,
-            vae: "test".into(),
-            has_frames,
-            clips: vec![],
-        }
+        CacheIndex { has_frames, ..CacheIndex::new(vec![4, 2, 2, 3], 2, 0, 4, [48, 32], 10.0, "test") }
     }
 
     #[test]
@@ -611,7 +618,7 @@ mod tests {
         let latents = Tensor::randn([4, 2, 2, 3], (Kind::Float, Device::Cpu));
         let actions = Tensor::rand([5, 2], (Kind::Float, Device::Cpu));
         Tensor::write_safetensors(&[("latents", &latents), ("actions", &actions)], dir.join("clip-000000.safetensors")).unwrap();
-        let mut idx = index(false);
+        let mut idx = CacheIndex { version: 1, ..index(false) };
         idx.clips.push(ClipEntry { file: "clip-000000.safetensors".into(), episode: 0, frames: vec![0; 5], task: String::new() });
         std::fs::write(dir.join(INDEX_FILE), serde_json::to_string(&idx).unwrap()).unwrap();
         let cache = LatentCache::open(&dir).unwrap();

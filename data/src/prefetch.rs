@@ -197,19 +197,7 @@ mod tests {
         use tch::{Device, Kind};
         let dir = std::env::temp_dir().join(format!("bwm-prefetch-cache-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
-        let index = CacheIndex {
-            version: 1,
-            latent_shape: vec![4, 2, 2, 2],
-            action_dim: 3,
-            pixel_frames: 5,
-            history_frames: 0,
-            future_frames: 4,
-            resolution: [32, 32],
-            fps: 10.0,
-            vae: "test".into(),
-            has_frames: false,
-            clips: vec![],
-        };
+        let index = CacheIndex::new(vec![4, 2, 2, 2], 3, 0, 4, [32, 32], 10.0, "test");
         let mut w = CacheWriter::with_shard_size(&dir, index, 3).unwrap();
         for i in 0..7 {
             let latents = Tensor::randn([4, 2, 2, 2], (Kind::Float, Device::Cpu));

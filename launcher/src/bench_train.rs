@@ -40,19 +40,7 @@ pub fn run(mut a: BenchTrainArgs) -> Result<()> {
     let cache_dir = a.out.join("cache");
     let latent_shape = vec![48, 1 + (a.history + a.future) as i64 / 4, a.height / 16, a.width / 16];
     let pixel_frames = 1 + a.history + a.future;
-    let index = CacheIndex {
-        version: 1,
-        latent_shape: latent_shape.clone(),
-        action_dim: 14,
-        pixel_frames,
-        history_frames: a.history,
-        future_frames: a.future,
-        resolution: [a.width as u32, a.height as u32],
-        fps: 30.0,
-        vae: "synthetic (bench-train)".into(),
-        has_frames: false,
-        clips: vec![],
-    };
+    let index = CacheIndex::new(latent_shape.clone(), 14, a.history, a.future, [a.width as u32, a.height as u32], 30.0, "synthetic (bench-train)");
     let mut w = CacheWriter::create(&cache_dir, index)?;
     for episode in 0..2 {
         let latents = Tensor::randn(latent_shape.as_slice(), (Kind::Float, Device::Cpu));

@@ -316,18 +316,10 @@ pub fn run(a: PrepareArgs) -> Result<()> {
     let ts = vae.cfg.temporal_stride() as usize;
     ensure!((clip.frames_per_clip() - 1).is_multiple_of(ts), "clips of 1 + {} frames do not fit the VAE's temporal stride {ts}", a.history + a.future);
     let fps = source.fps(plan.episodes[0].episode).context("the frame rate of the first episode")?;
+    let latent_shape = vec![vae.cfg.z_dim, 1 + ((clip.frames_per_clip() - 1) / ts) as i64, size.1 as i64 / 16, size.0 as i64 / 16];
     let index = CacheIndex {
-        version: CACHE_VERSION,
-        latent_shape: vec![vae.cfg.z_dim, 1 + ((clip.frames_per_clip() - 1) / ts) as i64, size.1 as i64 / 16, size.0 as i64 / 16],
-        action_dim: action_dim as i64,
-        pixel_frames: clip.frames_per_clip(),
-        history_frames: a.history,
-        future_frames: a.future,
-        resolution: [size.0, size.1],
-        fps,
-        vae: vae_path.display().to_string(),
         has_frames: a.keep_frames,
-        clips: vec![],
+        ..CacheIndex::new(latent_shape, action_dim as i64, a.history, a.future, [size.0, size.1], fps, vae_path.display().to_string())
     };
     let extras = IndexExtras {
         source_resolution,

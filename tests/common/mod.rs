@@ -64,19 +64,7 @@ pub fn temp_dir(name: &str) -> PathBuf {
 
 pub fn write_cache(dir: &Path) {
     tch::manual_seed(0);
-    let index = CacheIndex {
-        version: 1,
-        latent_shape: vec![48, 4, 4, 4],
-        action_dim: 14,
-        pixel_frames: 13,
-        history_frames: 8,
-        future_frames: 4,
-        resolution: [64, 64],
-        fps: 30.0,
-        vae: "synthetic".into(),
-        has_frames: false,
-        clips: vec![],
-    };
+    let index = CacheIndex::new(vec![48, 4, 4, 4], 14, 8, 4, [64, 64], 30.0, "synthetic");
     let mut w = CacheWriter::create(dir, index).unwrap();
     for episode in 0..3 {
         let latents = Tensor::randn([48, 4, 4, 4], (Kind::Float, Device::Cpu));

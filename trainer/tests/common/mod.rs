@@ -20,19 +20,7 @@ pub fn tmp_dir(name: &str) -> PathBuf {
 pub fn write_cache(dir: &Path, clips: usize, seed: i64) -> PathBuf {
     let _guard = rng_lock();
     tch::manual_seed(seed);
-    let index = CacheIndex {
-        version: 1,
-        latent_shape: vec![48, 4, 4, 4],
-        action_dim: 14,
-        pixel_frames: 13,
-        history_frames: 8,
-        future_frames: 4,
-        resolution: [64, 64],
-        fps: 25.0,
-        vae: "synthetic".into(),
-        has_frames: false,
-        clips: vec![],
-    };
+    let index = CacheIndex::new(vec![48, 4, 4, 4], 14, 8, 4, [64, 64], 25.0, "synthetic");
     let mut w = CacheWriter::create(dir, index).unwrap();
     for i in 0..clips {
         let actions = Tensor::rand([13, 14], (Kind::Float, Device::Cpu)) * 2.0 - 1.0;

@@ -296,16 +296,16 @@ impl Trainer {
         let mut tids = Vec::with_capacity(mb * accum);
         let mut finite = true;
         let mut tokens = 0i64;
-        let mut context = 0i64;
+        let mut sample_flops = 0.0;
         for micro in 0..accum {
             let indices: Vec<u64> = (0..mb).map(|i| global_sample_index(step, micro, rank, i, mb, accum, world)).collect();
             let batch = self.load_batch(&indices)?;
             let prepared = self.objective.prepare(&batch.latents, &batch.noise, &batch.history_noise, &batch.tids)?;
-            let (f, _, _) = self.model.dit.token_grid(&prepared.input)?;
             let grid = self.model.dit.token_grid(&prepared.input)?;
-            tokens += mb as i64 * grid.0 * grid.1 * grid.2;
-            context += mb as i64 * batch.actions.size()[1];
-            let _ = f;
+            let sample_tokens = grid.0 * grid.1 * grid.2;
+            tokens += mb as i64 * sample_tokens;
+            // Attention is quadratic in the sequence: FLOPs add up per sample, not over the summed tokens.
+            sample_flops += mb as f64 * flops::train_flops(&self.model.cfg, sample_tokens, batch.actions.size()[1]);
             let objective = &self.objective;
             let per_sample = std::cell::RefCell::new(None);
             let loss_fn = |pred: &Tensor| {
@@ -361,7 +361,7 @@ impl Trainer {
         }
         self.state.optimizer_step = self.opt.step;
         let seconds = start.elapsed().as_secs_f64();
-        let model_flops = flops::train_flops(&self.model.cfg, tokens, context) * world as f64;
+        let model_flops = sample_flops * world as f64;
         let peak = self.cfg.log.peak_tflops.map(|p| p * world as f64);
         let mut m = StepMetrics::new(self.state.step, &losses, &tids, report, seconds, tokens * world as i64, model_flops, peak, self.state.nonfinite_total, self.device);
         m.samples_per_s *= world as f64;

@@ -99,6 +99,14 @@ fn batch_two_equals_batch_one_with_accumulation_two() {
     assert_same(&weights(&batch), &weights(&accum), 1e-5, "batch 2 vs accumulation 2");
     for (x, y) in batch.history.iter().zip(&accum.history) {
         assert!((x.loss - y.loss).abs() < 1e-5 * x.loss.abs().max(1.0));
+        // Model FLOPs add up per sample (attention is quadratic in each sample's tokens), however
+        // the samples are grouped into micro-batches and micro-steps.
+        let tokens = (x.tokens_per_s * x.seconds / 2.0).round() as i64;
+        let per_sample = bwm_trainer::flops::train_flops(&batch.model.cfg, tokens, batch.cache.index.pixel_frames as i64) / 1e12;
+        for (what, m) in [("batch 2", x), ("accumulation 2", y)] {
+            let got = m.tflops * m.seconds;
+            assert!((got - 2.0 * per_sample).abs() <= 1e-6 * got, "{what}: {got} TFLOP per step, 2 samples of {per_sample}");
+        }
     }
 }
 

@@ -1,0 +1,16 @@
+#!/usr/bin/env bash
+# The paper's per-GPU recipe shape on all GPUs of one machine (device tool, kind nvidia-h200-x4 or
+# -x8), from the repo root, with dist/bwm built without FFmpeg/HDF5: 5B, 640x480, 1+8+72 frames,
+# micro-batch 1 per GPU, accumulation 4, sharded optimizer state, recomputation on, random init.
+# First the same on GPU 0 alone (the scaling baseline), then `bwm launch` over every GPU.
+set -uo pipefail
+source "$(dirname "$0")/common.sh"
+NP=$(nvidia-smi -L | wc -l)
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$OUT/gpu.txt"
+COMMON=(--config configs/bwm-wan22-ti2v-5b.toml --set 'run.device="cuda"' --set train.grad_accum=4 --set train.shard_optimizer=true)
+CUDA_VISIBLE_DEVICES=0 mem recipe-1gpu dist/bwm bench-train "${COMMON[@]}" --steps ${BASE_STEPS:-4} --out /tmp/recipe-1
+nvidia-smi --query-gpu=index,memory.used --format=csv,noheader,nounits -lms 100 > "$OUT/recipe.mem" &
+pid=$!
+dist/bwm launch --nproc-per-node $NP -- bench-train "${COMMON[@]}" --steps ${STEPS:-20} --out /tmp/recipe-n 2>&1 | tee "$OUT/recipe-${NP}gpu.log"
+kill $pid
+for g in $(seq 0 $((NP - 1))); do echo "GPU $g peak $(grep "^$g," "$OUT/recipe.mem" | cut -d, -f2 | sort -n | tail -1) MiB"; done | tee -a "$OUT/recipe-${NP}gpu.log"

@@ -8,7 +8,10 @@ source "$(dirname "$0")/common.sh"
 NP=$(nvidia-smi -L | wc -l)
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$OUT/gpu.txt"
 COMMON=(--config configs/bwm-wan22-ti2v-5b.toml --set 'run.device="cuda"' --set train.grad_accum=4 --set train.shard_optimizer=true)
-CUDA_VISIBLE_DEVICES=0 mem recipe-1gpu dist/bwm bench-train "${COMMON[@]}" --steps ${BASE_STEPS:-4} --out /tmp/recipe-1
+# BASE_STEPS=0 skips the one-GPU baseline (e.g. when it was measured on the same GPU model already).
+if [ "${BASE_STEPS:-4}" -gt 0 ]; then
+  CUDA_VISIBLE_DEVICES=0 mem recipe-1gpu dist/bwm bench-train "${COMMON[@]}" --steps ${BASE_STEPS:-4} --out /tmp/recipe-1
+fi
 nvidia-smi --query-gpu=index,memory.used --format=csv,noheader,nounits -lms 100 > "$OUT/recipe.mem" &
 pid=$!
 dist/bwm launch --nproc-per-node $NP -- bench-train "${COMMON[@]}" --steps ${STEPS:-20} --out /tmp/recipe-n 2>&1 | tee "$OUT/recipe-${NP}gpu.log"

@@ -158,11 +158,16 @@ def write_v21(root, lengths, cameras, tweak=None):
                         f.write(t["video"])
         episodes.append({"episode_index": e, "tasks": [task], "length": length})
         index += length
+    write_v21_meta(root, episodes, len(lengths) * len(cameras), V21_VIDEO, features(cameras, "h264"))
+
+
+def write_v21_meta(root, episodes, total_videos, video_path, feats):
+    """meta/info.json, episodes.jsonl and tasks.jsonl of a LeRobot v2.1 dataset."""
     info = {
-        "codebase_version": "v2.1", "robot_type": "fixture", "total_episodes": len(lengths), "total_frames": index,
-        "total_tasks": len(TASKS), "total_videos": len(lengths) * len(cameras), "total_chunks": 1, "chunks_size": 1000,
-        "fps": FPS, "splits": {"train": f"0:{len(lengths)}"}, "data_path": V21_DATA, "video_path": V21_VIDEO,
-        "features": features(cameras, "h264"),
+        "codebase_version": "v2.1", "robot_type": "fixture", "total_episodes": len(episodes),
+        "total_frames": sum(ep["length"] for ep in episodes), "total_tasks": len(TASKS), "total_videos": total_videos,
+        "total_chunks": 1, "chunks_size": 1000, "fps": FPS, "splits": {"train": f"0:{len(episodes)}"},
+        "data_path": V21_DATA, "video_path": video_path, "features": feats,
     }
     with open(f"{root}/meta/info.json", "w") as f:
         json.dump(info, f, indent=4)
@@ -202,18 +207,7 @@ def write_v21_images(root, lengths, size):
     feats = features({}, "h264")
     for key in ["observation.images.top", "observation.images.wrist"]:
         feats[key] = {"dtype": "image", "shape": [h, w, 3], "names": ["height", "width", "channel"]}
-    info = {
-        "codebase_version": "v2.1", "robot_type": "fixture", "total_episodes": len(lengths), "total_frames": index,
-        "total_tasks": len(TASKS), "total_videos": 0, "total_chunks": 1, "chunks_size": 1000,
-        "fps": FPS, "splits": {"train": f"0:{len(lengths)}"}, "data_path": V21_DATA, "video_path": None,
-        "features": feats,
-    }
-    with open(f"{root}/meta/info.json", "w") as f:
-        json.dump(info, f, indent=4)
-    with open(f"{root}/meta/episodes.jsonl", "w") as f:
-        f.writelines(json.dumps(ep) + "\n" for ep in episodes)
-    with open(f"{root}/meta/tasks.jsonl", "w") as f:
-        f.writelines(json.dumps({"task_index": i, "task": t}) + "\n" for i, t in enumerate(TASKS))
+    write_v21_meta(root, episodes, 0, None, feats)
 
 
 def write_v30(root, lengths, cameras, data_file_of):

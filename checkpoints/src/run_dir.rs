@@ -39,6 +39,11 @@ impl CheckpointRoot {
         Self { root: root.into() }
     }
 
+    /// Where the checkpoint of `step` lives (whether or not it exists).
+    pub fn step_path(&self, step: u64) -> PathBuf {
+        self.root.join(step_name(step))
+    }
+
     /// Writes checkpoint `step`: `write` fills a fresh temporary folder (and must write
     /// `state.json` last); then every file is fsynced, the folder renamed into place, `latest`
     /// updated and all but the newest `keep_last` checkpoints removed.
@@ -69,7 +74,7 @@ impl CheckpointRoot {
             }
         }
         sync_dir(&tmp)?;
-        let dest = self.root.join(&name);
+        let dest = self.step_path(step);
         if dest.exists() {
             // Re-saving a step (a resumed run reaching it again): move the old one aside first so
             // that `dest` is never missing a complete checkpoint for longer than one rename.

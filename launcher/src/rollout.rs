@@ -10,7 +10,7 @@ use std::time::Instant;
 use anyhow::{bail, ensure, Context, Result};
 use bwm_data::frames::{fit, frames_to_tensor, tensor_to_frames};
 use bwm_data::lerobot_writer::{DatasetFeatures, LeRobotWriter};
-use bwm_data::source::{open_dataset, CameraSelection, EpisodeSource};
+use bwm_data::source::{open_dataset, CameraSelection};
 use bwm_data::{ActionSpec, ResizeMode};
 use bwm_model::keyed_rng::{self, Purpose};
 use bwm_trainer::image_metrics::{psnr, ssim};
@@ -252,16 +252,12 @@ fn plan(a: &RolloutArgs, wm: &WorldModel, size: (u32, u32)) -> Result<Vec<Job>> 
             }
         };
         let frames_needed = if a.drive == Drive::Gt { length } else { 1 };
-        let frames = read_frames(source.as_ref(), e, frames_needed, &cameras).with_context(|| name.clone())?;
+        let frames = source.frames(e, 0..frames_needed, &cameras).with_context(|| name.clone())?;
         let frames: Vec<RgbImage> = frames.iter().map(|f| fit(f, size.0, size.1, a.resize)).collect();
         let truth = (a.drive == Drive::Gt).then(|| frames.clone());
         jobs.push(Job { name, task: info.task.clone(), x0: frames[0].clone(), raw, normalized, truth, fps: source.fps(e)? });
     }
     Ok(jobs)
-}
-
-fn read_frames(source: &dyn EpisodeSource, episode: usize, n: usize, cameras: &CameraSelection) -> Result<Vec<RgbImage>> {
-    source.frames(episode, 0..n, cameras)
 }
 
 /// (raw rows when known, normalized tensor) from rows in raw or normalized units.

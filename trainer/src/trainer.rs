@@ -472,7 +472,7 @@ impl Trainer {
         // Every rank learns whether rank 0 succeeded before going on.
         let mut ok = Tensor::from_slice(&[written.is_ok() as i32 as f32]).to_device(self.device);
         self.comm.broadcast(&mut ok, 0).context("waiting for the checkpoint of rank 0")?;
-        let dir = written?.unwrap_or_else(|| self.checkpoints.root.join(format!("step-{step:08}")));
+        let dir = written?.unwrap_or_else(|| self.checkpoints.step_path(step));
         ensure!(ok.double_value(&[0]) > 0.0, "rank 0 failed to write the checkpoint of step {step}");
         Ok(dir)
     }

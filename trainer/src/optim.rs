@@ -271,16 +271,11 @@ impl AdamW {
         let scale = 1.0 / grad_divisor;
         let g = self.reduce(comm)?;
         let chunks = chunk_ranges(g.numel());
-        let sq: f64 = chunks
-            .iter()
-            .map(|r| {
-                g.narrow(0, r.0, r.1)
-                    .square()
-                    .sum(Kind::Double)
-                    .double_value(&[])
-            })
-            .sum();
-        let mut sq = Tensor::from_slice(&[sq]).to_device(g.device());
+        // Summed on the device: the one host sync of the step is reading the norm below.
+        let mut sq = Tensor::zeros([1], (Kind::Double, g.device()));
+        for &(start, len) in &chunks {
+            sq += g.narrow(0, start, len).square().sum(Kind::Double);
+        }
         if self.is_sharded() {
             comm.all_reduce_sum(&mut sq)
                 .context("all-reduce of the gradient norm")?;

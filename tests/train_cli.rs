@@ -136,6 +136,23 @@ fn two_ranks_train_the_weights_of_one_and_resume_across_world_sizes() {
     train_ranks(&replicated, 2, "no");
     assert!(last("replicated").join("optimizer-00000-of-00001.safetensors").is_file(), "replicated state is written once");
     assert_close(&final_weights(&dir.join("two")), &final_weights(&dir.join("replicated")), "sharded vs replicated optimizer state");
+    // The blocks' gradients are reduced during the backward walk by default; reduced after it,
+    // and with accumulation (early reduction on the last micro-step only), the weights agree.
+    let after_walk = write_config(&dir, "after_walk.toml", &dir.join("after_walk"), 3, 1);
+    let text = std::fs::read_to_string(&after_walk).unwrap().replace("[train]\n", "[train]\noverlap_grad_reduce = false\n");
+    std::fs::write(&after_walk, text).unwrap();
+    train_ranks(&after_walk, 2, "no");
+    assert_close(&final_weights(&dir.join("two")), &final_weights(&dir.join("after_walk")), "reduction during vs after the walk");
+    let four_one = write_config(&dir, "four_one.toml", &dir.join("four_one"), 2, 4);
+    train_ranks(&four_one, 1, "no");
+    let four_two = write_config(&dir, "four_two.toml", &dir.join("four_two"), 2, 2);
+    train_ranks(&four_two, 2, "no");
+    assert_close(&final_weights(&dir.join("four_one")), &final_weights(&dir.join("four_two")), "2 ranks x 2 micro-steps vs 1 x 4");
+    let metrics = std::fs::read_to_string(dir.join("two/metrics.jsonl")).unwrap();
+    for line in metrics.lines() {
+        let m: serde_json::Value = serde_json::from_str(line).unwrap();
+        assert!(m["collective_s"].as_f64().unwrap() > 0.0, "time in collectives is logged: {line}");
+    }
     // The same 2 ranks started by `bwm launch`.
     let launched = write_config(&dir, "launched.toml", &dir.join("launched"), 3, 1);
     let port = free_port().to_string();

@@ -227,6 +227,11 @@ pub struct TrainSection {
     /// and moments; ZeRO-1) instead of all of it.
     #[serde(default = "yes")]
     pub shard_optimizer: bool,
+    /// With several ranks and recomputation, each DiT block's gradients are reduced as soon as
+    /// the backward walk of the step's last micro-batch has passed the block, overlapping the
+    /// communication with the rest of the walk; otherwise all are reduced after it.
+    #[serde(default = "yes")]
+    pub overlap_grad_reduce: bool,
     /// Parameter-name patterns (`*` matches anything) of the trained set.
     #[serde(default = "default_trainable")]
     pub trainable: Vec<String>,

@@ -33,6 +33,10 @@ pub struct StepMetrics {
     /// of the step time.
     pub loader_wait_s: f64,
     pub loader_wait_share: f64,
+    /// Time in collectives during the step (NCCL: GPU time of their kernels, including the part
+    /// overlapped with the backward walk; TCP: wall time), and its share of the step time.
+    pub collective_s: f64,
+    pub collective_share: f64,
 }
 
 impl StepMetrics {
@@ -68,12 +72,19 @@ impl StepMetrics {
             peak_memory_mib: crate::device_memory::used_mib(device),
             loader_wait_s: 0.0,
             loader_wait_share: 0.0,
+            collective_s: 0.0,
+            collective_share: 0.0,
         }
     }
 
     pub fn set_loader_wait(&mut self, seconds: f64) {
         self.loader_wait_s = seconds;
         self.loader_wait_share = if self.seconds > 0.0 { seconds / self.seconds } else { 0.0 };
+    }
+
+    pub fn set_collective_time(&mut self, seconds: f64) {
+        self.collective_s = seconds;
+        self.collective_share = if self.seconds > 0.0 { seconds / self.seconds } else { 0.0 };
     }
 
     /// (tag, value) pairs for TensorBoard.
@@ -86,6 +97,8 @@ impl StepMetrics {
             ("train/nonfinite_total".to_string(), self.nonfinite_total as f64),
             ("perf/loader_wait_s".to_string(), self.loader_wait_s),
             ("perf/loader_wait_share".to_string(), self.loader_wait_share),
+            ("perf/collective_s".to_string(), self.collective_s),
+            ("perf/collective_share".to_string(), self.collective_share),
         ];
         if let Some(lr) = self.lr {
             out.push(("train/lr".into(), lr));
@@ -125,6 +138,9 @@ impl StepMetrics {
             s += &format!("  mem {m:.0} MiB");
         }
         s += &format!("  loader wait {:.3} s ({:.1}%)", self.loader_wait_s, 100.0 * self.loader_wait_share);
+        if self.collective_s > 0.0 {
+            s += &format!("  collectives {:.3} s ({:.1}%)", self.collective_s, 100.0 * self.collective_share);
+        }
         s
     }
 }

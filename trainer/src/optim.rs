@@ -2,13 +2,16 @@
 //! tensors are packed end to end (in the model dtype; the model's parameters become views of that
 //! buffer), their gradients are added after each micro-step into one fp32 flat accumulator, and
 //! the optimizer state (fp32 master, moments, optional EMA) covers the slice this rank owns.
-//! The step reduces the accumulated gradients (reduce-scatter when the state is sharded across
-//! data-parallel ranks, all-reduce when it is replicated), clips by the global norm, updates the
-//! slice with a few whole-buffer operations, and all-gathers the new weights.
+//! The step reduces the accumulated gradients (each element summed into the rank that owns it when
+//! the state is sharded across data-parallel ranks, into every rank when it is replicated), clips
+//! by the global norm, updates the slice with a few whole-buffer operations, and all-gathers the
+//! new weights. Parts of the gradient that are final before the step (a DiT block's, once the
+//! backward walk of the last micro-step has passed it) can be reduced early, while the walk goes
+//! on ([`AdamW::reduce_early`]); the step reduces the rest.
 
 use std::ops::Range;
 
-use anyhow::{bail, Context, Result};
+use anyhow::{bail, ensure, Context, Result};
 use bwm_checkpoints::optimizer_shards::{Layout, OptimizerState};
 use tch::{Kind, Tensor};
 
@@ -51,6 +54,8 @@ pub struct AdamW {
     grads: FlatBuffer,
     /// The elements of the flat buffers this rank's state covers.
     slice: Range<usize>,
+    /// Ranges of the flat gradient whose reduction started before this step ([`AdamW::reduce_early`]).
+    started: Vec<Range<usize>>,
     pub master: Tensor,
     pub exp_avg: Tensor,
     pub exp_avg_sq: Tensor,
@@ -95,6 +100,35 @@ pub fn select_trainable<'a>(
         bail!("train.trainable {trainable:?} minus train.frozen {frozen:?} selects no parameter");
     }
     Ok(picked)
+}
+
+/// Sorted ranges with the touching ones joined.
+fn merge_adjacent(sorted: Vec<Range<usize>>) -> Vec<Range<usize>> {
+    let mut out: Vec<Range<usize>> = Vec::with_capacity(sorted.len());
+    for r in sorted {
+        match out.last_mut() {
+            Some(last) if last.end == r.start => last.end = r.end,
+            _ => out.push(r),
+        }
+    }
+    out
+}
+
+/// The parts of `0..len` outside the disjoint `covered` ranges, in order.
+fn uncovered(mut covered: Vec<Range<usize>>, len: usize) -> Vec<Range<usize>> {
+    covered.sort_by_key(|r| r.start);
+    let mut out = Vec::new();
+    let mut at = 0;
+    for r in covered {
+        if r.start > at {
+            out.push(at..r.start);
+        }
+        at = at.max(r.end);
+    }
+    if at < len {
+        out.push(at..len);
+    }
+    out
 }
 
 /// (start, length) pieces of a flat buffer of `n` elements for the chunked update.
@@ -175,6 +209,7 @@ impl AdamW {
             ema: cfg.ema_decay.map(|_| master.copy()),
             master,
             slice,
+            started: Vec::new(),
         })
     }
 
@@ -213,8 +248,10 @@ impl AdamW {
         });
     }
 
-    /// Drops the accumulated gradients (a skipped step).
+    /// Drops the accumulated gradients (a skipped step). Reductions started early must be
+    /// finished first (`comm.finish_started()` or any collective).
     pub fn discard_grads(&mut self) {
+        self.started.clear();
         tch::no_grad(|| {
             let _ = self.grads.flat_mut().zero_();
             for p in &mut self.params {
@@ -241,21 +278,72 @@ impl AdamW {
         }
     }
 
-    /// Sums the accumulated gradients over the ranks (this rank's slice when sharded) and
-    /// returns that slice of the sum.
-    fn reduce(&mut self, comm: &mut dyn Collective) -> Result<Tensor> {
-        if self.is_sharded() {
-            // In place: this rank's slice of the flat gradient receives the sum (NCCL allows an
-            // output at input + rank * n).
-            let mut mine = self.grads.shard(self.sharding.rank)?;
-            comm.reduce_scatter_sum(self.grads.flat(), &mut mine)
-                .context("reduce-scatter of the gradients")?;
-            Ok(mine)
-        } else {
-            if self.sharding.world > 1 {
-                comm.all_reduce_sum(self.grads.flat_mut())
-                    .context("all-reduce of the gradients")?;
+    /// Starts summing the gradients of `params` (indices into `params`) over the ranks: they are
+    /// final for this optimizer step, and nothing writes them until the step. The step reduces the
+    /// rest of the buffer. Nothing to do on one rank.
+    pub fn reduce_early(&mut self, params: &[usize], comm: &mut dyn Collective) -> Result<()> {
+        if self.sharding.world <= 1 {
+            return Ok(());
+        }
+        let mut ranges = params
+            .iter()
+            .map(|&k| self.grads.range(k).with_context(|| format!("no trained tensor {k}")))
+            .collect::<Result<Vec<_>>>()?;
+        ranges.sort_by_key(|r| r.start);
+        for r in merge_adjacent(ranges) {
+            ensure!(
+                self.started.iter().all(|s| s.end <= r.start || r.end <= s.start),
+                "the gradients at {r:?} of the flat buffer are already being reduced"
+            );
+            self.start_reduce(r.clone(), comm)?;
+            self.started.push(r);
+        }
+        Ok(())
+    }
+
+    /// Starts the sum of `range` of the flat gradient: each part into the rank whose slice holds
+    /// it when sharded, into every rank otherwise.
+    fn start_reduce(&self, range: Range<usize>, comm: &mut dyn Collective) -> Result<()> {
+        let part = |r: &Range<usize>| self.grads.flat().narrow(0, r.start as i64, r.len() as i64);
+        if !self.is_sharded() {
+            return comm.start_reduce_sum(&part(&range), None).with_context(|| format!("reducing gradients {range:?}"));
+        }
+        for rank in 0..self.sharding.world {
+            let owned = self.grads.shard_range(rank);
+            let piece = range.start.max(owned.start)..range.end.min(owned.end);
+            if !piece.is_empty() {
+                comm.start_reduce_sum(&part(&piece), Some(rank))
+                    .with_context(|| format!("reducing gradients {piece:?} into rank {rank}"))?;
             }
+        }
+        Ok(())
+    }
+
+    /// Sums the accumulated gradients over the ranks (what `reduce_early` has not started) and
+    /// returns this rank's slice of the sum (all of it when the state is replicated).
+    fn reduce(&mut self, comm: &mut dyn Collective) -> Result<Tensor> {
+        let started = std::mem::take(&mut self.started);
+        if self.sharding.world > 1 && started.is_empty() {
+            // Nothing reduced early: one collective over the whole buffer.
+            if self.is_sharded() {
+                // In place: this rank's slice of the flat gradient receives the sum (NCCL allows
+                // an output at input + rank * n).
+                let mut mine = self.grads.shard(self.sharding.rank)?;
+                comm.reduce_scatter_sum(self.grads.flat(), &mut mine)
+                    .context("reduce-scatter of the gradients")?;
+                return Ok(mine);
+            }
+            comm.all_reduce_sum(self.grads.flat_mut())
+                .context("all-reduce of the gradients")?;
+        } else if self.sharding.world > 1 {
+            for r in uncovered(started, self.grads.len()) {
+                self.start_reduce(r, comm)?;
+            }
+            comm.finish_started().context("finishing the gradient reductions")?;
+        }
+        if self.is_sharded() {
+            self.grads.shard(self.sharding.rank)
+        } else {
             Ok(self.grads.flat().shallow_clone())
         }
     }
@@ -468,6 +556,85 @@ mod tests {
             opt.params[0].grad.abs().sum(Kind::Float).double_value(&[]),
             0.0
         );
+    }
+
+    /// Rank 0 of a pretend job of `world` ranks whose other ranks contribute zeros: records each
+    /// started reduction as (offset in the flat gradient, length, root).
+    struct Recording {
+        world: usize,
+        base: usize,
+        started: Vec<(usize, usize, Option<usize>)>,
+        finished: usize,
+        scattered: usize,
+    }
+
+    impl Collective for Recording {
+        fn rank(&self) -> usize {
+            0
+        }
+        fn world_size(&self) -> usize {
+            self.world
+        }
+        fn all_reduce_sum(&mut self, _: &mut Tensor) -> Result<()> {
+            Ok(())
+        }
+        fn all_reduce_mean(&mut self, _: &mut Tensor) -> Result<()> {
+            Ok(())
+        }
+        fn reduce_scatter_sum(&mut self, input: &Tensor, output: &mut Tensor) -> Result<()> {
+            self.scattered += 1;
+            tch::no_grad(|| output.copy_(&input.narrow(0, 0, output.numel() as i64)));
+            Ok(())
+        }
+        fn all_gather(&mut self, input: &Tensor, output: &mut Tensor) -> Result<()> {
+            tch::no_grad(|| output.narrow(0, 0, input.numel() as i64).copy_(input));
+            Ok(())
+        }
+        fn broadcast(&mut self, _: &mut Tensor, _: usize) -> Result<()> {
+            Ok(())
+        }
+        fn barrier(&mut self) -> Result<()> {
+            Ok(())
+        }
+        fn start_reduce_sum(&mut self, tensor: &Tensor, root: Option<usize>) -> Result<()> {
+            let offset = (tensor.data_ptr() as usize - self.base) / 4;
+            self.started.push((offset, tensor.numel(), root));
+            Ok(())
+        }
+        fn finish_started(&mut self) -> Result<()> {
+            self.finished += 1;
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn early_reductions_and_the_rest_cover_the_gradient_once_each_into_its_owner() {
+        let named: Vec<(String, Tensor)> =
+            [5, 3, 4].iter().enumerate().map(|(i, &n)| (format!("p{i}"), Tensor::ones([n], (Kind::Float, Device::Cpu)))).collect();
+        for sharded in [true, false] {
+            let sharding = Sharding { rank: 0, world: 2, sharded };
+            let mut opt = AdamW::new(&named, &["*".into()], &[], &cfg(), 10, sharding).unwrap();
+            let mut comm = Recording { world: 2, base: opt.grads.flat().data_ptr() as usize, started: vec![], finished: 0, scattered: 0 };
+            // Backward order: the last tensors' gradients are final first.
+            opt.reduce_early(&[2], &mut comm).unwrap();
+            opt.reduce_early(&[1], &mut comm).unwrap();
+            let again = opt.reduce_early(&[1], &mut comm).unwrap_err();
+            assert!(format!("{again:#}").contains("already"), "{again:#}");
+            opt.step(2.0, &mut comm).unwrap().unwrap();
+            // 12 elements, rank 0 owns 0..6 and rank 1 6..12 when sharded.
+            let expect = if sharded {
+                vec![(8, 4, Some(1)), (5, 1, Some(0)), (6, 2, Some(1)), (0, 5, Some(0))]
+            } else {
+                vec![(8, 4, None), (5, 3, None), (0, 5, None)]
+            };
+            assert_eq!(comm.started, expect, "sharded {sharded}");
+            assert_eq!((comm.finished, comm.scattered), (1, 0));
+            // Nothing early: one reduce-scatter of the whole buffer, as before.
+            comm.started.clear();
+            opt.step(2.0, &mut comm).unwrap().unwrap();
+            assert!(comm.started.is_empty());
+            assert_eq!(comm.scattered, usize::from(sharded));
+        }
     }
 
     #[test]

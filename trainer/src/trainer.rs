@@ -314,7 +314,8 @@ impl Trainer {
                 l.mean(Kind::Float)
             };
             let input = prepared.input.to_kind(self.model.store.kind());
-            let mut sink = BlockAccumulators { opt: &self.opt, blocks: &self.block_params };
+            let last_micro = micro + 1 == accum && world > 1 && cfg.train.overlap_grad_reduce;
+            let mut sink = BlockAccumulators { opt: &mut self.opt, blocks: &self.block_params, reduce: last_micro.then_some(self.comm.as_mut()) };
             let loss = forward_backward(&self.model, &input, &prepared.frame_timesteps, &batch.actions, cfg.train.recompute, &loss_fn, &mut sink)?;
             let value = loss.double_value(&[]);
             finite &= value.is_finite();
@@ -367,6 +368,7 @@ impl Trainer {
         m.samples_per_s *= world as f64;
         m.loss = global_loss;
         m.set_loader_wait(self.take_loader_wait());
+        m.set_collective_time(self.comm.take_collective_seconds());
         Ok(m)
     }
 
@@ -508,10 +510,13 @@ impl Trainer {
 }
 
 /// Adds each block's gradients into the fp32 accumulators as the recomputing backward walk
-/// produces them, so no model-dtype gradient of a block outlives its backward.
+/// produces them, so no model-dtype gradient of a block outlives its backward; on the step's last
+/// micro-batch, with `reduce`, it then starts reducing the block's gradients across the ranks
+/// while the walk goes on to the earlier blocks.
 struct BlockAccumulators<'a> {
-    opt: &'a AdamW,
+    opt: &'a mut AdamW,
     blocks: &'a [Vec<usize>],
+    reduce: Option<&'a mut dyn Collective>,
 }
 
 impl BlockGradSink for BlockAccumulators<'_> {
@@ -527,6 +532,9 @@ impl BlockGradSink for BlockAccumulators<'_> {
                 }
             }
         });
+        if let Some(comm) = self.reduce.as_deref_mut() {
+            self.opt.reduce_early(&self.blocks[block], comm).with_context(|| format!("reducing the gradients of block {block}"))?;
+        }
         Ok(())
     }
 }

@@ -167,6 +167,29 @@ fn nccl_child() {
                 }
                 c.barrier().unwrap();
             }
+            // Started reductions run on the side stream while later kernels run on the default
+            // one; a later collective and `finish_started` order everything after them.
+            for kind in KINDS {
+                let buffer = input(kind, rank, 3 * N).to_device(dev);
+                let part = |i: i64| buffer.narrow(0, i * N as i64, N as i64);
+                c.start_reduce_sum(&part(0), Some(0)).unwrap();
+                c.start_reduce_sum(&part(1), Some(world - 1)).unwrap();
+                let busy = Tensor::ones([2048, 2048], (Kind::Float, dev)).matmul(&Tensor::ones([2048, 2048], (Kind::Float, dev)));
+                c.start_reduce_sum(&part(2), None).unwrap();
+                let mut t = input(kind, rank, N).to_device(dev);
+                c.all_reduce_sum(&mut t).unwrap();
+                assert_bits(&t, &expected_reduce(kind, world, N, false), &format!("all_reduce_sum {kind:?} after started reductions"));
+                c.finish_started().unwrap();
+                let whole = expected_reduce(kind, world, 3 * N, false);
+                let mine = input(kind, rank, 3 * N);
+                for (i, root) in [Some(0), Some(world - 1), None].into_iter().enumerate() {
+                    let want = if root.is_none_or(|r| r == rank) { &whole } else { &mine };
+                    let want = want.narrow(0, (i * N) as i64, N as i64);
+                    assert_bits(&part(i as i64), &want, &format!("start_reduce_sum {kind:?} to {root:?}"));
+                }
+                assert_eq!(busy.double_value(&[0, 0]), 2048.0);
+            }
+            assert!(c.take_collective_seconds() > 0.0, "collective time is measured");
             let mut ints = Tensor::from_slice(&[rank as i64 + 1, 7]).to_device(dev);
             c.all_reduce_sum(&mut ints).unwrap();
             assert_eq!(Vec::<i64>::try_from(&ints.to_device(Device::Cpu)).unwrap(), vec![3, 14]);

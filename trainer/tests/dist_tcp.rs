@@ -139,6 +139,34 @@ fn every_op_gives_exact_values_on_2_and_3_ranks() {
 }
 
 #[test]
+fn started_reductions_sum_into_the_root_or_every_rank() {
+    for world in [2, 3] {
+        let roots = [Some(0), Some(world - 1), None];
+        let results = on_ranks(world, Duration::from_secs(30), |mut c| {
+            let mut out = Vec::new();
+            for root in roots {
+                let t = input(Kind::Float, c.rank(), N);
+                // A slice of a larger buffer, as the optimizer passes its gradient pieces.
+                let buffer = Tensor::cat(&[Tensor::zeros([3], (Kind::Float, tch::Device::Cpu)), t], 0);
+                c.start_reduce_sum(&buffer.narrow(0, 3, N as i64), root).unwrap();
+                c.finish_started().unwrap();
+                out.push(buffer.narrow(0, 3, N as i64));
+            }
+            let err = c.start_reduce_sum(&input(Kind::Float, 0, N), Some(world)).unwrap_err();
+            assert!(format!("{err:#}").contains("root"), "{err:#}");
+            assert!(c.take_collective_seconds() > 0.0);
+            out
+        });
+        for (rank, got) in results.iter().enumerate() {
+            for (root, g) in roots.iter().zip(got) {
+                let want = if root.is_none_or(|r| r == rank) { expected_reduce(Kind::Float, world, N, false) } else { input(Kind::Float, rank, N) };
+                assert_bits(g, &want, &format!("world {world}, rank {rank}, root {root:?}"));
+            }
+        }
+    }
+}
+
+#[test]
 fn two_ranks_sum_to_exactly_a_plus_b_and_bf16_rounds_once() {
     let results = on_ranks(2, Duration::from_secs(30), |mut c| {
         let mut t = input(Kind::Float, c.rank(), 1000);

@@ -48,6 +48,13 @@ impl Collective for LocalCollective {
         copy_flat(input, output)
     }
 
+    fn start_reduce_sum(&mut self, tensor: &Tensor, root: Option<usize>) -> Result<()> {
+        if let Some(r) = root {
+            check_root("start_reduce_sum", r, 1)?;
+        }
+        check_reducible(tensor.f_kind()?, false, "start_reduce_sum")
+    }
+
     fn broadcast(&mut self, _tensor: &mut Tensor, root: usize) -> Result<()> {
         check_root("broadcast", root, 1)
     }

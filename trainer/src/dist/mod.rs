@@ -52,6 +52,22 @@ pub trait Collective: Send {
     fn broadcast(&mut self, tensor: &mut Tensor, root: usize) -> Result<()>;
     /// Returns once every rank has entered the barrier.
     fn barrier(&mut self) -> Result<()>;
+    /// Starts summing `tensor` over the ranks in place: into `root`'s copy (the other ranks' copies
+    /// keep their values), or into every rank's copy when `root` is `None`. It may return before the
+    /// sum is complete (NCCL runs it on a side stream while later kernels run); the sum is ready
+    /// for work issued after [`Collective::finish_started`] or after any other collective, and
+    /// `tensor` must be neither written nor freed before then. The other back ends finish it here.
+    fn start_reduce_sum(&mut self, tensor: &Tensor, root: Option<usize>) -> Result<()>;
+    /// Orders all work issued from now on after the reductions started so far.
+    fn finish_started(&mut self) -> Result<()> {
+        Ok(())
+    }
+    /// Seconds spent in collectives since the last call: NCCL counts the time its kernels ran on
+    /// the GPU (overlapped with computation or not, completed ones only), the TCP back end the
+    /// host's wall time in them.
+    fn take_collective_seconds(&mut self) -> f64 {
+        0.0
+    }
 }
 
 /// Which implementation [`init`] builds for a job of more than one process.

@@ -12,14 +12,18 @@
 //! ```
 //! [`NcclCollective::new`] checks that only one NCCL is mapped and says so otherwise.
 //!
-//! Stream. tch has no stream API and never sets a current stream, so libtorch issues every kernel
+//! Streams. tch has no stream API and never sets a current stream, so libtorch issues every kernel
 //! and copy on CUDA's legacy default stream (handle 0; the wheels are not built with per-thread
-//! default streams). The collectives run on that same stream: they start after the kernels that
-//! produced their inputs and finish before any later kernel reads their outputs, with no events
-//! between streams, and the caching allocator stays correct (it reuses a freed block in stream
-//! order, so tch cannot hand memory NCCL is still reading to a new tensor). The price is that
-//! communication does not overlap computation on the GPU; a side stream would need
-//! `recordStream`, which tch cannot express.
+//! default streams). The blocking collectives run on that same stream: they start after the
+//! kernels that produced their inputs and finish before any later kernel reads their outputs, and
+//! the caching allocator stays correct (it reuses a freed block in stream order, so tch cannot hand
+//! memory NCCL is still reading to a new tensor). [`Collective::start_reduce_sum`] is the one
+//! overlapping operation: it runs on a non-blocking side stream after an event recorded on the
+//! legacy stream, so later kernels run while it communicates. Its tensor must outlive it (the
+//! allocator cannot know the side stream reads it: tch has no `recordStream`), which the caller
+//! promises; the legacy stream waits for the side stream before any later collective and at
+//! [`Collective::finish_started`], so collectives on the communicator never run concurrently and
+//! the results are in place before anything reads them.
 //!
 //! Completion and timeouts. The communicator is non-blocking (`config.blocking = 0`), so neither
 //! initialisation nor a launch can hang inside NCCL. After a launch the host records an event on the
@@ -46,7 +50,7 @@ const SETUP_HINT: &str = "start the process with a directory first on LD_LIBRARY
 libnccl.so.2 that libtorch loads (ARCHITECTURE.md: ln -sf $NL/libnccl.so.2 /tmp/nccl-link/libnccl.so; \
 LD_LIBRARY_PATH=/tmp/nccl-link:$TL:$NL:...)";
 
-const NCCL_SYMBOLS: [&str; 11] = [
+const NCCL_SYMBOLS: [&str; 12] = [
     "ncclGetVersion",
     "ncclGetUniqueId",
     "ncclCommInitRankConfig",
@@ -58,6 +62,7 @@ const NCCL_SYMBOLS: [&str; 11] = [
     "ncclReduceScatter",
     "ncclAllGather",
     "ncclBroadcast",
+    "ncclReduce",
 ];
 
 /// Files mapped into this process whose name starts with `prefix`, resolved and deduplicated.
@@ -185,6 +190,18 @@ pub struct NcclCollective {
     star: Star,
     ctx: Arc<CudaContext>,
     done: cuda_sys::CUevent,
+    /// Non-blocking stream of the started reductions, and the events ordering it with the legacy
+    /// stream (`ready`: inputs written; `side_done`: reductions finished).
+    side: cuda_sys::CUstream,
+    ready: cuda_sys::CUevent,
+    side_done: cuda_sys::CUevent,
+    /// Reductions started on `side` that the legacy stream has not been ordered after yet.
+    side_pending: bool,
+    /// Timing events around each launched collective, not yet read; spare events.
+    timers: Vec<(cuda_sys::CUevent, cuda_sys::CUevent)>,
+    spare_timers: Vec<cuda_sys::CUevent>,
+    /// GPU time of the collectives read from `timers`.
+    collective_time: f64,
     seq: u64,
     broken: Option<String>,
 }
@@ -219,13 +236,32 @@ impl NcclCollective {
         for (dst, src) in id.internal.iter_mut().zip(&bytes) {
             *dst = *src as _;
         }
-        let cuda_state = CudaContext::new(device)
-            .and_then(|ctx| Ok((cuda::event::create(cuda_sys::CUevent_flags::CU_EVENT_DISABLE_TIMING)?, ctx)));
-        let (done, ctx) = match cuda_state {
+        let cuda_state = CudaContext::new(device).and_then(|ctx| {
+            let event = || cuda::event::create(cuda_sys::CUevent_flags::CU_EVENT_DISABLE_TIMING);
+            Ok((ctx, [event()?, event()?, event()?], cuda::stream::create(cuda::stream::StreamKind::NonBlocking)?))
+        });
+        let (ctx, [done, ready, side_done], side) = match cuda_state {
             Ok(s) => s,
             Err(e) => return Err(star.fail(format!("rank {rank}: setting up cuda:{device} failed: {e}"))),
         };
-        let mut this = Self { rank, world, device, comm: std::ptr::null_mut(), star, ctx, done, seq: 0, broken: None };
+        let mut this = Self {
+            rank,
+            world,
+            device,
+            comm: std::ptr::null_mut(),
+            star,
+            ctx,
+            done,
+            side,
+            ready,
+            side_done,
+            side_pending: false,
+            timers: Vec::new(),
+            spare_timers: Vec::new(),
+            collective_time: 0.0,
+            seq: 0,
+            broken: None,
+        };
         const UNDEF: i32 = i32::MIN;
         let mut config = nccl::ncclConfig_t {
             size: std::mem::size_of::<nccl::ncclConfig_t>(),
@@ -384,8 +420,9 @@ impl NcclCollective {
         format!("{list} did not start it")
     }
 
-    /// Launches one collective on the legacy default stream and waits for it (see the module doc).
-    fn run(&mut self, op: Op, detail: String, launch: impl FnOnce(nccl::ncclComm_t, nccl::cudaStream_t) -> Nr) -> Result<()> {
+    /// Checks the communicator, binds the device and tells rank 0 which collective this rank
+    /// enters; returns the collective's description and number.
+    fn begin(&mut self, op: Op, detail: &str) -> Result<(String, u64)> {
         let name = op.name();
         if let Some(m) = &self.broken {
             bail!("{name}: the NCCL communicator was aborted after an earlier failure: {m}");
@@ -397,19 +434,105 @@ impl NcclCollective {
         if let Err(m) = self.star.announce(seq) {
             return Err(self.abort(format!("{what}: {m}")));
         }
-        let start = Instant::now();
+        Ok((what, seq))
+    }
+
+    /// The deadline of a collective that starts now.
+    fn deadline(&self, start: Instant) -> Instant {
         let budget = if self.rank == 0 { self.star.timeout().saturating_sub(self.star.margin()) } else { self.star.timeout() };
-        let deadline = start + budget;
-        let r = launch(self.comm, std::ptr::null_mut());
+        start + budget
+    }
+
+    /// Enqueues one collective on `stream` between two timing events.
+    fn launch(
+        &mut self,
+        what: &str,
+        seq: u64,
+        stream: cuda_sys::CUstream,
+        launch: impl FnOnce(nccl::ncclComm_t, nccl::cudaStream_t) -> Nr,
+    ) -> Result<()> {
+        let start = Instant::now();
+        let deadline = self.deadline(start);
+        if self.timers.len() >= 1024 {
+            // Nobody is reading the times: keep the event count bounded.
+            self.read_timers();
+        }
+        let timer = (self.timer_event(), self.timer_event());
+        if let (Ok(begin), Ok(_)) = timer {
+            // SAFETY: our event, recorded on a stream of this context. Timing is best effort.
+            let _ = unsafe { cuda::event::record(begin, stream) };
+        }
+        let r = launch(self.comm, stream as nccl::cudaStream_t);
         if !matches!(r, Nr::ncclSuccess | Nr::ncclInProgress) {
             return Err(self.abort(format!("{what}: {}", error_text(r))));
         }
-        // A non-blocking communicator may still be enqueuing; the event must follow the kernels.
-        self.wait_until(&what, seq, start, deadline, Self::comm_ready)?;
+        // A non-blocking communicator may still be enqueuing; the events must follow the kernels.
+        self.wait_until(what, seq, start, deadline, Self::comm_ready)?;
+        match timer {
+            // SAFETY: as above.
+            (Ok(begin), Ok(end)) if unsafe { cuda::event::record(end, stream) }.is_ok() => self.timers.push((begin, end)),
+            (a, b) => self.spare_timers.extend(a.into_iter().chain(b)),
+        }
+        Ok(())
+    }
+
+    /// Adds the GPU time of the collectives that completed to `collective_time` (those still
+    /// running are read later) and keeps their events for reuse.
+    fn read_timers(&mut self) {
+        if self.ctx.bind_to_thread().is_err() {
+            return;
+        }
+        let mut running = Vec::new();
+        for (begin, end) in std::mem::take(&mut self.timers) {
+            // SAFETY: events created by this communicator, both recorded.
+            match unsafe { cuda::event::query(end) } {
+                Ok(()) => {
+                    if let Ok(ms) = unsafe { cuda::event::elapsed(begin, end) } {
+                        self.collective_time += ms as f64 / 1e3;
+                    }
+                    self.spare_timers.extend([begin, end]);
+                }
+                Err(_) => running.push((begin, end)),
+            }
+        }
+        self.timers = running;
+    }
+
+    fn timer_event(&mut self) -> Result<cuda_sys::CUevent, cuda::DriverError> {
+        match self.spare_timers.pop() {
+            Some(e) => Ok(e),
+            None => cuda::event::create(cuda_sys::CUevent_flags::CU_EVENT_DEFAULT),
+        }
+    }
+
+    /// Makes the legacy stream wait for the reductions started on the side stream.
+    fn join_side_stream(&mut self, what: &str) -> Result<()> {
+        if !self.side_pending {
+            return Ok(());
+        }
+        // SAFETY: our events and streams, alive for the communicator's life.
+        let joined = unsafe {
+            cuda::event::record(self.side_done, self.side)
+                .and_then(|()| cuda::stream::wait_event(std::ptr::null_mut(), self.side_done, cuda_sys::CUevent_wait_flags::CU_EVENT_WAIT_DEFAULT))
+        };
+        if let Err(e) = joined {
+            return Err(self.abort(format!("{what}: ordering the default stream after the started reductions failed: {e}")));
+        }
+        self.side_pending = false;
+        Ok(())
+    }
+
+    /// Launches one collective on the legacy default stream and waits for it (see the module doc).
+    fn run(&mut self, op: Op, detail: String, launch: impl FnOnce(nccl::ncclComm_t, nccl::cudaStream_t) -> Nr) -> Result<()> {
+        let (what, seq) = self.begin(op, &detail)?;
+        self.join_side_stream(&what)?;
+        let start = Instant::now();
+        self.launch(&what, seq, std::ptr::null_mut(), launch)?;
         // SAFETY: our event, recorded on the legacy default stream (null handle).
         if let Err(e) = unsafe { cuda::event::record(self.done, std::ptr::null_mut()) } {
             return Err(self.abort(format!("{what}: recording the completion event failed: {e}")));
         }
+        let deadline = self.deadline(start);
         self.wait_until(&what, seq, start, deadline, Self::launched_work_done)
     }
 
@@ -457,8 +580,15 @@ impl Drop for NcclCollective {
             // SAFETY: every collective completed before its call returned; abort only frees.
             let _ = unsafe { nccl::ncclCommAbort(self.comm) };
         }
-        // SAFETY: created in `new`, not used after this.
-        let _ = unsafe { cuda::event::destroy(self.done) };
+        let timers = self.timers.drain(..).flat_map(|(a, b)| [a, b]);
+        // SAFETY: created by this communicator, not used after this; destroying a stream or event
+        // with work still queued releases it once the work completes.
+        unsafe {
+            for e in [self.done, self.ready, self.side_done].into_iter().chain(timers).chain(self.spare_timers.drain(..)) {
+                let _ = cuda::event::destroy(e);
+            }
+            let _ = cuda::stream::destroy(self.side);
+        }
     }
 }
 
@@ -549,5 +679,59 @@ impl Collective for NcclCollective {
         self.run(Op::Barrier, "1 x Float".into(), |comm, stream| unsafe {
             nccl::ncclAllReduce(p, p, 1, nccl::ncclDataType_t::ncclFloat32, nccl::ncclRedOp_t::ncclSum, comm, stream)
         })
+    }
+
+    fn start_reduce_sum(&mut self, tensor: &Tensor, root: Option<usize>) -> Result<()> {
+        let op = Op::ReduceSum;
+        let name = op.name();
+        if let Some(r) = root {
+            check_root(name, r, self.world)?;
+        }
+        let kind = tensor.f_kind()?;
+        check_reducible(kind, false, name)?;
+        let dtype = reduce_type(kind).ok_or_else(|| anyhow!("{name}: NCCL cannot reduce {kind:?}"))?;
+        self.check_device(name, tensor)?;
+        if !tensor.is_contiguous() {
+            bail!("{name}: the tensor must be contiguous (the sum is written in place after the call returns)");
+        }
+        let n = tensor.numel();
+        if n == 0 {
+            return Ok(());
+        }
+        let to = root.map_or("every rank".to_string(), |r| format!("rank {r}"));
+        let (what, seq) = self.begin(op, &format!("{n} x {kind:?} to {to}"))?;
+        // SAFETY: our events and streams; the side stream starts after the work queued so far on
+        // the legacy stream, which wrote the tensor.
+        let ordered = unsafe {
+            cuda::event::record(self.ready, std::ptr::null_mut())
+                .and_then(|()| cuda::stream::wait_event(self.side, self.ready, cuda_sys::CUevent_wait_flags::CU_EVENT_WAIT_DEFAULT))
+        };
+        if let Err(e) = ordered {
+            return Err(self.abort(format!("{what}: ordering the side stream after the default stream failed: {e}")));
+        }
+        let p = tensor.data_ptr();
+        let red = nccl::ncclRedOp_t::ncclSum;
+        // SAFETY: a contiguous CUDA tensor of n elements of `dtype` that the caller keeps alive and
+        // unwritten until the legacy stream is joined with the side stream.
+        self.launch(&what, seq, self.side, |comm, stream| unsafe {
+            match root {
+                Some(r) => nccl::ncclReduce(p, p, n, dtype, red, r as i32, comm, stream),
+                None => nccl::ncclAllReduce(p, p, n, dtype, red, comm, stream),
+            }
+        })?;
+        self.side_pending = true;
+        Ok(())
+    }
+
+    fn finish_started(&mut self) -> Result<()> {
+        if self.side_pending {
+            self.ctx.bind_to_thread().with_context(|| format!("binding cuda:{}", self.device))?;
+        }
+        self.join_side_stream("finishing the started reductions")
+    }
+
+    fn take_collective_seconds(&mut self) -> f64 {
+        self.read_timers();
+        std::mem::take(&mut self.collective_time)
     }
 }

@@ -36,6 +36,7 @@ pub(crate) enum Op {
     Progress = 7,
     /// A rank telling rank 0 why it gave up; the payload is the message. Never replied to.
     Abort = 8,
+    ReduceSum = 9,
 }
 
 impl Op {
@@ -49,11 +50,12 @@ impl Op {
             Op::Barrier => "barrier",
             Op::Progress => "progress",
             Op::Abort => "abort",
+            Op::ReduceSum => "reduce_sum",
         }
     }
 
     fn from_code(code: u8) -> Option<Op> {
-        [Op::AllReduceSum, Op::AllReduceMean, Op::ReduceScatterSum, Op::AllGather, Op::Broadcast, Op::Barrier, Op::Progress, Op::Abort]
+        [Op::AllReduceSum, Op::AllReduceMean, Op::ReduceScatterSum, Op::AllGather, Op::Broadcast, Op::Barrier, Op::Progress, Op::Abort, Op::ReduceSum]
             .into_iter()
             .find(|op| *op as u8 == code)
     }
@@ -303,6 +305,8 @@ pub(crate) struct Star {
     /// A request is partly written to rank 0, so nothing else may be written after it.
     sending: bool,
     broken: Option<String>,
+    /// Wall time spent in [`Star::collective`] since the last [`Star::take_busy`].
+    busy: Duration,
 }
 
 impl Star {
@@ -322,7 +326,7 @@ impl Star {
             (_, 0) => accept_all(world, master, timeout, deadline)?,
             _ => vec![join(rank, world, master, timeout, deadline)?],
         };
-        Ok(Star { rank, world, timeout, links, seq: 0, sending: false, broken: None })
+        Ok(Star { rank, world, timeout, links, seq: 0, sending: false, broken: None, busy: Duration::ZERO })
     }
 
     pub(crate) fn rank(&self) -> usize {
@@ -396,11 +400,19 @@ impl Star {
             numel: numel as u64,
             len: payload.len() as u64,
         };
-        if self.rank == 0 {
+        let start = Instant::now();
+        let out = if self.rank == 0 {
             self.coordinate(op, request, payload, reply_len, combine)
         } else {
             self.participate(op, request, payload, reply_len)
-        }
+        };
+        self.busy += start.elapsed();
+        out
+    }
+
+    /// Wall time spent in collectives since the last call.
+    pub(crate) fn take_busy(&mut self) -> Duration {
+        std::mem::take(&mut self.busy)
     }
 
     fn expected_len(request: &Request, rank: usize) -> u64 {

@@ -114,6 +114,27 @@ impl Collective for TcpCollective {
         self.star.collective(Op::Barrier, Kind::Uint8, 0, None, Vec::new(), 0, |_| Ok(Replies::Same(Vec::new())))?;
         Ok(())
     }
+
+    /// Complete when it returns: rank 0 sums in rank order, as for the other reductions.
+    fn start_reduce_sum(&mut self, tensor: &Tensor, root: Option<usize>) -> Result<()> {
+        let op = Op::ReduceSum;
+        if let Some(r) = root {
+            check_root(op.name(), r, self.world_size())?;
+        }
+        let kind = tensor.f_kind()?;
+        check_reducible(kind, false, op.name())?;
+        let bytes = tensor_bytes(tensor)?;
+        let len = bytes.len();
+        let out = self.star.collective(op, kind, tensor.numel(), root, bytes, len, |p| Ok(Replies::Same(reduce(&p, kind, false)?)))?;
+        if root.is_none_or(|r| r == self.rank()) {
+            write_bytes(&mut tensor.shallow_clone(), &out)?;
+        }
+        Ok(())
+    }
+
+    fn take_collective_seconds(&mut self) -> f64 {
+        self.star.take_busy().as_secs_f64()
+    }
 }
 
 /// The tensor's elements in row-major order, native little-endian bytes (any device).

@@ -4,7 +4,8 @@
 //! complete shards and its rerun gives the uninterrupted result, two ranks give the one-process
 //! result, another plan is refused without --overwrite; LeRobot and RoboTwin fixtures (written by
 //! scripts/make_fixtures.py) prepare, with defects skipped and counted, upscaling refused unless
-//! allowed, and an x0 enhancement command applied.
+//! allowed, and an x0 enhancement command applied; raw clips (`--raw`) train like their encoded
+//! cache, the trainer encoding them with `data.vae`.
 
 mod common;
 
@@ -17,7 +18,7 @@ use bwm_data::latent_cache::LatentCache;
 use bwm_data::source::{open_dataset, CameraSelection};
 use bwm_data::{ActionSpec, ActionStats, ResizeMode};
 use bwm_model::vae::WanVae;
-use common::{bwm, demo_data, python, write_random_vae};
+use common::{assert_close, bwm, demo_data, final_weights, python, write_random_vae};
 use tch::{Device, Kind, Tensor};
 
 
@@ -309,4 +310,57 @@ fn lerobot_and_robotwin_fixtures_prepare_with_defects_upscaling_and_enhancement(
     let err = prepare_err(&["--data", robotwin.to_str().unwrap(), "--out", dir.join("none").to_str().unwrap(), "--resolution", "64x32", "--future", "40"]);
     assert!(err.contains("no usable episode") && err.contains("too short"), "{err}");
     assert_eq!(err.trim().lines().count(), 1, "{err}");
+}
+
+/// A tiny-model training run of 2 steps on `cache` (clips of 1 + 4 + 4 frames at 64x32).
+fn train_tiny(dir: &Path, name: &str, cache: &Path, vae: Option<&Path>) -> Output {
+    let vae = vae.map(|v| format!("vae = \"{}\"\n", v.display())).unwrap_or_default();
+    let config = dir.join(format!("{name}.toml"));
+    let text = format!(
+        "[run]\nname = \"{name}\"\nout_dir = \"{out}\"\ndevice = \"cpu\"\n[model]\npreset = \"tiny\"\ndtype = \"f32\"\n[data]\nlatent_cache = \"{cache}\"\n{vae}[objective]\ncondition_latents = 2\n[optim]\nlr = 1e-3\n[train]\nsteps = 2\n[checkpoint]\nevery = 2\n[log]\nprogress = false\n",
+        out = dir.join(name).display(),
+        cache = cache.display()
+    );
+    std::fs::write(&config, text).unwrap();
+    let out = Command::new(bwm()).args(["train", "--config"]).arg(&config).env_remove("RANK").env_remove("WORLD_SIZE").output().unwrap();
+    show(&out);
+    out
+}
+
+#[test]
+fn raw_clips_train_like_their_encoded_cache() {
+    let dir = tmp_dir("raw");
+    let data = demo_data();
+    let common = ["--data", data.to_str().unwrap(), "--resolution", "64x32", "--history", "4", "--future", "4", "--stride", "64", "--clips-per-shard", "4"];
+    let encoded = dir.join("encoded");
+    prepare(&[&common[..], &["--out", encoded.to_str().unwrap()]].concat());
+    // Raw clips need no VAE to prepare: the latent shape is the Wan2.2 VAE's.
+    let raw = dir.join("raw");
+    let out = Command::new(bwm()).args(["prepare", "--raw", "--device", "cpu", "--out", raw.to_str().unwrap()]).args(common).env_remove("RANK").env_remove("WORLD_SIZE").output().unwrap();
+    let (stdout, stderr) = show(&out);
+    assert!(out.status.success(), "bwm prepare --raw failed: {stderr}");
+    assert!(stdout.contains("clips/s"), "{stdout}");
+    let (a, b) = (LatentCache::open(&encoded).unwrap(), LatentCache::open(&raw).unwrap());
+    assert!(!b.index.has_latents && b.index.has_frames && a.index.has_latents);
+    assert_eq!(a.index.latent_shape, b.index.latent_shape);
+    assert_eq!(a.index.clips, b.index.clips);
+    let err = format!("{:#}", b.load(0, Device::Cpu).err().expect("a raw cache has no latents to load"));
+    assert!(err.contains("raw clips"), "{err}");
+    // The raw frames encode to the encoded cache's latents; the actions are the same.
+    let vae = WanVae::load_any(vae_file(), Kind::Float, Device::Cpu).unwrap();
+    for i in [0, b.len() - 1] {
+        let (frames, actions) = b.load_frames(i, Device::Cpu).unwrap();
+        let clip = a.load(i, Device::Cpu).unwrap();
+        assert!(actions.equal(&clip.actions), "clip {i}: actions");
+        let z = vae.encode_u8(&frames.unsqueeze(0)).unwrap().squeeze_dim(0).to_kind(Kind::Float);
+        assert!(z.equal(&clip.latents), "clip {i}: the raw frames encode to other latents than the cached ones");
+    }
+    // Training on raw clips needs data.vae, and then trains the weights of the encoded cache.
+    let out = train_tiny(&dir, "raw-no-vae", &raw, None);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && stderr.contains("raw clips") && stderr.contains("data.vae"), "{stderr}");
+    assert!(train_tiny(&dir, "from-latents", &encoded, None).status.success());
+    assert!(train_tiny(&dir, "from-raw", &raw, Some(vae_file())).status.success());
+    assert_close(&final_weights(&dir.join("from-latents")), &final_weights(&dir.join("from-raw")), "raw clips encoded by the trainer vs the encoded cache");
+    std::fs::remove_dir_all(&dir).ok();
 }

@@ -4,7 +4,9 @@
 //! Layout (version 2): shard files `shard-NNNNN.safetensors`, each holding n clips stacked:
 //! `latents` [n, C, F, h, w] bf16, `actions` [n, F_pixel, d_a] normalized f32, `episode` [n] i64,
 //! `frame_ids` [n, F_pixel] i64 and, when the cache keeps pixels, `frames` [n, 3, F_pixel, H, W]
-//! u8 (validation against real pixels). `index.json` lists the clips in order; a clip's `file`
+//! u8 (validation against real pixels). A cache of raw clips (`has_latents: false`, written by
+//! `bwm prepare --raw`) has `frames` and no `latents`: the trainer encodes them as it reads them.
+//! `index.json` lists the clips in order; a clip's `file`
 //! names its shard, and its row in the shard is its position among the index's clips of that
 //! file. Version 1 caches (one f32 file per clip, unstacked) still load.
 //!
@@ -52,7 +54,14 @@ pub struct CacheIndex {
     /// What produced the latents (VAE file and width), for the record.
     pub vae: String,
     pub has_frames: bool,
+    /// False for raw clips: pixel frames only, encoded by the trainer.
+    #[serde(default = "yes")]
+    pub has_latents: bool,
     pub clips: Vec<ClipEntry>,
+}
+
+fn yes() -> bool {
+    true
 }
 
 impl CacheIndex {
@@ -69,6 +78,7 @@ impl CacheIndex {
             fps,
             vae: vae.into(),
             has_frames: false,
+            has_latents: true,
             clips: vec![],
         }
     }
@@ -157,10 +167,12 @@ pub struct Clip {
 }
 
 /// One clip's latents and actions as f32 values (row-major, shapes as in the index), read
-/// without any tensor operation, for loader threads.
+/// without any tensor operation, for loader threads; a raw clip has its u8 pixel frames
+/// [3, F_pixel, H, W] instead of latents.
 pub struct ClipValues {
     pub latents: Vec<f32>,
     pub actions: Vec<f32>,
+    pub frames: Vec<u8>,
 }
 
 #[derive(Debug, Clone)]
@@ -187,6 +199,7 @@ impl LatentCache {
         );
         ensure!(!index.clips.is_empty(), "{}: the cache holds no clips", path.display());
         ensure!(index.latent_shape.len() == 4, "{}: latent_shape must be [C, F, h, w]", path.display());
+        ensure!(index.has_latents || index.has_frames, "{}: the cache holds neither latents nor pixel frames", path.display());
         let mut seen: HashMap<&str, usize> = HashMap::new();
         let mut rows = Vec::with_capacity(index.clips.len());
         for (i, c) in index.clips.iter().enumerate() {
@@ -228,6 +241,11 @@ impl LatentCache {
     /// Reads clip `i` (latents and actions as f32, frames as u8), checking its shapes against
     /// the index. Only the clip's rows of its shard are read.
     pub fn load(&self, i: usize, device: Device) -> Result<Clip> {
+        ensure!(
+            self.index.has_latents,
+            "{} holds raw clips (bwm prepare --raw): they have no latents until the trainer encodes them",
+            self.dir.display()
+        );
         let (mut file, row) = self.open_clip(i)?;
         let latents = self.field(&mut file, "latents", row)?;
         let actions = self.field(&mut file, "actions", row)?;
@@ -241,12 +259,29 @@ impl LatentCache {
         })
     }
 
-    /// Clip `i`'s latents and actions as f32 values, converted without tensor operations.
+    /// Clip `i`'s latents (or, raw, pixel frames) and actions as f32 values, converted without
+    /// tensor operations.
     pub fn load_values(&self, i: usize) -> Result<ClipValues> {
         let (mut file, row) = self.open_clip(i)?;
-        let latents = self.field(&mut file, "latents", row)?.to_f32()?;
         let actions = self.field(&mut file, "actions", row)?.to_f32()?;
-        Ok(ClipValues { latents, actions })
+        if self.index.has_latents {
+            let latents = self.field(&mut file, "latents", row)?.to_f32()?;
+            return Ok(ClipValues { latents, actions, frames: Vec::new() });
+        }
+        let frames = self.field(&mut file, "frames", row)?;
+        ensure!(frames.kind == Kind::Uint8, "{}: frames are {:?}, expected u8", file.path.display(), frames.kind);
+        Ok(ClipValues { latents: Vec::new(), actions, frames: frames.bytes })
+    }
+
+    /// Clip `i`'s pixel frames [3, F_pixel, H, W] u8 and f32 actions, for a cache that keeps frames.
+    pub fn load_frames(&self, i: usize, device: Device) -> Result<(Tensor, Tensor)> {
+        let (mut file, row) = self.open_clip(i)?;
+        let mut read = |name: &str| -> Result<Tensor> {
+            let f = self.field(&mut file, name, row)?;
+            Ok(Tensor::f_from_data_size(&f.bytes, &f.shape, f.kind)?.to_device(device))
+        };
+        let frames = read("frames")?;
+        Ok((frames, read("actions")?.to_kind(Kind::Float)))
     }
 
     /// The file of clip `i`, and its row there (None: version 1, the whole tensors).
@@ -259,8 +294,10 @@ impl LatentCache {
     /// `latents` or `actions` of a clip, checked against the index's shapes.
     fn field(&self, file: &mut ShardReader, name: &str, row: Option<usize>) -> Result<Field> {
         let f = file.read(name, row)?.with_context(|| format!("{}: no '{name}' tensor", file.path.display()))?;
+        let [w, h] = self.index.resolution;
         let expected = match name {
             "latents" => self.index.latent_shape.clone(),
+            "frames" => vec![3, self.index.pixel_frames as i64, h as i64, w as i64],
             _ => vec![self.index.pixel_frames as i64, self.index.action_dim],
         };
         ensure!(f.shape == expected, "{}: {name} have shape {:?}, the index says {expected:?}", file.path.display(), f.shape);
@@ -365,10 +402,10 @@ impl ShardReader {
     }
 }
 
-/// One clip for a shard, on any device and of any float kind.
+/// One clip for a shard, on any device and of any float kind; no latents in a raw cache.
 pub struct ShardClip {
     pub entry: ClipEntry,
-    pub latents: Tensor,
+    pub latents: Option<Tensor>,
     pub actions: Tensor,
     pub frames: Option<Tensor>,
 }
@@ -379,7 +416,12 @@ pub fn shard_file_name(shard: usize) -> String {
 
 /// Checks a clip's tensors against the index.
 fn check_clip(index: &CacheIndex, c: &ShardClip) -> Result<()> {
-    ensure!(c.latents.size() == index.latent_shape, "latents {:?} do not match the cache's {:?}", c.latents.size(), index.latent_shape);
+    match (&c.latents, index.has_latents) {
+        (Some(l), true) => ensure!(l.size() == index.latent_shape, "latents {:?} do not match the cache's {:?}", l.size(), index.latent_shape),
+        (None, false) => ensure!(index.has_frames, "a cache of raw clips must keep the pixel frames"),
+        (Some(_), false) => bail!("a cache of raw clips takes no latents"),
+        (None, true) => bail!("a clip of episode {} has no latents", c.entry.episode),
+    }
     ensure!(
         c.actions.size() == [index.pixel_frames as i64, index.action_dim],
         "actions {:?} do not match [{}, {}]",
@@ -413,11 +455,14 @@ pub fn write_shard(dir: &Path, index: &CacheIndex, name: &str, clips: &[ShardCli
     let episodes: Vec<i64> = clips.iter().map(|c| c.entry.episode).collect();
     let frame_ids: Vec<i64> = clips.iter().flat_map(|c| c.entry.frames.iter().map(|&f| f as i64)).collect();
     let mut tensors = vec![
-        ("latents".to_string(), stack(&|c| cpu(&c.latents, Kind::BFloat16))),
         ("actions".to_string(), stack(&|c| cpu(&c.actions, Kind::Float))),
         ("episode".to_string(), Tensor::from_slice(&episodes)),
         ("frame_ids".to_string(), Tensor::from_slice(&frame_ids).view([clips.len() as i64, index.pixel_frames as i64])),
     ];
+    if index.has_latents {
+        let latents = clips.iter().map(|c| c.latents.as_ref().map(|l| cpu(l, Kind::BFloat16)).context("a clip has no latents")).collect::<Result<Vec<_>>>()?;
+        tensors.push(("latents".to_string(), Tensor::stack(&latents, 0).contiguous()));
+    }
     if index.has_frames {
         let frames = clips.iter().map(|c| c.frames.as_ref().map(|f| cpu(f, Kind::Uint8)).context("a clip has no pixel frames")).collect::<Result<Vec<_>>>()?;
         tensors.push(("frames".to_string(), Tensor::stack(&frames, 0).contiguous()));
@@ -473,7 +518,7 @@ impl CacheWriter {
     }
 
     pub fn add(&mut self, entry: ClipEntry, latents: &Tensor, actions: &Tensor, frames: Option<&Tensor>) -> Result<()> {
-        let clip = ShardClip { entry, latents: latents.shallow_clone(), actions: actions.shallow_clone(), frames: frames.map(Tensor::shallow_clone) };
+        let clip = ShardClip { entry, latents: Some(latents.shallow_clone()), actions: actions.shallow_clone(), frames: frames.map(Tensor::shallow_clone) };
         check_clip(&self.index, &clip).with_context(|| format!("clip {}", self.index.clips.len() + self.pending.len()))?;
         self.pending.push(clip);
         if self.pending.len() == self.clips_per_shard {

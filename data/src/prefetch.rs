@@ -93,13 +93,16 @@ impl<K, T> Drop for Prefetcher<K, T> {
     }
 }
 
-/// Clips of the cache, stacked along a new first dimension, as f32 values.
+/// Clips of the cache, stacked along a new first dimension, as f32 values (raw clips: u8 pixel
+/// frames instead of latents).
 pub struct ClipBatch {
     pub clips: usize,
-    /// [clips, C, F, h, w], row-major.
+    /// [clips, C, F, h, w], row-major; empty for raw clips.
     pub latents: Vec<f32>,
     /// [clips, F_pixel, d_a], row-major.
     pub actions: Vec<f32>,
+    /// [clips, 3, F_pixel, H, W], row-major; raw clips only.
+    pub frames: Vec<u8>,
 }
 
 /// Reads clips `clips` of the cache (the work of a cache prefetcher). No tensor operation runs
@@ -107,24 +110,31 @@ pub struct ClipBatch {
 /// consumer computes on; the consumer makes tensors of the values (one copy each).
 pub fn load_clips(cache: &LatentCache, clips: &[usize]) -> Result<ClipBatch> {
     anyhow::ensure!(!clips.is_empty(), "an empty batch of clips");
-    let mut batch = ClipBatch { clips: clips.len(), latents: Vec::new(), actions: Vec::new() };
+    let mut batch = ClipBatch { clips: clips.len(), latents: Vec::new(), actions: Vec::new(), frames: Vec::new() };
     for &c in clips {
         let v = cache.load_values(c)?;
         batch.latents.extend(v.latents);
         batch.actions.extend(v.actions);
+        batch.frames.extend(v.frames);
     }
     Ok(batch)
 }
 
 impl ClipBatch {
-    /// ([B, C, F, h, w], [B, F_pixel, d_a]) f32 CPU tensors.
-    pub fn tensors(&self, cache: &LatentCache) -> (Tensor, Tensor) {
+    /// [B, C, F, h, w] f32 latents (None for raw clips), [B, F_pixel, d_a] f32 actions, as CPU tensors.
+    pub fn tensors(&self, cache: &LatentCache) -> (Option<Tensor>, Tensor) {
         let b = self.clips as i64;
         let latent_shape: Vec<i64> = std::iter::once(b).chain(cache.index.latent_shape.iter().copied()).collect();
         (
-            Tensor::from_slice(&self.latents).view(latent_shape.as_slice()),
+            cache.index.has_latents.then(|| Tensor::from_slice(&self.latents).view(latent_shape.as_slice())),
             Tensor::from_slice(&self.actions).view([b, cache.index.pixel_frames as i64, cache.index.action_dim]),
         )
+    }
+
+    /// [B, 3, F_pixel, H, W] u8 pixel frames of raw clips (None otherwise), a CPU tensor.
+    pub fn frames(&self, cache: &LatentCache) -> Option<Tensor> {
+        let [w, h] = cache.index.resolution;
+        (!cache.index.has_latents).then(|| Tensor::from_slice(&self.frames).view([self.clips as i64, 3, cache.index.pixel_frames as i64, h as i64, w as i64]))
     }
 }
 
@@ -211,6 +221,7 @@ mod tests {
         for b in &batches {
             let got = p.next(b).unwrap().unwrap();
             let (latents, actions) = got.tensors(&cache);
+            let latents = latents.unwrap();
             let clips: Vec<_> = b.iter().map(|&i| cache.load(i, Device::Cpu).unwrap()).collect();
             assert!(latents.equal(&Tensor::stack(&clips.iter().map(|c| c.latents.shallow_clone()).collect::<Vec<_>>(), 0)), "{b:?}");
             assert!(actions.equal(&Tensor::stack(&clips.iter().map(|c| c.actions.shallow_clone()).collect::<Vec<_>>(), 0)), "{b:?}");

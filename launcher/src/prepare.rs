@@ -92,6 +92,11 @@ pub struct PrepareArgs {
     /// Keep the clips' pixel frames in the cache (validation against real pixels).
     #[arg(long)]
     keep_frames: bool,
+    /// Raw clips: store the clips' pixel frames (u8) and actions without encoding them; the
+    /// trainer encodes each batch as it reads it (set data.vae). --vae is then optional and only
+    /// fixes the latent shape (default: the Wan2.2 VAE's).
+    #[arg(long)]
+    raw: bool,
     /// Clips per shard file.
     #[arg(long, default_value_t = 64)]
     clips_per_shard: usize,
@@ -134,6 +139,9 @@ struct PlanRecord {
     clip: ClipSpec,
     enhance_x0: Option<String>,
     keep_frames: bool,
+    /// Absent for encoded caches, so their plan hashes are those of earlier versions.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    raw: bool,
     validation_fraction: f64,
     seed: u64,
     /// Episodes at the end of the cache held out for validation (data.holdout_episodes).
@@ -199,7 +207,8 @@ pub fn run(a: PrepareArgs) -> Result<()> {
     let vae_path = match (&a.vae, a.random_vae) {
         (Some(p), _) => p.clone(),
         (None, true) => PathBuf::from("random"),
-        (None, false) => bail!("--vae is required (or --random-vae for timing; not needed with --merge)"),
+        (None, false) if a.raw => PathBuf::from("none (raw clips; Wan2.2 VAE geometry)"),
+        (None, false) => bail!("--vae is required (or --random-vae for timing, or --raw; not needed with --merge)"),
     };
     let clip = ClipSpec { history: a.history, future: a.future, stride: a.stride };
     clip.validate().context("--history/--future/--stride")?;
@@ -259,12 +268,17 @@ pub fn run(a: PrepareArgs) -> Result<()> {
         clip,
         enhance_x0: a.enhance_x0.clone(),
         keep_frames: a.keep_frames,
+        raw: a.raw,
         validation_fraction: a.validation_fraction,
         seed: a.seed,
         holdout_episodes,
         stats_from: stats_from.clone(),
         stats: stats.clone(),
-        vae_fingerprint: if a.random_vae { "random Wan2.2 VAE, seed 0".into() } else { file_fingerprint(&vae_path)? },
+        vae_fingerprint: match (&a.vae, a.random_vae) {
+            (_, true) => "random Wan2.2 VAE, seed 0".into(),
+            (Some(_), false) => file_fingerprint(&vae_path)?,
+            (None, false) => "none".into(),
+        },
         device_type: if device.is_cuda() { "cuda".into() } else { "cpu".into() },
         batch: a.batch,
         clips_per_shard: a.clips_per_shard,
@@ -308,17 +322,21 @@ pub fn run(a: PrepareArgs) -> Result<()> {
         "auto" => Kind::Float,
         s => bwm_trainer::devices::parse_kind(s)?,
     };
-    let vae = if a.random_vae {
-        WanVae::random(&bwm_model::vae::VaeConfig::wan22(), kind, device, 0)?.0
-    } else {
-        WanVae::load_any(&vae_path, kind, device).with_context(|| format!("--vae {}", vae_path.display()))?
+    let vae = match (&a.vae, a.random_vae) {
+        (_, true) => Some(WanVae::random(&bwm_model::vae::VaeConfig::wan22(), kind, device, 0)?.0),
+        (Some(_), false) => Some(WanVae::load_any(&vae_path, kind, device).with_context(|| format!("--vae {}", vae_path.display()))?),
+        (None, false) => None,
     };
-    let ts = vae.cfg.temporal_stride() as usize;
+    let vae_cfg = vae.as_ref().map_or_else(bwm_model::vae::VaeConfig::wan22, |v| v.cfg.clone());
+    // Raw clips are stored as they are; the VAE only gives the latent shape.
+    let encoder_vae = if a.raw { None } else { vae.as_ref() };
+    let ts = vae_cfg.temporal_stride() as usize;
     ensure!((clip.frames_per_clip() - 1).is_multiple_of(ts), "clips of 1 + {} frames do not fit the VAE's temporal stride {ts}", a.history + a.future);
     let fps = source.fps(plan.episodes[0].episode).context("the frame rate of the first episode")?;
-    let latent_shape = vec![vae.cfg.z_dim, 1 + ((clip.frames_per_clip() - 1) / ts) as i64, size.1 as i64 / 16, size.0 as i64 / 16];
+    let latent_shape = vec![vae_cfg.z_dim, 1 + ((clip.frames_per_clip() - 1) / ts) as i64, size.1 as i64 / 16, size.0 as i64 / 16];
     let index = CacheIndex {
-        has_frames: a.keep_frames,
+        has_frames: a.keep_frames || a.raw,
+        has_latents: !a.raw,
         ..CacheIndex::new(latent_shape, action_dim as i64, a.history, a.future, [size.0, size.1], fps, vae_path.display().to_string())
     };
     let extras = IndexExtras {
@@ -368,7 +386,7 @@ pub fn run(a: PrepareArgs) -> Result<()> {
     let (encoded, skipped) = std::thread::scope(|scope| -> Result<(usize, usize)> {
         let (tx, rx) = sync_channel(4);
         let handle = scope.spawn(|| reader.read(&todo, &jobs, tx));
-        let encoder = Encoder { vae: &vae, device, batch: a.batch, keep_frames: a.keep_frames, out: &a.out, index: &index, fault_after };
+        let encoder = Encoder { vae: encoder_vae, device, batch: a.batch, keep_frames: a.keep_frames || a.raw, out: &a.out, index: &index, fault_after };
         let result = encoder.run(rx, &mut progress, todo_clips);
         if handle.join().is_err() {
             bail!("the frame reading thread panicked");
@@ -669,6 +687,7 @@ fn load_progress(out: &Path, hash: &str, rank: usize, world: usize) -> Result<(R
             fps: 0.0,
             vae: String::new(),
             has_frames: false,
+            has_latents: true,
             clips: vec![],
         },
         extras: IndexExtras::default(),
@@ -918,7 +937,8 @@ fn enhance(cmd: &str, x0: &RgbImage, episode: usize) -> Result<RgbImage> {
 
 /// Encodes the clips the reader sends, writes each finished shard and this rank's progress.
 struct Encoder<'a> {
-    vae: &'a WanVae,
+    /// None: raw clips, stored without encoding.
+    vae: Option<&'a WanVae>,
     device: Device,
     batch: usize,
     keep_frames: bool,
@@ -994,14 +1014,16 @@ impl Encoder<'_> {
         let bytes: Vec<u8> = pending.iter().flat_map(|c| c.pixels.iter().copied()).collect();
         ensure!(bytes.len() as i64 == pending.len() as i64 * f * h as i64 * w as i64 * 3, "clip pixels do not match {f} frames of {w}x{h}");
         let pixels = Tensor::from_slice(&bytes).view([pending.len() as i64, f, h as i64, w as i64, 3]).permute([0, 4, 1, 2, 3]).contiguous();
-        let video = pixels.to_device(self.device).to_kind(Kind::Float) / 127.5 - 1.0;
-        let latents = tch::no_grad(|| self.vae.encode(&video))?.to_kind(Kind::BFloat16).to_device(Device::Cpu);
+        let latents = match self.vae {
+            Some(vae) => Some(vae.encode_u8(&pixels.to_device(self.device))?.to_device(Device::Cpu)),
+            None => None,
+        };
         Ok(pending
             .drain(..)
             .enumerate()
             .map(|(i, c)| ShardClip {
                 entry: c.entry,
-                latents: latents.get(i as i64),
+                latents: latents.as_ref().map(|l| l.get(i as i64)),
                 actions: Tensor::from_slice(&c.actions).view([f, d]),
                 frames: self.keep_frames.then(|| pixels.get(i as i64)),
             })

@@ -632,6 +632,14 @@ impl WanVae {
         Ok((mu - &self.mean) * &self.inv_std)
     }
 
+    /// Normalized latents of u8 video [B, 3, F, H, W] (0..255), rounded to bf16 as a latent
+    /// cache stores them (so encoding on the fly gives a cache's values), on the video's device.
+    pub fn encode_u8(&self, pixels: &Tensor) -> Result<Tensor> {
+        ensure!(pixels.kind() == Kind::Uint8, "pixels must be u8, got {:?}", pixels.kind());
+        let video = pixels.to_kind(Kind::Float) / 127.5 - 1.0;
+        Ok(tch::no_grad(|| self.encode(&video))?.to_kind(Kind::BFloat16))
+    }
+
     /// Starts a streaming decode of normalized latents: one latent frame in, its pixel frames out.
     pub fn decoder_stream(&self) -> DecodeStream<'_> {
         DecodeStream { vae: self, cache: FeatCache::default(), first: true }

@@ -114,6 +114,11 @@ pub struct DataSection {
     /// by episode), never trained on.
     #[serde(default)]
     pub holdout_episodes: usize,
+    /// The VAE that encodes raw clips (a cache written by `bwm prepare --raw`) as the trainer
+    /// reads them: a `bwm train-vae` output or the published Wan2.2 VAE. Not used with a cache of
+    /// latents.
+    #[serde(default)]
+    pub vae: Option<PathBuf>,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]

@@ -72,7 +72,7 @@ pub fn rollout_video(trainer: &Trainer, vae_path: &Path, out: &Path) -> Result<(
     let device = trainer.device;
     let vae = WanVae::load_any(vae_path, Kind::Float, device).with_context(|| format!("VAE {}", vae_path.display()))?;
     let clip_index = if trainer.train_clips < trainer.cache.len() { trainer.train_clips } else { 0 };
-    let clip = trainer.cache.load(clip_index, device)?;
+    let clip = trainer.clip(clip_index)?;
     let steps = trainer.cfg.validation.sample_steps;
     let predicted = rollout_clip(trainer, &clip.latents.unsqueeze(0), &clip.actions.unsqueeze(0), clip_index as u64, steps)?;
     let pred = tch::no_grad(|| vae.decode(&predicted))?.squeeze_dim(0).clamp(-1.0, 1.0);

@@ -9,8 +9,9 @@ use std::time::Instant;
 use anyhow::{bail, ensure, Context, Result};
 use bwm_checkpoints::optimizer_shards::OptimizerState;
 use bwm_checkpoints::{write_tensors, CheckpointRoot};
-use bwm_data::latent_cache::{clip_for_sample, global_sample_index, LatentCache};
+use bwm_data::latent_cache::{clip_for_sample, global_sample_index, Clip, LatentCache};
 use bwm_data::prefetch::{load_clips, ClipBatch, Prefetcher};
+use bwm_model::vae::WanVae;
 use bwm_model::weights::{SafetensorsSource, WeightSource};
 use bwm_model::{BwmModel, ModelConfig, ParamStore};
 use serde::{Deserialize, Serialize};
@@ -74,6 +75,8 @@ pub struct Trainer {
     pub opt: AdamW,
     pub objective: Objective,
     pub cache: LatentCache,
+    /// Encodes the clips of a raw cache as they are read (`data.vae`); None for a cache of latents.
+    pub clip_encoder: Option<WanVae>,
     /// Reads the next micro-batches in the background (started by the first `load_batch`).
     loader: std::sync::Mutex<Loader>,
     pub train_clips: usize,
@@ -184,6 +187,7 @@ impl Trainer {
             model_cfg.action.action_dim
         );
 
+        let clip_encoder = clip_encoder(&cfg, &cache, device)?;
         let model = build_model(&cfg, &model_cfg, device)?;
         let named = model.store.named_parameters();
         let sharding = Sharding { rank: comm.rank(), world: comm.world_size(), sharded: cfg.train.shard_optimizer };
@@ -226,7 +230,7 @@ impl Trainer {
         } else {
             None
         };
-        Ok(Self { cfg, model, opt, objective, cache, loader: Default::default(), train_clips, device, state, out_dir, checkpoints, events, metrics_file, comm, history: Vec::new(), block_params })
+        Ok(Self { cfg, model, opt, objective, cache, clip_encoder, loader: Default::default(), train_clips, device, state, out_dir, checkpoints, events, metrics_file, comm, history: Vec::new(), block_params })
     }
 
     /// Trains to `train.steps`, checkpointing and validating as configured.
@@ -398,13 +402,35 @@ impl Trainer {
         let shape: Vec<i64> = std::iter::once(indices.len() as i64).chain(self.cache.index.latent_shape.iter().copied()).collect();
         let (latents, actions) = staged.clips.tensors(&self.cache);
         let d = self.device;
+        let latents = match (latents, staged.clips.frames(&self.cache)) {
+            (Some(l), _) => l.to_device(d),
+            (None, Some(frames)) => self.encode_frames(&frames)?,
+            (None, None) => bail!("the loader returned neither latents nor frames"),
+        };
         Ok(Batch {
-            latents: latents.to_device(d),
+            latents,
             actions: actions.to_device(d),
             noise: Tensor::from_slice(&staged.noise).view(shape.as_slice()).to_device(d),
             history_noise: Tensor::from_slice(&staged.history_noise).view(shape.as_slice()).to_device(d),
             tids: staged.tids,
         })
+    }
+
+    /// Latents [B, C, F, h, w] f32 on the training device of raw clips' u8 frames [B, 3, F, H, W].
+    fn encode_frames(&self, frames: &Tensor) -> Result<Tensor> {
+        let vae = self.clip_encoder.as_ref().context("a raw clip needs data.vae to be encoded")?;
+        let latents = vae.encode_u8(&frames.to_device(self.device)).context("encoding raw clips with data.vae")?;
+        Ok(latents.to_kind(Kind::Float))
+    }
+
+    /// Clip `i` of the cache on the training device, its latents encoded here for a raw cache.
+    pub fn clip(&self, i: usize) -> Result<Clip> {
+        if self.clip_encoder.is_none() {
+            return self.cache.load(i, self.device);
+        }
+        let (frames, actions) = self.cache.load_frames(i, self.device)?;
+        let latents = self.encode_frames(&frames.unsqueeze(0))?.squeeze_dim(0);
+        Ok(Clip { latents, actions, frames: Some(frames) })
     }
 
     /// A loader reading the micro-batches from the one whose samples are `first` (a micro-batch
@@ -585,6 +611,33 @@ fn stage_batch(cache: &LatentCache, objective: &Objective, seed: u64, train_clip
         staged.tids.push(draw.timestep_index);
     }
     Ok(staged)
+}
+
+/// The VAE encoding a raw cache's clips (`data.vae`), checked to give the cache's latent shape.
+fn clip_encoder(cfg: &RunConfig, cache: &LatentCache, device: Device) -> Result<Option<WanVae>> {
+    let index = &cache.index;
+    if index.has_latents {
+        if let Some(p) = &cfg.data.vae {
+            eprintln!("warning: data.vae {} is not used: {} holds encoded latents", p.display(), cache.dir.display());
+        }
+        return Ok(None);
+    }
+    let Some(path) = &cfg.data.vae else {
+        bail!("{} holds raw clips (bwm prepare --raw): set data.vae to the VAE that encodes them", cache.dir.display())
+    };
+    let vae = WanVae::load_any(path, cfg.model.dtype.kind(), device).with_context(|| format!("data.vae {}", path.display()))?;
+    let [w, h] = index.resolution;
+    let stride = vae.cfg.temporal_stride();
+    let frames = index.pixel_frames as i64;
+    let gives = [vae.cfg.z_dim, 1 + (frames - 1) / stride, h as i64 / 16, w as i64 / 16];
+    ensure!(
+        (frames - 1) % stride == 0 && gives.as_slice() == index.latent_shape.as_slice(),
+        "data.vae {} encodes clips of {frames} frames of {w}x{h} to latents {gives:?}; the cache {} expects {:?}",
+        path.display(),
+        cache.dir.display(),
+        index.latent_shape
+    );
+    Ok(Some(vae))
 }
 
 /// Every rank must start from the same weights: a checksum of the trained tensors is gathered and

@@ -67,7 +67,7 @@ pub fn run(trainer: &mut Trainer, step: u64) -> Result<ValidationReport> {
     let (mut mse_sum, mut psnr_sum, mut ssim_sum, mut n) = (0.0, 0.0, 0.0, 0usize);
     let mut strip_rows = Vec::new();
     for clip_index in trainer.train_clips..trainer.cache.len() {
-        let clip = trainer.cache.load(clip_index, device)?;
+        let clip = trainer.clip(clip_index)?;
         let clean = clip.latents.unsqueeze(0);
         let actions = clip.actions.unsqueeze(0);
         let predicted = rollout_clip(trainer, &clean, &actions, clip_index as u64, cfg.sample_steps)?;

@@ -51,6 +51,10 @@ pub struct TrainVaeArgs {
     /// Do not mirror training clips left-right at random (augmentation against memorizing).
     #[arg(long)]
     pub no_flip: bool,
+    /// Train on random WIDTHxHEIGHT windows (multiples of 16) of the frames instead of whole
+    /// frames (augmentation against memorizing positions); PSNR is measured on whole frames.
+    #[arg(long)]
+    pub crop: Option<String>,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     #[arg(long, default_value = "auto")]
@@ -188,6 +192,7 @@ fn train(a: &TrainVaeArgs, data: FrameSets, device: tch::Device) -> Result<()> {
         device,
         eval_every: a.eval_every,
         flip: !a.no_flip,
+        crop: a.crop.as_deref().map(|c| parse_resolution(c, 16).map(|(w, h)| (w as i64, h as i64))).transpose().context("--crop")?,
     };
     let trained = train_vae(&data, &settings, &mut |line| println!("  {line}"))?;
     save_trained_vae(&trained, &a.out)?;

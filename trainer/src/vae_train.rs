@@ -31,6 +31,9 @@ pub struct VaeTrainSettings {
     pub eval_every: u64,
     /// Mirror each training clip left-right with probability 1/2.
     pub flip: bool,
+    /// Train on a random (width, height) window of each clip (multiples of 16): the network
+    /// cannot tie what it reconstructs to a position in the frame. Evaluation uses whole frames.
+    pub crop: Option<(i64, i64)>,
 }
 
 pub struct VaeTrainReport {
@@ -60,6 +63,19 @@ fn clip_starts(videos: &[Tensor], frames: usize, stride: usize) -> Vec<(usize, i
 
 fn stack_clips(videos: &[Tensor], picks: &[(usize, i64)], frames: usize, device: Device) -> Tensor {
     Tensor::stack(&picks.iter().map(|&(v, s)| videos[v].narrow(1, s, frames as i64)).collect::<Vec<_>>(), 0).to_device(device)
+}
+
+/// A random `(width, height)` window of each clip of `clips` [B, 3, F, H, W], drawn from
+/// (seed, step, clip).
+fn random_windows(clips: &Tensor, (w, h): (i64, i64), seed: u64, step: u64) -> Result<Tensor> {
+    let size = clips.size();
+    ensure!(w <= size[4] && h <= size[3], "crop {w}x{h} is larger than the {}x{} frames", size[4], size[3]);
+    let offset = |b: i64, axis: u64, room: i64| {
+        let u = keyed_rng::uniform(seed, (1 << 40) + (step * size[0] as u64 + b as u64) * 2 + axis, Purpose::Augment);
+        ((u * (room + 1) as f64) as i64).min(room)
+    };
+    let windows: Vec<Tensor> = (0..size[0]).map(|b| clips.get(b).narrow(2, offset(b, 0, size[3] - h), h).narrow(3, offset(b, 1, size[4] - w), w)).collect();
+    Ok(Tensor::stack(&windows, 0))
 }
 
 /// Mean reconstruction PSNR (posterior means, no sampling) over non-overlapping clips.
@@ -103,6 +119,9 @@ pub fn train_vae(data: &FrameSets, s: &VaeTrainSettings, on_log: &mut dyn FnMut(
             })
             .collect();
         let mut x = stack_clips(&data.train, &picks, s.clip_frames, s.device);
+        if let Some(size) = s.crop {
+            x = random_windows(&x, size, s.seed, step)?;
+        }
         if s.flip && keyed_rng::uniform(s.seed, step, Purpose::Augment) < 0.5 {
             x = x.flip([-1]);
         }
@@ -177,4 +196,55 @@ pub fn save_trained_vae(trained: &TrainedVae, path: &Path) -> Result<()> {
     bwm_checkpoints::write_tensors(&tmp, &tensors, &meta)?;
     std::fs::rename(&tmp, path).with_context(|| format!("renaming {} to {}", tmp.display(), path.display()))?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn random_windows_are_windows_of_each_clip_at_varying_offsets() {
+        let clips = Tensor::arange(2 * 3 * 1 * 8 * 12, (Kind::Float, Device::Cpu)).view([2, 3, 1, 8, 12]);
+        let mut corners = std::collections::BTreeSet::new();
+        for step in 0..20 {
+            let w = random_windows(&clips, (4, 3), 7, step).unwrap();
+            assert_eq!(w.size(), [2, 3, 1, 3, 4]);
+            for b in 0..2 {
+                // Values encode positions: the window's first element names its corner.
+                let first = w.get(b).double_value(&[0, 0, 0, 0]) as i64 - b * 3 * 8 * 12;
+                let (y, x) = (first / 12, first % 12);
+                assert!(y <= 5 && x <= 8);
+                assert!(w.get(b).equal(&clips.get(b).narrow(2, y, 3).narrow(3, x, 4)));
+                corners.insert((y, x));
+            }
+        }
+        assert!(corners.len() > 10, "offsets vary: {corners:?}");
+        assert!(random_windows(&clips, (16, 3), 7, 0).is_err());
+    }
+
+    #[test]
+    fn trains_on_windows_and_measures_whole_frames() {
+        let video = |seed: i64| {
+            tch::manual_seed(seed);
+            Tensor::rand([3, 9, 32, 48], (Kind::Float, Device::Cpu)) * 2.0 - 1.0
+        };
+        let data = FrameSets { train: vec![video(1)], holdout: vec![video(2)] };
+        let s = VaeTrainSettings {
+            cfg: VaeConfig::with_width(4, 4),
+            clip_frames: 5,
+            batch: 2,
+            steps: 2,
+            lr: 1e-3,
+            kl_weight: 1e-6,
+            seed: 0,
+            device: Device::Cpu,
+            eval_every: 0,
+            flip: true,
+            crop: Some((16, 16)),
+        };
+        let mut lines = Vec::new();
+        let trained = train_vae(&data, &s, &mut |l| lines.push(l.to_string())).unwrap();
+        assert!(trained.report.holdout_psnr.is_finite() && trained.report.train_psnr.is_finite(), "{lines:?}");
+        assert!(lines.iter().any(|l| l.contains("step     2/2")), "{lines:?}");
+    }
 }

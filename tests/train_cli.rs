@@ -48,6 +48,7 @@ fn kill_during_checkpoint_write_then_resume_auto_and_tensorboard_read_back() {
     let ckpts = dir.join("run/checkpoints");
     let names: Vec<String> = std::fs::read_dir(&ckpts).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().to_string()).collect();
     assert!(names.iter().any(|n| n.starts_with(".step-00000002.tmp")), "a partial checkpoint should be left: {names:?}");
+    assert!(names.iter().any(|n| n == ".step-00000002.optimizer-shards"), "the optimizer shards' staging folder should be left: {names:?}");
     assert!(!names.iter().any(|n| n == "step-00000002"), "{names:?}");
     assert_eq!(std::fs::read_to_string(ckpts.join("latest")).unwrap().trim(), "step-00000001");
 
@@ -61,7 +62,7 @@ fn kill_during_checkpoint_write_then_resume_auto_and_tensorboard_read_back() {
     assert!(stdout.contains("resumed from") && stdout.contains("at step 1"), "{stdout}");
     assert!(stdout.contains("step      3/3"), "{stdout}");
     let names: Vec<String> = std::fs::read_dir(&ckpts).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().to_string()).collect();
-    assert!(!names.iter().any(|n| n.contains(".tmp")), "stale temporary left: {names:?}");
+    assert!(!names.iter().any(|n| n.contains(".tmp") || n.ends_with(".optimizer-shards")), "stale temporary left: {names:?}");
     assert_eq!(std::fs::read_to_string(ckpts.join("latest")).unwrap().trim(), "step-00000003");
 
     // TensorBoard: both runs' event files, read by TensorBoard's own reader.

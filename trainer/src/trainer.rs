@@ -527,6 +527,13 @@ impl Trainer {
             Ok(())
         })?;
         std::fs::remove_dir_all(staging).ok();
+        // Staging folders of checkpoints a crash interrupted: every rank has moved past them.
+        for entry in std::fs::read_dir(&self.checkpoints.root).into_iter().flatten().flatten() {
+            let name = entry.file_name().to_string_lossy().into_owned();
+            if name.starts_with(".step-") && name.ends_with(".optimizer-shards") {
+                std::fs::remove_dir_all(entry.path()).ok();
+            }
+        }
         Ok(dir.path)
     }
 

@@ -296,9 +296,11 @@ impl Trainer {
         let (mb, accum) = (cfg.train.micro_batch, cfg.train.grad_accum);
         let (rank, world) = (self.comm.rank(), self.comm.world_size());
         let step = self.state.step;
-        let mut losses = Vec::with_capacity(mb * accum);
+        // Per-sample losses stay on the device until the step's end: reading them after each
+        // micro-step would make the host wait for the GPU and leave it idle while the next
+        // micro-batch is staged.
+        let mut sample_losses = Vec::with_capacity(accum);
         let mut tids = Vec::with_capacity(mb * accum);
-        let mut finite = true;
         let mut tokens = 0i64;
         let mut sample_flops = 0.0;
         for micro in 0..accum {
@@ -320,23 +322,24 @@ impl Trainer {
             let input = prepared.input.to_kind(self.model.store.kind());
             let last_micro = micro + 1 == accum && world > 1 && cfg.train.overlap_grad_reduce;
             let mut sink = BlockAccumulators { opt: &mut self.opt, blocks: &self.block_params, reduce: last_micro.then_some(self.comm.as_mut()) };
-            let loss = forward_backward(&self.model, &input, &prepared.frame_timesteps, &batch.actions, cfg.train.recompute, &loss_fn, &mut sink)?;
-            let value = loss.double_value(&[]);
-            finite &= value.is_finite();
-            let per: Vec<f32> = Vec::<f32>::try_from(per_sample.into_inner().expect("loss ran").to_device(Device::Cpu))?;
-            losses.extend(per.iter().map(|&v| v as f64));
+            // The mean loss it returns is the mean of `per_sample`, read below.
+            let _ = forward_backward(&self.model, &input, &prepared.frame_timesteps, &batch.actions, cfg.train.recompute, &loss_fn, &mut sink)?;
+            sample_losses.push(per_sample.into_inner().context("the loss function did not run")?.to_kind(Kind::Float));
             tids.extend(batch.tids);
             self.opt.collect_grads();
         }
         // Every rank takes the same decision: skip when any rank saw a non-finite loss; the
         // gradient norm is computed after the reduction, so it is the same everywhere.
-        let mut flags = Tensor::from_slice(&[if finite { 0f32 } else { 1.0 }, losses.iter().sum::<f64>() as f32 / losses.len() as f32])
-            .to_device(self.device);
+        let sample_losses = Tensor::cat(&sample_losses, 0);
+        let nonfinite = sample_losses.isfinite().all().logical_not().to_kind(Kind::Float);
+        let mut flags = Tensor::stack(&[nonfinite, sample_losses.mean(Kind::Float)], 0);
         if world > 1 {
             self.comm.all_reduce_sum(&mut flags).context("agreeing on the step's losses")?;
         }
-        let all_finite = flags.double_value(&[0]) == 0.0;
-        let global_loss = flags.double_value(&[1]) / world as f64;
+        let flags = Vec::<f32>::try_from(flags.to_device(Device::Cpu))?;
+        let losses: Vec<f64> = Vec::<f32>::try_from(sample_losses.to_device(Device::Cpu))?.iter().map(|&v| v as f64).collect();
+        let all_finite = flags[0] == 0.0;
+        let global_loss = flags[1] as f64 / world as f64;
         let report = if all_finite {
             self.opt.step((accum * world) as f64, self.comm.as_mut())?
         } else {

@@ -228,6 +228,11 @@ pub struct TrainSection {
     /// Recompute each DiT block in backward instead of keeping its activations.
     #[serde(default = "yes")]
     pub recompute: bool,
+    /// With recomputation, the last N DiT blocks keep their activations from the forward instead
+    /// of being recomputed in backward: faster by their recompute forward, at the memory of their
+    /// activations (`docs/performance.md` lists what fits).
+    #[serde(default)]
+    pub recompute_keep_last: usize,
     /// With several data-parallel ranks, each keeps 1/world of the optimizer state (fp32 master
     /// and moments; ZeRO-1) instead of all of it.
     #[serde(default = "yes")]

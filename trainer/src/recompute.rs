@@ -9,11 +9,32 @@
 //! hands the gradients of that block's parameters to a [`BlockGradSink`] instead of accumulating
 //! them in `.grad`, so at most one block's model-dtype gradients exist at a time; they are final
 //! for this micro-step there, which is also where data-parallel reduction of a block can start.
+//! The last `keep_last` blocks can keep their activations instead (when memory allows): they run
+//! with autograd in the forward, each from a leaf input, and the walk backpropagates their saved
+//! graphs without recomputing them.
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use bwm_model::dit::Conditioning;
 use bwm_model::BwmModel;
 use tch::{Kind, Tensor};
+
+/// Which activations backward recomputes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Recompute {
+    /// Autograd keeps every activation; every gradient accumulates in `.grad`.
+    Off,
+    /// Each DiT block is recomputed from its input in backward, except the last `keep_last`,
+    /// whose activations are kept from the forward.
+    Blocks { keep_last: usize },
+}
+
+/// A block's state between the forward and the backward walk.
+enum Saved {
+    /// Its input, to recompute it from.
+    Input(Tensor),
+    /// Its leaf input and its output with the autograd graph between them.
+    Graph { input: Tensor, output: Tensor },
+}
 
 /// Receives the gradients of the DiT blocks' parameters during the recomputing backward walk.
 pub trait BlockGradSink {
@@ -41,23 +62,23 @@ impl BlockGradSink for GradsInParams {
 }
 
 /// Runs forward and backward; returns the detached loss. `loss_fn` maps the model's prediction
-/// [B, C, F, H, W] to a scalar. Without recomputation every gradient accumulates in `.grad` and
-/// `sink` is not called.
+/// [B, C, F, H, W] to a scalar. Without recomputation (`Recompute::Off`) every gradient
+/// accumulates in `.grad` and `sink` is not called.
 pub fn forward_backward(
     model: &BwmModel,
     latents: &Tensor,
     frame_timesteps: &Tensor,
     actions: &Tensor,
-    recompute: bool,
+    recompute: Recompute,
     loss_fn: &dyn Fn(&Tensor) -> Tensor,
     sink: &mut dyn BlockGradSink,
 ) -> Result<Tensor> {
-    if !recompute {
+    let Recompute::Blocks { keep_last } = recompute else {
         let prediction = model.forward(latents, frame_timesteps, actions)?;
         let loss = loss_fn(&prediction);
         loss.f_backward()?;
         return Ok(loss.detach());
-    }
+    };
 
     let emb = model.action_encoder.forward(actions)?;
     let (latent_frames, _, _) = model.dit.token_grid(latents)?;
@@ -72,17 +93,23 @@ pub fn forward_backward(
     let leaf = |t: &Tensor| t.detach().set_requires_grad(true);
     let cut = Conditioning { e: leaf(&e), e0: leaf(&e0), context: leaf(&context), rope, grid };
 
-    let mut block_inputs = Vec::with_capacity(model.dit.blocks.len());
-    let last = tch::no_grad(|| {
-        let mut x = tokens.detach();
-        for block in &model.dit.blocks {
-            let next = block.forward(&x, &cut);
-            block_inputs.push(std::mem::replace(&mut x, next));
+    let blocks = model.dit.blocks.len();
+    let kept_from = blocks.saturating_sub(keep_last);
+    let mut saved = Vec::with_capacity(blocks);
+    let mut x = tokens.detach();
+    for (i, block) in model.dit.blocks.iter().enumerate() {
+        if i < kept_from {
+            let next = tch::no_grad(|| block.forward(&x, &cut));
+            saved.push(Saved::Input(std::mem::replace(&mut x, next)));
+        } else {
+            let input = leaf(&x);
+            let output = block.forward(&input, &cut);
+            x = output.detach();
+            saved.push(Saved::Graph { input, output });
         }
-        x
-    });
+    }
 
-    let x_last = leaf(&last);
+    let x_last = leaf(&x);
     let loss = loss_fn(&model.dit.finish(&x_last, &cut));
     loss.f_backward()?;
     let mut grad = x_last.grad();
@@ -95,9 +122,14 @@ pub fn forward_backward(
         }
     };
     for (i, block) in model.dit.blocks.iter().enumerate().rev() {
-        let x_in = leaf(&block_inputs[i]);
-        block_inputs.truncate(i);
-        let out = block.forward(&x_in, &cut);
+        let (x_in, out) = match saved.pop().context("a block's saved state is missing")? {
+            Saved::Input(input) => {
+                let x_in = leaf(&input);
+                let out = block.forward(&x_in, &cut);
+                (x_in, out)
+            }
+            Saved::Graph { input, output } => (input, output),
+        };
         let target = (out * &grad).sum(Kind::Float);
         let params = sink.block_params(i);
         if params.is_empty() {

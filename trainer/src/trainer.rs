@@ -23,7 +23,7 @@ use crate::flops;
 use crate::metrics::{Progress, StepMetrics};
 use crate::objective::Objective;
 use crate::optim::{AdamW, Sharding};
-use crate::recompute::{forward_backward, BlockGradSink};
+use crate::recompute::{forward_backward, BlockGradSink, Recompute};
 use crate::tensorboard::EventWriter;
 use crate::validation;
 
@@ -303,6 +303,7 @@ impl Trainer {
         let mut tids = Vec::with_capacity(mb * accum);
         let mut tokens = 0i64;
         let mut sample_flops = 0.0;
+        let recompute = if cfg.train.recompute { Recompute::Blocks { keep_last: cfg.train.recompute_keep_last } } else { Recompute::Off };
         for micro in 0..accum {
             let indices: Vec<u64> = (0..mb).map(|i| global_sample_index(step, micro, rank, i, mb, accum, world)).collect();
             let batch = self.load_batch(&indices)?;
@@ -323,7 +324,7 @@ impl Trainer {
             let last_micro = micro + 1 == accum && world > 1 && cfg.train.overlap_grad_reduce;
             let mut sink = BlockAccumulators { opt: &mut self.opt, blocks: &self.block_params, reduce: last_micro.then_some(self.comm.as_mut()) };
             // The mean loss it returns is the mean of `per_sample`, read below.
-            let _ = forward_backward(&self.model, &input, &prepared.frame_timesteps, &batch.actions, cfg.train.recompute, &loss_fn, &mut sink)?;
+            let _ = forward_backward(&self.model, &input, &prepared.frame_timesteps, &batch.actions, recompute, &loss_fn, &mut sink)?;
             sample_losses.push(per_sample.into_inner().context("the loss function did not run")?.to_kind(Kind::Float));
             tids.extend(batch.tids);
             self.opt.collect_grads();

@@ -4,7 +4,7 @@
 mod common;
 
 use bwm_trainer::objective::Objective;
-use bwm_trainer::recompute::{forward_backward, BlockGradSink, GradsInParams};
+use bwm_trainer::recompute::{forward_backward, BlockGradSink, GradsInParams, Recompute};
 use bwm_trainer::{Resume, Trainer};
 use common::*;
 use tch::{Kind, Tensor};
@@ -147,7 +147,7 @@ fn recomputation_gives_the_same_gradients() {
         }
     }
     let named: Vec<(String, Tensor)> = t.opt.params.iter().map(|q| (q.name.clone(), q.param.shallow_clone())).collect();
-    let grads = |recompute: bool, capture: bool| -> (f64, Vec<Tensor>) {
+    let grads = |recompute: Recompute, capture: bool| -> (f64, Vec<Tensor>) {
         for q in &t.opt.params {
             let mut g = q.param.grad();
             if g.defined() {
@@ -164,20 +164,22 @@ fn recomputation_gives_the_same_gradients() {
         } else {
             let mut sink = GradsInParams::default();
             let loss = run(&mut sink);
-            assert_eq!(sink.blocks_done, if recompute { vec![1, 0] } else { vec![] });
+            assert_eq!(sink.blocks_done, if recompute == Recompute::Off { vec![] } else { vec![1, 0] });
             (loss, Default::default())
         };
         let g = t.opt.params.iter().map(|q| captured.get(&q.name).map(|g| g.copy()).unwrap_or_else(|| q.param.grad().copy())).collect();
         (loss.double_value(&[]), g)
     };
-    let (l1, g1) = grads(false, false);
-    for (recompute, capture) in [(true, false), (true, true)] {
+    let (l1, g1) = grads(Recompute::Off, false);
+    // Every block recomputed, the last one kept, both kept (the tiny model has 2 blocks).
+    for (keep_last, capture) in [0, 1, 2].into_iter().flat_map(|k| [(k, false), (k, true)]) {
+        let recompute = Recompute::Blocks { keep_last };
         let (l2, g2) = grads(recompute, capture);
         assert!((l1 - l2).abs() <= 1e-6 * l1.abs());
         for ((q, a), b) in t.opt.params.iter().zip(&g1).zip(&g2) {
             let scale = a.abs().max().double_value(&[]).max(1e-12);
             let d = max_abs_diff(a, b) / scale;
-            assert!(d < 1e-5, "gradient of {} differs by {d} (relative to its max; captured: {capture})", q.name);
+            assert!(d < 1e-5, "gradient of {} differs by {d} (relative to its max; captured: {capture}, kept {keep_last})", q.name);
             assert!(a.abs().sum(Kind::Float).double_value(&[]) > 0.0 || q.name.contains("bias"), "{} got no gradient", q.name);
         }
     }

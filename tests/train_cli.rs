@@ -192,3 +192,27 @@ fn stats_writes_a_stat_json_that_normalization_reads() {
     assert!(stats.p01.iter().zip(&stats.p99).all(|(a, b)| a <= b));
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn bench_train_breakdown_accounts_for_the_step() {
+    let dir = std::env::temp_dir().join(format!("bwm-bench-breakdown-{}", std::process::id()));
+    let out = Command::new(bwm())
+        .args(["bench-train", "--config", "configs/tiny.toml", "--height", "32", "--width", "64", "--history", "4", "--future", "4", "--steps", "3", "--breakdown"])
+        .args(["--set", "objective.condition_latents=2", "--out"])
+        .arg(&dir)
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
+    let seconds = |label: &str| -> f64 {
+        let line = stdout.lines().find(|l| l.trim_start().starts_with(label)).unwrap_or_else(|| panic!("no '{label}' line in {stdout}"));
+        line.trim_start()[label.len()..].split_whitespace().next().unwrap().parse().unwrap()
+    };
+    let parts = ["attention cores (self + cross)", "linear layers (10 per block)", "norms, modulation, RoPE, gates, adds", "outside the blocks"].map(seconds);
+    let step: f64 = stdout.lines().find(|l| l.starts_with("breakdown of a ")).unwrap()["breakdown of a ".len()..].split_whitespace().next().unwrap().parse().unwrap();
+    assert!(parts[..2].iter().all(|&s| s > 0.0), "{stdout}");
+    // Printed to the millisecond: the parts add up to the step.
+    assert!((parts.iter().sum::<f64>() - step).abs() <= 0.003, "{parts:?} vs {step}: {stdout}");
+    std::fs::remove_dir_all(&dir).ok();
+}

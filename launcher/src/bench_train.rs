@@ -1,6 +1,7 @@
 //! `bwm bench-train`: time the real training step (objective, recomputation, AdamW with fp32
 //! masters) of a run config on random weights and a synthetic one-clip latent cache of the
-//! config's clip size; prints step time, throughput, MFU and device memory.
+//! config's clip size; prints step time, throughput, MFU and device memory, and with
+//! `--breakdown` where the step's time goes (`bench_breakdown`).
 
 use std::path::PathBuf;
 
@@ -27,6 +28,10 @@ pub struct BenchTrainArgs {
     width: i64,
     #[arg(long, default_value_t = 3)]
     steps: u64,
+    /// After the steps, time one DiT block and its parts and print the step's breakdown
+    /// (attention, linear layers, norms/elementwise, the rest; collectives).
+    #[arg(long)]
+    breakdown: bool,
     /// Scratch folder for the synthetic cache and the run's logs.
     #[arg(long, default_value = "runs/bench-train")]
     out: PathBuf,
@@ -78,9 +83,23 @@ pub fn run(mut a: BenchTrainArgs) -> Result<()> {
         t.cfg.train.grad_accum,
         t.cfg.train.recompute
     );
+    let mut timed = Vec::new();
     for _ in 0..a.steps {
         let m = t.train_step()?;
         println!("{}", m.summary_line(a.steps));
+        timed.push((m.seconds, m.collective_s));
+    }
+    if a.breakdown {
+        // The first step includes warm-up (allocator, autotuning); the median of the others.
+        let mut later: Vec<(f64, f64)> = timed.iter().skip(1).copied().collect();
+        if later.is_empty() {
+            later = timed;
+        }
+        later.sort_by(|x, y| x.0.total_cmp(&y.0));
+        let (seconds, collectives) = later[later.len() / 2];
+        for line in crate::bench_breakdown::breakdown(&t, seconds, collectives)? {
+            println!("{line}");
+        }
     }
     Ok(())
 }

@@ -1,6 +1,7 @@
 //! `bwm`: the one command of the BWM trainer.
 
 mod bench;
+mod bench_breakdown;
 mod bench_train;
 mod convert;
 mod demo;

@@ -198,6 +198,15 @@ pub struct OptimSection {
     /// EMA of the fp32 master weights, off when absent.
     #[serde(default)]
     pub ema_decay: Option<f64>,
+    /// On CUDA, the update runs as one NVRTC-compiled kernel (`fused_adamw`) instead of about a
+    /// dozen tensor operations; without NVRTC on the library path the tensor path runs, with a
+    /// warning.
+    #[serde(default = "default_fused")]
+    pub fused: bool,
+}
+
+fn default_fused() -> bool {
+    true
 }
 
 fn default_weight_decay() -> f64 {

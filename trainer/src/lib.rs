@@ -6,6 +6,7 @@ pub mod device_memory;
 pub mod devices;
 pub mod dist;
 pub mod flops;
+pub mod fused_adamw;
 pub mod image_metrics;
 /// Keyed random draws live with the model (the rollout sampler uses them too).
 pub use bwm_model::keyed_rng;

@@ -13,9 +13,10 @@ use std::ops::Range;
 
 use anyhow::{bail, ensure, Context, Result};
 use bwm_checkpoints::optimizer_shards::{Layout, OptimizerState};
-use tch::{Kind, Tensor};
+use tch::{Device, Kind, Tensor};
 
 use crate::config::{LrSchedule, OptimSection};
+use crate::fused_adamw::{FusedAdamW, Update};
 use crate::dist::{Collective, FlatBuffer};
 
 pub struct TrainParam {
@@ -60,6 +61,8 @@ pub struct AdamW {
     pub exp_avg: Tensor,
     pub exp_avg_sq: Tensor,
     pub ema: Option<Tensor>,
+    /// The one-kernel update (CUDA, `optim.fused`); None: tensor operations.
+    fused: Option<std::sync::Arc<FusedAdamW>>,
 }
 
 /// What one optimizer step did.
@@ -196,6 +199,16 @@ impl AdamW {
             .flat()
             .narrow(0, slice.start as i64, slice.len() as i64)
             .to_kind(Kind::Float);
+        let fused = match (cfg.fused, device) {
+            (true, Device::Cuda(_)) => match FusedAdamW::for_device(device) {
+                Ok(k) => Some(k),
+                Err(e) => {
+                    eprintln!("warning: the fused AdamW kernel is unavailable ({e:#}); using tensor operations");
+                    None
+                }
+            },
+            _ => None,
+        };
         Ok(Self {
             cfg: cfg.clone(),
             params,
@@ -210,6 +223,7 @@ impl AdamW {
             master,
             slice,
             started: Vec::new(),
+            fused,
         })
     }
 
@@ -386,29 +400,34 @@ impl AdamW {
         let bc1 = 1.0 - b1.powi(self.step as i32);
         let bc2 = 1.0 - b2.powi(self.step as i32);
         let (wd, eps, ema) = (self.cfg.weight_decay, self.cfg.eps, self.cfg.ema_decay);
-        // Whole-buffer operations, in chunks so that the temporaries stay small.
-        tch::no_grad(|| {
-            for &(start, len) in &chunks {
-                let part = |t: &Tensor| t.narrow(0, start, len);
-                let (mut master, mut m, mut v) = (
-                    part(&self.master),
-                    part(&self.exp_avg),
-                    part(&self.exp_avg_sq),
-                );
-                let g = part(&g) * grad_scale;
-                let _ = m.lerp_(&g, 1.0 - b1);
-                let _ = v.g_mul_scalar_(b2);
-                let _ = v.addcmul_(&g, &(&g * (1.0 - b2)));
-                let denom = (v.sqrt() / bc2.sqrt()) + eps;
-                if wd > 0.0 {
-                    let _ = master.g_mul_scalar_(1.0 - lr * wd);
+        if let Some(kernel) = &self.fused {
+            let u = Update { grad_scale, b1, b2, lr, weight_decay: wd, eps, bc1, bc2, ema_decay: ema };
+            kernel.update(&g, &self.exp_avg, &self.exp_avg_sq, &self.master, self.ema.as_ref(), &u)?;
+        } else {
+            // Whole-buffer operations, in chunks so that the temporaries stay small.
+            tch::no_grad(|| {
+                for &(start, len) in &chunks {
+                    let part = |t: &Tensor| t.narrow(0, start, len);
+                    let (mut master, mut m, mut v) = (
+                        part(&self.master),
+                        part(&self.exp_avg),
+                        part(&self.exp_avg_sq),
+                    );
+                    let g = part(&g) * grad_scale;
+                    let _ = m.lerp_(&g, 1.0 - b1);
+                    let _ = v.g_mul_scalar_(b2);
+                    let _ = v.addcmul_(&g, &(&g * (1.0 - b2)));
+                    let denom = (v.sqrt() / bc2.sqrt()) + eps;
+                    if wd > 0.0 {
+                        let _ = master.g_mul_scalar_(1.0 - lr * wd);
+                    }
+                    let _ = master.g_sub_(&(&m / denom * (lr / bc1)));
+                    if let (Some(e), Some(d)) = (self.ema.as_ref(), ema) {
+                        let _ = part(e).lerp_(&master, 1.0 - d);
+                    }
                 }
-                let _ = master.g_sub_(&(&m / denom * (lr / bc1)));
-                if let (Some(e), Some(d)) = (self.ema.as_ref(), ema) {
-                    let _ = part(e).lerp_(&master, 1.0 - d);
-                }
-            }
-        });
+            });
+        }
         self.publish_weights(comm)?;
         tch::no_grad(|| {
             let _ = self.grads.flat_mut().zero_();
@@ -634,6 +653,37 @@ mod tests {
             opt.step(2.0, &mut comm).unwrap().unwrap();
             assert!(comm.started.is_empty());
             assert_eq!(comm.scattered, usize::from(sharded));
+        }
+    }
+
+    /// On a GPU machine: `cargo test --release -p bwm-trainer --no-default-features --lib --no-run`,
+    /// then the binary with `--ignored fused` and NVRTC's directory on LD_LIBRARY_PATH.
+    #[test]
+    #[ignore = "needs a CUDA device and NVRTC"]
+    fn fused_update_matches_the_tensor_path_on_cuda() {
+        crate::dist::ensure_torch_cuda_loaded().unwrap();
+        let device = Device::Cuda(0);
+        tch::manual_seed(3);
+        let init = Tensor::randn([1_000_003], (Kind::Float, Device::Cpu));
+        let grads: Vec<Tensor> = (0..3).map(|_| Tensor::randn([1_000_003], (Kind::Float, Device::Cpu))).collect();
+        let run = |fused: bool| {
+            let mut c = cfg();
+            c.fused = fused;
+            c.ema_decay = Some(0.9);
+            c.grad_clip = 1.0;
+            let named = vec![("w".to_string(), init.to_device(device))];
+            let mut opt = AdamW::new(&named, &["*".into()], &[], &c, 10, Sharding::SINGLE).unwrap();
+            assert_eq!(opt.fused.is_some(), fused, "the fused kernel must be in use when asked for");
+            for g in &grads {
+                let _ = opt.params[0].grad.copy_(g);
+                opt.step(2.0, &mut LocalCollective::new()).unwrap().unwrap();
+            }
+            opt.state_tensors().into_iter().map(|(n, t)| (n, t.to_device(Device::Cpu))).collect::<Vec<_>>()
+        };
+        let (a, b) = (run(true), run(false));
+        for ((name, x), (_, y)) in a.iter().zip(&b) {
+            let rel = (x - y).abs().max().double_value(&[]) / y.abs().max().double_value(&[]);
+            assert!(rel < 1e-6, "{name}: fused and tensor paths differ by {rel} (relative to the max)");
         }
     }
 

@@ -43,8 +43,8 @@ pub fn run(mut a: BenchTrainArgs) -> Result<()> {
         a.out = a.out.join(format!("rank-{rank}"));
     }
     let cache_dir = a.out.join("cache");
-    let latent_shape = vec![48, 1 + (a.history + a.future) as i64 / 4, a.height / 16, a.width / 16];
     let pixel_frames = 1 + a.history + a.future;
+    let latent_shape = bwm_model::vae::VaeConfig::wan22().latent_shape(pixel_frames as i64, a.height, a.width);
     let index = CacheIndex::new(latent_shape.clone(), 14, a.history, a.future, [a.width as u32, a.height as u32], 30.0, "synthetic (bench-train)");
     let mut w = CacheWriter::create(&cache_dir, index)?;
     for episode in 0..2 {

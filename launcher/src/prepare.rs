@@ -333,7 +333,7 @@ pub fn run(a: PrepareArgs) -> Result<()> {
     let ts = vae_cfg.temporal_stride() as usize;
     ensure!((clip.frames_per_clip() - 1).is_multiple_of(ts), "clips of 1 + {} frames do not fit the VAE's temporal stride {ts}", a.history + a.future);
     let fps = source.fps(plan.episodes[0].episode).context("the frame rate of the first episode")?;
-    let latent_shape = vec![vae_cfg.z_dim, 1 + ((clip.frames_per_clip() - 1) / ts) as i64, size.1 as i64 / 16, size.0 as i64 / 16];
+    let latent_shape = vae_cfg.latent_shape(clip.frames_per_clip() as i64, size.1 as i64, size.0 as i64);
     let index = CacheIndex {
         has_frames: a.keep_frames || a.raw,
         has_latents: !a.raw,

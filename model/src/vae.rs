@@ -83,6 +83,13 @@ impl VaeConfig {
     }
 
     pub const SPATIAL_STRIDE: i64 = 16;
+
+    /// [z, 1 + (F - 1) / temporal stride, H / 16, W / 16]: the latent shape of a clip of `frames`
+    /// pixel frames (1 + stride * k) of `height` x `width`.
+    pub fn latent_shape(&self, frames: i64, height: i64, width: i64) -> Vec<i64> {
+        let s = Self::SPATIAL_STRIDE;
+        vec![self.z_dim, 1 + (frames - 1) / self.temporal_stride(), height / s, width / s]
+    }
 }
 
 /// One cache slot per temporal operator, in visiting order.

@@ -1,6 +1,8 @@
 //! A run's checkpoint directory: `step-00000100/` folders that appear only when complete (written
 //! under a temporary name, fsynced, then renamed), a `latest` file naming the newest, and pruning
-//! to the last K. A crash mid-write leaves a `.tmp-*` folder that is ignored and removed later.
+//! to the last K. A crash mid-write leaves a `.tmp-*` folder that is ignored and removed later,
+//! and so is a staging folder (`staging_path`) where ranks put their optimizer shards of a step
+//! before it is written.
 
 use std::fs;
 use std::path::{Path, PathBuf};
@@ -21,6 +23,8 @@ pub struct StepDir {
     pub step: u64,
     pub path: PathBuf,
 }
+
+const STAGING_SUFFIX: &str = ".optimizer-shards";
 
 fn step_name(step: u64) -> String {
     format!("step-{step:08}")
@@ -44,12 +48,18 @@ impl CheckpointRoot {
         self.root.join(step_name(step))
     }
 
+    /// The folder where the data-parallel ranks gather their optimizer shards of `step` before it
+    /// is saved; `save(step, ..)` leaves it alone and removes those of other steps (a crash's).
+    pub fn staging_path(&self, step: u64) -> PathBuf {
+        self.root.join(format!(".{}{STAGING_SUFFIX}", step_name(step)))
+    }
+
     /// Writes checkpoint `step`: `write` fills a fresh temporary folder (and must write
     /// `state.json` last); then every file is fsynced, the folder renamed into place, `latest`
     /// updated and all but the newest `keep_last` checkpoints removed.
     pub fn save(&self, step: u64, keep_last: usize, write: impl FnOnce(&Path) -> Result<()>) -> Result<StepDir> {
         fs::create_dir_all(&self.root).with_context(|| format!("creating {}", self.root.display()))?;
-        self.remove_stale_temporaries()?;
+        self.remove_stale_temporaries(step)?;
         let name = step_name(step);
         let tmp = self.root.join(format!(".{name}.tmp-{}", std::process::id()));
         if tmp.exists() {
@@ -138,13 +148,17 @@ impl CheckpointRoot {
         Ok(())
     }
 
-    /// Temporary folders of writers that died (any `.step-*.tmp-*` not of this process).
-    fn remove_stale_temporaries(&self) -> Result<()> {
+    /// Temporary folders of writers that died (any `.step-*.tmp-*` not of this process), and
+    /// staging folders of steps other than `step`.
+    fn remove_stale_temporaries(&self, step: u64) -> Result<()> {
         let mine = format!(".tmp-{}", std::process::id());
+        let staging = self.staging_path(step);
         for entry in fs::read_dir(&self.root)? {
             let entry = entry?;
             let name = entry.file_name().to_string_lossy().to_string();
-            if name.starts_with(".step-") && name.contains(".tmp-") && !name.ends_with(&mine) {
+            let stale_temporary = name.contains(".tmp-") && !name.ends_with(&mine);
+            let stale_staging = name.ends_with(STAGING_SUFFIX) && entry.path() != staging;
+            if name.starts_with(".step-") && (stale_temporary || stale_staging) {
                 fs::remove_dir_all(entry.path()).ok();
             }
         }
@@ -187,6 +201,22 @@ mod tests {
         assert_eq!(root.latest().unwrap().unwrap().step, 1);
         assert!(root.save(3, 3, |_| Ok(())).unwrap_err().to_string().contains(STATE_FILE));
         assert_eq!(root.latest().unwrap().unwrap().step, 1);
+        fs::remove_dir_all(&root.root).ok();
+    }
+
+    #[test]
+    fn saving_a_step_keeps_its_staging_folder_and_removes_other_steps() {
+        let root = CheckpointRoot::new(tmp("staging"));
+        let (current, crashed) = (root.staging_path(3), root.staging_path(7));
+        for d in [&current, &crashed] {
+            fs::create_dir_all(d).unwrap();
+        }
+        root.save(3, 3, |d| {
+            assert!(current.is_dir(), "the step's own staging folder is in use while it is written");
+            Ok(fs::write(d.join(STATE_FILE), "3")?)
+        })
+        .unwrap();
+        assert!(current.is_dir() && !crashed.exists());
         fs::remove_dir_all(&root.root).ok();
     }
 

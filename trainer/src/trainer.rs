@@ -489,7 +489,7 @@ impl Trainer {
         // Replicated state is written once, by rank 0.
         let writers = if self.opt.is_sharded() { self.comm.world_size() } else { 1 };
         let step = self.state.step;
-        let staging = self.checkpoints.root.join(format!(".step-{step:08}.optimizer-shards"));
+        let staging = self.checkpoints.staging_path(step);
         std::fs::create_dir_all(&staging).with_context(|| format!("creating {}", staging.display()))?;
         if rank < writers {
             let shard_dir = staging.join(format!(".rank-{rank}.tmp"));
@@ -531,13 +531,6 @@ impl Trainer {
             Ok(())
         })?;
         std::fs::remove_dir_all(staging).ok();
-        // Staging folders of checkpoints a crash interrupted: every rank has moved past them.
-        for entry in std::fs::read_dir(&self.checkpoints.root).into_iter().flatten().flatten() {
-            let name = entry.file_name().to_string_lossy().into_owned();
-            if name.starts_with(".step-") && name.ends_with(".optimizer-shards") {
-                std::fs::remove_dir_all(entry.path()).ok();
-            }
-        }
         Ok(dir.path)
     }
 
@@ -638,11 +631,10 @@ fn clip_encoder(cfg: &RunConfig, cache: &LatentCache, device: Device) -> Result<
     };
     let vae = WanVae::load_any(path, cfg.model.dtype.kind(), device).with_context(|| format!("data.vae {}", path.display()))?;
     let [w, h] = index.resolution;
-    let stride = vae.cfg.temporal_stride();
     let frames = index.pixel_frames as i64;
-    let gives = [vae.cfg.z_dim, 1 + (frames - 1) / stride, h as i64 / 16, w as i64 / 16];
+    let gives = vae.cfg.latent_shape(frames, h as i64, w as i64);
     ensure!(
-        (frames - 1) % stride == 0 && gives.as_slice() == index.latent_shape.as_slice(),
+        (frames - 1) % vae.cfg.temporal_stride() == 0 && gives == index.latent_shape,
         "data.vae {} encodes clips of {frames} frames of {w}x{h} to latents {gives:?}; the cache {} expects {:?}",
         path.display(),
         cache.dir.display(),

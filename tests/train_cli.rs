@@ -114,6 +114,12 @@ fn train_ranks(config: &Path, world: usize, resume: &str) {
 
 
 
+/// Adds `setting` to the `[train]` section of the config file `path`.
+fn set_train(path: &Path, setting: &str) {
+    let text = std::fs::read_to_string(path).unwrap().replace("[train]\n", &format!("[train]\n{setting}\n"));
+    std::fs::write(path, text).unwrap();
+}
+
 #[test]
 fn two_ranks_train_the_weights_of_one_and_resume_across_world_sizes() {
     let dir = std::env::temp_dir().join(format!("bwm-train-dist-{}", std::process::id()));
@@ -132,16 +138,14 @@ fn two_ranks_train_the_weights_of_one_and_resume_across_world_sizes() {
         assert!(last("two").join(shard).is_file(), "{shard} in {}", last("two").display());
     }
     let replicated = write_config(&dir, "replicated.toml", &dir.join("replicated"), 3, 1);
-    let text = std::fs::read_to_string(&replicated).unwrap().replace("[train]\n", "[train]\nshard_optimizer = false\n");
-    std::fs::write(&replicated, text).unwrap();
+    set_train(&replicated, "shard_optimizer = false");
     train_ranks(&replicated, 2, "no");
     assert!(last("replicated").join("optimizer-00000-of-00001.safetensors").is_file(), "replicated state is written once");
     assert_close(&final_weights(&dir.join("two")), &final_weights(&dir.join("replicated")), "sharded vs replicated optimizer state");
     // The blocks' gradients are reduced during the backward walk by default; reduced after it,
     // and with accumulation (early reduction on the last micro-step only), the weights agree.
     let after_walk = write_config(&dir, "after_walk.toml", &dir.join("after_walk"), 3, 1);
-    let text = std::fs::read_to_string(&after_walk).unwrap().replace("[train]\n", "[train]\noverlap_grad_reduce = false\n");
-    std::fs::write(&after_walk, text).unwrap();
+    set_train(&after_walk, "overlap_grad_reduce = false");
     train_ranks(&after_walk, 2, "no");
     assert_close(&final_weights(&dir.join("two")), &final_weights(&dir.join("after_walk")), "reduction during vs after the walk");
     let four_one = write_config(&dir, "four_one.toml", &dir.join("four_one"), 2, 4);

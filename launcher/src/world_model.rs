@@ -8,6 +8,7 @@ use bwm_data::ActionStats;
 use bwm_model::rollout::{default_history_sigma, Rollout, RolloutSpec};
 use bwm_model::vae::{VaeConfig, WanVae};
 use bwm_model::{BwmModel, ModelConfig};
+use bwm_trainer::config::Residual;
 use bwm_trainer::devices::{parse_device, parse_kind};
 use clap::Args;
 use tch::{Device, Kind, Tensor};
@@ -41,6 +42,10 @@ pub struct WorldModelArgs {
     /// Weights and activations: auto (bf16 on CUDA, f32 on CPU), bf16 or f32.
     #[arg(long, default_value = "auto")]
     pub dtype: String,
+    /// dtype of the DiT's residual stream: f32 (the official Wan code) or model (the weights'
+    /// dtype, as DiffSynth-Studio, which the BWM release trains and samples with; faster).
+    #[arg(long, default_value = "f32")]
+    pub residual: Residual,
     /// History frames H in each chunk's condition (the training clips' H).
     #[arg(long, default_value_t = 8)]
     pub history: usize,
@@ -91,12 +96,13 @@ impl WorldModelArgs {
             s => parse_kind(s)?,
         };
         let preset = self.model_preset.as_deref().map(ModelConfig::preset).transpose()?;
-        let model = match (&self.checkpoint, &self.random_weights) {
+        let mut model = match (&self.checkpoint, &self.random_weights) {
             (Some(ckpt), _) => bwm_checkpoints::open::load_model(ckpt, preset.as_ref(), kind, device)
                 .with_context(|| format!("--checkpoint {ckpt}"))?,
             (None, Some(name)) => BwmModel::random(&ModelConfig::preset(name)?, kind, device, self.seed as i64)?,
             (None, None) => bail!("pass --checkpoint (trained weights) or --random-weights PRESET"),
         };
+        model.dit.residual = self.residual.kind(kind);
         let vae = match &self.vae {
             Some(path) => WanVae::load_any(path, kind, device).with_context(|| format!("--vae {}", path.display()))?,
             None => WanVae::random(&VaeConfig::wan22(), kind, device, self.seed as i64)?.0,

@@ -2,8 +2,9 @@
 //! cross-attention to a context, AdaLN-style modulation (`modulation + t_mod`, 6 vectors), a
 //! modulated head. Field paths equal the Wan-native checkpoint keys.
 //!
-//! Precision: parameters and matmuls in the store's dtype (f32 or bf16); residual stream, norms,
-//! sinusoids, time MLP, RoPE angles and modulation arithmetic in fp32, as the official code.
+//! Precision: parameters and matmuls in the store's dtype (f32 or bf16); sinusoids, time MLP, RoPE
+//! and the modulation sums in fp32; the residual stream, its norms and gates in fp32 as the official
+//! code, or in the parameters' dtype as DiffSynth-Studio (`WanDit::residual`).
 //!
 //! Shape convention: tokens are frame-major (f, h', w') and every token of one latent frame
 //! shares that frame's timestep (Wan TI2V and BWM give condition frames t=0, the rest t), so the
@@ -14,7 +15,7 @@ use anyhow::{ensure, Result};
 use tch::{Kind, Tensor};
 
 use crate::config::DitConfig;
-use crate::nn::{attention, layer_norm_f32, modulate, AffineLayerNorm, Linear, RmsNorm};
+use crate::nn::{attention, layer_norm, modulate, AffineLayerNorm, Linear, RmsNorm};
 use crate::rope::Rope;
 use crate::vb::{Init, Vb};
 use crate::weights::WeightsError;
@@ -58,6 +59,7 @@ impl Attention {
     /// Self-attention with RoPE on q and k (after their RMSNorm).
     fn self_attention(&self, x: &Tensor, rope: &Rope) -> Tensor {
         let (b, l, d) = x.size3().expect("[B, L, D]");
+        let x = &x.to_kind(self.q.weight.kind());
         let heads = |t: Tensor| t.view([b, l, self.num_heads, d / self.num_heads]);
         let q = rope.apply(&heads(self.norm_q.forward(&self.q.forward(x)))).view([b, l, d]);
         let k = rope.apply(&heads(self.norm_k.forward(&self.k.forward(x)))).view([b, l, d]);
@@ -97,26 +99,28 @@ impl Block {
         })
     }
 
-    /// x: fp32 tokens [B, L, D] -> fp32 tokens.
+    /// x: tokens [B, L, D] of the residual stream (fp32 or the parameters' dtype, see
+    /// `WanDit::residual`) -> tokens of the same dtype. Each gate and residual add is one `addcmul`.
     pub fn forward(&self, x: &Tensor, cond: &Conditioning) -> Tensor {
         let (b, l, d) = x.size3().expect("[B, L, D]");
         let f = cond.e0.size()[1];
         let per_frame = |t: &Tensor| t.view([b, f, l / f, d]);
         let tokens = |t: Tensor| t.view([b, l, d]);
-        // [B, F, 6, D] -> six [B, F, 1, D]: shift/scale/gate for attention, then for the FFN.
-        let m = (self.modulation.to_kind(Kind::Float).unsqueeze(0) + &cond.e0).unsqueeze(2);
+        // [B, F, 6, D] -> six [B, F, 1, D]: shift/scale/gate for attention, then for the FFN; summed
+        // in fp32, then in the residual stream's dtype.
+        let m = (self.modulation.to_kind(Kind::Float).unsqueeze(0) + &cond.e0).unsqueeze(2).to_kind(x.kind());
         let m: Vec<Tensor> = (0..6).map(|i| m.select(3, i)).collect();
 
-        let h = modulate(&per_frame(&layer_norm_f32(x, None, self.eps)), &m[0], &m[1]);
-        let y = self.self_attn.self_attention(&tokens(h), &cond.rope).to_kind(Kind::Float);
-        let x = x + tokens(per_frame(&y) * &m[2]);
+        let h = modulate(&per_frame(&layer_norm(x, None, self.eps)), &m[0], &m[1]);
+        let y = self.self_attn.self_attention(&tokens(h), &cond.rope);
+        let x = tokens(per_frame(x).addcmul(&per_frame(&y), &m[2]));
 
         let y = self.cross_attn.cross_attention(&self.norm3.forward(&x), &cond.context);
-        let x = x + y.to_kind(Kind::Float);
+        let x = &x + y;
 
-        let h = tokens(modulate(&per_frame(&layer_norm_f32(&x, None, self.eps)), &m[3], &m[4]));
-        let y = self.ffn.l2.forward(&self.ffn.l0.forward(&h).gelu("tanh")).to_kind(Kind::Float);
-        &x + tokens(per_frame(&y) * &m[5])
+        let h = tokens(modulate(&per_frame(&layer_norm(&x, None, self.eps)), &m[3], &m[4]));
+        let y = self.ffn.l2.forward(&self.ffn.l0.forward(&h).gelu("tanh"));
+        tokens(per_frame(&x).addcmul(&per_frame(&y), &m[5]))
     }
 }
 
@@ -142,7 +146,7 @@ impl Head {
         let f = e.size()[1];
         let m = (self.modulation.to_kind(Kind::Float).unsqueeze(0) + e.unsqueeze(2)).unsqueeze(2);
         let (shift, scale) = (m.select(3, 0), m.select(3, 1));
-        let h = modulate(&layer_norm_f32(x, None, self.eps).view([b, f, l / f, d]), &shift, &scale);
+        let h = modulate(&layer_norm(x, None, self.eps).view([b, f, l / f, d]), &shift, &scale);
         self.head.forward(&h.view([b, l, d])).to_kind(Kind::Float)
     }
 }
@@ -172,6 +176,10 @@ pub struct WanDit {
     pub time_projection: Linear,
     pub blocks: Vec<Block>,
     pub head: Head,
+    /// dtype of the token stream between blocks, its norms, modulation and gates: fp32 (the
+    /// official Wan code) or the parameters' dtype (DiffSynth-Studio, which the BWM release trains
+    /// with: half the memory traffic of the element-wise work). Set after building; fp32 by default.
+    pub residual: Kind,
 }
 
 impl WanDit {
@@ -196,6 +204,7 @@ impl WanDit {
                 .map(|i| Block::new(&vb.pp("blocks").pp(i), cfg))
                 .collect::<Result<_, _>>()?,
             head: Head::new(&vb.pp("head"), cfg)?,
+            residual: Kind::Float,
         })
     }
 
@@ -221,7 +230,7 @@ impl WanDit {
         Ok((s[2] / pt, s[3] / ph, s[4] / pw))
     }
 
-    /// Latents [B, C, F, H, W] -> fp32 tokens [B, L, D] (frame-major).
+    /// Latents [B, C, F, H, W] -> tokens [B, L, D] (frame-major) in the residual stream's dtype.
     pub fn patchify(&self, latents: &Tensor) -> Result<Tensor> {
         let (f, h, w) = self.token_grid(latents)?;
         let b = latents.size()[0];
@@ -233,7 +242,7 @@ impl WanDit {
             .permute([0, 2, 4, 6, 1, 3, 5, 7])
             .reshape([b, f * h * w, c * pt * ph * pw]);
         let weight = self.patch_embedding_weight.reshape([self.cfg.dim, c * pt * ph * pw]);
-        Ok(patches.linear(&weight, Some(&self.patch_embedding_bias)).to_kind(Kind::Float))
+        Ok(patches.linear(&weight, Some(&self.patch_embedding_bias)).to_kind(self.residual))
     }
 
     /// Tokens [B, L, pt*ph*pw*C] -> [B, C, F, H, W]; channels fastest within a patch.
@@ -300,7 +309,7 @@ impl WanDit {
         Ok((x, Conditioning { e, e0, context, rope, grid }))
     }
 
-    /// The head and unpatchify: fp32 tokens -> fp32 prediction [B, out_dim, F, H, W].
+    /// The head and unpatchify: tokens -> fp32 prediction [B, out_dim, F, H, W].
     pub fn finish(&self, x: &Tensor, cond: &Conditioning) -> Tensor {
         self.unpatchify(&self.head.forward(x, &cond.e), cond.grid)
     }

@@ -32,13 +32,13 @@ impl Linear {
     }
 }
 
-/// LayerNorm over the last dimension, computed in fp32 (the reference's `WanLayerNorm`);
+/// LayerNorm over the last dimension in x's dtype (the reference's `WanLayerNorm` normalizes in
+/// fp32 and casts back; ATen's kernel accumulates in fp32 for bf16 inputs, so it is the same);
 /// `affine` = (weight, bias) for `norm3`.
-pub fn layer_norm_f32(x: &Tensor, affine: Option<(&Tensor, &Tensor)>, eps: f64) -> Tensor {
+pub fn layer_norm(x: &Tensor, affine: Option<(&Tensor, &Tensor)>, eps: f64) -> Tensor {
     let d = *x.size().last().expect("layer_norm on a 0-d tensor");
-    let x = x.to_kind(Kind::Float);
     match affine {
-        Some((w, b)) => x.layer_norm([d], Some(w.to_kind(Kind::Float)), Some(b.to_kind(Kind::Float)), eps, true),
+        Some((w, b)) => x.layer_norm([d], Some(w.to_kind(x.kind())), Some(b.to_kind(x.kind())), eps, true),
         None => x.layer_norm([d], None::<Tensor>, None::<Tensor>, eps, true),
     }
 }
@@ -55,14 +55,15 @@ impl AffineLayerNorm {
         Ok(Self { weight: vb.get(&[dim], "weight", Init::Ones)?, bias: vb.get(&[dim], "bias", Init::Zeros)?, eps })
     }
 
-    /// fp32 result.
+    /// In x's dtype.
     pub fn forward(&self, x: &Tensor) -> Tensor {
-        layer_norm_f32(x, Some((&self.weight, &self.bias)), self.eps)
+        layer_norm(x, Some((&self.weight, &self.bias)), self.eps)
     }
 }
 
-/// RMSNorm over the last dimension with a learned scale (Wan's q/k norm, over the full width):
-/// normalized in fp32, cast back to the input dtype, then scaled.
+/// RMSNorm over the last dimension with a learned scale (Wan's q/k norm, over the full width),
+/// normalized in fp32. ATen's `rms_norm` (one fused kernel on CUDA) scales before the cast back to
+/// the input dtype where the reference casts, then scales: one bf16 rounding fewer.
 pub struct RmsNorm {
     pub weight: Tensor,
     eps: f64,
@@ -74,9 +75,8 @@ impl RmsNorm {
     }
 
     pub fn forward(&self, x: &Tensor) -> Tensor {
-        let xf = x.to_kind(Kind::Float);
-        let rms = (xf.square().mean_dim(-1, true, Kind::Float) + self.eps).rsqrt();
-        (xf * rms).to_kind(x.kind()) * &self.weight
+        let d = *x.size().last().expect("rms_norm on a 0-d tensor");
+        x.rms_norm([d], Some(self.weight.to_kind(x.kind())), self.eps)
     }
 }
 
@@ -93,7 +93,7 @@ pub fn attention(q: &Tensor, k: &Tensor, v: &Tensor, num_heads: i64) -> Tensor {
         .reshape([b, lq, d])
 }
 
-/// `x * (1 + scale) + shift`
+/// `x * (1 + scale) + shift`, one kernel over x (`shift` and `scale` broadcast).
 pub fn modulate(x: &Tensor, shift: &Tensor, scale: &Tensor) -> Tensor {
-    x * (scale + 1.0) + shift
+    shift.addcmul(x, &(scale + 1.0))
 }

@@ -4,10 +4,9 @@
 
 use tch::{Device, Kind, Tensor};
 
-/// cos and sin tables, each [L, 1, head_dim/2] in fp32, for a token grid (f, h, w) in row-major order.
+/// Rotations e^(i angle), [L, 1, head_dim/2] complex64, for a token grid (f, h, w) in row-major order.
 pub struct Rope {
-    cos: Tensor,
-    sin: Tensor,
+    rotations: Tensor,
 }
 
 impl Rope {
@@ -35,21 +34,17 @@ impl Rope {
             }
         }
         let shape = [len as i64, 1, pairs as i64];
-        Self {
-            cos: Tensor::from_slice(&cos).view(shape).to_device(device),
-            sin: Tensor::from_slice(&sin).view(shape).to_device(device),
-        }
+        let cos = Tensor::from_slice(&cos).view(shape);
+        let sin = Tensor::from_slice(&sin).view(shape);
+        Self { rotations: Tensor::complex(&cos, &sin).to_device(device) }
     }
 
-    /// Rotates x [B, L, heads, head_dim] in fp32 and returns it in x's dtype.
+    /// Rotates x [B, L, heads, head_dim] in fp32 and returns it in x's dtype: each pair
+    /// (x0, x1) as the complex number x0 + i x1, times its rotation (one kernel each way).
     pub fn apply(&self, x: &Tensor) -> Tensor {
         let size = x.size();
         let (b, l, n, d) = (size[0], size[1], size[2], size[3]);
-        let xf = x.to_kind(Kind::Float).view([b, l, n, d / 2, 2]);
-        let x0 = xf.select(-1, 0);
-        let x1 = xf.select(-1, 1);
-        let r0 = &x0 * &self.cos - &x1 * &self.sin;
-        let r1 = x0 * &self.sin + x1 * &self.cos;
-        Tensor::stack(&[r0, r1], -1).view([b, l, n, d]).to_kind(x.kind())
+        let pairs = x.to_kind(Kind::Float).view([b, l, n, d / 2, 2]).view_as_complex();
+        (pairs * &self.rotations).view_as_real().view([b, l, n, d]).to_kind(x.kind())
     }
 }

@@ -170,3 +170,24 @@ fn bf16_forward_stays_close_to_f32() {
     assert!(e < 2e-2, "bf16 rel err {e}");
     assert!(e > 0.0, "bf16 path must actually run in bf16");
 }
+
+#[test]
+fn a_bf16_residual_stream_stays_close_to_the_fp32_one() {
+    let cfg = tiny();
+    let mut m = BwmModel::random(&cfg, Kind::BFloat16, Device::Cpu, 11).unwrap();
+    let reference = forward(&m);
+    m.dit.residual = Kind::BFloat16;
+    let (x, t, a) = inputs(1);
+    let mut stream = Vec::new();
+    let out = tch::no_grad(|| m.forward_traced(&x, &t, &a, &mut |name, v| stream.push((name.to_string(), v.kind())))).unwrap();
+    for (name, kind) in &stream {
+        if name == "tokens_in" || name.ends_with("_out") {
+            assert_eq!(*kind, Kind::BFloat16, "{name} should be in the residual dtype");
+        }
+    }
+    assert!(stream.iter().any(|(n, _)| n == "block1_out"), "the trace saw the blocks");
+    assert_eq!(out.kind(), Kind::Float, "predictions come out in fp32");
+    let e = rel_err(&out, &reference);
+    println!("bf16 residual vs fp32 residual rel err {e:.3e}");
+    assert!(e > 0.0 && e < 2e-2, "bf16 residual rel err {e}");
+}

@@ -85,8 +85,44 @@ pub struct ModelSection {
     #[serde(default)]
     pub action: ActionConfig,
     pub dtype: Dtype,
+    /// dtype of the DiT's residual stream, its norms, modulation and gates.
+    #[serde(default)]
+    pub residual: Residual,
     #[serde(default = "default_init")]
     pub init: InitSource,
+}
+
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Residual {
+    /// fp32, as the official Wan code.
+    #[default]
+    F32,
+    /// `model.dtype`, as DiffSynth-Studio (which the BWM release trains with) runs it: half the
+    /// memory traffic of the element-wise work between the matmuls.
+    Model,
+}
+
+impl std::str::FromStr for Residual {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "f32" => Ok(Residual::F32),
+            "model" => Ok(Residual::Model),
+            _ => Err(format!("'{s}': expected f32 or model")),
+        }
+    }
+}
+
+impl Residual {
+    /// The residual stream's dtype for a model whose weights are in `model`.
+    pub fn kind(self, model: tch::Kind) -> tch::Kind {
+        match self {
+            Residual::F32 => tch::Kind::Float,
+            Residual::Model => model,
+        }
+    }
 }
 
 fn default_init() -> InitSource {

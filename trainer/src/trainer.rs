@@ -188,7 +188,8 @@ impl Trainer {
         );
 
         let clip_encoder = clip_encoder(&cfg, &cache, device)?;
-        let model = build_model(&cfg, &model_cfg, device)?;
+        let mut model = build_model(&cfg, &model_cfg, device)?;
+        model.dit.residual = cfg.model.residual.kind(cfg.model.dtype.kind());
         let named = model.store.named_parameters();
         let sharding = Sharding { rank: comm.rank(), world: comm.world_size(), sharded: cfg.train.shard_optimizer };
         let mut opt = AdamW::new(&named, &cfg.train.trainable, &cfg.train.frozen, &cfg.optim, cfg.train.steps, sharding)?;

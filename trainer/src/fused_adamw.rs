@@ -14,9 +14,17 @@ use tch::{Device, Kind, Tensor};
 /// the scalars are computed in f64 on the host, as the tensor path's are (1 - b2 rounded from an
 /// f32 b2 would be off by 1e-5).
 const SOURCE: &str = r#"
+// fp32 -> bf16, rounding to nearest even (as c10::BFloat16 and __float2bfloat16_rn).
+__device__ unsigned short to_bf16(float x) {
+  unsigned int u = __float_as_uint(x);
+  if ((u & 0x7fffffffu) > 0x7f800000u) return (unsigned short)((u >> 16) | 0x40u);
+  return (unsigned short)((u + 0x7fffu + ((u >> 16) & 1u)) >> 16);
+}
+
 extern "C" __global__ void adamw_update(const float* g, float* m, float* v, float* w, float* ema,
-    long long n, float grad_scale, float one_minus_b1, float b2, float one_minus_b2,
-    float decay, float eps, float sqrt_bc2, float lr_over_bc1, float ema_weight) {
+    float* out_f32, unsigned short* out_bf16, long long n, float grad_scale, float one_minus_b1,
+    float b2, float one_minus_b2, float decay, float eps, float sqrt_bc2, float lr_over_bc1,
+    float ema_weight) {
   for (long long i = blockIdx.x * (long long)blockDim.x + threadIdx.x; i < n;
        i += (long long)gridDim.x * blockDim.x) {
     float gi = g[i] * grad_scale;
@@ -28,6 +36,8 @@ extern "C" __global__ void adamw_update(const float* g, float* m, float* v, floa
     v[i] = vi;
     w[i] = wi;
     if (ema) ema[i] = ema[i] + ema_weight * (wi - ema[i]);
+    if (out_f32) out_f32[i] = wi;
+    if (out_bf16) out_bf16[i] = to_bf16(wi);
   }
 }
 "#;
@@ -77,11 +87,18 @@ impl FusedAdamW {
     }
 
     /// Updates `m`, `v`, `w` (and `ema`) in place from the gradient `g`: contiguous f32 tensors
-    /// of the same length on this kernel's device.
-    pub fn update(&self, g: &Tensor, m: &Tensor, v: &Tensor, w: &Tensor, ema: Option<&Tensor>, u: &Update) -> Result<()> {
+    /// of the same length on this kernel's device. `publish` (f32 or bf16, same length) receives
+    /// the updated weights `w` in its dtype, saving a pass over `w` to copy them.
+    pub fn update(&self, g: &Tensor, m: &Tensor, v: &Tensor, w: &Tensor, ema: Option<&Tensor>, publish: Option<&Tensor>, u: &Update) -> Result<()> {
         let n = g.numel();
         for t in [g, m, v, w].into_iter().chain(ema) {
             ensure!(t.kind() == Kind::Float && t.is_contiguous() && t.numel() == n && t.device() == g.device(), "fused AdamW: tensors must be contiguous f32 of one length and device");
+        }
+        if let Some(t) = publish {
+            ensure!(
+                matches!(t.kind(), Kind::Float | Kind::BFloat16) && t.is_contiguous() && t.numel() == n && t.device() == g.device(),
+                "fused AdamW: the published weights must be contiguous f32 or bf16 of the state's length and device"
+            );
         }
         if n == 0 {
             return Ok(());
@@ -89,6 +106,8 @@ impl FusedAdamW {
         self.ctx.bind_to_thread()?;
         let ptr = |t: &Tensor| t.data_ptr() as u64;
         let (pg, pm, pv, pw, pe) = (ptr(g), ptr(m), ptr(v), ptr(w), ema.map_or(0, ptr));
+        let published = |kind: Kind| publish.filter(|t| t.kind() == kind).map_or(0, ptr);
+        let (out_f32, out_bf16) = (published(Kind::Float), published(Kind::BFloat16));
         let n = n as i64;
         let f = |x: f64| x as f32;
         let decay = if u.weight_decay > 0.0 { 1.0 - u.lr * u.weight_decay } else { 1.0 };
@@ -98,9 +117,9 @@ impl FusedAdamW {
         let cfg = LaunchConfig { grid_dim: (blocks, 1, 1), block_dim: (256, 1, 1), shared_mem_bytes: 0 };
         let stream = self.ctx.default_stream();
         let mut launch = stream.launch_builder(&self.function);
-        launch.arg(&pg).arg(&pm).arg(&pv).arg(&pw).arg(&pe).arg(&n);
+        launch.arg(&pg).arg(&pm).arg(&pv).arg(&pw).arg(&pe).arg(&out_f32).arg(&out_bf16).arg(&n);
         launch.arg(&scale).arg(&one_minus_b1).arg(&b2).arg(&one_minus_b2).arg(&decay).arg(&eps).arg(&sqrt_bc2).arg(&lr_over_bc1).arg(&ema_weight);
-        // SAFETY: the pointers are live contiguous f32 CUDA buffers of n elements (checked above)
+        // SAFETY: the pointers are live contiguous CUDA buffers of n elements of their types (checked above)
         // that outlive the kernel (tch's caching allocator reuses memory in stream order, and the
         // kernel is on libtorch's stream); the arguments match the kernel's signature.
         unsafe { launch.launch(cfg) }.context("launching the fused AdamW kernel")?;

@@ -10,9 +10,8 @@ source scripts/gpu/common.sh
 RUNS=${RUNS:-"f32-0:bwm:f32:0 model-0:bwm:model:0 model-30:bwm:model:30"}
 for r in $RUNS; do
   IFS=: read -r name bin residual keep <<< "$r"
-  extra=(); [ "$residual" != f32 ] && extra=(--set "model.residual=\"$residual\"")
   dist/$bin bench-train --config configs/bwm-wan22-ti2v-5b.toml --set 'run.device="cuda"' --set train.grad_accum=1 \
-    --set train.recompute_keep_last=$keep "${extra[@]}" --steps ${STEPS:-5} --breakdown > "$OUT/$name.log" 2>&1
+    --set train.recompute_keep_last=$keep --set "model.residual=\"$residual\"" --steps ${STEPS:-5} --breakdown > "$OUT/$name.log" 2>&1
   echo "== $name (dist/$bin, residual $residual, keep $keep)"
   grep -E "^step|breakdown|^  |rror" "$OUT/$name.log" | grep -v "step      1/"
 done

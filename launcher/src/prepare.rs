@@ -9,6 +9,7 @@
 //! finds every shard done writes `index.json` (a single writer, through an exclusive lock file),
 //! or `bwm prepare --merge` does.
 
+use std::cell::{Cell, RefCell};
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 use std::sync::mpsc::{sync_channel, Receiver, SyncSender};
@@ -386,7 +387,7 @@ pub fn run(a: PrepareArgs) -> Result<()> {
     let (encoded, skipped) = std::thread::scope(|scope| -> Result<(usize, usize)> {
         let (tx, rx) = sync_channel(4);
         let handle = scope.spawn(|| reader.read(&todo, &jobs, tx));
-        let encoder = Encoder { vae: encoder_vae, device, batch: a.batch, keep_frames: a.keep_frames || a.raw, out: &a.out, index: &index, fault_after };
+        let encoder = Encoder { vae: encoder_vae, device, batch: a.batch, keep_frames: a.keep_frames || a.raw, out: &a.out, index: &index, fault_after, staging: RefCell::new([None, None]), batches: Cell::new(0) };
         let result = encoder.run(rx, &mut progress, todo_clips);
         if handle.join().is_err() {
             bail!("the frame reading thread panicked");
@@ -945,6 +946,9 @@ struct Encoder<'a> {
     out: &'a Path,
     index: &'a CacheIndex,
     fault_after: Option<usize>,
+    /// Page-locked batch buffers on CUDA, used in turn, and the batches started so far.
+    staging: RefCell<[Option<Tensor>; 2]>,
+    batches: Cell<usize>,
 }
 
 impl Encoder<'_> {
@@ -960,6 +964,9 @@ impl Encoder<'_> {
         let start = Instant::now();
         let (mut encoded, mut skipped, mut shards_written) = (0usize, 0usize, 0usize);
         let mut pending: Vec<ClipInput> = Vec::new();
+        // The batch whose encoding is queued on the device: its latents are read back only after
+        // the next batch is assembled and queued, so that the host work overlaps the encoding.
+        let mut in_flight: Option<Batch> = None;
         let mut clips: Vec<ShardClip> = Vec::new();
         let mut skips: Vec<ShardSkip> = Vec::new();
         for input in rx {
@@ -967,7 +974,10 @@ impl Encoder<'_> {
                 Input::Clip(c) => {
                     pending.push(c);
                     if pending.len() == self.batch {
-                        clips.extend(self.encode(&mut pending)?);
+                        let queued = self.start(&mut pending)?;
+                        if let Some(done) = std::mem::replace(&mut in_flight, queued) {
+                            clips.extend(self.finish(done)?);
+                        }
                     }
                 }
                 Input::Skip(s) => {
@@ -975,7 +985,10 @@ impl Encoder<'_> {
                     skips.push(s);
                 }
                 Input::End(shard) => {
-                    clips.extend(self.encode(&mut pending)?);
+                    let last = self.start(&mut pending)?;
+                    for done in [in_flight.take(), last].into_iter().flatten() {
+                        clips.extend(self.finish(done)?);
+                    }
                     let name = shard_file_name(shard);
                     let entries = if clips.is_empty() { Vec::new() } else { write_shard(self.out, self.index, &name, &clips)? };
                     encoded += entries.len();
@@ -1005,34 +1018,78 @@ impl Encoder<'_> {
         Ok((encoded, skipped))
     }
 
-    fn encode(&self, pending: &mut Vec<ClipInput>) -> Result<Vec<ShardClip>> {
+    /// Assembles the pending clips into one batch and queues its encoding on the device (no
+    /// wait for the device); `None` when nothing is pending.
+    fn start(&self, pending: &mut Vec<ClipInput>) -> Result<Option<Batch>> {
         if pending.is_empty() {
-            return Ok(Vec::new());
+            return Ok(None);
         }
         let [w, h] = self.index.resolution;
-        let (f, d) = (self.index.pixel_frames as i64, self.index.action_dim);
-        let mut bytes: Vec<u8> = Vec::with_capacity(pending.iter().map(|c| c.pixels.len()).sum());
-        for c in pending.iter() {
-            bytes.extend_from_slice(&c.pixels);
+        let f = self.index.pixel_frames as i64;
+        let clip_bytes = (f * h as i64 * w as i64 * 3) as usize;
+        if let Some(c) = pending.iter().find(|c| c.pixels.len() != clip_bytes) {
+            bail!("clip pixels ({} bytes) do not match {f} frames of {w}x{h}", c.pixels.len());
         }
-        ensure!(bytes.len() as i64 == pending.len() as i64 * f * h as i64 * w as i64 * 3, "clip pixels do not match {f} frames of {w}x{h}");
-        let pixels = Tensor::from_slice(&bytes).view([pending.len() as i64, f, h as i64, w as i64, 3]);
+        let shape = [self.batch.max(pending.len()) as i64, f, h as i64, w as i64, 3];
+        let host = if self.vae.is_some() && self.device.is_cuda() {
+            // Page-locked, so that the copy to the device is queued rather than waited for. Two
+            // buffers in turn: the one refilled now fed the batch before last, whose latents have
+            // been read back, so its copy is done.
+            let turn = self.batches.get() % 2;
+            self.batches.set(self.batches.get() + 1);
+            let mut staging = self.staging.borrow_mut();
+            if staging[turn].as_ref().is_none_or(|t| t.size() != shape) {
+                staging[turn] = Some(Tensor::empty(shape, (Kind::Uint8, Device::Cpu)).pin_memory(self.device));
+            }
+            staging[turn].as_ref().map(Tensor::shallow_clone).context("no staging buffer")?
+        } else {
+            Tensor::empty(shape, (Kind::Uint8, Device::Cpu))
+        }
+        .narrow(0, 0, pending.len() as i64);
+        ensure!(host.is_contiguous() && host.numel() == pending.len() * clip_bytes, "the batch buffer is not one contiguous block");
+        // SAFETY: `host` is a contiguous u8 CPU tensor of exactly this many bytes (checked above)
+        // that no queued copy reads any more (see the staging buffers) and no other code touches
+        // while the slice lives.
+        let buffer = unsafe { std::slice::from_raw_parts_mut(host.data_ptr() as *mut u8, host.numel()) };
+        for (dst, c) in buffer.chunks_exact_mut(clip_bytes).zip(pending.iter()) {
+            dst.copy_from_slice(&c.pixels);
+        }
         // Channels move to the front on the encoding device (a strided copy of 75 MB per 81-frame
         // 640x480 clip, slow on the host); raw clips stay on the host.
-        let pixels = if self.vae.is_some() { pixels.to_device(self.device) } else { pixels }.permute([0, 4, 1, 2, 3]);
+        let pixels = match self.vae {
+            Some(_) => host.to_device_(self.device, Kind::Uint8, true, false),
+            None => host,
+        }
+        .permute([0, 4, 1, 2, 3]);
         let latents = match self.vae {
-            Some(vae) => Some(vae.encode_u8(&pixels)?.to_device(Device::Cpu)),
+            Some(vae) => Some(vae.encode_u8(&pixels)?),
             None => None,
         };
-        Ok(pending
-            .drain(..)
+        Ok(Some(Batch { clips: std::mem::take(pending), pixels, latents }))
+    }
+
+    /// Waits for a batch's latents and turns it into shard clips.
+    fn finish(&self, batch: Batch) -> Result<Vec<ShardClip>> {
+        let (f, d) = (self.index.pixel_frames as i64, self.index.action_dim);
+        let latents = batch.latents.map(|l| l.to_device(Device::Cpu));
+        Ok(batch
+            .clips
+            .into_iter()
             .enumerate()
             .map(|(i, c)| ShardClip {
                 entry: c.entry,
                 latents: latents.as_ref().map(|l| l.get(i as i64)),
                 actions: Tensor::from_slice(&c.actions).view([f, d]),
-                frames: self.keep_frames.then(|| pixels.get(i as i64)),
+                frames: self.keep_frames.then(|| batch.pixels.get(i as i64)),
             })
             .collect())
     }
+}
+
+/// Clips whose encoding is queued: their pixels [B, 3, F, H, W] (on the device when encoding)
+/// and latents (on the device, not yet read back).
+struct Batch {
+    clips: Vec<ClipInput>,
+    pixels: Tensor,
+    latents: Option<Tensor>,
 }

@@ -602,6 +602,13 @@ impl WanVae {
 
     /// Checks a pixel video [B, 3, F, H, W]: F = 1+4k, H and W multiples of 16, finite values.
     pub fn check_video(&self, video: &Tensor) -> Result<()> {
+        self.check_video_shape(video)?;
+        ensure!(video.isfinite().all().int64_value(&[]) == 1, "video holds NaN or infinite values");
+        Ok(())
+    }
+
+    /// The shape half of `check_video` (no device sync).
+    fn check_video_shape(&self, video: &Tensor) -> Result<()> {
         let s = video.size();
         ensure!(s.len() == 5 && s[1] == 3, "video must be [B, 3, F, H, W], got shape {s:?}");
         let ts = self.cfg.temporal_stride();
@@ -613,13 +620,16 @@ impl WanVae {
             s[4],
             VaeConfig::SPATIAL_STRIDE
         );
-        ensure!(video.isfinite().all().int64_value(&[]) == 1, "video holds NaN or infinite values");
         Ok(())
     }
 
     /// Encoder output (mean and log-variance, unnormalized) [B, 2*z, 1+k, H/16, W/16].
     pub fn encode_moments(&self, video: &Tensor) -> Result<Tensor> {
         self.check_video(video)?;
+        self.encode_moments_checked(video)
+    }
+
+    fn encode_moments_checked(&self, video: &Tensor) -> Result<Tensor> {
         let x = patchify(&video.to_kind(self.mean.kind()));
         let frames = x.size()[2];
         let mut cache = FeatCache::default();
@@ -634,17 +644,22 @@ impl WanVae {
 
     /// Normalized latent means (mu - mean) / std, [B, z, 1+k, H/16, W/16]; deterministic.
     pub fn encode(&self, video: &Tensor) -> Result<Tensor> {
-        let moments = self.encode_moments(video)?;
-        let mu = moments.narrow(1, 0, self.cfg.z_dim);
-        Ok((mu - &self.mean) * &self.inv_std)
+        self.check_video(video)?;
+        self.normalized_mean(&self.encode_moments_checked(video)?)
+    }
+
+    fn normalized_mean(&self, moments: &Tensor) -> Result<Tensor> {
+        Ok((moments.narrow(1, 0, self.cfg.z_dim) - &self.mean) * &self.inv_std)
     }
 
     /// Normalized latents of u8 video [B, 3, F, H, W] (0..255), rounded to bf16 as a latent
     /// cache stores them (so encoding on the fly gives a cache's values), on the video's device.
+    /// u8 holds no NaN, so nothing waits for the device: the encoding is only queued.
     pub fn encode_u8(&self, pixels: &Tensor) -> Result<Tensor> {
         ensure!(pixels.kind() == Kind::Uint8, "pixels must be u8, got {:?}", pixels.kind());
+        self.check_video_shape(pixels)?;
         let video = pixels.to_kind(Kind::Float) / 127.5 - 1.0;
-        Ok(tch::no_grad(|| self.encode(&video))?.to_kind(Kind::BFloat16))
+        Ok(tch::no_grad(|| self.normalized_mean(&self.encode_moments_checked(&video)?))?.to_kind(Kind::BFloat16))
     }
 
     /// Starts a streaming decode of normalized latents: one latent frame in, its pixel frames out.

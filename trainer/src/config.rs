@@ -347,6 +347,9 @@ pub struct LogSection {
     /// Peak dense throughput of one device in TFLOP/s for MFU (H200/H100 bf16: 989).
     #[serde(default)]
     pub peak_tflops: Option<f64>,
+    /// Dense bf16 matmul rate measured on one device in TFLOP/s (H200: 788), reported beside MFU.
+    #[serde(default)]
+    pub matmul_tflops: Option<f64>,
 }
 
 fn one_u64() -> u64 {
@@ -355,7 +358,7 @@ fn one_u64() -> u64 {
 
 impl Default for LogSection {
     fn default() -> Self {
-        Self { every: 1, tensorboard: true, progress: true, peak_tflops: None }
+        Self { every: 1, tensorboard: true, progress: true, peak_tflops: None, matmul_tflops: None }
     }
 }
 

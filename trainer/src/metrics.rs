@@ -27,6 +27,8 @@ pub struct StepMetrics {
     pub tokens_per_s: f64,
     pub tflops: f64,
     pub mfu: Option<f64>,
+    /// Achieved TFLOP/s over the device's measured dense matmul rate (`log.matmul_tflops`).
+    pub matmul_share: Option<f64>,
     /// Device memory in use at the end of the step, MiB (CUDA only).
     pub peak_memory_mib: Option<f64>,
     /// Time the step waited for its batches (the background loader was behind), and its share
@@ -69,12 +71,18 @@ impl StepMetrics {
             tokens_per_s: tokens as f64 / seconds,
             tflops,
             mfu: peak_tflops.map(|p| tflops / p),
+            matmul_share: None,
             peak_memory_mib: crate::device_memory::used_mib(device),
             loader_wait_s: 0.0,
             loader_wait_share: 0.0,
             collective_s: 0.0,
             collective_share: 0.0,
         }
+    }
+
+    /// `rate`: the measured dense matmul TFLOP/s of all devices of the step together.
+    pub fn set_matmul_rate(&mut self, rate: f64) {
+        self.matmul_share = Some(self.tflops / rate);
     }
 
     pub fn set_loader_wait(&mut self, seconds: f64) {
@@ -109,6 +117,9 @@ impl StepMetrics {
         if let Some(m) = self.mfu {
             out.push(("perf/mfu".into(), m));
         }
+        if let Some(m) = self.matmul_share {
+            out.push(("perf/matmul_share".into(), m));
+        }
         if let Some(m) = self.peak_memory_mib {
             out.push(("perf/memory_mib".into(), m));
         }
@@ -133,6 +144,9 @@ impl StepMetrics {
         s += &format!("  {:.2} s/step  {:.1} samples/s  {:.0} tokens/s  {:.2} TFLOP/s", self.seconds, self.samples_per_s, self.tokens_per_s, self.tflops);
         if let Some(m) = self.mfu {
             s += &format!("  MFU {:.1}%", 100.0 * m);
+        }
+        if let Some(m) = self.matmul_share {
+            s += &format!("  {:.1}% of the measured matmul rate", 100.0 * m);
         }
         if let Some(m) = self.peak_memory_mib {
             s += &format!("  mem {m:.0} MiB");
@@ -182,5 +196,25 @@ impl Progress {
         if let Some(bar) = &self.bar {
             bar.finish_and_clear();
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn mfu_and_the_matmul_share_are_reported_side_by_side() {
+        // 2 samples of 1e15 model FLOPs each in 5 s: 400 TFLOP/s.
+        let mut m = StepMetrics::new(3, &[0.5, 0.7], &[10, 20], None, 5.0, 1000, 2e15, Some(1000.0), 0, Device::Cpu);
+        assert!((m.tflops - 400.0).abs() < 1e-9);
+        assert_eq!(m.mfu, Some(0.4));
+        assert_eq!(m.matmul_share, None, "no matmul rate configured");
+        m.set_matmul_rate(800.0);
+        assert_eq!(m.matmul_share, Some(0.5));
+        let line = m.summary_line(10);
+        assert!(line.contains("MFU 40.0%") && line.contains("50.0% of the measured matmul rate"), "{line}");
+        let json = serde_json::to_value(&m).unwrap();
+        assert_eq!(json["matmul_share"], 0.5);
     }
 }

@@ -376,6 +376,9 @@ impl Trainer {
         let mut m = StepMetrics::new(self.state.step, &losses, &tids, report, seconds, tokens * world as i64, model_flops, peak, self.state.nonfinite_total, self.device);
         m.samples_per_s *= world as f64;
         m.loss = global_loss;
+        if let Some(rate) = self.cfg.log.matmul_tflops {
+            m.set_matmul_rate(rate * world as f64);
+        }
         m.set_loader_wait(self.take_loader_wait());
         m.set_collective_time(self.comm.take_collective_seconds());
         Ok(m)

@@ -43,10 +43,9 @@ impl BwmModel {
         Ok(Self { cfg: cfg.clone(), dit, action_encoder, store: store.clone() })
     }
 
-    /// Random weights drawn after `tch::manual_seed(seed)`.
+    /// Random weights drawn after seeding libtorch's generator with `seed` (`vb::with_seed`).
     pub fn random(cfg: &ModelConfig, kind: Kind, device: Device, seed: i64) -> Result<Self> {
-        tch::manual_seed(seed);
-        Self::build(&ParamStore::random(kind, device), cfg)
+        crate::vb::with_seed(seed, || Self::build(&ParamStore::random(kind, device), cfg))
     }
 
     /// Weights read by name from a safetensors file, shard index or directory.

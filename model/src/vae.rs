@@ -713,11 +713,12 @@ impl DecodeStream<'_> {
 }
 
 impl WanVae {
-    /// Random weights drawn after `tch::manual_seed(seed)`.
+    /// Random weights drawn after seeding libtorch's generator with `seed` (`vb::with_seed`).
     pub fn random(cfg: &VaeConfig, kind: Kind, device: tch::Device, seed: i64) -> Result<(Self, std::rc::Rc<crate::vb::ParamStore>)> {
-        tch::manual_seed(seed);
-        let store = crate::vb::ParamStore::random(kind, device);
-        Ok((Self::new(&store.root(), cfg)?, store))
+        crate::vb::with_seed(seed, || {
+            let store = crate::vb::ParamStore::random(kind, device);
+            Ok((Self::new(&store.root(), cfg)?, store))
+        })
     }
 
     /// Weights by name (the keys of `Wan2.2_VAE.pth`) from the `.pth` itself or safetensors.

@@ -40,8 +40,18 @@ pub struct ParamStore {
     device: Device,
 }
 
+/// Runs `f` with libtorch's global generator seeded with `seed`, holding a process-wide lock so
+/// that no other thread's draws (a parallel test, a second model being built) interleave with
+/// `f`'s: the same seed then always gives the same weights.
+pub fn with_seed<T>(seed: i64, f: impl FnOnce() -> T) -> T {
+    static LOCK: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    let _guard = LOCK.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+    tch::manual_seed(seed);
+    f()
+}
+
 impl ParamStore {
-    /// Parameters drawn from libtorch's global CPU generator (seed it with `tch::manual_seed`), the
+    /// Parameters drawn from libtorch's global CPU generator (seed it with `with_seed`), the
     /// same on every device.
     pub fn random(kind: Kind, device: Device) -> Rc<Self> {
         Self::with_source(Source::Random, kind, device)

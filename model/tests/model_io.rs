@@ -6,7 +6,7 @@ mod common;
 use std::path::Path;
 
 use bwm_model::{frame_timesteps, BwmModel, Layout, ModelConfig};
-use common::{rel_err, tmp_dir};
+use common::{rel_err, tmp_dir, torch_rng};
 use tch::{Device, Kind, Tensor};
 
 fn tiny() -> ModelConfig {
@@ -40,6 +40,7 @@ fn load_err(path: &Path, layout: Layout) -> String {
 
 #[test]
 fn round_trip_layouts_and_shards() {
+    let _rng = torch_rng();
     let dir = tmp_dir("model-io");
     let m = BwmModel::random(&tiny(), Kind::Float, Device::Cpu, 3).unwrap();
     let params = m.store.named_parameters();
@@ -90,6 +91,7 @@ fn round_trip_layouts_and_shards() {
 
 #[test]
 fn bad_weight_files_name_the_file_and_the_key() {
+    let _rng = torch_rng();
     let dir = tmp_dir("bad-weights");
     let m = BwmModel::random(&tiny(), Kind::Float, Device::Cpu, 4).unwrap();
     let params = m.store.named_parameters();
@@ -133,6 +135,7 @@ fn bad_weight_files_name_the_file_and_the_key() {
 
 #[test]
 fn bad_inputs_say_what_was_expected() {
+    let _rng = torch_rng();
     let m = BwmModel::random(&tiny(), Kind::Float, Device::Cpu, 5).unwrap();
     let (x, t, a) = inputs(2);
     let err = |r: anyhow::Result<Tensor>| format!("{:#}", r.err().expect("should fail"));
@@ -158,6 +161,7 @@ fn bad_inputs_say_what_was_expected() {
 
 #[test]
 fn bf16_forward_stays_close_to_f32() {
+    let _rng = torch_rng();
     let cfg = tiny();
     let f32_model = BwmModel::random(&cfg, Kind::Float, Device::Cpu, 11).unwrap();
     let bf16_model = BwmModel::random(&cfg, Kind::BFloat16, Device::Cpu, 11).unwrap();
@@ -173,6 +177,7 @@ fn bf16_forward_stays_close_to_f32() {
 
 #[test]
 fn a_bf16_residual_stream_stays_close_to_the_fp32_one() {
+    let _rng = torch_rng();
     let cfg = tiny();
     let mut m = BwmModel::random(&cfg, Kind::BFloat16, Device::Cpu, 11).unwrap();
     let reference = forward(&m);

@@ -107,15 +107,16 @@ fn build_model(cfg: &RunConfig, model_cfg: &ModelConfig, device: Device) -> Resu
             // The DiT from the official shards; the action encoder is new, its output layers zero,
             // so at step 0 the cross-attention context is zero and the time embedding unchanged.
             let opened = bwm_checkpoints::open::open_any(&path.to_string_lossy())?;
-            tch::manual_seed(cfg.run.seed as i64);
-            let store = ParamStore::from_weights_with_fresh(
-                opened.into_source(),
-                bwm_model::bwm::ACTION_MODE_OPTIONAL,
-                &["action_encoder."],
-                kind,
-                device,
-            );
-            let model = BwmModel::build(&store, model_cfg)?;
+            let model = bwm_model::vb::with_seed(cfg.run.seed as i64, || {
+                let store = ParamStore::from_weights_with_fresh(
+                    opened.into_source(),
+                    bwm_model::bwm::ACTION_MODE_OPTIONAL,
+                    &["action_encoder."],
+                    kind,
+                    device,
+                );
+                BwmModel::build(&store, model_cfg)
+            })?;
             tch::no_grad(|| {
                 for l in [&model.action_encoder.action_mlp1.l2, &model.action_encoder.action_mlp2.l2] {
                     let _ = l.weight.shallow_clone().zero_();

@@ -31,3 +31,10 @@ pub fn tmp_dir(tag: &str) -> PathBuf {
     std::fs::create_dir_all(&dir).unwrap();
     dir
 }
+
+/// tch draws random numbers from one global generator and the tests of a binary run on parallel
+/// threads: a test that seeds the generator and relies on what it draws holds this lock.
+pub fn torch_rng() -> std::sync::MutexGuard<'static, ()> {
+    static LOCK: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    LOCK.lock().unwrap_or_else(|e| e.into_inner())
+}

@@ -331,6 +331,18 @@ pub fn check_fits(source: &dyn WeightSource, cfg: &ModelConfig, what: &str) -> R
 
 /// Builds the BWM model from weights in any layout ([`open_any`]). `cfg` defaults to the config the
 /// files carry; when both exist they must agree. `text_embedding` may be absent.
+/// The DiT residual-stream setting (`model.residual`: `f32` or `model`) the weights were trained
+/// with, when they record it: a training checkpoint's run config, or an export's `config.json`
+/// (`training.residual`). `None` for weights that do not say (official, release, foreign files).
+pub fn trained_residual(path_or_repo_id: &str) -> Result<Option<String>> {
+    let path = Path::new(path_or_repo_id);
+    if crate::export::is_training_checkpoint(path) {
+        return Ok(crate::run_info::CheckpointState::read(path)?.run.residual);
+    }
+    let opened = open_any(path_or_repo_id)?;
+    Ok(opened.repo_config.and_then(|c| c.training).and_then(|t| t.get("residual").and_then(|r| r.as_str()).map(String::from)))
+}
+
 pub fn load_model(path_or_repo_id: &str, cfg: Option<&ModelConfig>, kind: Kind, device: Device) -> Result<BwmModel> {
     let opened = open_any(path_or_repo_id)?;
     let cfg = match (cfg, &opened.config) {

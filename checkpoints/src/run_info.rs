@@ -34,6 +34,8 @@ struct ModelPart {
     #[serde(default)]
     dtype: Option<String>,
     #[serde(default)]
+    residual: Option<String>,
+    #[serde(default)]
     init: Option<toml::Value>,
 }
 
@@ -97,6 +99,8 @@ pub struct RunInfo {
     pub model: ModelConfig,
     /// `f32` or `bf16`: the training dtype.
     pub dtype: Option<String>,
+    /// `f32` or `model`: the DiT's residual stream in training (`model.residual`; absent = f32).
+    pub residual: Option<String>,
     pub init: InitInfo,
     pub latent_cache: Option<PathBuf>,
     pub holdout_clips: usize,
@@ -141,6 +145,7 @@ impl RunInfo {
             preset: raw.model.preset,
             model,
             dtype: raw.model.dtype,
+            residual: raw.model.residual,
             init,
             latent_cache: raw.data.latent_cache,
             holdout_clips: raw.data.holdout_clips,

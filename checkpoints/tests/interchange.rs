@@ -9,7 +9,7 @@ use std::path::Path;
 use bwm_checkpoints::convert::{convert_dit, convert_vae, ConvertOptions, VaeNaming};
 use bwm_checkpoints::export::{export, ExportDtype, ExportOptions};
 use bwm_checkpoints::keymap::{detect_layout, from_layout, to_layout, DitLayout};
-use bwm_checkpoints::open::{load_model, open_any};
+use bwm_checkpoints::open::{load_model, open_any, trained_residual};
 use bwm_checkpoints::repo::RepoConfig;
 use bwm_checkpoints::write_tensors;
 use bwm_model::{BwmModel, ModelConfig, ParamStore};
@@ -97,6 +97,24 @@ fn export_then_load_gives_identical_tensors_in_every_layout() {
             assert!(leftovers.is_empty(), "{leftovers:?}");
         }
     }
+    std::fs::remove_dir_all(&root).ok();
+}
+
+#[test]
+fn the_trained_residual_setting_travels_from_the_run_to_the_export() {
+    let root = tmp_dir("residual");
+    let model = random_model(&tiny(), 13);
+    let ckpt = fake_run(&root, &model, &|c| run_toml("res", "tiny", None, c).replace("dtype = \"f32\"\n", "dtype = \"f32\"\nresidual = \"model\"\n"));
+    assert_eq!(trained_residual(ckpt.to_str().unwrap()).unwrap().as_deref(), Some("model"), "the training checkpoint's run config");
+    let out = root.join("out");
+    export(ckpt.to_str().unwrap(), &out, &ExportOptions { dtype: ExportDtype::F32, ..Default::default() }, &mut |_| {}).unwrap();
+    assert_eq!(trained_residual(out.to_str().unwrap()).unwrap().as_deref(), Some("model"), "the export's config.json");
+    // A run that does not set it, and weights that do not record it.
+    let plain = fake_run(&root.join("plain"), &model, &|c| run_toml("plain", "tiny", None, c));
+    assert_eq!(trained_residual(plain.to_str().unwrap()).unwrap(), None);
+    let file = root.join("bare.safetensors");
+    write_tensors(&file, &trained(&model).into_iter().collect::<Vec<_>>(), &BTreeMap::new()).unwrap();
+    assert_eq!(trained_residual(file.to_str().unwrap()).unwrap(), None);
     std::fs::remove_dir_all(&root).ok();
 }
 

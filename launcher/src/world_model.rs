@@ -44,8 +44,9 @@ pub struct WorldModelArgs {
     pub dtype: String,
     /// dtype of the DiT's residual stream: f32 (the official Wan code) or model (the weights'
     /// dtype, as DiffSynth-Studio, which the BWM release trains and samples with; faster).
-    #[arg(long, default_value = "f32")]
-    pub residual: Residual,
+    /// Default: what the checkpoint was trained with (its run config's `model.residual`), else f32.
+    #[arg(long)]
+    pub residual: Option<Residual>,
     /// History frames H in each chunk's condition (the training clips' H).
     #[arg(long, default_value_t = 8)]
     pub history: usize,
@@ -102,7 +103,15 @@ impl WorldModelArgs {
             (None, Some(name)) => BwmModel::random(&ModelConfig::preset(name)?, kind, device, self.seed as i64)?,
             (None, None) => bail!("pass --checkpoint (trained weights) or --random-weights PRESET"),
         };
-        model.dit.residual = self.residual.kind(kind);
+        let residual = match (self.residual, &self.checkpoint) {
+            (Some(r), _) => r,
+            (None, Some(ckpt)) => match bwm_checkpoints::open::trained_residual(ckpt).with_context(|| format!("--checkpoint {ckpt}"))? {
+                Some(r) => r.parse().map_err(|e: String| anyhow::anyhow!("--checkpoint {ckpt}: model.residual {e}"))?,
+                None => Residual::default(),
+            },
+            (None, None) => Residual::default(),
+        };
+        model.dit.residual = residual.kind(kind);
         let vae = match &self.vae {
             Some(path) => WanVae::load_any(path, kind, device).with_context(|| format!("--vae {}", path.display()))?,
             None => WanVae::random(&VaeConfig::wan22(), kind, device, self.seed as i64)?.0,

@@ -189,6 +189,9 @@ fn open_dir(dir: &Path) -> Result<OpenedWeights> {
     if let Some(cfg) = RepoConfig::read(dir)? {
         return open_export(dir, cfg);
     }
+    if crate::export::is_training_checkpoint(dir) {
+        return open_training_checkpoint(dir);
+    }
     let config_json = read_json(&dir.join(CONFIG_FILE))?;
     let class = config_json.as_ref().and_then(|c| c.get("_class_name")).and_then(|c| c.as_str()).unwrap_or_default().to_string();
     let has_weights_here = std::fs::read_dir(dir)
@@ -222,6 +225,18 @@ fn open_dir(dir: &Path) -> Result<OpenedWeights> {
     let file = component_weights(dir)?;
     let (source, kinds) = open_file(&file)?;
     let mut opened = from_detected(source, kinds, &file, foreign_cfg)?;
+    opened.location = dir.to_path_buf();
+    Ok(opened)
+}
+
+/// A training checkpoint folder: its `model.safetensors` (the trained tensors), under the model
+/// config of the run that wrote it.
+fn open_training_checkpoint(dir: &Path) -> Result<OpenedWeights> {
+    let state = crate::run_info::CheckpointState::read(dir)?;
+    let model_file = dir.join("model.safetensors");
+    ensure!(model_file.is_file(), "{}: no model.safetensors; not a complete training checkpoint", dir.display());
+    let mut opened = open_local(&model_file)?;
+    opened.config = Some(state.run.model);
     opened.location = dir.to_path_buf();
     Ok(opened)
 }
@@ -329,22 +344,26 @@ pub fn check_fits(source: &dyn WeightSource, cfg: &ModelConfig, what: &str) -> R
     Ok(())
 }
 
-/// Builds the BWM model from weights in any layout ([`open_any`]). `cfg` defaults to the config the
-/// files carry; when both exist they must agree. `text_embedding` may be absent.
-/// The DiT residual-stream setting (`model.residual`: `f32` or `model`) the weights were trained
-/// with, when they record it: a training checkpoint's run config, or an export's `config.json`
-/// (`training.residual`). `None` for weights that do not say (official, release, foreign files).
-pub fn trained_residual(path_or_repo_id: &str) -> Result<Option<String>> {
-    let path = Path::new(path_or_repo_id);
-    if crate::export::is_training_checkpoint(path) {
-        return Ok(crate::run_info::CheckpointState::read(path)?.run.residual);
+/// The DiT residual-stream setting (`model.residual`: `f32` or `model`) the opened weights were
+/// trained with, when they record it: a training checkpoint's run config, or an export's
+/// `config.json` (`training.residual`). `None` for weights that do not say (official, release,
+/// foreign files).
+pub fn trained_residual(opened: &OpenedWeights) -> Result<Option<String>> {
+    if crate::export::is_training_checkpoint(&opened.location) {
+        return Ok(crate::run_info::CheckpointState::read(&opened.location)?.run.residual);
     }
-    let opened = open_any(path_or_repo_id)?;
-    Ok(opened.repo_config.and_then(|c| c.training).and_then(|t| t.get("residual").and_then(|r| r.as_str()).map(String::from)))
+    let training = opened.repo_config.as_ref().and_then(|c| c.training.as_ref());
+    Ok(training.and_then(|t| t.get("residual")).and_then(|r| r.as_str()).map(String::from))
 }
 
+/// Builds the BWM model from weights in any layout ([`open_any`]). `cfg` defaults to the config the
+/// files carry; when both exist they must agree. `text_embedding` may be absent.
 pub fn load_model(path_or_repo_id: &str, cfg: Option<&ModelConfig>, kind: Kind, device: Device) -> Result<BwmModel> {
-    let opened = open_any(path_or_repo_id)?;
+    build_model(open_any(path_or_repo_id)?, cfg, kind, device)
+}
+
+/// [`load_model`] from weights already opened.
+pub fn build_model(opened: OpenedWeights, cfg: Option<&ModelConfig>, kind: Kind, device: Device) -> Result<BwmModel> {
     let cfg = match (cfg, &opened.config) {
         (Some(given), Some(stored)) if opened.repo_config.is_some() && given != stored => bail!(
             "{}: the weights were exported for model config {:?}, not the requested {:?}",

@@ -105,16 +105,20 @@ fn the_trained_residual_setting_travels_from_the_run_to_the_export() {
     let root = tmp_dir("residual");
     let model = random_model(&tiny(), 13);
     let ckpt = fake_run(&root, &model, &|c| run_toml("res", "tiny", None, c).replace("dtype = \"f32\"\n", "dtype = \"f32\"\nresidual = \"model\"\n"));
-    assert_eq!(trained_residual(ckpt.to_str().unwrap()).unwrap().as_deref(), Some("model"), "the training checkpoint's run config");
+    let residual = |path: &Path| trained_residual(&open_any(path.to_str().unwrap()).unwrap()).unwrap();
+    assert_eq!(residual(&ckpt).as_deref(), Some("model"), "the training checkpoint's run config");
+    // The checkpoint folder itself loads as a model, under its run's config.
+    let back = load_model(ckpt.to_str().unwrap(), None, Kind::Float, Device::Cpu).unwrap();
+    assert_same(&trained(&back), &trained(&model), Kind::Float, "training checkpoint folder");
     let out = root.join("out");
     export(ckpt.to_str().unwrap(), &out, &ExportOptions { dtype: ExportDtype::F32, ..Default::default() }, &mut |_| {}).unwrap();
-    assert_eq!(trained_residual(out.to_str().unwrap()).unwrap().as_deref(), Some("model"), "the export's config.json");
+    assert_eq!(residual(&out).as_deref(), Some("model"), "the export's config.json");
     // A run that does not set it, and weights that do not record it.
     let plain = fake_run(&root.join("plain"), &model, &|c| run_toml("plain", "tiny", None, c));
-    assert_eq!(trained_residual(plain.to_str().unwrap()).unwrap(), None);
+    assert_eq!(residual(&plain), None);
     let file = root.join("bare.safetensors");
     write_tensors(&file, &trained(&model).into_iter().collect::<Vec<_>>(), &BTreeMap::new()).unwrap();
-    assert_eq!(trained_residual(file.to_str().unwrap()).unwrap(), None);
+    assert_eq!(residual(&file), None);
     std::fs::remove_dir_all(&root).ok();
 }
 

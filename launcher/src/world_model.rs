@@ -4,6 +4,7 @@
 use std::path::PathBuf;
 
 use anyhow::{bail, ensure, Context, Result};
+use bwm_checkpoints::open::{build_model, open_any, trained_residual};
 use bwm_data::ActionStats;
 use bwm_model::rollout::{default_history_sigma, Rollout, RolloutSpec};
 use bwm_model::vae::{VaeConfig, WanVae};
@@ -97,21 +98,18 @@ impl WorldModelArgs {
             s => parse_kind(s)?,
         };
         let preset = self.model_preset.as_deref().map(ModelConfig::preset).transpose()?;
-        let mut model = match (&self.checkpoint, &self.random_weights) {
-            (Some(ckpt), _) => bwm_checkpoints::open::load_model(ckpt, preset.as_ref(), kind, device)
-                .with_context(|| format!("--checkpoint {ckpt}"))?,
-            (None, Some(name)) => BwmModel::random(&ModelConfig::preset(name)?, kind, device, self.seed as i64)?,
+        // The residual stream the weights were trained with, unless --residual says otherwise.
+        let (mut model, trained) = match (&self.checkpoint, &self.random_weights) {
+            (Some(ckpt), _) => {
+                let opened = open_any(ckpt).with_context(|| format!("--checkpoint {ckpt}"))?;
+                let trained = trained_residual(&opened).with_context(|| format!("--checkpoint {ckpt}"))?;
+                let trained = trained.map(|r| r.parse::<Residual>().map_err(|e| anyhow::anyhow!("--checkpoint {ckpt}: model.residual {e}"))).transpose()?;
+                (build_model(opened, preset.as_ref(), kind, device).with_context(|| format!("--checkpoint {ckpt}"))?, trained)
+            }
+            (None, Some(name)) => (BwmModel::random(&ModelConfig::preset(name)?, kind, device, self.seed as i64)?, None),
             (None, None) => bail!("pass --checkpoint (trained weights) or --random-weights PRESET"),
         };
-        let residual = match (self.residual, &self.checkpoint) {
-            (Some(r), _) => r,
-            (None, Some(ckpt)) => match bwm_checkpoints::open::trained_residual(ckpt).with_context(|| format!("--checkpoint {ckpt}"))? {
-                Some(r) => r.parse().map_err(|e: String| anyhow::anyhow!("--checkpoint {ckpt}: model.residual {e}"))?,
-                None => Residual::default(),
-            },
-            (None, None) => Residual::default(),
-        };
-        model.dit.residual = residual.kind(kind);
+        model.dit.residual = self.residual.or(trained).unwrap_or_default().kind(kind);
         let vae = match &self.vae {
             Some(path) => WanVae::load_any(path, kind, device).with_context(|| format!("--vae {}", path.display()))?,
             None => WanVae::random(&VaeConfig::wan22(), kind, device, self.seed as i64)?.0,

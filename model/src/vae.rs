@@ -644,12 +644,11 @@ impl WanVae {
 
     /// Normalized latent means (mu - mean) / std, [B, z, 1+k, H/16, W/16]; deterministic.
     pub fn encode(&self, video: &Tensor) -> Result<Tensor> {
-        self.check_video(video)?;
-        self.normalized_mean(&self.encode_moments_checked(video)?)
+        Ok(self.normalized_mean(&self.encode_moments(video)?))
     }
 
-    fn normalized_mean(&self, moments: &Tensor) -> Result<Tensor> {
-        Ok((moments.narrow(1, 0, self.cfg.z_dim) - &self.mean) * &self.inv_std)
+    fn normalized_mean(&self, moments: &Tensor) -> Tensor {
+        (moments.narrow(1, 0, self.cfg.z_dim) - &self.mean) * &self.inv_std
     }
 
     /// Normalized latents of u8 video [B, 3, F, H, W] (0..255), rounded to bf16 as a latent
@@ -659,7 +658,8 @@ impl WanVae {
         ensure!(pixels.kind() == Kind::Uint8, "pixels must be u8, got {:?}", pixels.kind());
         self.check_video_shape(pixels)?;
         let video = pixels.to_kind(Kind::Float) / 127.5 - 1.0;
-        Ok(tch::no_grad(|| self.normalized_mean(&self.encode_moments_checked(&video)?))?.to_kind(Kind::BFloat16))
+        let latents = tch::no_grad(|| self.encode_moments_checked(&video).map(|m| self.normalized_mean(&m)))?;
+        Ok(latents.to_kind(Kind::BFloat16))
     }
 
     /// Starts a streaming decode of normalized latents: one latent frame in, its pixel frames out.

@@ -65,6 +65,17 @@ fn yes() -> bool {
 }
 
 impl CacheIndex {
+    /// [3, F_pixel, H, W]: a clip's pixel frames.
+    pub fn frame_shape(&self) -> Vec<i64> {
+        let [w, h] = self.resolution;
+        vec![3, self.pixel_frames as i64, h as i64, w as i64]
+    }
+
+    /// [F_pixel, d_a]: a clip's actions.
+    pub fn action_shape(&self) -> Vec<i64> {
+        vec![self.pixel_frames as i64, self.action_dim]
+    }
+
     /// An index without clips yet, for clips of x0 + `history` + `future` pixel frames.
     pub fn new(latent_shape: Vec<i64>, action_dim: i64, history: usize, future: usize, resolution: [u32; 2], fps: f64, vae: impl Into<String>) -> Self {
         Self {
@@ -294,11 +305,10 @@ impl LatentCache {
     /// `latents` or `actions` of a clip, checked against the index's shapes.
     fn field(&self, file: &mut ShardReader, name: &str, row: Option<usize>) -> Result<Field> {
         let f = file.read(name, row)?.with_context(|| format!("{}: no '{name}' tensor", file.path.display()))?;
-        let [w, h] = self.index.resolution;
         let expected = match name {
             "latents" => self.index.latent_shape.clone(),
-            "frames" => vec![3, self.index.pixel_frames as i64, h as i64, w as i64],
-            _ => vec![self.index.pixel_frames as i64, self.index.action_dim],
+            "frames" => self.index.frame_shape(),
+            _ => self.index.action_shape(),
         };
         ensure!(f.shape == expected, "{}: {name} have shape {:?}, the index says {expected:?}", file.path.display(), f.shape);
         Ok(f)
@@ -423,7 +433,7 @@ fn check_clip(index: &CacheIndex, c: &ShardClip) -> Result<()> {
         (None, true) => bail!("a clip of episode {} has no latents", c.entry.episode),
     }
     ensure!(
-        c.actions.size() == [index.pixel_frames as i64, index.action_dim],
+        c.actions.size() == index.action_shape(),
         "actions {:?} do not match [{}, {}]",
         c.actions.size(),
         index.pixel_frames,
@@ -432,13 +442,7 @@ fn check_clip(index: &CacheIndex, c: &ShardClip) -> Result<()> {
     ensure!(c.entry.frames.len() == index.pixel_frames, "the clip lists {} frame ids, the cache has {} pixel frames", c.entry.frames.len(), index.pixel_frames);
     if index.has_frames {
         let Some(f) = &c.frames else { bail!("this cache keeps pixel frames; a clip of episode {} has none", c.entry.episode) };
-        let [w, h] = index.resolution;
-        ensure!(
-            f.size() == [3, index.pixel_frames as i64, h as i64, w as i64],
-            "pixel frames {:?} do not match [3, {}, {h}, {w}]",
-            f.size(),
-            index.pixel_frames
-        );
+        ensure!(f.size() == index.frame_shape(), "pixel frames {:?} do not match {:?}", f.size(), index.frame_shape());
     }
     Ok(())
 }

@@ -124,18 +124,21 @@ impl ClipBatch {
     /// [B, C, F, h, w] f32 latents (None for raw clips), [B, F_pixel, d_a] f32 actions, as CPU tensors.
     pub fn tensors(&self, cache: &LatentCache) -> (Option<Tensor>, Tensor) {
         let b = self.clips as i64;
-        let latent_shape: Vec<i64> = std::iter::once(b).chain(cache.index.latent_shape.iter().copied()).collect();
         (
-            cache.index.has_latents.then(|| Tensor::from_slice(&self.latents).view(latent_shape.as_slice())),
-            Tensor::from_slice(&self.actions).view([b, cache.index.pixel_frames as i64, cache.index.action_dim]),
+            cache.index.has_latents.then(|| Tensor::from_slice(&self.latents).view(batched(b, cache.index.latent_shape.clone()).as_slice())),
+            Tensor::from_slice(&self.actions).view(batched(b, cache.index.action_shape()).as_slice()),
         )
     }
 
     /// [B, 3, F_pixel, H, W] u8 pixel frames of raw clips (None otherwise), a CPU tensor.
     pub fn frames(&self, cache: &LatentCache) -> Option<Tensor> {
-        let [w, h] = cache.index.resolution;
-        (!cache.index.has_latents).then(|| Tensor::from_slice(&self.frames).view([self.clips as i64, 3, cache.index.pixel_frames as i64, h as i64, w as i64]))
+        (!cache.index.has_latents).then(|| Tensor::from_slice(&self.frames).view(batched(self.clips as i64, cache.index.frame_shape()).as_slice()))
     }
+}
+
+/// `shape` with a leading batch dimension `b`.
+fn batched(b: i64, shape: Vec<i64>) -> Vec<i64> {
+    std::iter::once(b).chain(shape).collect()
 }
 
 /// A prefetcher of cache batches: key = the clip indices of a batch.

@@ -443,14 +443,15 @@ impl NcclCollective {
         start + budget
     }
 
-    /// Enqueues one collective on `stream` between two timing events.
+    /// Enqueues one collective on `stream` between two timing events; returns when it started and
+    /// its deadline.
     fn launch(
         &mut self,
         what: &str,
         seq: u64,
         stream: cuda_sys::CUstream,
         launch: impl FnOnce(nccl::ncclComm_t, nccl::cudaStream_t) -> Nr,
-    ) -> Result<()> {
+    ) -> Result<(Instant, Instant)> {
         let start = Instant::now();
         let deadline = self.deadline(start);
         if self.timers.len() >= 1024 {
@@ -473,7 +474,7 @@ impl NcclCollective {
             (Ok(begin), Ok(end)) if unsafe { cuda::event::record(end, stream) }.is_ok() => self.timers.push((begin, end)),
             (a, b) => self.spare_timers.extend(a.into_iter().chain(b)),
         }
-        Ok(())
+        Ok((start, deadline))
     }
 
     /// Adds the GPU time of the collectives that completed to `collective_time` (those still
@@ -526,13 +527,11 @@ impl NcclCollective {
     fn run(&mut self, op: Op, detail: String, launch: impl FnOnce(nccl::ncclComm_t, nccl::cudaStream_t) -> Nr) -> Result<()> {
         let (what, seq) = self.begin(op, &detail)?;
         self.join_side_stream(&what)?;
-        let start = Instant::now();
-        self.launch(&what, seq, std::ptr::null_mut(), launch)?;
+        let (start, deadline) = self.launch(&what, seq, std::ptr::null_mut(), launch)?;
         // SAFETY: our event, recorded on the legacy default stream (null handle).
         if let Err(e) = unsafe { cuda::event::record(self.done, std::ptr::null_mut()) } {
             return Err(self.abort(format!("{what}: recording the completion event failed: {e}")));
         }
-        let deadline = self.deadline(start);
         self.wait_until(&what, seq, start, deadline, Self::launched_work_done)
     }
 

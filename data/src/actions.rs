@@ -1,7 +1,7 @@
 //! The action definition: which per-frame column and which of its indices form the action vector,
 //! in order, and the optional explicit conversions applied after the selection.
 
-use anyhow::{ensure, Result};
+use anyhow::{ensure, Context, Result};
 use serde::{Deserialize, Serialize};
 
 use crate::defect::{defect, DefectKind};
@@ -105,6 +105,35 @@ impl ActionSpec {
                 "unknown action preset '{name}' (presets: eef_abs, joint_abs, eef_delta, joint_delta, robotwin_eef_abs)"
             ),
         })
+    }
+
+    /// An action definition as users write it: a preset name, `COLUMN:INDICES` (e.g.
+    /// `observation.state:0-5,7`; statistics under the column's name), or a JSON file holding an
+    /// action spec.
+    pub fn parse(arg: &str) -> Result<Self> {
+        if arg.ends_with(".json") {
+            let text = std::fs::read_to_string(arg).with_context(|| format!("action spec: reading {arg}"))?;
+            let spec: Self = serde_json::from_str(&text).with_context(|| format!("{arg} is not an action spec"))?;
+            spec.validate().with_context(|| format!("action spec {arg}"))?;
+            return Ok(spec);
+        }
+        let Some((column, list)) = arg.split_once(':') else { return Self::preset(arg) };
+        let mut indices = Vec::new();
+        for part in list.split(',').map(str::trim) {
+            let parse = |s: &str| s.trim().parse::<usize>().with_context(|| format!("actions {arg}: '{s}' is not an index"));
+            match part.split_once('-') {
+                Some((lo, hi)) => {
+                    let (lo, hi) = (parse(lo)?, parse(hi)?);
+                    ensure!(lo <= hi, "actions {arg}: range {lo}-{hi} is reversed");
+                    indices.extend(lo..=hi);
+                }
+                None => indices.push(parse(part)?),
+            }
+        }
+        ensure!(!column.is_empty(), "actions {arg}: no column name before ':'");
+        let spec = Self::plain(column, &indices, column);
+        spec.validate().with_context(|| format!("actions {arg}"))?;
+        Ok(spec)
     }
 
     fn plain(column: &str, indices: &[usize], stats_group: &str) -> Self {
@@ -225,6 +254,17 @@ pub fn quat_to_rpy(q: [f32; 4], order: QuatOrder) -> Option<[f32; 3]> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn parse_reads_presets_column_indices_and_refuses_bad_lists() {
+        assert_eq!(ActionSpec::parse("eef_abs").unwrap(), ActionSpec::eef_abs());
+        let spec = ActionSpec::parse("observation.state:0-2,5").unwrap();
+        assert_eq!((spec.column.as_str(), spec.indices.as_slice(), spec.stats_group.as_str()), ("observation.state", &[0, 1, 2, 5][..], "observation.state"));
+        for bad in ["observation.state:3-1", "observation.state:a", ":0-3", "nonsense"] {
+            assert!(ActionSpec::parse(bad).is_err(), "{bad} was accepted");
+        }
+        assert!(ActionSpec::parse("/nonexistent/spec.json").unwrap_err().to_string().contains("reading"));
+    }
     use crate::defect::classify;
 
     /// q = qz(yaw) * qy(pitch) * qx(roll), as (w, x, y, z).

@@ -108,6 +108,26 @@ pub fn write_mp4(path: &Path, frames: &[RgbImage], fps: f64) -> Result<()> {
     write_mp4_with(path, frames, fps, encoder)
 }
 
+/// Whether this build reads and writes video (the `video` feature).
+pub const AVAILABLE: bool = cfg!(feature = "video");
+
+/// `frames` as an mp4 at `path` when this build has video, else as a PNG contact sheet (rows of
+/// `per_row` frames) beside it with the extension `png`, so that builds without FFmpeg (the GPU
+/// machines) still leave something to look at. Returns the path written.
+pub fn write_mp4_or_sheet(path: &Path, frames: &[RgbImage], fps: f64, per_row: usize) -> Result<PathBuf> {
+    if AVAILABLE {
+        write_mp4(path, frames, fps)?;
+        return Ok(path.to_path_buf());
+    }
+    let rows: Vec<Vec<RgbImage>> = frames.chunks(per_row.max(1)).map(<[RgbImage]>::to_vec).collect();
+    let sheet = crate::frames::frame_strip(&rows).with_context(|| format!("contact sheet for {}", path.display()))?;
+    let png = path.with_extension("png");
+    let tmp = temp_path(&png)?;
+    sheet.save_with_format(&tmp, image::ImageFormat::Png).with_context(|| format!("writing {}", png.display()))?;
+    std::fs::rename(&tmp, &png).with_context(|| format!("renaming {} to {}", tmp.display(), png.display()))?;
+    Ok(png)
+}
+
 /// `write_mp4` with a chosen encoder. The file is written under a temporary name in the same
 /// directory and renamed when complete, so `path` never holds a partial video.
 pub fn write_mp4_with(path: &Path, frames: &[RgbImage], fps: f64, encoder: Mp4Encoder) -> Result<()> {

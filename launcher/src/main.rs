@@ -7,6 +7,7 @@ mod convert;
 mod demo;
 mod evaluate;
 mod export;
+mod fidelity;
 mod launch;
 mod msgpack_numpy;
 mod prepare;
@@ -43,6 +44,9 @@ enum Command {
     /// Data engine: roll the world model out from each episode's first frame with recorded, file or
     /// perturbed actions, and write the result as a LeRobot v2.1 dataset.
     Rollout(rollout::RolloutArgs),
+    /// Score the world model on held-out episodes: whole-episode rollouts driven by their own and
+    /// by another episode's actions, PSNR/SSIM per frame and at horizons, against copy-last-frame.
+    Fidelity(fidelity::FidelityArgs),
     /// Evaluate policies served over openpi's websocket protocol in closed loop with the world
     /// model: success judge, per-task success rates, agreement with reference rates.
     Evaluate(evaluate::EvaluateArgs),
@@ -82,6 +86,7 @@ fn main() {
         Command::Stats(a) => stats::run(a),
         Command::Prepare(a) => prepare::run(a),
         Command::Rollout(a) => rollout::run(a),
+        Command::Fidelity(a) => fidelity::run(a),
         Command::Evaluate(a) => evaluate::run(a),
         Command::Serve(a) => serve::run(a),
         Command::Launch(a) => launch::run(a),

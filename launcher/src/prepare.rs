@@ -443,7 +443,7 @@ fn rank_and_world(rank: Option<usize>, world: Option<usize>) -> Result<(usize, u
     Ok((rank, world))
 }
 
-/// A preset name, COLUMN:INDICES, or a JSON action spec file; None picks by dataset format.
+/// `--actions` (see `ActionSpec::parse`); None picks by dataset format.
 fn action_spec(arg: Option<&str>, data: &Path) -> Result<ActionSpec> {
     let Some(arg) = arg else {
         let robotwin = !data.join("demo.jsonl").is_file()
@@ -451,30 +451,7 @@ fn action_spec(arg: Option<&str>, data: &Path) -> Result<ActionSpec> {
             && (matches!(data.extension().and_then(|e| e.to_str()), Some("hdf5" | "h5")) || (data.is_dir() && bwm_data::robotwin::has_hdf5_files(data)?));
         return Ok(if robotwin { ActionSpec::robotwin_eef_abs() } else { ActionSpec::eef_abs() });
     };
-    if arg.ends_with(".json") {
-        let text = std::fs::read_to_string(arg).with_context(|| format!("--actions: reading {arg}"))?;
-        let spec: ActionSpec = serde_json::from_str(&text).with_context(|| format!("--actions: {arg} is not an action spec"))?;
-        spec.validate().with_context(|| format!("--actions {arg}"))?;
-        return Ok(spec);
-    }
-    if let Some((column, list)) = arg.split_once(':') {
-        let mut indices = Vec::new();
-        for part in list.split(',').map(str::trim) {
-            let parse = |s: &str| s.trim().parse::<usize>().with_context(|| format!("--actions {arg}: '{s}' is not an index"));
-            match part.split_once('-') {
-                Some((lo, hi)) => {
-                    let (lo, hi) = (parse(lo)?, parse(hi)?);
-                    ensure!(lo <= hi, "--actions {arg}: range {lo}-{hi} is reversed");
-                    indices.extend(lo..=hi);
-                }
-                None => indices.push(parse(part)?),
-            }
-        }
-        let spec = ActionSpec { column: column.to_string(), indices, stats_group: column.to_string(), quat_to_euler: vec![], absolute_to_delta: vec![] };
-        spec.validate().with_context(|| format!("--actions {arg}"))?;
-        return Ok(spec);
-    }
-    ActionSpec::preset(arg)
+    ActionSpec::parse(arg).context("--actions")
 }
 
 fn camera_selection(cameras: &[String]) -> CameraSelection {

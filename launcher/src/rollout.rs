@@ -57,7 +57,8 @@ pub struct RolloutArgs {
     /// Action CSV files hold normalized values (default: raw, normalized with --stats).
     #[arg(long)]
     normalized: bool,
-    /// How the dataset's action vectors are read (eef_abs, joint_abs, eef_delta, joint_delta, robotwin_eef_abs).
+    /// How the dataset's action vectors are read: a preset (eef_abs, joint_abs, eef_delta,
+    /// joint_delta, robotwin_eef_abs), COLUMN:INDICES (e.g. observation.state:0-3) or a spec JSON file.
     #[arg(long, default_value = "eef_abs")]
     actions: String,
     /// Cameras; several are stacked top to bottom (default: the dataset's default camera).
@@ -163,7 +164,7 @@ pub fn run(mut a: RolloutArgs) -> Result<()> {
             std::fs::create_dir_all(&compare_dir)?;
             let (p, s) = compare(&frames, truth)?;
             let side: Vec<RgbImage> = truth.iter().zip(&frames).map(|(t, g)| side_by_side(t, g)).collect();
-            bwm_data::video::write_mp4(&compare_dir.join(format!("episode_{episode:06}.mp4")), &side, job.fps)?;
+            bwm_data::video::write_mp4_or_sheet(&compare_dir.join(format!("episode_{episode:06}.mp4")), &side, job.fps, 16)?;
             metrics.push(serde_json::json!({ "episode_index": episode, "source": job.name, "frames": frames.len(), "psnr": p, "ssim": s }));
             println!("  {}: episode {episode}, {} frames, PSNR {p:.2} dB, SSIM {s:.4} ({:.1} s)", job.name, frames.len(), t0.elapsed().as_secs_f64());
         } else {
@@ -188,14 +189,19 @@ pub fn run(mut a: RolloutArgs) -> Result<()> {
     Ok(())
 }
 
-/// The generated episode: x0, then one frame per action after the first.
 fn generate(wm: &WorldModel, job: &Job, progress: &mut dyn FnMut(usize, usize, usize)) -> Result<Vec<RgbImage>> {
-    let total = job.normalized.size()[0] as usize;
-    let x0 = frames_to_tensor(std::slice::from_ref(&job.x0))?.squeeze_dim(1);
-    let mut rollout = wm.rollout(&x0, &job.normalized.get(0))?;
-    let mut frames = vec![job.x0.clone()];
+    generate_frames(wm, &job.x0, &job.normalized, progress)
+}
+
+/// An episode generated from `x0` driven by `normalized` actions [T, d_a] (row 0 belongs to x0):
+/// x0, then one frame per action after the first. `progress(chunk, T, frames so far)`.
+pub fn generate_frames(wm: &WorldModel, x0: &RgbImage, normalized: &Tensor, progress: &mut dyn FnMut(usize, usize, usize)) -> Result<Vec<RgbImage>> {
+    let total = normalized.size()[0] as usize;
+    let x0_t = frames_to_tensor(std::slice::from_ref(x0))?.squeeze_dim(1);
+    let mut rollout = wm.rollout(&x0_t, &normalized.get(0))?;
+    let mut frames = vec![x0.clone()];
     if total > 1 {
-        rollout.run(&job.normalized.narrow(0, 1, total as i64 - 1), &mut |chunk| {
+        rollout.run(&normalized.narrow(0, 1, total as i64 - 1), &mut |chunk| {
             frames.extend(tensor_to_frames(&chunk.frames)?);
             progress(chunk.index, total, frames.len());
             Ok(())
@@ -224,7 +230,7 @@ fn plan(a: &RolloutArgs, wm: &WorldModel, size: (u32, u32)) -> Result<Vec<Job>> 
     }
     let data = a.data.as_ref().context("--data or --inputs")?;
     let source = open_dataset(data)?;
-    let spec = ActionSpec::preset(&a.actions)?;
+    let spec = ActionSpec::parse(&a.actions).context("--actions")?;
     let cameras = if a.camera.is_empty() {
         CameraSelection::default()
     } else {
@@ -308,7 +314,7 @@ fn compare(generated: &[RgbImage], truth: &[RgbImage]) -> Result<(f64, f64)> {
     Ok((psnr(&g, &t), ssim(&g, &t)))
 }
 
-fn side_by_side(left: &RgbImage, right: &RgbImage) -> RgbImage {
+pub fn side_by_side(left: &RgbImage, right: &RgbImage) -> RgbImage {
     let (w, h) = left.dimensions();
     let mut out = RgbImage::new(w * 2, h);
     image::imageops::replace(&mut out, left, 0, 0);

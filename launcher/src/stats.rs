@@ -30,7 +30,7 @@ pub struct StatsArgs {
 
 pub fn run(a: StatsArgs) -> Result<()> {
     let source = open_dataset(&a.data)?;
-    let specs = a.actions.iter().map(|n| ActionSpec::preset(n)).collect::<Result<Vec<_>>>()?;
+    let specs = a.actions.iter().map(|n| ActionSpec::parse(n)).collect::<Result<Vec<_>>>()?;
     let split = split_episodes(source.episodes(), &SplitSpec { seed: a.seed, validation: ValidationSize::Fraction(a.validation_fraction) })?;
     println!("stats: {} ({} episodes: {} for statistics, {} held out)", source.describe(), source.episodes().len(), split.train.len(), split.validation.len());
     let result = compute_stats(source.as_ref(), &split.train, &specs, None)?;

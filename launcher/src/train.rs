@@ -73,10 +73,10 @@ pub fn run(args: TrainArgs) -> Result<()> {
     println!("loss curve: {}", plot.display());
     if let Some(vae) = trainer.cfg.validation.vae.clone() {
         let video = trainer.out_path("rollout.mp4");
-        bwm_trainer::report::rollout_video(&trainer, &vae, &video)?;
+        let written = bwm_trainer::report::rollout_video(&trainer, &vae, &video)?;
         println!(
             "rollout of a held-out clip (ground truth left, model right): {}",
-            video.display()
+            written.display()
         );
     }
     Ok(())

@@ -4,7 +4,8 @@ use std::path::PathBuf;
 
 use anyhow::{ensure, Context, Result};
 use bwm_data::frames::{fit, frames_to_tensor};
-use bwm_data::{BwmDataset, ResizeMode};
+use bwm_data::source::{open_dataset, CameraSelection, EpisodeSource};
+use bwm_data::ResizeMode;
 use bwm_model::vae::VaeConfig;
 use bwm_trainer::devices::parse_device;
 use bwm_trainer::vae_train::{save_trained_vae, train_vae, FrameSets, VaeTrainSettings};
@@ -13,9 +14,15 @@ use tch::Tensor;
 
 #[derive(Args)]
 pub struct TrainVaeArgs {
-    /// Dataset in the BWM layout.
+    /// Dataset in any format `bwm prepare` reads (BWM layout, LeRobot v2.1/v3.0, RoboTwin HDF5).
     #[arg(long, default_value = "../shared/data/bwm-demo")]
     pub data: PathBuf,
+    /// Cameras; several are stacked top to bottom (default: the dataset's default camera).
+    #[arg(long, value_delimiter = ',')]
+    pub camera: Vec<String>,
+    /// Use only the first N episodes (default: all).
+    #[arg(long)]
+    pub max_episodes: Option<usize>,
     /// Output VAE file (safetensors with its config and latent statistics).
     #[arg(long, default_value = "runs/vae/vae.safetensors")]
     pub out: PathBuf,
@@ -119,16 +126,15 @@ pub fn parse_resolution(s: &str, multiple: u32) -> Result<(u32, u32)> {
     Ok((w, h))
 }
 
-/// Every frame of each episode, resized, as [3, F, H, W] in [-1, 1].
-pub fn episode_videos(ds: &BwmDataset, episodes: &[usize], size: (u32, u32), mode: ResizeMode) -> Result<Vec<Tensor>> {
+/// Every frame of each episode (positions in `source.episodes()`), resized, as [3, F, H, W] in [-1, 1].
+pub fn episode_videos(source: &dyn EpisodeSource, episodes: &[usize], cameras: &CameraSelection, size: (u32, u32), mode: ResizeMode) -> Result<Vec<Tensor>> {
     episodes
         .iter()
         .map(|&i| {
-            let ep = &ds.episodes[i];
-            let path = ds.root.join(&ep.video);
-            let frames = bwm_data::video::read_frames(&path, ep.start_frame..ep.start_frame + ep.length)?;
+            let length = source.episodes()[i].length;
+            let frames = source.frames(i, 0..length, cameras)?;
             let resized: Vec<_> = frames.iter().map(|f| fit(f, size.0, size.1, mode)).collect();
-            frames_to_tensor(&resized).with_context(|| format!("episode {i} ({})", path.display()))
+            frames_to_tensor(&resized).with_context(|| format!("episode position {i} of {}", source.describe()))
         })
         .collect()
 }
@@ -153,12 +159,18 @@ pub fn run(a: TrainVaeArgs) -> Result<()> {
 }
 
 fn decode_frame_sets(a: &TrainVaeArgs, size: (u32, u32)) -> Result<FrameSets> {
-    let ds = BwmDataset::open(&a.data)?;
-    let n = ds.episodes.len();
+    let source = open_dataset(&a.data)?;
+    let cameras = match a.camera.len() {
+        0 => CameraSelection::default(),
+        1 => CameraSelection::single(&a.camera[0]),
+        _ => CameraSelection::stacked(&a.camera.iter().map(String::as_str).collect::<Vec<_>>()),
+    };
+    let n = source.episodes().len().min(a.max_episodes.unwrap_or(usize::MAX));
+    ensure!(n > 0, "{}: no episodes", source.describe());
     if a.holdout.is_empty() {
         ensure!(a.holdout_tail > 0.0 && a.holdout_tail < 1.0, "--holdout-tail must lie in (0, 1), got {}", a.holdout_tail);
         let all: Vec<usize> = (0..n).collect();
-        let videos = episode_videos(&ds, &all, size, a.resize)?;
+        let videos = episode_videos(source.as_ref(), &all, &cameras, size, a.resize)?;
         let (mut train, mut holdout) = (Vec::new(), Vec::new());
         for v in videos {
             let f = v.size()[1];
@@ -174,7 +186,7 @@ fn decode_frame_sets(a: &TrainVaeArgs, size: (u32, u32)) -> Result<FrameSets> {
     let train: Vec<usize> = (0..n).filter(|i| !holdout.contains(i)).collect();
     ensure!(!train.is_empty(), "every episode is held out; nothing to train on");
     println!("train-vae: {} episodes for training {:?}, held out {:?}, frames at {}x{} ({:?})", train.len(), train, holdout, size.0, size.1, a.resize);
-    Ok(FrameSets { train: episode_videos(&ds, &train, size, a.resize)?, holdout: episode_videos(&ds, &holdout, size, a.resize)? })
+    Ok(FrameSets { train: episode_videos(source.as_ref(), &train, &cameras, size, a.resize)?, holdout: episode_videos(source.as_ref(), &holdout, &cameras, size, a.resize)? })
 }
 
 fn train(a: &TrainVaeArgs, data: FrameSets, device: tch::Device) -> Result<()> {

@@ -67,8 +67,9 @@ pub fn loss_plot(losses: &[(u64, f64)], title: &str, out: &Path) -> Result<()> {
 }
 
 /// Rolls out the first held-out clip (the first clip when none is held out) and writes an mp4 of
-/// ground truth (left) beside the prediction (right), condition frames included, at the cache's fps.
-pub fn rollout_video(trainer: &Trainer, vae_path: &Path, out: &Path) -> Result<()> {
+/// ground truth (left) beside the prediction (right), condition frames included, at the cache's fps
+/// (a PNG contact sheet instead in builds without video). Returns the file written.
+pub fn rollout_video(trainer: &Trainer, vae_path: &Path, out: &Path) -> Result<std::path::PathBuf> {
     let device = trainer.device;
     let vae = WanVae::load_any(vae_path, Kind::Float, device).with_context(|| format!("VAE {}", vae_path.display()))?;
     let clip_index = if trainer.train_clips < trainer.cache.len() { trainer.train_clips } else { 0 };
@@ -86,5 +87,37 @@ pub fn rollout_video(trainer: &Trainer, vae_path: &Path, out: &Path) -> Result<(
         .zip(pred)
         .map(|(t, p)| frame_strip(&[vec![t, p]]))
         .collect::<Result<Vec<_>>>()?;
-    bwm_data::video::write_mp4(out, &frames, trainer.cache.index.fps)
+    bwm_data::video::write_mp4_or_sheet(out, &frames, trainer.cache.index.fps, 16)
+}
+
+/// Lines `(label, points)` on one chart, written as SVG (fidelity curves and the like).
+pub fn line_plot(series: &[(String, Vec<(f64, f64)>)], title: &str, x_desc: &str, y_desc: &str, out: &Path) -> Result<()> {
+    let points = || series.iter().flat_map(|(_, p)| p.iter().copied()).filter(|(x, y)| x.is_finite() && y.is_finite());
+    ensure!(points().next().is_some(), "no finite points to plot");
+    let (x_lo, x_hi) = points().fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), (x, _)| (lo.min(x), hi.max(x)));
+    let (y_lo, y_hi) = points().fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), (_, y)| (lo.min(y), hi.max(y)));
+    let pad = ((y_hi - y_lo) * 0.05).max(1e-3);
+    let palette = [BLUE, RED, RGBColor(0, 150, 0), MAGENTA, RGBColor(230, 140, 0), CYAN, BLACK];
+    let root = SVGBackend::new(out, (900, 500)).into_drawing_area();
+    let draw = || -> std::result::Result<(), Box<dyn std::error::Error>> {
+        root.fill(&WHITE)?;
+        let mut chart = ChartBuilder::on(&root)
+            .caption(title, ("sans-serif", 22))
+            .margin(15)
+            .x_label_area_size(40)
+            .y_label_area_size(60)
+            .build_cartesian_2d(x_lo..x_hi.max(x_lo + 1.0), (y_lo - pad)..(y_hi + pad))?;
+        chart.configure_mesh().x_desc(x_desc).y_desc(y_desc).draw()?;
+        for (i, (label, pts)) in series.iter().enumerate() {
+            let color = palette[i % palette.len()];
+            chart
+                .draw_series(LineSeries::new(pts.iter().copied().filter(|(x, y)| x.is_finite() && y.is_finite()), color.stroke_width(2)))?
+                .label(label.as_str())
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
+        }
+        chart.configure_series_labels().background_style(WHITE.mix(0.8)).border_style(BLACK).draw()?;
+        root.present()?;
+        Ok(())
+    };
+    draw().map_err(|e| anyhow::anyhow!("drawing {}: {e}", out.display()))
 }

@@ -222,7 +222,8 @@ pub struct TaskConfig {
     pub episodes: Option<Vec<usize>>,
     #[serde(default)]
     pub cameras: CameraSelection,
-    /// How the dataset's pose vector is read (an `ActionSpec` preset: eef_abs, robotwin_eef_abs, ...).
+    /// How the dataset's pose vector is read: an `ActionSpec` preset (eef_abs, robotwin_eef_abs, ...),
+    /// COLUMN:INDICES (e.g. `observation.state:0-3`) or an action spec JSON file.
     #[serde(default = "default_pose_actions")]
     pub pose_actions: String,
     /// How the dataset's joint vector is read (joint adapters).
@@ -442,8 +443,8 @@ impl EvalConfig {
                 (None, true) => bail!("task '{}': give a dataset or [[tasks.starts]] (x0 images + initial state files)", t.name),
                 (None, false) => ensure!(t.episodes.is_none(), "task '{}': episodes selects dataset episodes; this task has none", t.name),
                 (Some(_), true) => {
-                    ActionSpec::preset(&t.pose_actions).with_context(|| format!("task '{}': pose_actions", t.name))?;
-                    ActionSpec::preset(&t.joint_actions).with_context(|| format!("task '{}': joint_actions", t.name))?;
+                    ActionSpec::parse(&t.pose_actions).with_context(|| format!("task '{}': pose_actions", t.name))?;
+                    ActionSpec::parse(&t.joint_actions).with_context(|| format!("task '{}': joint_actions", t.name))?;
                 }
             }
             for (j, s) in t.starts.iter().enumerate() {

@@ -135,9 +135,9 @@ pub fn run(a: EvaluateArgs) -> Result<()> {
                         .join(format!("episode_{i:03}.mp4"));
                     let path = a.out.join(&rel);
                     std::fs::create_dir_all(path.parent().unwrap_or(&a.out))?;
-                    bwm_data::video::write_mp4(&path, &run.frames, start.fps)
+                    let written = bwm_data::video::write_mp4_or_sheet(&path, &run.frames, start.fps, 24)
                         .with_context(|| format!("writing {}", path.display()))?;
-                    Some(rel.display().to_string())
+                    Some(rel.with_file_name(written.file_name().unwrap_or_default()).display().to_string())
                 };
                 let success =
                     run.error.is_none() && run.verdict.as_ref().is_some_and(|v| v.success);

@@ -65,8 +65,8 @@ fn dataset_starts(
     };
     ensure!(!positions.is_empty(), "no episodes selected");
     let views = t.cameras.cameras.len().max(1);
-    let pose_spec = ActionSpec::preset(&t.pose_actions)?;
-    let joint_spec = ActionSpec::preset(&t.joint_actions)?;
+    let pose_spec = ActionSpec::parse(&t.pose_actions)?;
+    let joint_spec = ActionSpec::parse(&t.joint_actions)?;
     positions
         .iter()
         .map(|&pos| {

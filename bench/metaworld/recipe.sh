@@ -1,0 +1,83 @@
+#!/usr/bin/env bash
+# A Meta-World world model from scratch on one GPU, through the product's own commands:
+#   data     bench/metaworld/generate.py: training and held-out LeRobot datasets (both tasks)
+#   vae      bwm train-vae: a small Wan2.2-architecture VAE on the training frames
+#   latents  bwm prepare: the latent cache (x0 + 8 history + 24 future frames, stride 4)
+#   train    bwm train --config configs/metaworld.toml
+# Usage (repository root): bash bench/metaworld/recipe.sh [STAGE ...]   (default: all four)
+# Each stage is skipped when its output exists; `train` resumes from its last checkpoint.
+# Environment: RUN (output folder, default runs/metaworld), BWM (the bwm binary, default
+# $CARGO_TARGET_DIR/release/bwm or target/release/bwm), PYTHON (with bench/metaworld's
+# requirements), DEVICE (default cuda), and the sizes below. Stage times go to $RUN/timings.tsv.
+set -euo pipefail
+cd "$(dirname "${BASH_SOURCE[0]}")/../.."
+RUN="${RUN:-runs/metaworld}"
+BWM="${BWM:-${CARGO_TARGET_DIR:-target}/release/bwm}"
+PYTHON="${PYTHON:-python3}"
+DEVICE="${DEVICE:-cuda}"
+TASKS="${TASKS:-drawer-open-v3,button-press-topdown-v3}"
+TRAIN_EPISODES="${TRAIN_EPISODES:-300}"   # per task, seeds 0..
+VAL_EPISODES="${VAL_EPISODES:-50}"        # per task, seeds 100000.. (never trained on)
+FRAMES="${FRAMES:-120}"
+WORKERS="${WORKERS:-$(nproc)}"
+VAE_STEPS="${VAE_STEPS:-3000}"
+VAE_EPISODES="${VAE_EPISODES:-200}"
+TRAIN_STEPS="${TRAIN_STEPS:-}"            # default: configs/metaworld.toml's
+STAGES=()
+for arg in "$@"; do
+  case "$arg" in
+    data|vae|latents|train) STAGES+=("$arg") ;;
+    *) echo "recipe: unknown stage '$arg' (stages: data vae latents train)" >&2; exit 2 ;;
+  esac
+done
+[ ${#STAGES[@]} -gt 0 ] || STAGES=(data vae latents train)
+[ -x "$BWM" ] || { echo "recipe: no bwm binary at $BWM (make build, or set BWM)" >&2; exit 1; }
+mkdir -p "$RUN"
+wants() { [[ " ${STAGES[*]} " == *" $1 "* ]]; }
+timed() { # $1 = stage name; the rest runs, its wall time appended to $RUN/timings.tsv
+  local name=$1 t0; shift
+  t0=$(date +%s.%N)
+  echo "recipe: $name ($(date +%T))"
+  "$@"
+  awk -v n="$name" -v a="$t0" -v b="$(date +%s.%N)" 'BEGIN { printf "%s\t%.1f\n", n, b - a }' | tee -a "$RUN/timings.tsv"
+}
+
+if wants data; then
+  for split in train val; do
+    if [ -f "$RUN/data/$split/meta/info.json" ]; then echo "recipe: $RUN/data/$split exists"; continue; fi
+    if [ $split = train ]; then n=$TRAIN_EPISODES; s=0; else n=$VAL_EPISODES; s=100000; fi
+    timed "data-$split" "$PYTHON" bench/metaworld/generate.py --tasks "$TASKS" --episodes "$n" --seed-start "$s" \
+      --frames "$FRAMES" --resolution 64 --workers "$WORKERS" --out "$RUN/data/$split"
+  done
+fi
+
+if wants vae; then
+  if [ -f "$RUN/vae.safetensors" ]; then echo "recipe: $RUN/vae.safetensors exists"; else
+    timed vae "$BWM" train-vae --data "$RUN/data/train" --max-episodes "$VAE_EPISODES" --holdout-tail 0.1 \
+      --resolution 64x64 --dim 32 --dec-dim 32 --clip-frames 9 --batch 32 --steps "$VAE_STEPS" --lr 1e-3 \
+      --no-flip --eval-every 1000 --device "$DEVICE" --out "$RUN/vae.safetensors"
+  fi
+fi
+
+if wants latents; then
+  if [ -f "$RUN/latents/index.json" ]; then echo "recipe: $RUN/latents exists"; else
+    timed latents "$BWM" prepare --data "$RUN/data/train" --vae "$RUN/vae.safetensors" --resolution 64x64 \
+      --history 8 --future 24 --stride 4 --actions observation.state:0-3 --validation-fraction 0.02 \
+      --keep-frames --batch 64 --device "$DEVICE" --out "$RUN/latents"
+  fi
+fi
+
+if wants train; then
+  # The validation episodes `bwm prepare` put last (its progress record names them).
+  holdout=$("$PYTHON" - "$RUN/latents" <<'PY'
+import glob, json, sys
+found = [json.load(open(p)) for p in glob.glob(sys.argv[1] + "/progress.*.json")]
+print(max([f.get("holdout_episodes", 0) for f in found] + [0]))
+PY
+)
+  sets=(--set "run.out_dir=\"$RUN\"" --set "run.device=\"$DEVICE\"" --set "data.latent_cache=\"$RUN/latents\""
+        --set "data.holdout_episodes=$holdout" --set "validation.vae=\"$RUN/vae.safetensors\"")
+  [ -n "$TRAIN_STEPS" ] && sets+=(--set "train.steps=$TRAIN_STEPS")
+  timed train "$BWM" train --config configs/metaworld.toml "${sets[@]}" --resume auto
+fi
+echo "recipe: done; stage times in $RUN/timings.tsv"

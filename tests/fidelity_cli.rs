@@ -1,0 +1,82 @@
+//! `bwm fidelity` end to end on CPU: the tiny model with random weights and a small random VAE
+//! roll out three bundled episodes driven by their own and by another's actions. The report's
+//! copy-last-frame scores are checked against PSNR computed here from the dataset's frames, the
+//! horizon means and margins against the per-frame scores it lists, and its files must exist.
+
+mod common;
+
+use std::process::Command;
+
+use bwm_data::frames::{fit, frames_to_tensor};
+use bwm_data::source::{open_dataset, CameraSelection};
+use bwm_data::ResizeMode;
+use bwm_trainer::image_metrics::psnr;
+use common::{bwm, demo_data, temp_dir, write_random_vae};
+use serde_json::Value;
+
+fn fidelity(args: &[&str]) -> std::process::Output {
+    let out = Command::new(bwm())
+        .arg("fidelity")
+        .args(["--random-weights", "tiny", "--history", "4", "--future", "4", "--sample-steps", "2", "--resolution", "64x32"])
+        .args(["--device", "cpu", "--max-frames", "9", "--horizons", "4,8", "--videos", "1"])
+        .args(args)
+        .output()
+        .unwrap();
+    println!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    out
+}
+
+#[test]
+fn fidelity_report_scores_rollouts_and_baselines_per_frame_and_horizon() {
+    let dir = temp_dir("fidelity-cli");
+    let vae = dir.join("vae.safetensors");
+    write_random_vae(&vae, 5);
+    let data = demo_data();
+    let out = dir.join("report");
+    let run = fidelity(&["--vae", vae.to_str().unwrap(), "--data", data.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    assert!(run.status.success());
+
+    let report: Value = serde_json::from_str(&std::fs::read_to_string(out.join("fidelity.json")).unwrap()).unwrap();
+    assert_eq!(report["episodes"], 3);
+    let lines: Vec<Value> = std::fs::read_to_string(out.join("episodes.jsonl")).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    assert_eq!(lines.len(), 3);
+
+    // Copy-last-frame: x0 against each real frame, as computed here from the dataset.
+    let source = open_dataset(&data).unwrap();
+    let real: Vec<_> = source.frames(0, 0..9, &CameraSelection::default()).unwrap().iter().map(|f| fit(f, 64, 32, ResizeMode::Crop)).collect();
+    let real = frames_to_tensor(&real).unwrap();
+    let x0 = real.narrow(1, 0, 1);
+    let copy = lines[0]["psnr"]["copy_last_frame"].as_array().unwrap();
+    assert_eq!(copy.len(), 8);
+    for (k, v) in copy.iter().enumerate() {
+        let want = psnr(&x0, &real.narrow(1, k as i64 + 1, 1));
+        assert!((v.as_f64().unwrap() - want).abs() < 1e-6, "frame {}: {v} vs {want}", k + 1);
+    }
+    assert_eq!(lines[0]["other_episode_index"], 1);
+    assert_eq!(lines[2]["other_episode_index"], 0);
+
+    // Horizon 4: the mean over frames 1..4 of each episode, then over episodes; margins are differences.
+    let task = source.episodes()[0].task.clone();
+    let summary = &report["tasks"][&task];
+    for predictor in ["model", "other_actions", "copy_last_frame"] {
+        let want: f64 = lines.iter().map(|l| l["psnr"][predictor].as_array().unwrap()[..4].iter().map(|v| v.as_f64().unwrap()).sum::<f64>() / 4.0).sum::<f64>() / 3.0;
+        let got = summary["horizons"]["4"][predictor]["psnr"].as_f64().unwrap();
+        assert!((got - want).abs() < 1e-9, "{predictor}: {got} vs {want}");
+    }
+    let h4 = &summary["horizons"]["4"];
+    let margin = summary["margins"]["4"]["psnr_over_copy_last_frame_db"].as_f64().unwrap();
+    assert!((margin - (h4["model"]["psnr"].as_f64().unwrap() - h4["copy_last_frame"]["psnr"].as_f64().unwrap())).abs() < 1e-9);
+    assert!(summary["horizons"]["full"]["model"]["ssim"].as_f64().unwrap().is_finite());
+    assert_eq!(report["all"]["episodes"], 3);
+
+    for f in [format!("psnr_{task}.svg"), format!("ssim_{task}.svg")] {
+        assert!(out.join(&f).is_file(), "{f} missing");
+    }
+    let videos: Vec<_> = std::fs::read_dir(out.join("videos")).unwrap().collect();
+    assert_eq!(videos.len(), 1, "one side-by-side video per task (--videos 1)");
+
+    // One episode cannot be driven by another's actions: a clear error.
+    let one = fidelity(&["--vae", vae.to_str().unwrap(), "--data", data.to_str().unwrap(), "--out", dir.join("one").to_str().unwrap(), "--episodes", "0"]);
+    assert!(!one.status.success() && String::from_utf8_lossy(&one.stderr).contains("at least two episodes"));
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -4,7 +4,8 @@
 #   vae      bwm train-vae: a small Wan2.2-architecture VAE on the training frames
 #   latents  bwm prepare: the latent cache (x0 + 8 history + 24 future frames, stride 4)
 #   train    bwm train --config configs/metaworld.toml
-# Usage (repository root): bash bench/metaworld/recipe.sh [STAGE ...]   (default: all four)
+#   fidelity bwm fidelity on the held-out episodes: $RUN/fidelity/ (JSON, curves, videos)
+# Usage (repository root): bash bench/metaworld/recipe.sh [STAGE ...]   (default: all)
 # Each stage is skipped when its output exists; `train` resumes from its last checkpoint.
 # Environment: RUN (output folder, default runs/metaworld), BWM (the bwm binary, default
 # $CARGO_TARGET_DIR/release/bwm or target/release/bwm), PYTHON (with bench/metaworld's
@@ -23,14 +24,15 @@ WORKERS="${WORKERS:-$(nproc)}"
 VAE_STEPS="${VAE_STEPS:-3000}"
 VAE_EPISODES="${VAE_EPISODES:-200}"
 TRAIN_STEPS="${TRAIN_STEPS:-}"            # default: configs/metaworld.toml's
+SAMPLE_STEPS="${SAMPLE_STEPS:-20}"        # Euler steps per generated chunk
 STAGES=()
 for arg in "$@"; do
   case "$arg" in
-    data|vae|latents|train) STAGES+=("$arg") ;;
-    *) echo "recipe: unknown stage '$arg' (stages: data vae latents train)" >&2; exit 2 ;;
+    data|vae|latents|train|fidelity) STAGES+=("$arg") ;;
+    *) echo "recipe: unknown stage '$arg' (stages: data vae latents train fidelity)" >&2; exit 2 ;;
   esac
 done
-[ ${#STAGES[@]} -gt 0 ] || STAGES=(data vae latents train)
+[ ${#STAGES[@]} -gt 0 ] || STAGES=(data vae latents train fidelity)
 [ -x "$BWM" ] || { echo "recipe: no bwm binary at $BWM (make build, or set BWM)" >&2; exit 1; }
 mkdir -p "$RUN"
 wants() { [[ " ${STAGES[*]} " == *" $1 "* ]]; }
@@ -79,5 +81,17 @@ PY
         --set "data.holdout_episodes=$holdout" --set "validation.vae=\"$RUN/vae.safetensors\"")
   [ -n "$TRAIN_STEPS" ] && sets+=(--set "train.steps=$TRAIN_STEPS")
   timed train "$BWM" train --config configs/metaworld.toml "${sets[@]}" --resume auto
+fi
+# The world-model flags every later command shares: the newest checkpoint, its VAE and statistics.
+world_model() {
+  local ckpt="$RUN/checkpoints/$(cat "$RUN/checkpoints/latest")"
+  WM=(--checkpoint "$ckpt" --vae "$RUN/vae.safetensors" --stats "$RUN/latents/stat.json" --stats-group observation.state
+      --history 8 --future 24 --sample-steps "$SAMPLE_STEPS" --device "$DEVICE")
+}
+
+if wants fidelity; then
+  world_model
+  timed fidelity "$BWM" fidelity "${WM[@]}" --data "$RUN/data/val" --actions observation.state:0-3 --resolution 64x64 \
+    --horizons 8,16,32,64 --videos 4 --out "$RUN/fidelity"
 fi
 echo "recipe: done; stage times in $RUN/timings.tsv"

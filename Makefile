@@ -17,8 +17,10 @@ demo: build
 	{ [ -f runs/tiny/latents/index.json ] || "$$bwm" prepare --data $(DEMO_DATA) --vae runs/vae/vae.safetensors --resolution 96x64 --history 8 --future 8 --stride 4 --keep-frames --device cpu --out runs/tiny/latents; } && \
 	"$$bwm" train --config configs/tiny.toml --set run.device='"cpu"' --resume auto
 
+# Every test binary runs even when one fails; one summary line of counts at the end; the tests
+# write under one folder of the run, removed afterwards (scripts/test.sh).
 test:
-	@$(ENV) && cargo test --workspace --release
+	@$(ENV) && bash scripts/test.sh
 
 build:
 	@$(ENV) && cargo build --release -p bwm-launcher

@@ -12,7 +12,11 @@ PY_PACKAGES=(numpy safetensors tensorboard "torchaudio==2.11.0" "diffsynth==2.0.
 # pkg-config, bindings generated with libclang), libhdf5 for its `hdf5` feature, and the ffmpeg CLI
 # that scripts/make_fixtures.py encodes the test datasets with; Slurm (controller, node daemon,
 # client commands) and munge for the one-host test cluster of tests/slurm.rs (scripts/slurm/).
-APT_PACKAGES=(libavcodec-dev libavformat-dev libavutil-dev libswscale-dev libclang-dev pkg-config libhdf5-dev ffmpeg slurm-wlm munge)
+# MuJoCo's offscreen rendering for bench/metaworld: EGL through Mesa, or OSMesa.
+APT_PACKAGES=(libavcodec-dev libavformat-dev libavutil-dev libswscale-dev libclang-dev pkg-config libhdf5-dev ffmpeg slurm-wlm munge
+  libegl1 libegl-mesa0 libgl1-mesa-dri libosmesa6)
+# The Meta-World benchmark's pinned packages (bench/metaworld/requirements.txt).
+BENCH_REQUIREMENTS="$ROOT/bench/metaworld/requirements.txt"
 
 missing=()
 if command -v dpkg >/dev/null 2>&1; then
@@ -33,14 +37,17 @@ if [ ${#missing[@]} -gt 0 ]; then
   apt_install || { "${SUDO[@]}" apt-get update -q >&2 && apt_install; }
 fi
 
-if [ -x "$VENV/bin/python" ] && "$VENV/bin/python" - "$TORCH_VERSION" <<'PY' 2>/dev/null
+if ! { [ -x "$VENV/bin/python" ] && "$VENV/bin/python" - "$TORCH_VERSION" <<'PY' 2>/dev/null
 import sys, torch, numpy, safetensors, tensorboard, pyarrow, h5py, cv2, torchaudio, diffsynth, diffusers, websockets, msgpack
 sys.exit(0 if torch.__version__.split("+")[0] == sys.argv[1] else 1)
 PY
-then
-  exit 0
+}; then
+  echo "setup: creating virtualenv at $VENV with torch==$TORCH_VERSION (about 4.6 GB, a few minutes)" >&2
+  python3 -m venv "$VENV"
+  "$VENV/bin/pip" install --quiet --disable-pip-version-check "torch==$TORCH_VERSION" "${PY_PACKAGES[@]}"
 fi
-echo "setup: creating virtualenv at $VENV with torch==$TORCH_VERSION (about 4.6 GB, a few minutes)" >&2
-python3 -m venv "$VENV"
-"$VENV/bin/pip" install --quiet --disable-pip-version-check "torch==$TORCH_VERSION" "${PY_PACKAGES[@]}"
+if ! "$VENV/bin/python" -c "import metaworld, mujoco, gymnasium, PIL, scipy" 2>/dev/null; then
+  echo "setup: installing the Meta-World benchmark's packages ($BENCH_REQUIREMENTS)" >&2
+  "$VENV/bin/pip" install --quiet --disable-pip-version-check -r "$BENCH_REQUIREMENTS"
+fi
 echo "setup: done" >&2

@@ -15,8 +15,7 @@ fn tiny_forward_on_cuda_matches_cpu() {
     assert!(tch::Cuda::is_available(), "CUDA is not available to libtorch (is libtorch_cuda linked?)");
     let cfg = ModelConfig::preset("tiny").unwrap();
     let cpu = BwmModel::random(&cfg, Kind::Float, Device::Cpu, 7).unwrap();
-    let dir = std::env::temp_dir().join(format!("bwm-cuda-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = bwm_testdir::TestDir::new("cuda-parity");
     let file = dir.join("tiny.safetensors");
     Tensor::write_safetensors(&cpu.store.named_parameters(), &file).unwrap();
     let gpu = BwmModel::load(&file, Layout::WanNative, &cfg, Kind::Float, Device::Cuda(0)).unwrap();

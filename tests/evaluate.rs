@@ -8,7 +8,7 @@
 
 mod common;
 
-use common::{bwm, python, write_random_vae};
+use common::{bwm, python, temp_dir, write_random_vae};
 
 use std::fs::File;
 use std::path::{Path, PathBuf};
@@ -38,12 +38,6 @@ impl Drop for Guard {
     }
 }
 
-fn fresh_dir(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("bwm-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
-}
 
 
 /// Runs a command with stdout/stderr in files, killed after `limit`; returns (success, stdout, stderr).
@@ -87,7 +81,7 @@ fn pearson(x: &[f64], y: &[f64]) -> f64 {
 
 #[test]
 fn policies_are_evaluated_in_closed_loop_and_failed_episodes_are_reported() {
-    let dir = fresh_dir("evaluate");
+    let dir = temp_dir("evaluate");
     let vae = dir.join("vae.safetensors");
     write_random_vae(&vae, 4);
     tch::manual_seed(1);
@@ -337,12 +331,11 @@ prompt = "stack the cube (drop)"
     assert!(csv.contains("alpha,cube,3,1,2,0.333333,0.400000\n") && csv.contains("beta,cube,3,0,2,0.000000,0.100000\n"), "{csv}");
     let policies_csv = std::fs::read_to_string(out.join("policies.csv")).unwrap();
     assert!(policies_csv.contains("1,gamma,0.666667,2,5,2,0.700000\n"), "{policies_csv}");
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
 fn a_joint_policy_without_forward_kinematics_is_refused_at_start_up() {
-    let dir = fresh_dir("evaluate-joint");
+    let dir = temp_dir("evaluate-joint");
     std::fs::write(
         dir.join("eval.toml"),
         format!(
@@ -371,5 +364,4 @@ dataset = "{}"
     assert!(!ok, "{stdout}");
     assert!(stderr.contains("joint adapter") && stderr.contains("forward-kinematics provider") && stderr.contains("[fk]"), "{stderr}");
     assert!(!dir.join("out").exists(), "nothing ran");
-    let _ = std::fs::remove_dir_all(&dir);
 }

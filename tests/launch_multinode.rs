@@ -160,7 +160,6 @@ fn sigterm_stops_all_ranks_at_one_step_with_a_checkpoint_and_resume_matches_an_u
         &final_weights(&dir.join("two")),
         "stopped by SIGTERM and resumed vs uninterrupted",
     );
-    std::fs::remove_dir_all(&dir).ok();
 }
 
 #[test]
@@ -237,7 +236,6 @@ fn two_launchers_as_two_nodes_equal_one_launcher_and_restart_together() {
         &final_weights(&dir.join("restart")),
         "2 nodes with a restart vs 1 node",
     );
-    std::fs::remove_dir_all(&dir).ok();
 }
 
 #[test]
@@ -278,7 +276,6 @@ fn a_node_whose_launcher_stops_sending_heartbeats_counts_as_failed() {
     );
     // Node 1, continued, finds node 0's agent store gone (or its verdict) and stops too.
     assert!(!n1.finish(MINUTE).success(), "{}", n1.text());
-    std::fs::remove_dir_all(&dir).ok();
 }
 
 #[test]
@@ -376,5 +373,4 @@ fn inconsistent_nodes_and_bad_addresses_are_refused_before_any_rank_starts() {
     );
     assert!(!started(&p), "{}", p.text());
     drop(held);
-    std::fs::remove_dir_all(&dir).ok();
 }

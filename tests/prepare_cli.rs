@@ -18,35 +18,17 @@ use bwm_data::latent_cache::LatentCache;
 use bwm_data::source::{open_dataset, CameraSelection};
 use bwm_data::{ActionSpec, ActionStats, ResizeMode};
 use bwm_model::vae::WanVae;
-use common::{assert_close, bwm, demo_data, final_weights, python, write_random_vae};
+use common::{assert_close, bwm, demo_data, final_weights, python, shared_dir, temp_dir, write_random_vae};
 use tch::{Device, Kind, Tensor};
 
 
 
 
-/// A fresh folder for this test process; folders of test processes that have ended go first.
-fn tmp_dir(tag: &str) -> PathBuf {
-    static STALE: OnceLock<()> = OnceLock::new();
-    STALE.get_or_init(|| {
-        for entry in std::fs::read_dir(std::env::temp_dir()).into_iter().flatten().flatten() {
-            let name = entry.file_name().to_string_lossy().into_owned();
-            let Some(pid) = name.strip_prefix("bwm-prepare-cli-").and_then(|n| n.rsplit('-').next()) else { continue };
-            if pid.parse::<u32>().is_ok() && !Path::new("/proc").join(pid).exists() {
-                let _ = std::fs::remove_dir_all(entry.path());
-            }
-        }
-    });
-    let dir = std::env::temp_dir().join(format!("bwm-prepare-cli-{tag}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
-}
-
 /// A small random VAE, written once per test binary.
 fn vae_file() -> &'static Path {
     static PATH: OnceLock<PathBuf> = OnceLock::new();
     PATH.get_or_init(|| {
-        let path = tmp_dir("vae").join("vae.safetensors");
+        let path = shared_dir("vae").join("vae.safetensors");
         write_random_vae(&path, 5);
         path
     })
@@ -56,7 +38,7 @@ fn vae_file() -> &'static Path {
 fn fixtures() -> &'static Path {
     static DIR: OnceLock<PathBuf> = OnceLock::new();
     DIR.get_or_init(|| {
-        let dir = tmp_dir("fixtures");
+        let dir = shared_dir("fixtures");
         let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/make_fixtures.py");
         let out = Command::new(python()).arg(&script).arg(&dir).output().expect("starting python");
         assert!(out.status.success(), "make_fixtures.py failed:\n{}", String::from_utf8_lossy(&out.stderr));
@@ -118,7 +100,7 @@ fn max_abs(t: &Tensor) -> f64 {
 
 #[test]
 fn demo_cache_round_trips_resumes_after_interruption_and_splits_across_ranks() {
-    let dir = tmp_dir("demo");
+    let dir = temp_dir("prepare-demo");
     let data = demo_data();
     let common = [
         "--data", data.to_str().unwrap(), "--resolution", "64x32", "--history", "4", "--future", "4", "--clips-per-shard", "4", "--keep-frames",
@@ -229,7 +211,7 @@ fn demo_cache_round_trips_resumes_after_interruption_and_splits_across_ranks() {
 
 #[test]
 fn lerobot_and_robotwin_fixtures_prepare_with_defects_upscaling_and_enhancement() {
-    let dir = tmp_dir("fixtures-out");
+    let dir = temp_dir("prepare-fixtures");
     let fx = fixtures();
     let clip = ["--history", "4", "--future", "4", "--stride", "4", "--clips-per-shard", "2"];
     let small = [&clip[..], &["--resolution", "64x32"]].concat();
@@ -329,7 +311,7 @@ fn train_tiny(dir: &Path, name: &str, cache: &Path, vae: Option<&Path>) -> Outpu
 
 #[test]
 fn raw_clips_train_like_their_encoded_cache() {
-    let dir = tmp_dir("raw");
+    let dir = temp_dir("prepare-raw");
     let data = demo_data();
     let common = ["--data", data.to_str().unwrap(), "--resolution", "64x32", "--history", "4", "--future", "4", "--stride", "64", "--clips-per-shard", "4"];
     let encoded = dir.join("encoded");
@@ -362,5 +344,4 @@ fn raw_clips_train_like_their_encoded_cache() {
     assert!(train_tiny(&dir, "from-latents", &encoded, None).status.success());
     assert!(train_tiny(&dir, "from-raw", &raw, Some(vae_file())).status.success());
     assert_close(&final_weights(&dir.join("from-latents")), &final_weights(&dir.join("from-raw")), "raw clips encoded by the trainer vs the encoded cache");
-    std::fs::remove_dir_all(&dir).ok();
 }

@@ -10,7 +10,7 @@ use std::process::Command;
 
 use bwm_data::source::{open_dataset, CameraSelection};
 use bwm_data::ActionSpec;
-use common::{bwm, demo_data, python, write_random_vae};
+use common::{bwm, demo_data, python, temp_dir, write_random_vae};
 
 
 
@@ -30,9 +30,7 @@ fn rollout(args: &[&str]) -> std::process::Output {
 
 #[test]
 fn data_engine_writes_a_lerobot_dataset_aligned_row_by_row() {
-    let dir = std::env::temp_dir().join(format!("bwm-rollout-cli-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = temp_dir("rollout-cli");
     let vae = dir.join("vae.safetensors");
     write_random_vae(&vae, 5);
     let data = demo_data();
@@ -108,5 +106,4 @@ print(json.dumps(t["action"]))
     let bad = rollout(&["--vae", vae.to_str().unwrap(), "--data", data.to_str().unwrap(), "--out", dir.join("bad").to_str().unwrap(), "--episodes", "7"]);
     assert!(!bad.status.success() && String::from_utf8_lossy(&bad.stderr).contains("3 episodes"));
     assert!(!dir.join("bad/meta/info.json").exists());
-    let _ = std::fs::remove_dir_all(&dir);
 }

@@ -330,7 +330,6 @@ fn submit_runs_a_two_rank_cpu_job_to_completion_on_a_local_slurm_cluster() {
     assert_eq!(latest_step(&dir.join("requeue")), steps, "{logs_text}");
     drop(cluster);
     eprintln!("slurm test took {:.1} s", started.elapsed().as_secs_f64());
-    std::fs::remove_dir_all(&dir).ok();
 }
 
 #[test]
@@ -371,5 +370,4 @@ fn submit_without_sbatch_says_so() {
         String::from_utf8_lossy(&dry.stderr)
     );
     assert!(String::from_utf8_lossy(&dry.stdout).starts_with("#!/bin/bash\n#"));
-    std::fs::remove_dir_all(&dir).ok();
 }

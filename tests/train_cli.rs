@@ -9,7 +9,7 @@ use std::io::{BufRead, BufReader};
 use std::path::Path;
 use std::process::{Command, Stdio};
 
-use common::{assert_close, bwm, final_weights, free_port, python, write_cache, write_config};
+use common::{assert_close, bwm, final_weights, free_port, python, temp_dir, write_cache, write_config};
 
 
 
@@ -18,9 +18,7 @@ use common::{assert_close, bwm, final_weights, free_port, python, write_cache, w
 
 #[test]
 fn kill_during_checkpoint_write_then_resume_auto_and_tensorboard_read_back() {
-    let dir = std::env::temp_dir().join(format!("bwm-train-cli-{}", std::process::id()));
-    std::fs::remove_dir_all(&dir).ok();
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = temp_dir("train-cli");
     write_cache(&dir.join("cache"));
     let config = write_config(&dir, "run.toml", &dir.join("run"), 3, 1);
 
@@ -84,7 +82,6 @@ print(json.dumps({t: [e.step for e in acc.Scalars(t)] for t in tags}))
         assert_eq!(steps, vec![1, 2, 3], "{tag}");
     }
     assert!(tags.as_object().unwrap().keys().any(|k| k.starts_with("loss_by_t/")), "{tags}");
-    std::fs::remove_dir_all(&dir).ok();
 }
 
 
@@ -122,9 +119,7 @@ fn set_train(path: &Path, setting: &str) {
 
 #[test]
 fn two_ranks_train_the_weights_of_one_and_resume_across_world_sizes() {
-    let dir = std::env::temp_dir().join(format!("bwm-train-dist-{}", std::process::id()));
-    std::fs::remove_dir_all(&dir).ok();
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = temp_dir("train-dist");
     write_cache(&dir.join("cache"));
     // One process, accumulation 2 == two ranks, accumulation 1: the same global batch of 2.
     let one = write_config(&dir, "one.toml", &dir.join("one"), 3, 2);
@@ -180,13 +175,11 @@ fn two_ranks_train_the_weights_of_one_and_resume_across_world_sizes() {
     let b3 = write_config(&dir, "b3.toml", &dir.join("b"), 3, 1);
     train_ranks(&b3, 2, "auto");
     assert_close(&final_weights(&dir.join("one")), &final_weights(&dir.join("b")), "1 rank then 2");
-    std::fs::remove_dir_all(&dir).ok();
 }
 
 #[test]
 fn stats_writes_a_stat_json_that_normalization_reads() {
-    let dir = std::env::temp_dir().join(format!("bwm-stats-cli-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = temp_dir("stats-cli");
     let out = dir.join("stat.json");
     let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/bwm-demo");
     let run = Command::new(bwm()).args(["stats", "--data"]).arg(&data).arg("--out").arg(&out).output().unwrap();
@@ -194,12 +187,11 @@ fn stats_writes_a_stat_json_that_normalization_reads() {
     let stats = bwm_data::ActionStats::read(&out, "state_pose").unwrap();
     assert_eq!(stats.p01.len(), 14);
     assert!(stats.p01.iter().zip(&stats.p99).all(|(a, b)| a <= b));
-    std::fs::remove_dir_all(&dir).ok();
 }
 
 #[test]
 fn bench_train_breakdown_accounts_for_the_step() {
-    let dir = std::env::temp_dir().join(format!("bwm-bench-breakdown-{}", std::process::id()));
+    let dir = temp_dir("bench-breakdown");
     let out = Command::new(bwm())
         .args(["bench-train", "--config", "configs/tiny.toml", "--height", "32", "--width", "64", "--history", "4", "--future", "4", "--steps", "3", "--breakdown"])
         .args(["--set", "objective.condition_latents=2", "--out"])
@@ -215,8 +207,9 @@ fn bench_train_breakdown_accounts_for_the_step() {
     };
     let parts = ["attention cores (self + cross)", "linear layers (10 per block)", "norms, modulation, RoPE, gates, adds", "outside the blocks"].map(seconds);
     let step: f64 = stdout.lines().find(|l| l.starts_with("breakdown of a ")).unwrap()["breakdown of a ".len()..].split_whitespace().next().unwrap().parse().unwrap();
-    assert!(parts[..2].iter().all(|&s| s > 0.0), "{stdout}");
-    // Printed to the millisecond: the parts add up to the step.
-    assert!((parts.iter().sum::<f64>() - step).abs() <= 0.003, "{parts:?} vs {step}: {stdout}");
-    std::fs::remove_dir_all(&dir).ok();
+    // Timings of a tiny model, printed to the millisecond, can print 0.000: the test checks the
+    // structure. Attention and linear layers are sums of measured times; the five figures (each
+    // rounded by up to 0.0005 s) account for the whole step.
+    assert!(parts[..2].iter().all(|&s| s >= 0.0), "{stdout}");
+    assert!((parts.iter().sum::<f64>() - step).abs() <= 0.0025 + 1e-9, "{parts:?} vs {step}: {stdout}");
 }

@@ -5,6 +5,11 @@
 #   latents  bwm prepare: the latent cache (x0 + 8 history + 24 future frames, stride 4)
 #   train    bwm train --config configs/metaworld.toml
 #   fidelity bwm fidelity on the held-out episodes: $RUN/fidelity/ (JSON, curves, videos)
+#   truth    bench/metaworld/study.py --truth-only: each policy variant's true success rate in the
+#            simulator on the held-out placements (CPU; $RUN/study/truth.json)
+#   judge    bench/metaworld/judge.py: a success classifier on real frames (accuracy on held-out ones)
+#   study    bench/metaworld/study.py: every policy variant through `bwm evaluate` against its true
+#            success rate in the simulator: $RUN/study/ (study.json, study.csv, study.svg)
 # Usage (repository root): bash bench/metaworld/recipe.sh [STAGE ...]   (default: all)
 # Each stage is skipped when its output exists; `train` resumes from its last checkpoint.
 # Environment: RUN (output folder, default runs/metaworld), BWM (the bwm binary, default
@@ -21,18 +26,25 @@ TRAIN_EPISODES="${TRAIN_EPISODES:-300}"   # per task, seeds 0..
 VAL_EPISODES="${VAL_EPISODES:-50}"        # per task, seeds 100000.. (never trained on)
 FRAMES="${FRAMES:-120}"
 WORKERS="${WORKERS:-$(nproc)}"
-VAE_STEPS="${VAE_STEPS:-3000}"
+VAE_STEPS="${VAE_STEPS:-2000}"
 VAE_EPISODES="${VAE_EPISODES:-200}"
+VAE_BATCH="${VAE_BATCH:-32}"
 TRAIN_STEPS="${TRAIN_STEPS:-}"            # default: configs/metaworld.toml's
+TRAIN_SETS="${TRAIN_SETS:-}"              # more `--set KEY=VALUE` for bwm train, space-separated
 SAMPLE_STEPS="${SAMPLE_STEPS:-20}"        # Euler steps per generated chunk
+JUDGE_STEPS="${JUDGE_STEPS:-600}"
+STUDY_EPISODES="${STUDY_EPISODES:-50}"    # per task and variant, the first held-out episodes
+STUDY_JOBS="${STUDY_JOBS:-8}"             # bwm evaluate processes at once
+STUDY_HORIZON="${STUDY_HORIZON:-$FRAMES}" # frames after x0, in the simulator and the world model
+STUDY_VARIANTS="${STUDY_VARIANTS:-}"      # comma-separated (default: all)
 STAGES=()
 for arg in "$@"; do
   case "$arg" in
-    data|vae|latents|train|fidelity) STAGES+=("$arg") ;;
-    *) echo "recipe: unknown stage '$arg' (stages: data vae latents train fidelity)" >&2; exit 2 ;;
+    data|vae|latents|train|fidelity|truth|judge|study) STAGES+=("$arg") ;;
+    *) echo "recipe: unknown stage '$arg' (stages: data vae latents train fidelity truth judge study)" >&2; exit 2 ;;
   esac
 done
-[ ${#STAGES[@]} -gt 0 ] || STAGES=(data vae latents train fidelity)
+[ ${#STAGES[@]} -gt 0 ] || STAGES=(data vae latents train fidelity truth judge study)
 [ -x "$BWM" ] || { echo "recipe: no bwm binary at $BWM (make build, or set BWM)" >&2; exit 1; }
 mkdir -p "$RUN"
 wants() { [[ " ${STAGES[*]} " == *" $1 "* ]]; }
@@ -56,7 +68,7 @@ fi
 if wants vae; then
   if [ -f "$RUN/vae.safetensors" ]; then echo "recipe: $RUN/vae.safetensors exists"; else
     timed vae "$BWM" train-vae --data "$RUN/data/train" --max-episodes "$VAE_EPISODES" --holdout-tail 0.1 \
-      --resolution 64x64 --dim 32 --dec-dim 32 --clip-frames 9 --batch 32 --steps "$VAE_STEPS" --lr 1e-3 \
+      --resolution 64x64 --dim 32 --dec-dim 32 --clip-frames 9 --batch "$VAE_BATCH" --steps "$VAE_STEPS" --lr 1e-3 \
       --no-flip --eval-every 1000 --device "$DEVICE" --out "$RUN/vae.safetensors"
   fi
 fi
@@ -80,6 +92,7 @@ PY
   sets=(--set "run.out_dir=\"$RUN\"" --set "run.device=\"$DEVICE\"" --set "data.latent_cache=\"$RUN/latents\""
         --set "data.holdout_episodes=$holdout" --set "validation.vae=\"$RUN/vae.safetensors\"")
   [ -n "$TRAIN_STEPS" ] && sets+=(--set "train.steps=$TRAIN_STEPS")
+  for kv in $TRAIN_SETS; do sets+=(--set "$kv"); done
   timed train "$BWM" train --config configs/metaworld.toml "${sets[@]}" --resume auto
 fi
 # The world-model flags every later command shares: the newest checkpoint, its VAE and statistics.
@@ -93,5 +106,24 @@ if wants fidelity; then
   world_model
   timed fidelity "$BWM" fidelity "${WM[@]}" --data "$RUN/data/val" --actions observation.state:0-3 --resolution 64x64 \
     --horizons 8,16,32,64 --videos 4 --out "$RUN/fidelity"
+fi
+
+STUDY_ARGS=(--data "$RUN/data/val" --episodes "$STUDY_EPISODES" --horizon "$STUDY_HORIZON" ${STUDY_VARIANTS:+--variants "$STUDY_VARIANTS"}
+            --workers "$WORKERS" --out "$RUN/study")
+if wants truth; then
+  timed truth "$PYTHON" bench/metaworld/study.py "${STUDY_ARGS[@]}" --truth-only
+fi
+
+if wants judge; then
+  if [ -f "$RUN/judge.pt" ]; then echo "recipe: $RUN/judge.pt exists"; else
+    timed judge "$PYTHON" bench/metaworld/judge.py train --data "$RUN/data/train" --val "$RUN/data/val" \
+      --steps "$JUDGE_STEPS" --device "$DEVICE" --out "$RUN/judge.pt"
+  fi
+fi
+
+if wants study; then
+  world_model
+  timed study "$PYTHON" bench/metaworld/study.py "${STUDY_ARGS[@]}" --judge "$RUN/judge.pt" --bwm "$BWM" \
+    --jobs "$STUDY_JOBS" -- "${WM[@]}"
 fi
 echo "recipe: done; stage times in $RUN/timings.tsv"

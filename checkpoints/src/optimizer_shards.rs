@@ -269,9 +269,7 @@ mod tests {
 
     #[test]
     fn ranges_read_across_shards_and_from_the_legacy_form() {
-        let dir = std::env::temp_dir().join(format!("bwm-optshards-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = bwm_testdir::TestDir::new("optshards");
         let layout: Layout = vec![("a".into(), 5), ("b".into(), 6)];
         let flat = Tensor::arange(12, (Kind::Float, Device::Cpu)); // 11 elements + 1 padding
         for (rank, r) in [(0usize, 0..4usize), (1, 4..8), (2, 8..12)] {
@@ -330,6 +328,5 @@ mod tests {
             .read_range("master", 2..11, Device::Cpu)
             .unwrap()
             .equal(&flat.narrow(0, 2, 9)));
-        std::fs::remove_dir_all(&dir).ok();
     }
 }

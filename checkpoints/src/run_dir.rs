@@ -171,27 +171,27 @@ mod tests {
     use super::*;
     use anyhow::bail;
 
-    fn tmp(name: &str) -> PathBuf {
-        let d = std::env::temp_dir().join(format!("bwm-rundir-{name}-{}", std::process::id()));
-        fs::remove_dir_all(&d).ok();
-        d
+    /// A checkpoint root that does not exist yet, inside a folder removed on drop.
+    fn tmp(name: &str) -> (bwm_testdir::TestDir, CheckpointRoot) {
+        let dir = bwm_testdir::TestDir::new(name);
+        let root = CheckpointRoot::new(dir.join("checkpoints"));
+        (dir, root)
     }
 
     #[test]
     fn saves_points_latest_and_keeps_the_last_k() {
-        let root = CheckpointRoot::new(tmp("keep"));
+        let (_dir, root) = tmp("keep");
         for step in [10, 20, 30] {
             root.save(step, 2, |d| Ok(fs::write(d.join(STATE_FILE), format!("{step}"))?)).unwrap();
         }
         let steps: Vec<u64> = root.list().unwrap().iter().map(|d| d.step).collect();
         assert_eq!(steps, vec![20, 30]);
         assert_eq!(root.latest().unwrap().unwrap().step, 30);
-        fs::remove_dir_all(&root.root).ok();
     }
 
     #[test]
     fn a_failed_write_leaves_the_previous_checkpoint_latest() {
-        let root = CheckpointRoot::new(tmp("fail"));
+        let (_dir, root) = tmp("fail");
         root.save(1, 3, |d| Ok(fs::write(d.join(STATE_FILE), "1")?)).unwrap();
         let err = root.save(2, 3, |d| {
             fs::write(d.join("model.safetensors"), "partial")?;
@@ -201,12 +201,11 @@ mod tests {
         assert_eq!(root.latest().unwrap().unwrap().step, 1);
         assert!(root.save(3, 3, |_| Ok(())).unwrap_err().to_string().contains(STATE_FILE));
         assert_eq!(root.latest().unwrap().unwrap().step, 1);
-        fs::remove_dir_all(&root.root).ok();
     }
 
     #[test]
     fn saving_a_step_keeps_its_staging_folder_and_removes_other_steps() {
-        let root = CheckpointRoot::new(tmp("staging"));
+        let (_dir, root) = tmp("staging");
         let (current, crashed) = (root.staging_path(3), root.staging_path(7));
         for d in [&current, &crashed] {
             fs::create_dir_all(d).unwrap();
@@ -217,11 +216,10 @@ mod tests {
         })
         .unwrap();
         assert!(current.is_dir() && !crashed.exists());
-        fs::remove_dir_all(&root.root).ok();
     }
 
     #[test]
     fn missing_root_has_no_latest() {
-        assert!(CheckpointRoot::new(tmp("none")).latest().unwrap().is_none());
+        assert!(tmp("none").1.latest().unwrap().is_none());
     }
 }

@@ -97,8 +97,7 @@ mod tests {
 
     #[test]
     fn round_trip_keeps_dtype_values_and_metadata() {
-        let dir = std::env::temp_dir().join(format!("bwm-ckpt-tf-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = bwm_testdir::TestDir::new("ckpt-tf");
         let path = dir.join("t.safetensors");
         let a = Tensor::randn([3, 5], (Kind::Float, Device::Cpu));
         let b = Tensor::randn([7], (Kind::Float, Device::Cpu)).to_kind(Kind::BFloat16);
@@ -113,6 +112,5 @@ mod tests {
         assert_eq!(read_metadata(&path).unwrap()["step"], "12");
         let dup = write_tensors(&path, &[("a".into(), a.shallow_clone()), ("a".into(), a)], &BTreeMap::new());
         assert!(dup.unwrap_err().to_string().contains("twice"));
-        std::fs::remove_dir_all(&dir).ok();
     }
 }

@@ -97,7 +97,6 @@ fn export_then_load_gives_identical_tensors_in_every_layout() {
             assert!(leftovers.is_empty(), "{leftovers:?}");
         }
     }
-    std::fs::remove_dir_all(&root).ok();
 }
 
 #[test]
@@ -119,7 +118,6 @@ fn the_trained_residual_setting_travels_from_the_run_to_the_export() {
     let file = root.join("bare.safetensors");
     write_tensors(&file, &trained(&model).into_iter().collect::<Vec<_>>(), &BTreeMap::new()).unwrap();
     assert_eq!(residual(&file), None);
-    std::fs::remove_dir_all(&root).ok();
 }
 
 #[test]
@@ -134,7 +132,6 @@ fn ema_export_reads_the_optimizer_state() {
     let want: BTreeMap<String, Tensor> = trained(&model).into_iter().map(|(n, t)| (n, t * 0.5)).collect();
     assert_same(&got, &want, Kind::Float, "ema");
     assert!(RepoConfig::read(&out).unwrap().unwrap().weights.ema);
-    std::fs::remove_dir_all(&root).ok();
 }
 
 #[test]
@@ -168,7 +165,6 @@ fn conversions_between_layouts_keep_every_tensor() {
     let keys = bwm_model::weights::SafetensorsSource::open(root.join("c0.safetensors")).unwrap();
     let names = bwm_model::weights::WeightSource::names(&keys);
     assert!(names.contains(&"scale_shift_table".to_string()) && names.contains(&"action_encoder.action_mlp2.0.weight".to_string()));
-    std::fs::remove_dir_all(&root).ok();
 }
 
 #[test]
@@ -217,7 +213,6 @@ fn vae_pth_and_diffusers_names_convert_both_ways() {
     write_tensors(&bogus, &[("blocks.0.self_attn.q.weight".to_string(), Tensor::zeros([2, 2], (Kind::Float, Device::Cpu)))], &BTreeMap::new()).unwrap();
     let e = convert_vae(&bogus, &root.join("x.safetensors"), VaeNaming::Wan, None, false).unwrap_err().to_string();
     assert!(e.contains("not a Wan2.2 VAE key"), "{e}");
-    std::fs::remove_dir_all(&root).ok();
 }
 
 #[test]
@@ -247,7 +242,6 @@ fn a_checkpoint_of_another_config_is_refused() {
     // 4. A bare weights file with a preset of another size.
     let e = format!("{:#}", load_model(ckpt.join("model.safetensors").to_str().unwrap(), Some(&small), Kind::Float, Device::Cpu).err().unwrap());
     assert!(e.contains("another model config"), "{e}");
-    std::fs::remove_dir_all(&root).ok();
 }
 
 #[test]
@@ -310,7 +304,6 @@ fn partial_and_interrupted_exports_never_look_complete() {
     std::fs::create_dir_all(&tmp_ckpt).unwrap();
     let e = export(tmp_ckpt.to_str().unwrap(), &root.join("o9"), &opts, &mut |_| {}).unwrap_err().to_string();
     assert!(e.contains("interrupted checkpoint"), "{e}");
-    std::fs::remove_dir_all(&root).ok();
 }
 
 #[test]
@@ -352,7 +345,6 @@ fn name_collisions_are_errors() {
     write_tensors(&shard, &t.into_iter().collect::<Vec<_>>(), &BTreeMap::new()).unwrap();
     let e = format!("{:#}", open_any(out.to_str().unwrap()).unwrap_err());
     assert!(e.contains("name collision") && e.contains("action_encoder.action_mlp1.0.bias"), "{e}");
-    std::fs::remove_dir_all(&root).ok();
 }
 
 #[test]
@@ -386,5 +378,4 @@ fn frozen_tensors_come_from_the_base_weights() {
     write_tensors(&model_file, &t.into_iter().collect::<Vec<_>>(), &BTreeMap::new()).unwrap();
     let e = export(ckpt2.to_str().unwrap(), &root.join("o2"), &ExportOptions::default(), &mut |_| {}).unwrap_err().to_string();
     assert!(e.contains("--base") && e.contains("cannot be recovered"), "{e}");
-    std::fs::remove_dir_all(&root).ok();
 }

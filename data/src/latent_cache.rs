@@ -608,11 +608,8 @@ mod tests {
         assert_eq!(batch2, ranks2);
     }
 
-    fn tmp(tag: &str) -> PathBuf {
-        let d = std::env::temp_dir().join(format!("bwm-latent-cache-{tag}-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&d);
-        std::fs::create_dir_all(&d).unwrap();
-        d
+    fn tmp(tag: &str) -> bwm_testdir::TestDir {
+        bwm_testdir::TestDir::new(tag)
     }
 
     fn index(has_frames: bool) -> CacheIndex {

@@ -2,7 +2,7 @@
 //! sample indices of the next micro-batches) ahead of the consumer, at most `depth` results
 //! ahead, and the consumer's time spent waiting for them is measured.
 
-use std::sync::mpsc::{sync_channel, Receiver};
+use std::sync::mpsc::{sync_channel, Receiver, TryRecvError};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
@@ -53,11 +53,18 @@ where
     /// prefetcher is then stopped, and the caller computes the result itself or starts a new one.
     pub fn next(&mut self, key: &K) -> Option<Result<T>> {
         let rx = self.rx.as_ref()?;
-        let start = Instant::now();
-        let got = rx.recv();
-        self.waited += start.elapsed();
+        // A result already queued costs no waiting; only a blocking receive is timed.
+        let got = match rx.try_recv() {
+            Err(TryRecvError::Empty) => {
+                let start = Instant::now();
+                let got = rx.recv().ok();
+                self.waited += start.elapsed();
+                got
+            }
+            other => other.ok(),
+        };
         match got {
-            Ok((k, result)) if &k == key => Some(result),
+            Some((k, result)) if &k == key => Some(result),
             _ => {
                 self.stop();
                 None
@@ -180,27 +187,50 @@ mod tests {
 
     #[test]
     fn waiting_is_measured_and_errors_are_delivered_then_stop() {
-        let mut p = Prefetcher::spawn(2, 0u64..3, |&k: &u64| {
-            std::thread::sleep(Duration::from_millis(60));
+        use std::sync::atomic::{AtomicUsize, Ordering};
+        use std::sync::{mpsc, Arc};
+        // The first result is held back until the consumer is already inside `next`, so it must
+        // block; nothing here depends on how fast the machine is.
+        let (release, hold) = mpsc::channel::<()>();
+        let mut p = Prefetcher::spawn(2, 0u64..3, move |&k: &u64| {
+            if k == 0 {
+                hold.recv().unwrap();
+            }
             if k == 1 {
                 anyhow::bail!("clip {k} is unreadable")
             }
             Ok(k)
         })
         .unwrap();
+        let releaser = std::thread::spawn(move || {
+            std::thread::sleep(Duration::from_millis(30));
+            release.send(()).unwrap();
+        });
+        let call = Instant::now();
         assert_eq!(p.next(&0).unwrap().unwrap(), 0);
+        let took = call.elapsed();
+        releaser.join().unwrap();
         let waited = p.take_waited();
-        assert!(waited >= Duration::from_millis(40), "{waited:?}");
+        assert!(waited > Duration::ZERO && waited <= took, "{waited:?} of {took:?}");
         assert_eq!(p.take_waited(), Duration::ZERO);
         let e = p.next(&1).unwrap().unwrap_err();
         assert!(e.to_string().contains("unreadable"));
         assert!(p.next(&2).is_none(), "the worker stops after an error");
 
-        // A consumer slower than the worker does not wait.
-        let mut fast = Prefetcher::spawn(2, 0u64..4, |&k: &u64| Ok(k)).unwrap();
-        std::thread::sleep(Duration::from_millis(50));
+        // A consumer that finds its result queued does not wait at all.
+        let calls = Arc::new(AtomicUsize::new(0));
+        let counted = calls.clone();
+        let mut fast = Prefetcher::spawn(2, 0u64..4, move |&k: &u64| {
+            counted.fetch_add(1, Ordering::SeqCst);
+            Ok(k)
+        })
+        .unwrap();
+        // The worker computes key 1 only after key 0 was queued.
+        while calls.load(Ordering::SeqCst) < 2 {
+            std::thread::yield_now();
+        }
         assert_eq!(fast.next(&0).unwrap().unwrap(), 0);
-        assert!(fast.take_waited() < Duration::from_millis(20));
+        assert_eq!(fast.take_waited(), Duration::ZERO);
         drop(fast);
     }
 
@@ -208,8 +238,7 @@ mod tests {
     fn cache_batches_equal_clip_by_clip_loads() {
         use crate::latent_cache::{CacheIndex, CacheWriter, ClipEntry};
         use tch::{Device, Kind};
-        let dir = std::env::temp_dir().join(format!("bwm-prefetch-cache-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
+        let dir = bwm_testdir::TestDir::new("prefetch-cache");
         let index = CacheIndex::new(vec![4, 2, 2, 2], 3, 0, 4, [32, 32], 10.0, "test");
         let mut w = CacheWriter::with_shard_size(&dir, index, 3).unwrap();
         for i in 0..7 {

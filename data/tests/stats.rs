@@ -76,7 +76,6 @@ print(json.dumps({"min": x.min(0).tolist(), "max": x.max(0).tolist(), "p01": p[0
     for (q, w) in [0.0, 1.0, 12.5, 50.0, 66.6, 99.0, 100.0].iter().zip(want) {
         assert_eq!(percentile(&sorted, *q), w, "q = {q}");
     }
-    std::fs::remove_dir_all(&dir).unwrap();
 }
 
 #[test]
@@ -95,7 +94,6 @@ fn stat_json_round_trips_and_bad_input_is_refused() {
     assert!(ActionStats::compute(std::iter::empty::<&[f32]>()).is_err());
     assert!(ActionStats::compute([&[1.0f32, 2.0][..], &[1.0][..]]).is_err());
     assert!(ActionStats::compute([&[f32::NAN][..]]).is_err());
-    std::fs::remove_dir_all(&dir).unwrap();
 }
 
 /// The BWM release's groups: (stat.json group, spec).
@@ -143,7 +141,6 @@ fn bundled_stat_json_against_the_bundled_episodes() {
     assert_eq!(back, result.groups[2].1);
     let first = ds.vectors(0, &ActionSpec::eef_abs()).unwrap();
     assert!(back.normalize(&first[0]).iter().all(|v| (-1.0..=1.0).contains(v)));
-    std::fs::remove_dir_all(&dir).unwrap();
 
     // Training split only: a held-out episode changes the statistics.
     let split = split_episodes(ds.episodes(), &SplitSpec { seed: 1, validation: ValidationSize::Count(1) }).unwrap();

@@ -31,13 +31,6 @@ mod video {
 
     use super::*;
 
-    fn tmp_dir(tag: &str) -> PathBuf {
-        let dir = std::env::temp_dir().join(format!("bwm-data-{tag}-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        std::fs::create_dir_all(&dir).unwrap();
-        dir
-    }
-
     fn mean_abs_diff(a: &RgbImage, b: &RgbImage) -> f64 {
         assert_eq!(a.dimensions(), b.dimensions());
         let sum: u64 = a.as_raw().iter().zip(b.as_raw()).map(|(&x, &y)| x.abs_diff(y) as u64).sum();
@@ -100,7 +93,7 @@ mod video {
     }
 
     fn round_trip(encoder: Mp4Encoder, tag: &str) -> f64 {
-        let dir = tmp_dir(tag);
+        let dir = bwm_testdir::TestDir::new(tag);
         let path = dir.join("clip.mp4");
         let frames: Vec<_> = (0..12).map(|t| synthetic(96, 64, t)).collect();
         write_mp4_with(&path, &frames, 12.0, encoder).unwrap();
@@ -114,7 +107,6 @@ mod video {
         }
         let names: Vec<_> = std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().file_name()).collect();
         assert_eq!(names, ["clip.mp4"], "temporary files left behind");
-        std::fs::remove_dir_all(&dir).unwrap();
         worst
     }
 
@@ -129,7 +121,7 @@ mod video {
         eprintln!("Mpeg4: worst per-frame mean abs diff {worst:.3}");
         assert!(worst < 2.5, "mpeg4: mean abs diff {worst}");
 
-        let dir = tmp_dir("write-default");
+        let dir = bwm_testdir::TestDir::new("write-default");
         let path = dir.join("default.mp4");
         write_mp4(&path, &[synthetic(32, 32, 0), synthetic(32, 32, 1)], 30000.0 / 1001.0).unwrap();
         let info = probe(&path).unwrap();
@@ -139,12 +131,11 @@ mod video {
         let info = probe(&path).unwrap();
         assert_eq!((info.frames, info.codec.as_str()), (1, "mpeg4"), "{info:?}");
         assert!((info.fps - 30000.0 / 1001.0).abs() < 1e-9, "{info:?}");
-        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]
     fn write_mp4_rejects_bad_input_and_leaves_nothing() {
-        let dir = tmp_dir("write-bad");
+        let dir = bwm_testdir::TestDir::new("write-bad");
         let path = dir.join("bad.mp4");
         let e = format!("{:#}", write_mp4(&path, &[synthetic(33, 32, 0)], 10.0).unwrap_err());
         assert!(e.contains("bad.mp4") && e.contains("even"), "{e}");
@@ -154,7 +145,6 @@ mod video {
         assert!(write_mp4(&path, &[synthetic(32, 32, 0)], 0.0).is_err());
         assert!(write_mp4(&dir.join("missing_dir/x.mp4"), &[synthetic(32, 32, 0)], 10.0).is_err());
         assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 0, "files left behind");
-        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]

@@ -98,6 +98,8 @@ struct Plan {
     master_addr: String,
     master_port: u16,
     library_path: String,
+    /// The folder of the `libnccl.so` link that `library_path` names, removed with the plan.
+    _nccl_link: Option<tempfile::TempDir>,
     log_dir: Option<PathBuf>,
     grace: Duration,
 }
@@ -301,6 +303,7 @@ pub fn run(mut a: LaunchArgs) -> Result<()> {
             },
         )?;
     }
+    let (library_path, nccl_link) = nccl_library_path();
     let plan = Plan {
         exe,
         command: a.command.clone(),
@@ -309,7 +312,8 @@ pub fn run(mut a: LaunchArgs) -> Result<()> {
         world: nproc * a.nnodes,
         master_addr: a.master_addr.clone(),
         master_port: a.master_port,
-        library_path: nccl_library_path(),
+        library_path,
+        _nccl_link: nccl_link,
         log_dir: a.log_dir.clone(),
         grace,
     };
@@ -428,8 +432,9 @@ fn stop_on_signal(ranks: &mut Ranks, grace: Duration) -> Result<()> {
 /// LD_LIBRARY_PATH for the ranks: libtorch loads the `libnccl.so.2` of the torch wheel
 /// (`nvidia/nccl/lib`), while cudarc opens `libnccl.so`, which on the GPU machines resolves to an
 /// older system copy; two NCCLs in one process corrupt communicators (ARCHITECTURE.md). A
-/// directory holding a `libnccl.so` link to the wheel's library goes first.
-fn nccl_library_path() -> String {
+/// directory holding a `libnccl.so` link to the wheel's library goes first; it lasts as long as
+/// the returned guard.
+fn nccl_library_path() -> (String, Option<tempfile::TempDir>) {
     let current = std::env::var("LD_LIBRARY_PATH").unwrap_or_default();
     let wheel_nccl = current
         .split(':')
@@ -437,25 +442,23 @@ fn nccl_library_path() -> String {
         .map(|d| std::path::Path::new(d).join("../../nvidia/nccl/lib"))
         .find(|d| d.join("libnccl.so.2").exists());
     let Some(nccl_dir) = wheel_nccl else {
-        return current;
+        return (current, None);
     };
-    let link_dir = std::env::temp_dir().join(format!("bwm-nccl-link-{}", std::process::id()));
-    let link = link_dir.join("libnccl.so");
-    let made = std::fs::create_dir_all(&link_dir).and_then(|_| {
-        if link.exists() {
-            Ok(())
-        } else {
-            std::os::unix::fs::symlink(nccl_dir.join("libnccl.so.2"), &link)
-        }
+    let made = tempfile::Builder::new().prefix("bwm-nccl-link-").tempdir().and_then(|link_dir| {
+        std::os::unix::fs::symlink(nccl_dir.join("libnccl.so.2"), link_dir.path().join("libnccl.so"))?;
+        Ok(link_dir)
     });
     match made {
-        Ok(()) => format!("{}:{}:{current}", link_dir.display(), nccl_dir.display()),
+        Ok(link_dir) => {
+            let path = format!("{}:{}:{current}", link_dir.path().display(), nccl_dir.display());
+            (path, Some(link_dir))
+        }
         Err(e) => {
             eprintln!(
                 "launch: warning: could not link libnccl.so in {}: {e}",
-                link_dir.display()
+                std::env::temp_dir().display()
             );
-            current
+            (current, None)
         }
     }
 }

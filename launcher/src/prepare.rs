@@ -891,26 +891,23 @@ fn groups(plan: &ClipPlan, clips: &[(usize, usize)]) -> Vec<Vec<(usize, usize)>>
     out
 }
 
-/// Runs the x0 enhancement command on one image (files in the system's temporary folder).
+/// Runs the x0 enhancement command on one image (files in a temporary folder, removed after).
 fn enhance(cmd: &str, x0: &RgbImage, episode: usize) -> Result<RgbImage> {
-    let dir = std::env::temp_dir();
-    let stem = format!("bwm-enhance-x0-{}-{episode}", std::process::id());
-    let (input, output) = (dir.join(format!("{stem}-in.png")), dir.join(format!("{stem}-out.png")));
+    let dir = tempfile::Builder::new()
+        .prefix(&format!("bwm-enhance-x0-{episode}-"))
+        .tempdir()
+        .context("creating a temporary folder for the x0 enhancement")?;
+    let (input, output) = (dir.path().join("in.png"), dir.path().join("out.png"));
     let quote = |p: &Path| format!("'{}'", p.display().to_string().replace('\'', "'\\''"));
     let line = cmd.replace("{in}", &quote(&input)).replace("{out}", &quote(&output));
-    let result = (|| -> Result<RgbImage> {
-        x0.save(&input).with_context(|| format!("writing {}", input.display()))?;
-        let run = std::process::Command::new("sh").arg("-c").arg(&line).output().with_context(|| format!("running `{line}`"))?;
-        if !run.status.success() {
-            let stderr = String::from_utf8_lossy(&run.stderr);
-            let tail: String = stderr.trim().lines().last().unwrap_or_default().chars().take(300).collect();
-            bail!("`{line}` failed ({}): {tail}", run.status);
-        }
-        Ok(image::open(&output).with_context(|| format!("reading the enhanced x0 {}", output.display()))?.to_rgb8())
-    })();
-    let _ = std::fs::remove_file(&input);
-    let _ = std::fs::remove_file(&output);
-    result
+    x0.save(&input).with_context(|| format!("writing {}", input.display()))?;
+    let run = std::process::Command::new("sh").arg("-c").arg(&line).output().with_context(|| format!("running `{line}`"))?;
+    if !run.status.success() {
+        let stderr = String::from_utf8_lossy(&run.stderr);
+        let tail: String = stderr.trim().lines().last().unwrap_or_default().chars().take(300).collect();
+        bail!("`{line}` failed ({}): {tail}", run.status);
+    }
+    Ok(image::open(&output).with_context(|| format!("reading the enhanced x0 {}", output.display()))?.to_rgb8())
 }
 
 /// Encodes the clips the reader sends, writes each finished shard and this rank's progress.

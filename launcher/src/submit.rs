@@ -449,10 +449,10 @@ mod tests {
             "it's.toml",
         ])
         .unwrap();
-        let path = std::env::temp_dir().join(format!("bwm-submit-test-{}.sh", std::process::id()));
+        let dir = bwm_testdir::TestDir::new("submit");
+        let path = dir.join("job.sh");
         std::fs::write(&path, &s).unwrap();
         let out = Command::new("bash").arg("-n").arg(&path).output().unwrap();
-        std::fs::remove_file(&path).ok();
         assert!(
             out.status.success(),
             "{}\n{s}",

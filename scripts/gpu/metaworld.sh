@@ -17,7 +17,24 @@ export PYTHONPATH=/tmp/site
 mkdir -p dist && xz -dc .carry/bwm.xz > dist/bwm && chmod +x dist/bwm || exit 1
 export BWM="$PWD/dist/bwm" PYTHON=python3
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$OUT/gpu.txt"
+python3 - <<'PY' || exit 1
+import importlib
+missing = []
+for name in ("numpy", "torch", "pyarrow", "PIL", "scipy", "msgpack", "websockets", "metaworld", "mujoco"):
+    try:
+        m = importlib.import_module(name)
+        print(f"{name} {getattr(m, '__version__', '')}")
+    except Exception as e:
+        missing.append(f"{name} ({e})")
+if missing:
+    raise SystemExit("missing on this machine: " + ", ".join(missing))
+PY
 bash bench/metaworld/recipe.sh "$@" 2>&1 | tee -a "$OUT/recipe.log"
 status=${PIPESTATUS[0]}
-cp runs/metaworld/timings.tsv "$OUT/" 2>/dev/null
+# What the run measured comes back (small files only; the datasets and latents stay there).
+R=runs/metaworld
+mkdir -p "$OUT/run"
+cp $R/timings.tsv $R/*.svg $R/judge.json $R/metrics.jsonl "$OUT/run/" 2>/dev/null
+(cd $R && find fidelity study -type f \( -name '*.json' -o -name '*.jsonl' -o -name '*.csv' -o -name '*.svg' -o -name '*.log' \
+  -o -name '*.toml' -o -name '*.png' \) -not -path '*/videos/*' -size -3M -exec cp --parents {} "$OUT/run/" \; 2>/dev/null)
 exit "$status"

@@ -54,12 +54,12 @@ pub fn write_random_vae(path: &Path, seed: i64) {
     save_trained_vae(&TrainedVae { vae, params, report }, path).unwrap();
 }
 
-/// A fresh folder under the system temp dir, named for the test and this process.
-pub fn temp_dir(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("bwm-{name}-{}", std::process::id()));
-    std::fs::remove_dir_all(&dir).ok();
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
+#[allow(unused_imports)]
+pub use bwm_testdir::{shared_dir, TestDir};
+
+/// A fresh folder for one test, removed when dropped (bwm_testdir).
+pub fn temp_dir(name: &str) -> TestDir {
+    TestDir::new(name)
 }
 
 pub fn write_cache(dir: &Path) {

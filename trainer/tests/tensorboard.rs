@@ -1,7 +1,7 @@
 //! Event files written by `bwm_trainer::tensorboard::EventWriter`, read back by TensorBoard's own
 //! `EventAccumulator` (the project virtualenv's `tensorboard` package, driven by Python below).
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Command;
 
 use bwm_trainer::tensorboard::EventWriter;
@@ -71,11 +71,8 @@ fn read_back(log_dir: &Path) -> Value {
     serde_json::from_slice(&out.stdout).unwrap()
 }
 
-fn tmp_dir(tag: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("bwm-test-tb-{tag}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
+fn tmp_dir(tag: &str) -> bwm_testdir::TestDir {
+    bwm_testdir::TestDir::new(&format!("tb-{tag}"))
 }
 
 fn loss(step: u64) -> f64 {
@@ -150,7 +147,6 @@ fn tensorboard_reads_scalars_and_images() {
         assert_eq!(decoded, img, "{tag} pixels");
     }
     drop(w);
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
@@ -172,7 +168,6 @@ fn drop_flushes_and_writers_get_distinct_files() {
     assert_eq!(got["files"].as_array().unwrap().len(), 2, "{got}");
     assert_scalars(&got, "train/loss", loss);
     assert_scalars(&got, "train/lr", lr);
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
@@ -183,5 +178,4 @@ fn log_dir_that_is_a_file_is_an_error() {
     let err = EventWriter::create(&file).err().expect("a regular file as log dir must fail");
     assert!(format!("{err:#}").contains("not_a_dir"), "{err:#}");
     assert!(EventWriter::create(&file.join("sub")).is_err());
-    let _ = std::fs::remove_dir_all(&dir);
 }

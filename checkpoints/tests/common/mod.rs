@@ -8,11 +8,9 @@ use bwm_checkpoints::write_tensors;
 use bwm_model::{BwmModel, ModelConfig};
 use tch::{Device, Kind, Tensor};
 
-pub fn tmp_dir(tag: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("bwm-ckpt-test-{tag}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
+/// A fresh folder for one test, removed when dropped (bwm_testdir).
+pub fn tmp_dir(tag: &str) -> bwm_testdir::TestDir {
+    bwm_testdir::TestDir::new(tag)
 }
 
 /// A run config TOML for `preset` (with an optional `[model.dit]` override block).

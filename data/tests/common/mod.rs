@@ -41,12 +41,11 @@ pub fn run_python(script: &str, args: &[&str]) -> String {
     String::from_utf8(out.stdout).expect("python printed non-UTF-8")
 }
 
-/// The fixture datasets, written once per test binary into a fresh temporary folder.
+/// The fixture datasets, written once per test binary into a folder that lasts until it exits.
 pub fn fixtures() -> &'static Path {
     static DIR: OnceLock<PathBuf> = OnceLock::new();
     DIR.get_or_init(|| {
-        remove_stale_fixtures();
-        let dir = std::env::temp_dir().join(format!("bwm-data-fixtures-{}", std::process::id()));
+        let dir = bwm_testdir::shared_dir("data-fixtures");
         let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../scripts/make_fixtures.py");
         let out = Command::new(python()).arg(&script).arg(&dir).output().expect("starting python");
         assert!(out.status.success(), "make_fixtures.py failed:\n{}", String::from_utf8_lossy(&out.stderr));
@@ -54,24 +53,9 @@ pub fn fixtures() -> &'static Path {
     })
 }
 
-/// Removes the fixture folders of test processes that have ended.
-fn remove_stale_fixtures() {
-    let Ok(entries) = std::fs::read_dir(std::env::temp_dir()) else { return };
-    for entry in entries.flatten() {
-        let name = entry.file_name();
-        let Some(pid) = name.to_str().and_then(|n| n.strip_prefix("bwm-data-fixtures-")) else { continue };
-        if pid.parse::<u32>().is_ok() && !Path::new("/proc").join(pid).exists() {
-            let _ = std::fs::remove_dir_all(entry.path());
-        }
-    }
-}
-
-/// A fresh empty temporary folder.
-pub fn tmp_dir(tag: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("bwm-data-{tag}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
+/// A fresh folder for one test, removed when dropped (bwm_testdir).
+pub fn tmp_dir(tag: &str) -> bwm_testdir::TestDir {
+    bwm_testdir::TestDir::new(tag)
 }
 
 /// Mean colour of a small square around (x, y).

@@ -249,8 +249,7 @@ mod tests {
 
     #[test]
     fn vectors_from_json_and_npy() {
-        let dir = std::env::temp_dir().join(format!("bwm-eval-vec-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = bwm_testdir::TestDir::new("eval-vec");
         let json = dir.join("s.json");
         std::fs::write(&json, "[1, 2.5, -3]").unwrap();
         assert_eq!(read_vector(&json).unwrap(), vec![1.0, 2.5, -3.0]);
@@ -271,6 +270,5 @@ mod tests {
         assert_eq!(read_vector(&path).unwrap(), vec![1.5, -2.0]);
         std::fs::write(&json, "{\"a\": 1}").unwrap();
         assert!(read_vector(&json).is_err());
-        std::fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -25,11 +25,9 @@ pub fn rel_err(a: &Tensor, b: &Tensor) -> f64 {
     num / den.max(1e-30)
 }
 
-pub fn tmp_dir(tag: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("bwm-test-{tag}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
+/// A fresh folder for one test, removed when dropped (bwm_testdir).
+pub fn tmp_dir(tag: &str) -> bwm_testdir::TestDir {
+    bwm_testdir::TestDir::new(tag)
 }
 
 /// tch draws random numbers from one global generator and the tests of a binary run on parallel

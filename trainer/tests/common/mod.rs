@@ -8,11 +8,9 @@ use bwm_data::latent_cache::{CacheIndex, CacheWriter, ClipEntry};
 use bwm_trainer::RunConfig;
 use tch::{Device, Kind, Tensor};
 
-pub fn tmp_dir(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("bwm-trainer-{name}-{}", std::process::id()));
-    std::fs::remove_dir_all(&d).ok();
-    std::fs::create_dir_all(&d).unwrap();
-    d
+/// A fresh folder for one test, removed when dropped (bwm_testdir).
+pub fn tmp_dir(name: &str) -> bwm_testdir::TestDir {
+    bwm_testdir::TestDir::new(name)
 }
 
 /// `clips` clips of 4 latent frames (3 condition + 1 future) of 4x4, with 13 action frames.

@@ -1,0 +1,282 @@
+"""Writes a LeRobot v2.1 dataset of Meta-World episodes (frames as PNG `image` cells inside the
+parquet files, no video). README.md describes the layout and the seed convention.
+
+    python generate.py --tasks drawer-open-v3,button-press-topdown-v3 --episodes 200 \\
+        --seed-start 0 --frames 120 --resolution 64 --out DIR --workers 2
+
+Each episode is a pure function of (task, seed, --frames, --resolution, --degraded-fraction):
+the same arguments give the same bytes whatever --workers is.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import multiprocessing
+import os
+import shutil
+import sys
+import time
+import zlib
+
+import numpy as np
+
+from mw import ACTION_SCALE, FPS, TASKS, Sim
+
+DATA_PATH = "data/chunk-{episode_chunk:03d}/episode_{episode_index:06d}.parquet"
+CHUNKS_SIZE = 1000
+# Where exploration sends the hand (inside the mocap bounds, around the table).
+EXPLORE_LOW = np.array([-0.35, 0.40, 0.05])
+EXPLORE_HIGH = np.array([0.35, 0.95, 0.40])
+DEGRADED_MODES = ("pause", "wrong", "burst", "stop", "explore", "late")
+
+
+class Behaviour:
+    """The scripted expert on the true object position with action noise, randomly interrupted
+    by exploration (random waypoints and gripper commands), or degraded in one `mode`."""
+
+    def __init__(self, task: str, rng: np.random.Generator, frames: int, degraded_fraction: float):
+        import policies
+
+        self.policies, self.task, self.rng = policies, task, rng
+        self.noise = rng.uniform(0.05, 0.4)
+        self.mode = rng.choice(DEGRADED_MODES) if rng.random() < degraded_fraction else "expert"
+        self.explore = np.zeros(frames, bool)  # frames spent on random waypoints
+        self.hold = np.zeros(frames, bool)  # frames spent still
+        self.burst = np.zeros(frames, bool)  # frames of heavy noise
+        self.offset = np.zeros(3)
+
+        def span(lo: int, hi: int) -> slice:
+            start = int(rng.integers(0, frames))
+            return slice(start, start + int(rng.integers(lo, hi)))
+
+        if self.mode == "expert" and rng.random() < 0.4:
+            self.explore[: rng.integers(5, 25)] = True
+        elif self.mode == "pause":
+            for _ in range(rng.integers(2, 5)):
+                self.hold[span(8, 25)] = True
+        elif self.mode == "wrong":
+            angle = rng.uniform(0, 2 * np.pi)
+            self.offset = np.array([np.cos(angle), np.sin(angle), 0.0]) * rng.uniform(0.05, 0.15) + [0, 0, rng.uniform(-0.02, 0.1)]
+        elif self.mode == "burst":
+            for _ in range(rng.integers(1, 4)):
+                self.burst[span(10, 30)] = True
+        elif self.mode == "stop":
+            self.explore[rng.integers(15, 70) :] = True
+        elif self.mode == "explore":
+            self.explore[:] = True
+        elif self.mode == "late":
+            self.hold[: rng.integers(30, 70)] = True
+        self.waypoint, self.until, self.gain, self.grip = None, -1, 10.0, -1.0
+
+    def command(self, t: int, state: np.ndarray, obj: np.ndarray) -> np.ndarray:
+        rng, grip = self.rng, self.policies.GRIP[self.task]
+        if self.hold[t]:
+            return state.copy()
+        if self.explore[t]:
+            if t >= self.until or np.abs(self.waypoint - state[:3]).max() < 0.01:
+                self.waypoint = rng.uniform(EXPLORE_LOW, EXPLORE_HIGH)
+                self.until = t + int(rng.integers(10, 30))
+                self.gain = rng.uniform(5.0, 30.0)
+                self.grip = rng.choice([-1.0, 1.0])
+            to, gain, grip = self.waypoint, self.gain, self.grip
+        else:
+            to, gain, _ = self.policies.expert_target(self.task, obj + self.offset, state)
+        noise = rng.uniform(1.0, 2.0) if self.burst[t] else self.noise
+        a = np.clip(np.clip(gain * (to - state[:3]), -1, 1) + noise * rng.standard_normal(3), -1, 1)
+        return np.append(state[:3] + a * ACTION_SCALE, grip).astype(np.float32)
+
+
+def episode_rng(task: str, seed: int) -> np.random.Generator:
+    return np.random.default_rng([seed, zlib.crc32(task.encode())])
+
+
+def png(image: np.ndarray) -> bytes:
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(image).save(buf, format="PNG", compress_level=6)
+    return buf.getvalue()
+
+
+def stats(values: np.ndarray) -> dict:
+    """LeRobot's per-episode feature statistics (per dimension)."""
+    v = values.reshape(len(values), -1).astype(np.float64)
+    return {"min": v.min(0).tolist(), "max": v.max(0).tolist(), "mean": v.mean(0).tolist(), "std": v.std(0).tolist(), "count": [len(v)]}
+
+
+def image_stats(images: np.ndarray) -> dict:
+    """Per-channel statistics of pixel values in [0, 1], shaped [3, 1, 1] as LeRobot stores them."""
+    s = stats(images.reshape(-1, 3) / 255.0)
+    return {k: ([[[x]] for x in s[k]] if k != "count" else [len(images)]) for k in s}
+
+
+def run_episode(job: tuple) -> dict:
+    """Simulates one episode and writes its parquet file; returns its metadata."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    root, episode_index, first_index, task_index, task, seed, frames, resolution, degraded = job
+    behaviour = Behaviour(task, episode_rng(task, seed), frames, degraded)
+    images, states, commands, deltas, success = [], [], [], [], []
+    with Sim(task, seed, resolution) as sim:
+        image, state = sim.reset()
+        done = False
+        for t in range(frames):
+            command = behaviour.command(t, state, sim.object_pos())
+            images.append(image)
+            states.append(state)
+            commands.append(command)
+            success.append(done)
+            image, state, done = sim.step(command, render=t + 1 < frames)
+            deltas.append(sim.last_action)
+        success.append(done)
+    images, states, commands, deltas = (np.stack(x) for x in (images, states, commands, deltas))
+    success = np.array(success)
+    vec = lambda rows: pa.FixedSizeListArray.from_arrays(pa.array(rows.reshape(-1), pa.float32()), rows.shape[1])
+    n = frames
+    table = pa.table({
+        "observation.image": pa.array([{"bytes": png(i), "path": None} for i in images], pa.struct([("bytes", pa.binary()), ("path", pa.string())])),
+        "observation.state": vec(states),
+        "action": vec(commands),
+        "action_delta": vec(deltas),
+        "success": pa.array(success[:-1]),
+        "next.success": pa.array(success[1:]),
+        "timestamp": pa.array(np.arange(n, dtype=np.float32) / np.float32(FPS)),
+        "frame_index": pa.array(np.arange(n, dtype=np.int64)),
+        "episode_index": pa.array(np.full(n, episode_index, np.int64)),
+        "index": pa.array(np.arange(first_index, first_index + n, dtype=np.int64)),
+        "task_index": pa.array(np.full(n, task_index, np.int64)),
+    })
+    path = os.path.join(root, DATA_PATH.format(episode_chunk=episode_index // CHUNKS_SIZE, episode_index=episode_index))
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    pq.write_table(table, path, compression="snappy")
+    first = int(np.argmax(success)) if success.any() else None
+    return {
+        "episode": {"episode_index": episode_index, "tasks": [task], "length": n, "seed": seed, "behaviour": str(behaviour.mode), "success": first is not None, "first_success_frame": first},
+        "stats": {
+            "episode_index": episode_index,
+            "stats": {
+                "observation.image": image_stats(images),
+                "observation.state": stats(states),
+                "action": stats(commands),
+                "action_delta": stats(deltas),
+                "success": stats(success[:-1]),
+                "next.success": stats(success[1:]),
+                "timestamp": stats(np.arange(n) / FPS),
+                "frame_index": stats(np.arange(n)),
+                "episode_index": stats(np.full(n, episode_index)),
+                "index": stats(np.arange(first_index, first_index + n)),
+                "task_index": stats(np.full(n, task_index)),
+            },
+        },
+    }
+
+
+def features(resolution: int) -> dict:
+    vec = lambda names: {"dtype": "float32", "shape": [len(names)], "names": names}
+    scalar = lambda dtype: {"dtype": dtype, "shape": [1], "names": None}
+    return {
+        "observation.image": {"dtype": "image", "shape": [resolution, resolution, 3], "names": ["height", "width", "channel"]},
+        "observation.state": vec(["x", "y", "z", "gripper"]),
+        "action": vec(["x", "y", "z", "gripper"]),
+        "action_delta": vec(["dx", "dy", "dz", "gripper"]),
+        "success": scalar("bool"),
+        "next.success": scalar("bool"),
+        "timestamp": scalar("float32"),
+        "frame_index": scalar("int64"),
+        "episode_index": scalar("int64"),
+        "index": scalar("int64"),
+        "task_index": scalar("int64"),
+    }
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    which = parser.add_mutually_exclusive_group(required=True)
+    which.add_argument("--task", choices=TASKS)
+    which.add_argument("--tasks", help="several tasks in one dataset, comma-separated; episodes interleaved by seed")
+    parser.add_argument("--episodes", type=int, required=True, help="episodes per task")
+    parser.add_argument("--seed-start", type=int, default=0, help="seeds seed-start .. seed-start+episodes-1 (train from 0, validation from 100000)")
+    parser.add_argument("--frames", type=int, default=120, help="frames per episode (all episodes have this length)")
+    parser.add_argument("--resolution", type=int, default=64)
+    parser.add_argument("--degraded-fraction", type=float, default=0.3, help="share of episodes degraded so that they fail or succeed late")
+    parser.add_argument("--out", required=True, help="dataset folder (must not exist unless --force)")
+    parser.add_argument("--workers", type=int, default=min(4, os.cpu_count() or 1))
+    parser.add_argument("--force", action="store_true", help="replace --out if it exists")
+    args = parser.parse_args(argv)
+    args.tasks = args.tasks.split(",") if args.tasks else [args.task]
+    unknown = [t for t in args.tasks if t not in TASKS]
+    if unknown:
+        parser.error(f"unknown task(s) {', '.join(unknown)} (known: {', '.join(TASKS)})")
+    if len(set(args.tasks)) != len(args.tasks):
+        parser.error("--tasks names a task twice")
+    if args.episodes < 1:
+        parser.error("--episodes must be at least 1")
+    if not 0 <= args.seed_start <= 2**32 - 1 - args.episodes:
+        parser.error("seeds must lie in 0 .. 2**32-1")
+    if args.frames < 2:
+        parser.error("--frames must be at least 2")
+    if not 16 <= args.resolution <= 1024:
+        parser.error("--resolution must be in 16 .. 1024")
+    if not 0.0 <= args.degraded_fraction <= 1.0:
+        parser.error("--degraded-fraction must be in [0, 1]")
+    if args.workers < 1:
+        parser.error("--workers must be at least 1")
+    if os.path.exists(args.out) and not args.force:
+        parser.error(f"{args.out} exists (--force replaces it)")
+    return args
+
+
+def main(argv=None) -> None:
+    args = parse_args(argv)
+    out = os.path.abspath(args.out)
+    tmp = f"{out}.tmp-{os.getpid()}"
+    os.makedirs(os.path.join(tmp, "meta"))
+    jobs = []
+    for i in range(args.episodes):
+        for task_index, task in enumerate(args.tasks):
+            e = len(jobs)
+            jobs.append((tmp, e, e * args.frames, task_index, task, args.seed_start + i, args.frames, args.resolution, args.degraded_fraction))
+    start = time.time()
+    try:
+        results = []
+        with multiprocessing.get_context("spawn").Pool(args.workers) as pool:
+            for r in pool.imap(run_episode, jobs):
+                results.append(r)
+                rate = len(results) * args.frames / (time.time() - start)
+                print(f"\r{len(results)}/{len(jobs)} episodes, {rate:.0f} frames/s", end="", file=sys.stderr, flush=True)
+        print(file=sys.stderr)
+        episodes = [r["episode"] for r in results]
+        info = {
+            "codebase_version": "v2.1", "robot_type": "sawyer", "total_episodes": len(jobs), "total_frames": len(jobs) * args.frames,
+            "total_tasks": len(args.tasks), "total_videos": 0, "total_chunks": (len(jobs) + CHUNKS_SIZE - 1) // CHUNKS_SIZE,
+            "chunks_size": CHUNKS_SIZE, "fps": FPS, "splits": {"train": f"0:{len(jobs)}"}, "data_path": DATA_PATH,
+            "features": features(args.resolution),
+        }
+        lines = lambda items: "".join(json.dumps(x) + "\n" for x in items)
+        meta = {
+            "info.json": json.dumps(info, indent=4) + "\n",
+            "episodes.jsonl": lines(episodes),
+            "tasks.jsonl": lines({"task_index": i, "task": t} for i, t in enumerate(args.tasks)),
+            "episodes_stats.jsonl": lines(r["stats"] for r in results),
+        }
+        for name, text in meta.items():
+            with open(os.path.join(tmp, "meta", name), "w") as f:
+                f.write(text)
+        if os.path.exists(out):
+            shutil.rmtree(out)
+        os.rename(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    for task in args.tasks:
+        mine = [e for e in episodes if e["tasks"] == [task]]
+        ok = sum(e["success"] for e in mine)
+        print(f"{task}: {ok}/{len(mine)} episodes succeed", file=sys.stderr)
+    print(f"wrote {out}: {len(jobs)} episodes, {len(jobs) * args.frames} frames in {time.time() - start:.1f} s", file=sys.stderr)
+
+
+if __name__ == "__main__":
+    main()

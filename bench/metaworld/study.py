@@ -1,0 +1,391 @@
+"""The closed-loop policy study: every policy variant of policies.py run in the world model through
+`bwm evaluate` (policies served by policy_server.py, success decided by judge.py from the
+generated frames) against its true success rate in the simulator on the same placements.
+
+    python study.py --data VAL_DATASET --judge judge.pt --episodes 50 --out DIR --jobs 8 \\
+        -- --checkpoint CKPT --vae VAE --stats STAT.json --stats-group observation.state \\
+           --history 8 --future 24 --sample-steps 20 --device cuda
+
+Episodes: the first --episodes episodes of each task in the held-out dataset; episode k of a task
+starts from that episode's frame 0 and pose, and the policy's per-episode randomness and the
+simulator's placement both follow that episode's seed (its `seed` in meta/episodes.jsonl).
+Truth: policies.measure_truth over the same seeds (cached in DIR/truth.json). The variants are
+split over --jobs `bwm evaluate` processes that share the servers (a variant's episodes stay in
+one process, in order, so that the policy server hands out seeds in the dataset's order).
+
+Writes DIR/study.json (rates and agreement: Pearson r, Spearman rank correlation, MAE, per task
+and over all variants; whether the best variant is ranked first), DIR/study.csv,
+DIR/study.svg (estimated against true rates) and each process's evaluate output in DIR/eval-*/.
+Everything after `--` goes to `bwm evaluate` (the world model's flags).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import multiprocessing
+import os
+import shlex
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+
+
+# --- the held-out episodes -----------------------------------------------------------------------
+def episodes_by_task(root: str, tasks: list[str], per_task: int) -> dict[str, list[tuple[int, int]]]:
+    """Per task: (dataset position, seed) of its first `per_task` episodes."""
+    path = os.path.join(root, "meta", "episodes.jsonl")
+    if not os.path.isfile(path):
+        raise SystemExit(f"study: {root} is not a generate.py dataset (no meta/episodes.jsonl)")
+    with open(path) as f:
+        episodes = sorted((json.loads(line) for line in f if line.strip()), key=lambda e: e["episode_index"])
+    out: dict[str, list[tuple[int, int]]] = {t: [] for t in tasks}
+    for position, e in enumerate(episodes):
+        if "seed" not in e:
+            raise SystemExit(f"study: {path}: episode {e['episode_index']} has no seed (not written by generate.py)")
+        for t in tasks:
+            if e.get("tasks") == [t] and len(out[t]) < per_task:
+                out[t].append((position, int(e["seed"])))
+    for t, eps in out.items():
+        if len(eps) < per_task:
+            raise SystemExit(f"study: {root} holds {len(eps)} episodes of {t}; --episodes asks for {per_task}")
+    return out
+
+
+# --- truth -----------------------------------------------------------------------------------------
+def _truth_job(job):
+    task, variant, seeds, horizon, chunk, resolution = job
+    import policies
+
+    return task, variant, policies.measure_truth(task, variant, seeds, horizon, chunk, resolution)
+
+
+def measure_truth(episodes, variants, horizon, chunk, resolution, workers) -> dict:
+    """{task: {variant: [success per episode]}} in the simulator, episodes in parallel by variant."""
+    jobs = [(t, v, [s for _, s in eps], horizon, chunk, resolution) for t, eps in episodes.items() for v in variants]
+    truth: dict = {}
+    start = time.time()
+    with multiprocessing.get_context("spawn").Pool(workers) as pool:
+        for n, (task, variant, outcome) in enumerate(pool.imap_unordered(_truth_job, jobs), 1):
+            truth.setdefault(task, {})[variant] = outcome
+            print(f"study: truth {n}/{len(jobs)}: {task} {variant} {100 * np.mean(outcome):.0f}% ({time.time() - start:.0f} s)", flush=True)
+    return truth
+
+
+# --- agreement -------------------------------------------------------------------------------------
+def pearson(x, y) -> float | None:
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    if len(x) < 2 or x.std() == 0 or y.std() == 0:
+        return None
+    return float(np.corrcoef(x, y)[0, 1])
+
+
+def ranks(v) -> np.ndarray:
+    """Ranks from 1, ties sharing their mean rank."""
+    v = np.asarray(v, float)
+    order = np.argsort(v, kind="stable")
+    r = np.empty(len(v))
+    i = 0
+    while i < len(v):
+        j = i
+        while j + 1 < len(v) and v[order[j + 1]] == v[order[i]]:
+            j += 1
+        r[order[i : j + 1]] = (i + j) / 2 + 1
+        i = j + 1
+    return r
+
+
+def spearman(x, y) -> float | None:
+    return pearson(ranks(x), ranks(y))
+
+
+def agreement(names: list[str], estimated: list[float], true: list[float]) -> dict:
+    est, tru = np.asarray(estimated), np.asarray(true)
+    best_true = [n for n, t in zip(names, tru) if t == tru.max()]
+    best_est = [n for n, e in zip(names, est) if e == est.max()]
+    return {
+        "n": len(names),
+        "pearson_r": pearson(est, tru),
+        "spearman_rho": spearman(est, tru),
+        "mae": float(np.abs(est - tru).mean()),
+        "best_true": best_true,
+        "ranked_first": best_est,
+        # The variant the world model ranks first is a truly best one (ties either way count).
+        "best_ranked_first": bool(set(best_true) & set(best_est)),
+    }
+
+
+def summarize(truth: dict, estimates: dict, tasks: list[str], variants: list[str]) -> dict:
+    rows = []
+    for t in tasks:
+        for v in variants:
+            est = estimates[t][v]
+            rows.append({"task": t, "variant": v, "episodes": len(truth[t][v]), "true": float(np.mean(truth[t][v])),
+                         "estimated": float(np.mean([e["success"] for e in est])), "errors": sum(e["error"] is not None for e in est)})
+    per_task = {}
+    for t in tasks:
+        mine = [r for r in rows if r["task"] == t]
+        per_task[t] = agreement([r["variant"] for r in mine], [r["estimated"] for r in mine], [r["true"] for r in mine])
+    overall = agreement([f"{r['variant']}/{r['task']}" for r in rows], [r["estimated"] for r in rows], [r["true"] for r in rows])
+    mean = lambda v, key: float(np.mean([r[key] for r in rows if r["variant"] == v]))
+    by_variant = agreement(variants, [mean(v, "estimated") for v in variants], [mean(v, "true") for v in variants])
+    return {"rates": rows, "per_task": per_task, "all": overall, "variants_mean_over_tasks": by_variant}
+
+
+def fmt(v) -> str:
+    return "n/a" if v is None else f"{v:.3f}"
+
+
+def svg_scatter(rows: list[dict], tasks: list[str], title: str) -> str:
+    """Estimated against true success rates, one colour per task, with the diagonal."""
+    size, pad = 420, 50
+    colours = ["#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e"]
+    px = lambda v: pad + v * (size - 2 * pad)
+    py = lambda v: size - pad - v * (size - 2 * pad)
+    out = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{size}" height="{size}" font-family="sans-serif" font-size="11">',
+           f'<rect width="{size}" height="{size}" fill="white"/>',
+           f'<text x="{size / 2}" y="20" text-anchor="middle" font-size="13">{title}</text>',
+           f'<line x1="{px(0)}" y1="{py(0)}" x2="{px(1)}" y2="{py(1)}" stroke="#bbb" stroke-dasharray="4 3"/>',
+           f'<rect x="{px(0)}" y="{py(1)}" width="{px(1) - px(0)}" height="{py(0) - py(1)}" fill="none" stroke="black"/>']
+    for k in range(0, 11, 2):
+        v = k / 10
+        out.append(f'<text x="{px(v)}" y="{py(0) + 15}" text-anchor="middle">{v:.1f}</text>')
+        out.append(f'<text x="{px(0) - 6}" y="{py(v) + 4}" text-anchor="end">{v:.1f}</text>')
+    out.append(f'<text x="{size / 2}" y="{size - 10}" text-anchor="middle">true success rate (simulator)</text>')
+    out.append(f'<text x="14" y="{size / 2}" text-anchor="middle" transform="rotate(-90 14 {size / 2})">estimated (world model)</text>')
+    for i, t in enumerate(tasks):
+        c = colours[i % len(colours)]
+        out.append(f'<text x="{px(0) + 8}" y="{py(1) + 16 + 14 * i}" fill="{c}">{t}</text>')
+        for r in rows:
+            if r["task"] == t:
+                out.append(f'<circle cx="{px(r["true"]):.1f}" cy="{py(r["estimated"]):.1f}" r="4" fill="{c}" fill-opacity="0.8">'
+                           f'<title>{r["variant"]}: true {r["true"]:.2f}, estimated {r["estimated"]:.2f}</title></circle>')
+                out.append(f'<text x="{px(r["true"]) + 6:.1f}" y="{py(r["estimated"]) - 4:.1f}" fill="{c}" font-size="9">{r["variant"]}</text>')
+    out.append("</svg>")
+    return "\n".join(out) + "\n"
+
+
+# --- servers and evaluate --------------------------------------------------------------------------
+def wait_ready(proc: subprocess.Popen, ready: str, what: str, log: str, limit: float = 300.0) -> dict:
+    start = time.time()
+    while not os.path.exists(ready):
+        if proc.poll() is not None:
+            raise SystemExit(f"study: the {what} exited ({proc.returncode}) before listening; its log {log}:\n{tail(log)}")
+        if time.time() - start > limit:
+            raise SystemExit(f"study: the {what} did not listen within {limit:.0f} s; its log {log}:\n{tail(log)}")
+        time.sleep(0.2)
+    with open(ready) as f:
+        return json.load(f)
+
+
+def tail(path: str, lines: int = 20) -> str:
+    try:
+        with open(path, errors="replace") as f:
+            return "".join(f.readlines()[-lines:])
+    except OSError:
+        return ""
+
+
+def toml_str(s: str) -> str:
+    return json.dumps(s)
+
+
+def write_config(path: str, variants: list[str], ports: dict, judge_url: str, data: str, episodes: dict, a) -> None:
+    lines = [
+        "# Written by bench/metaworld/study.py.",
+        f"horizon = {a.horizon}",
+        f'resolution = "{a.resolution}x{a.resolution}"',
+        "stop_on_success = true",
+        "",
+        "[observation]",
+        'image_keys = ["observation/image"]',
+        f'image_size = "{a.resolution}x{a.resolution}"',
+        'state_key = "observation/state"',
+        'actions_key = "actions"',
+        "",
+        "[judge]",
+        'kind = "http"',
+        f"url = {toml_str(judge_url)}",
+        "threshold = 0.5",
+        "",
+    ]
+    for v in variants:
+        lines += ["[[policies]]", f"name = {toml_str(v)}", f'url = "ws://127.0.0.1:{ports[v]}"',
+                  'adapter = { kind = "eef_abs", indices = [0, 1, 2, 3] }', ""]
+    for t, eps in episodes.items():
+        lines += ["[[tasks]]", f"name = {toml_str(t)}", f"prompt = {toml_str(t)}", f"dataset = {toml_str(os.path.abspath(data))}",
+                  f"episodes = [{', '.join(str(p) for p, _ in eps)}]", 'pose_actions = "observation.state:0-3"', ""]
+    with open(path, "w") as f:
+        f.write("\n".join(lines))
+
+
+def run_evaluations(groups, a, ports, judge_url, episodes) -> dict:
+    """Runs one `bwm evaluate` per variant group at once; returns {task: {variant: [record]}}."""
+    procs = []
+    for g, variants in enumerate(groups):
+        out = os.path.join(a.out, f"eval-{g}")
+        os.makedirs(out, exist_ok=True)
+        config = os.path.join(out, "evaluate.toml")
+        write_config(config, variants, ports, judge_url, a.data, episodes, a)
+        cmd = [a.bwm, "evaluate", "--config", config, "--out", out, *a.wm]
+        log = open(os.path.join(out, "evaluate.log"), "w")
+        print(f"study: evaluate {g}: {', '.join(variants)}: {shlex.join(cmd)}", flush=True)
+        procs.append((g, subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT), log, out))
+    total = sum(len(v) for v in groups) * sum(len(e) for e in episodes.values())
+    start, last = time.time(), 0.0
+    while any(p.poll() is None for _, p, _, _ in procs):
+        time.sleep(1.0)
+        if time.time() - last > 15:
+            last = time.time()
+            done = sum(count_lines(os.path.join(o, "episodes.jsonl")) for _, _, _, o in procs)
+            print(f"study: {done}/{total} world-model episodes ({time.time() - start:.0f} s)", flush=True)
+    failed = [(g, p.returncode, o) for g, p, _, o in procs if p.returncode != 0]
+    for _, _, log, _ in procs:
+        log.close()
+    if failed:
+        msg = "\n".join(f"evaluate {g} exited {rc}; {o}/evaluate.log ends:\n{tail(os.path.join(o, 'evaluate.log'))}" for g, rc, o in failed)
+        raise SystemExit(f"study: {msg}")
+    print(f"study: {total} world-model episodes in {time.time() - start:.0f} s", flush=True)
+    estimates: dict = {}
+    for _, _, _, o in procs:
+        with open(os.path.join(o, "episodes.jsonl")) as f:
+            for line in f:
+                r = json.loads(line)
+                estimates.setdefault(r["task"], {}).setdefault(r["policy"], []).append(r)
+    return estimates
+
+
+def count_lines(path: str) -> int:
+    try:
+        with open(path) as f:
+            return sum(1 for _ in f)
+    except OSError:
+        return 0
+
+
+def main(argv=None) -> None:
+    argv = sys.argv[1:] if argv is None else argv
+    wm = argv[argv.index("--") + 1 :] if "--" in argv else []
+    argv = argv[: argv.index("--")] if "--" in argv else argv
+    import policies
+
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", required=True, help="held-out dataset from generate.py (seeds never trained on)")
+    ap.add_argument("--judge", help="judge.pt from judge.py train")
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--tasks", default=",".join(policies.VARIANTS))
+    ap.add_argument("--variants", help="comma-separated (default: every variant the tasks share)")
+    ap.add_argument("--episodes", type=int, default=50, help="per task and variant")
+    ap.add_argument("--horizon", type=int, default=120, help="frames after x0, in the simulator and the world model")
+    ap.add_argument("--chunk", type=int, default=24, help="actions per policy reply (the world model's K)")
+    ap.add_argument("--resolution", type=int, default=64)
+    ap.add_argument("--jobs", type=int, default=4, help="bwm evaluate processes at once (variants split among them)")
+    ap.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="processes measuring the truth")
+    ap.add_argument("--truth-only", action="store_true", help="measure (or find cached) the true rates in DIR/truth.json and stop")
+    ap.add_argument("--bwm", default=os.path.join(os.environ.get("CARGO_TARGET_DIR", "target"), "release", "bwm"))
+    a = ap.parse_args(argv)
+    a.wm = wm
+    tasks = a.tasks.split(",")
+    for t in tasks:
+        if t not in policies.VARIANTS:
+            ap.error(f"unknown task {t!r} (known: {', '.join(policies.VARIANTS)})")
+    shared = [v for v in policies.VARIANTS[tasks[0]] if all(v in policies.VARIANTS[t] for t in tasks)]
+    variants = a.variants.split(",") if a.variants else shared
+    for v in variants:
+        if v not in shared:
+            ap.error(f"variant {v!r} is not defined for every task (shared: {', '.join(shared)})")
+    if a.episodes < 1 or a.jobs < 1 or a.workers < 1:
+        ap.error("--episodes, --jobs and --workers must be at least 1")
+    if a.truth_only:
+        pass
+    elif not os.access(a.bwm, os.X_OK):
+        ap.error(f"no bwm binary at {a.bwm} (make build, or pass --bwm)")
+    elif not a.judge or not os.path.isfile(a.judge):
+        ap.error(f"no judge at {a.judge} (judge.py train writes it)")
+    elif not wm:
+        ap.error("pass the world model's flags after `--` (--checkpoint, --vae, --stats, ...)")
+    os.makedirs(a.out, exist_ok=True)
+    episodes = episodes_by_task(a.data, tasks, a.episodes)
+
+    truth_path = os.path.join(a.out, "truth.json")
+    key = {"episodes": {t: [s for _, s in e] for t, e in episodes.items()}, "horizon": a.horizon, "chunk": a.chunk,
+           "resolution": a.resolution, "variants": variants}
+    truth = None
+    if os.path.exists(truth_path):
+        with open(truth_path) as f:
+            cached = json.load(f)
+        truth = cached["truth"] if cached.get("key") == key else None
+    if truth is None:
+        t0 = time.time()
+        truth = measure_truth(episodes, variants, a.horizon, a.chunk, a.resolution, a.workers)
+        with open(truth_path + ".tmp", "w") as f:
+            json.dump({"key": key, "truth": truth, "seconds": time.time() - t0}, f)
+        os.replace(truth_path + ".tmp", truth_path)
+    if a.truth_only:
+        print(f"study: true success rates in {truth_path}")
+        return
+
+    seeds_path = os.path.join(a.out, "episode_seeds.json")
+    with open(seeds_path, "w") as f:
+        json.dump(key["episodes"], f)
+    servers = []
+    try:
+        python = sys.executable
+        for what, cmd, ready in [
+            ("policy server", [python, os.path.join(HERE, "policy_server.py"), "--variants", ",".join(variants), "--tasks", ",".join(tasks),
+                               "--base-port", "0", "--chunk", str(a.chunk), "--episode-seeds", seeds_path], "policy_ready.json"),
+            ("judge", [python, os.path.join(HERE, "judge.py"), "serve", "--model", a.judge, "--port", "0"], "judge_ready.json"),
+        ]:
+            ready = os.path.join(a.out, ready)
+            if os.path.exists(ready):
+                os.remove(ready)
+            log = os.path.join(a.out, ready.replace("_ready.json", ".log"))
+            proc = subprocess.Popen([*cmd, "--ready", ready], stdout=open(log, "w"), stderr=subprocess.STDOUT)
+            servers.append(proc)
+            servers_info = wait_ready(proc, ready, what, log)
+            if what == "judge":
+                judge_url = servers_info["url"]
+            else:
+                ports = servers_info["ports"]
+        jobs = min(a.jobs, len(variants))
+        groups = [variants[g::jobs] for g in range(jobs)]
+        estimates = run_evaluations(groups, a, ports, judge_url, episodes)
+    finally:
+        for proc in servers:
+            proc.terminate()
+        for proc in servers:
+            try:
+                proc.wait(10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+
+    summary = summarize(truth, estimates, tasks, variants)
+    summary["episodes_per_rate"] = a.episodes
+    summary["horizon"] = a.horizon
+    summary["world_model_flags"] = wm
+    with open(os.path.join(a.out, "study.json"), "w") as f:
+        json.dump(summary, f, indent=1)
+    with open(os.path.join(a.out, "study.csv"), "w") as f:
+        f.write("task,variant,episodes,true_success_rate,estimated_success_rate,errors\n")
+        for r in summary["rates"]:
+            f.write(f"{r['task']},{r['variant']},{r['episodes']},{r['true']:.4f},{r['estimated']:.4f},{r['errors']}\n")
+    a_ = summary["all"]
+    title = f"r = {fmt(a_['pearson_r'])}, rho = {fmt(a_['spearman_rho'])}, MAE = {fmt(a_['mae'])}"
+    with open(os.path.join(a.out, "study.svg"), "w") as f:
+        f.write(svg_scatter(summary["rates"], tasks, title))
+    print(f"{'task':26s} {'variant':10s} {'true':>6s} {'world model':>11s}")
+    for r in summary["rates"]:
+        print(f"{r['task']:26s} {r['variant']:10s} {r['true']:6.2f} {r['estimated']:11.2f}")
+    for name, g in [*summary["per_task"].items(), ("all variants x tasks", summary["all"]), ("variants (mean over tasks)", summary["variants_mean_over_tasks"])]:
+        print(f"{name}: Pearson r {fmt(g['pearson_r'])}, Spearman {fmt(g['spearman_rho'])}, MAE {fmt(g['mae'])}, "
+              f"best {'/'.join(g['best_true'])} ranked first: {g['best_ranked_first']}")
+    print(f"study: wrote {os.path.join(a.out, 'study.json')}, study.csv, study.svg")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,104 @@
+//! The Meta-World benchmark (bench/metaworld) end to end on CPU at toy sizes, through the same
+//! recipe the GPU run uses: generate.py writes training and held-out datasets from MuJoCo, then
+//! `bwm train-vae`, `bwm prepare`, `bwm train`, `bwm fidelity`, the truth of the policy variants in
+//! the simulator, judge.py and study.py (policy_server.py + judge over `bwm evaluate`). The numbers
+//! of a toy model mean nothing; the test checks that every stage runs on the real path and writes
+//! what it promises, that the datasets keep the generator's contract (bench/metaworld/tests/
+//! check_dataset.py) and that generation is deterministic whatever the worker count.
+
+mod common;
+
+use std::path::Path;
+use std::process::Command;
+
+use common::{bwm, python, temp_dir};
+use serde_json::Value;
+
+const ROOT: &str = env!("CARGO_MANIFEST_DIR");
+
+fn run(cmd: &mut Command, what: &str) -> String {
+    let out = cmd.output().unwrap_or_else(|e| panic!("{what}: {e}"));
+    let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "{what} failed ({}):\n{text}", out.status);
+    text
+}
+
+fn json(path: &Path) -> Value {
+    serde_json::from_str(&std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))).unwrap()
+}
+
+#[test]
+fn the_metaworld_recipe_runs_every_stage_on_cpu() {
+    let dir = temp_dir("metaworld");
+    let runs = dir.join("run");
+    let log = run(
+        Command::new("bash")
+            .arg(Path::new(ROOT).join("bench/metaworld/recipe.sh"))
+            .env("RUN", &runs)
+            .env("BWM", bwm())
+            .env("PYTHON", python())
+            .env("DEVICE", "cpu")
+            .envs([("TRAIN_EPISODES", "3"), ("VAL_EPISODES", "1"), ("FRAMES", "100"), ("WORKERS", "2")])
+            .envs([("VAE_STEPS", "2"), ("VAE_EPISODES", "6"), ("VAE_BATCH", "2"), ("TRAIN_STEPS", "2"), ("SAMPLE_STEPS", "2")])
+            .env(
+                "TRAIN_SETS",
+                "model.dit.dim=48 model.dit.ffn_dim=96 model.dit.num_layers=1 train.micro_batch=2 checkpoint.every=2 validation.every=2 validation.sample_steps=2",
+            )
+            .envs([("JUDGE_STEPS", "5"), ("STUDY_EPISODES", "1"), ("STUDY_JOBS", "2"), ("STUDY_HORIZON", "48"), ("STUDY_VARIANTS", "expert,wrong")]),
+        "recipe.sh",
+    );
+
+    let timings = std::fs::read_to_string(runs.join("timings.tsv")).unwrap();
+    for stage in ["data-train", "data-val", "vae", "latents", "train", "fidelity", "truth", "judge", "study"] {
+        assert!(timings.lines().any(|l| l.split('\t').next() == Some(stage)), "no {stage} in timings.tsv:\n{timings}\n{log}");
+    }
+
+    // The generator's contract, and training and validation seeds apart.
+    let (train, val) = (runs.join("data/train"), runs.join("data/val"));
+    let check = run(Command::new(python()).arg(Path::new(ROOT).join("bench/metaworld/tests/check_dataset.py")).arg(&train).arg(&val), "check_dataset.py");
+    let report: Value = serde_json::from_str(check.trim()).unwrap_or_else(|e| panic!("{e}: {check}"));
+    assert_eq!(report[train.to_str().unwrap()]["episodes"], 6, "{report}");
+    assert_eq!(report[val.to_str().unwrap()]["frames"], 200, "{report}");
+
+    // The same arguments give the same bytes with one worker as with two.
+    let again = dir.join("val-again");
+    run(
+        Command::new(python())
+            .arg(Path::new(ROOT).join("bench/metaworld/generate.py"))
+            .args(["--tasks", "drawer-open-v3,button-press-topdown-v3", "--episodes", "1", "--seed-start", "100000"])
+            .args(["--frames", "100", "--resolution", "64", "--workers", "1", "--out"])
+            .arg(&again),
+        "generate.py",
+    );
+    for episode in 0..2 {
+        let file = format!("data/chunk-000/episode_{episode:06}.parquet");
+        assert!(std::fs::read(val.join(&file)).unwrap() == std::fs::read(again.join(&file)).unwrap(), "{file} differs between worker counts");
+    }
+
+    let fidelity = json(&runs.join("fidelity/fidelity.json"));
+    assert_eq!(fidelity["episodes"], 2, "{fidelity}");
+
+    let judge = json(&runs.join("judge.json"));
+    for task in ["drawer-open-v3", "button-press-topdown-v3"] {
+        let accuracy = judge["tasks"][task]["held_out_frames"]["accuracy"].as_f64().unwrap_or_else(|| panic!("{judge}"));
+        assert!((0.0..=1.0).contains(&accuracy), "{judge}");
+    }
+
+    let study = json(&runs.join("study/study.json"));
+    let rates = study["rates"].as_array().unwrap();
+    assert_eq!(rates.len(), 4, "2 variants x 2 tasks: {study}");
+    for r in rates {
+        assert_eq!(r["episodes"], 1, "{r}");
+        assert_eq!(r["errors"], 0, "no episode failed on an error: {r}");
+        assert!(r["true"].as_f64().is_some_and(|v| (0.0..=1.0).contains(&v)), "{r}");
+        assert!(r["estimated"].as_f64().is_some_and(|v| (0.0..=1.0).contains(&v)), "{r}");
+    }
+    assert_eq!(study["all"]["n"], 4, "{study}");
+    assert!(study["per_task"]["drawer-open-v3"]["mae"].is_number(), "{study}");
+    assert!(runs.join("study/study.svg").is_file() && runs.join("study/eval-1/episodes.jsonl").is_file());
+}
+
+#[test]
+fn the_policy_server_speaks_openpi() {
+    run(Command::new(python()).arg(Path::new(ROOT).join("bench/metaworld/tests/test_policy_server.py")), "test_policy_server.py");
+}

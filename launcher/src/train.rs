@@ -63,7 +63,7 @@ pub fn run(args: TrainArgs) -> Result<()> {
         trainer.state.step,
         trainer.checkpoints.root.display()
     );
-    let losses = bwm_trainer::report::read_losses(&trainer.out_path("metrics.jsonl"))?;
+    let losses = bwm_trainer::report::read_run_losses(&trainer.out_path(""))?;
     let plot = trainer.out_path("loss.svg");
     bwm_trainer::report::loss_plot(
         &losses,
@@ -73,10 +73,19 @@ pub fn run(args: TrainArgs) -> Result<()> {
     println!("loss curve: {}", plot.display());
     if let Some(vae) = trainer.cfg.validation.vae.clone() {
         let video = trainer.out_path("rollout.mp4");
-        let written = bwm_trainer::report::rollout_video(&trainer, &vae, &video)?;
+        let r = bwm_trainer::report::rollout_video(&trainer, &vae, &video)?;
         println!(
             "rollout of a held-out clip (ground truth left, model right): {}",
-            written.display()
+            r.path.display()
+        );
+        let (verdict, margin) = if r.model_psnr >= r.copy_last_psnr {
+            ("ahead of", r.model_psnr - r.copy_last_psnr)
+        } else {
+            ("behind", r.copy_last_psnr - r.model_psnr)
+        };
+        println!(
+            "  its {} predicted frames: PSNR {:.2} dB; holding the last given frame: {:.2} dB (the model is {verdict} that baseline by {margin:.2} dB)",
+            r.future_frames, r.model_psnr, r.copy_last_psnr
         );
     }
     Ok(())

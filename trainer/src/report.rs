@@ -9,8 +9,32 @@ use bwm_model::vae::WanVae;
 use plotters::prelude::*;
 use tch::Kind;
 
+use crate::image_metrics::psnr;
 use crate::trainer::Trainer;
 use crate::validation::rollout_clip;
+
+/// Every optimizer step's loss, `step<TAB>loss` lines, in the run folder.
+pub const LOSSES_FILE: &str = "losses.tsv";
+
+/// (step, loss) of every step of the run in `out_dir`: from `losses.tsv`, else (runs written
+/// before it existed) the logged steps of `metrics.jsonl`. A resumed run appends; the last entry
+/// of a step wins.
+pub fn read_run_losses(out_dir: &Path) -> Result<Vec<(u64, f64)>> {
+    let path = out_dir.join(LOSSES_FILE);
+    if !path.exists() {
+        return read_losses(&out_dir.join("metrics.jsonl"));
+    }
+    let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+    let mut by_step = std::collections::BTreeMap::new();
+    // Only whole lines count: an unterminated last line may have been cut by a kill mid-write.
+    for (i, line) in text.split_inclusive('\n').enumerate().filter(|(_, l)| l.ends_with('\n') && !l.trim().is_empty()) {
+        let line = line.trim_end();
+        let parsed = line.split_once('\t').and_then(|(s, l)| Some((s.parse::<u64>().ok()?, l.trim().parse::<f64>().ok()?)));
+        let (step, loss) = parsed.with_context(|| format!("{}: line {} is not `step<TAB>loss`: {line:?}", path.display(), i + 1))?;
+        by_step.insert(step, loss);
+    }
+    Ok(by_step.into_iter().collect())
+}
 
 /// (step, loss) of every logged step in `metrics.jsonl` (a resumed run appends; the last entry
 /// of a step wins).
@@ -66,10 +90,23 @@ pub fn loss_plot(losses: &[(u64, f64)], title: &str, out: &Path) -> Result<()> {
     draw().map_err(|e| anyhow::anyhow!("drawing {}: {e}", out.display()))
 }
 
+/// What `rollout_video` wrote and how the rollout compares with holding the last given frame.
+#[derive(Debug, Clone)]
+pub struct RolloutReport {
+    pub path: std::path::PathBuf,
+    /// Predicted frames scored (those after x0 and the history).
+    pub future_frames: usize,
+    /// PSNR (dB) of the model's predicted frames against the ground truth.
+    pub model_psnr: f64,
+    /// PSNR (dB) of the last given frame, held, against the same ground-truth frames.
+    pub copy_last_psnr: f64,
+}
+
 /// Rolls out the first held-out clip (the first clip when none is held out) and writes an mp4 of
-/// ground truth (left) beside the prediction (right), condition frames included, at the cache's fps
-/// (a PNG contact sheet instead in builds without video). Returns the file written.
-pub fn rollout_video(trainer: &Trainer, vae_path: &Path, out: &Path) -> Result<std::path::PathBuf> {
+/// ground truth (left) beside the prediction (right), condition frames included, at the cache's
+/// fps (a PNG contact sheet when built without video). Scores the predicted frames against the
+/// ground truth next to the copy-last-frame baseline on the same frames.
+pub fn rollout_video(trainer: &Trainer, vae_path: &Path, out: &Path) -> Result<RolloutReport> {
     let device = trainer.device;
     let vae = WanVae::load_any(vae_path, Kind::Float, device).with_context(|| format!("VAE {}", vae_path.display()))?;
     let clip_index = if trainer.train_clips < trainer.cache.len() { trainer.train_clips } else { 0 };
@@ -81,13 +118,21 @@ pub fn rollout_video(trainer: &Trainer, vae_path: &Path, out: &Path) -> Result<s
         Some(f) => f.to_kind(Kind::Float) / 127.5 - 1.0,
         None => tch::no_grad(|| vae.decode(&clip.latents.unsqueeze(0)))?.squeeze_dim(0).clamp(-1.0, 1.0),
     };
-    let (truth, pred) = (tensor_to_frames(&truth.to_device(tch::Device::Cpu))?, tensor_to_frames(&pred.to_device(tch::Device::Cpu))?);
+    let (truth, pred) = (truth.to_device(tch::Device::Cpu), pred.to_device(tch::Device::Cpu));
+    let frames = truth.size()[1].min(pred.size()[1]);
+    let given = (1 + trainer.cache.index.history_frames as i64).min(frames - 1).max(1);
+    let future = frames - given;
+    let real = truth.narrow(1, given, future);
+    let model_psnr = psnr(&pred.narrow(1, given, future), &real);
+    let copy_last_psnr = psnr(&truth.narrow(1, given - 1, 1).expand_as(&real), &real);
+    let (truth, pred) = (tensor_to_frames(&truth)?, tensor_to_frames(&pred)?);
     let frames = truth
         .into_iter()
         .zip(pred)
         .map(|(t, p)| frame_strip(&[vec![t, p]]))
         .collect::<Result<Vec<_>>>()?;
-    bwm_data::video::write_mp4_or_sheet(out, &frames, trainer.cache.index.fps, 16)
+    let path = bwm_data::video::write_mp4_or_sheet(out, &frames, trainer.cache.index.fps, 16)?;
+    Ok(RolloutReport { path, future_frames: future as usize, model_psnr, copy_last_psnr })
 }
 
 /// Lines `(label, points)` on one chart, written as SVG (fidelity curves and the like).
@@ -120,4 +165,23 @@ pub fn line_plot(series: &[(String, Vec<(f64, f64)>)], title: &str, x_desc: &str
         Ok(())
     };
     draw().map_err(|e| anyhow::anyhow!("drawing {}: {e}", out.display()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_step_loss_is_read_and_a_cut_last_line_is_skipped() {
+        let dir = bwm_testdir::TestDir::new("losses");
+        std::fs::write(dir.join("metrics.jsonl"), "{\"step\": 2, \"loss\": 9.0}\n").unwrap();
+        assert_eq!(read_run_losses(&dir).unwrap(), vec![(2, 9.0)], "metrics.jsonl when losses.tsv is absent");
+        // A resumed run appends step 2 again; the kill that ended it cut the last line.
+        std::fs::write(dir.join(LOSSES_FILE), "1\t0.5\n2\t0.25\n3\tNaN\n2\t0.3\n4\t0.").unwrap();
+        let losses = read_run_losses(&dir).unwrap();
+        assert_eq!(losses.iter().map(|(s, _)| *s).collect::<Vec<_>>(), vec![1, 2, 3]);
+        assert_eq!((losses[1].1, losses[2].1.is_nan()), (0.3, true));
+        std::fs::write(dir.join(LOSSES_FILE), "1\t0.5\nbroken\n2\t0.25\n").unwrap();
+        assert!(format!("{:#}", read_run_losses(&dir).unwrap_err()).contains("line 2"));
+    }
 }

@@ -86,6 +86,8 @@ pub struct Trainer {
     pub checkpoints: CheckpointRoot,
     events: Option<EventWriter>,
     metrics_file: Option<std::fs::File>,
+    /// `losses.tsv`: every step's loss (the loss curve; `metrics.jsonl` holds logged steps only).
+    loss_file: Option<std::fs::File>,
     /// The data-parallel group (a group of one without torchrun's variables).
     pub comm: Box<dyn Collective>,
     /// Where each step's summary goes (stdout by default; tests capture it).
@@ -221,18 +223,15 @@ impl Trainer {
         std::fs::write(out_dir.join("config.toml"), cfg.to_toml()?)?;
         let lead = comm.rank() == 0;
         let events = if cfg.log.tensorboard && lead { Some(EventWriter::create(&out_dir.join("tensorboard"))?) } else { None };
-        let metrics_file = if lead {
-            Some(
-                std::fs::OpenOptions::new()
-                    .create(true)
-                    .append(true)
-                    .open(out_dir.join("metrics.jsonl"))
-                    .with_context(|| format!("opening {}", out_dir.join("metrics.jsonl").display()))?,
-            )
-        } else {
-            None
+        let append = |name: &str| -> Result<Option<std::fs::File>> {
+            if !lead {
+                return Ok(None);
+            }
+            let path = out_dir.join(name);
+            Ok(Some(std::fs::OpenOptions::new().create(true).append(true).open(&path).with_context(|| format!("opening {}", path.display()))?))
         };
-        Ok(Self { cfg, model, opt, objective, cache, clip_encoder, loader: Default::default(), train_clips, device, state, out_dir, checkpoints, events, metrics_file, comm, history: Vec::new(), block_params })
+        let (metrics_file, loss_file) = (append("metrics.jsonl")?, append(crate::report::LOSSES_FILE)?);
+        Ok(Self { cfg, model, opt, objective, cache, clip_encoder, loader: Default::default(), train_clips, device, state, out_dir, checkpoints, events, metrics_file, loss_file, comm, history: Vec::new(), block_params })
     }
 
     /// Trains to `train.steps`, checkpointing and validating as configured.
@@ -256,6 +255,10 @@ impl Trainer {
             let m = self.train_step()?;
             progress.update(self.state.step, &m);
             let step = self.state.step;
+            if let Some(f) = self.loss_file.as_mut() {
+                use std::io::Write;
+                writeln!(f, "{step}\t{}", m.loss).context("appending to losses.tsv")?;
+            }
             if (step % self.cfg.log.every == 0 || step == total) && lead {
                 progress.println(&m.summary_line(total));
                 self.log_metrics(&m)?;

@@ -2,8 +2,10 @@
 Run: python bench/metaworld/tests/test_policy_server.py (or pytest)."""
 
 import asyncio
+import atexit
 import json
 import os
+import shutil
 import sys
 import tempfile
 import threading
@@ -30,7 +32,8 @@ class FakePolicy:
 
 
 def start(variants=("expert", "noisy"), seeds=None, make_policy=FakePolicy):
-    folder = tempfile.mkdtemp()
+    folder = tempfile.mkdtemp(prefix="bwm-policy-server-")
+    atexit.register(shutil.rmtree, folder, True)
     ready = os.path.join(folder, "ready.json")
     keys = {"image": "observation/image", "state": "observation/state", "prompt": "prompt", "actions": "actions"}
     servers = [policy_server.VariantServer(v, TASKS, 8, policy_server.EpisodeSeeds(100, seeds), keys, make_policy, lambda m: None)

@@ -30,6 +30,16 @@ impl Drop for Guard {
 }
 
 
+/// Sends `raw` as is and reads the reply until the server closes.
+fn raw_exchange(addr: &str, raw: &[u8]) -> String {
+    let mut s = TcpStream::connect(addr).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(120))).unwrap();
+    s.write_all(raw).unwrap();
+    let mut reply = Vec::new();
+    let _ = s.read_to_end(&mut reply);
+    String::from_utf8_lossy(&reply).into_owned()
+}
+
 struct Reply {
     status: u16,
     content_type: String,
@@ -86,7 +96,7 @@ fn serve_round_trips_rejects_bad_requests_and_sheds_load() {
             .args(["--random-weights", "tiny", "--vae"])
             .arg(&vae)
             .args(["--device", "cpu", "--history", "4", "--future", "4", "--sample-steps", "2"])
-            .args(["--port", "0", "--queue", "1", "--max-body-bytes", "1000000"])
+            .args(["--port", "0", "--queue", "1", "--max-body-bytes", "1000000", "--read-timeout-s", "10"])
             .stdout(File::create(&log).unwrap())
             .stderr(Stdio::inherit())
             .spawn()
@@ -170,6 +180,25 @@ fn serve_round_trips_rejects_bad_requests_and_sheds_load() {
     }
     let wrong_method = http(&addr, "GET", "/v1/chunk", b"", None);
     assert_eq!(wrong_method.status, 405, "{}", wrong_method.text());
+    let chunked = raw_exchange(&addr, b"POST /v1/chunk HTTP/1.1\r\nHost: x\r\nTransfer-Encoding: chunked\r\n\r\n5\r\nhello\r\n0\r\n\r\n");
+    assert!(chunked.starts_with("HTTP/1.1 411") && chunked.contains("Content-Length"), "{chunked}");
+
+    // Clients that send half a header and wait hold their connections, not the server: while 16
+    // of them hang, /health answers, and each of them is later answered 408.
+    let slow: Vec<TcpStream> = (0..16)
+        .map(|_| {
+            let mut c = TcpStream::connect(&addr).unwrap();
+            c.write_all(b"POST /v1/chunk HTTP/1.1\r\nHost: x\r\nContent-Le").unwrap();
+            c
+        })
+        .collect();
+    let h = health(&addr);
+    assert_eq!(h["status"], "ok", "{h}");
+    let mut first = slow.into_iter().next().unwrap();
+    first.set_read_timeout(Some(Duration::from_secs(300))).unwrap();
+    let mut answer = String::new();
+    let _ = first.read_to_string(&mut answer);
+    assert!(answer.starts_with("HTTP/1.1 408"), "{answer:?}");
 
     // Still serving.
     let r = http(&addr, "POST", "/v1/chunk", &good, None);

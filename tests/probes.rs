@@ -91,12 +91,25 @@ fn evaluate_counts_a_policy_that_refuses_connections_as_an_episode_error() {
         ),
     )
     .unwrap();
-    let out = Command::new(bwm())
-        .args(["evaluate", "--random-weights", "tiny", "--vae", "vae.safetensors", "--stats", "stat.json", "--history", "4", "--future", "4"])
-        .args(["--sample-steps", "2", "--device", "cpu", "--config", "eval.toml", "--out", "out"])
-        .current_dir(&dir)
-        .output()
-        .unwrap();
+    let evaluate = |stats: &str| {
+        Command::new(bwm())
+            .args(["evaluate", "--random-weights", "tiny", "--vae", "vae.safetensors", "--stats", stats, "--history", "4", "--future", "4"])
+            .args(["--sample-steps", "2", "--device", "cpu", "--config", "eval.toml", "--out", "out"])
+            .current_dir(&dir)
+            .output()
+            .unwrap()
+    };
+    // Statistics cut short, or of the wrong shape, are named before anything runs.
+    std::fs::write(dir.join("cut.json"), "{\"state_pose\": {\"p01\": [1, 2]").unwrap();
+    fails_naming(&evaluate("cut.json"), &["cut.json", "not JSON"]);
+    let text = std::fs::read_to_string(dir.join("stat.json")).unwrap();
+    let mut stats: serde_json::Value = serde_json::from_str(&text).unwrap();
+    stats["state_pose"]["p99"].as_array_mut().unwrap().truncate(3);
+    std::fs::write(dir.join("short.json"), stats.to_string()).unwrap();
+    fails_naming(&evaluate("short.json"), &["short.json", "different lengths"]);
+    assert!(!dir.join("out").exists(), "nothing written for a refused start");
+
+    let out = evaluate("stat.json");
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(out.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
     assert!(stdout.contains("0/1 = 0.000, 1 errors"), "{stdout}");

@@ -72,8 +72,13 @@ fn prepare_err(args: &[&str]) -> String {
     stderr
 }
 
+/// The folder's files, without the ranks' lock files (`.lock.rank-R-of-W`, kept between runs).
 fn names(dir: &Path) -> Vec<String> {
-    let mut n: Vec<String> = std::fs::read_dir(dir).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+    let mut n: Vec<String> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| !n.starts_with(".lock.rank-"))
+        .collect();
     n.sort();
     n
 }

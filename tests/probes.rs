@@ -117,3 +117,19 @@ fn evaluate_counts_a_policy_that_refuses_connections_as_an_episode_error() {
     let err = record["error"].as_str().unwrap();
     assert!(err.contains("policy 'gone'") && err.contains("ws://127.0.0.1:9") && err.contains("refused"), "{err}");
 }
+
+#[test]
+fn a_second_prepare_into_a_folder_being_written_is_refused() {
+    let dir = temp_dir("probe-two-prepares");
+    let out = dir.join("latents");
+    std::fs::create_dir_all(&out).unwrap();
+    // The running prepare's claim (rank 0 of 1), held here the way it holds it.
+    let held = std::fs::File::create(out.join(".lock.rank-0-of-1")).unwrap();
+    held.try_lock().unwrap();
+    let data = demo_data();
+    let args = ["prepare", "--data", data.to_str().unwrap(), "--random-vae", "--resolution", "64x32", "--history", "4", "--future", "4"];
+    let second = Command::new(bwm()).args(args).args(["--device", "cpu", "--out", "latents"]).current_dir(&dir).output().unwrap();
+    fails_naming(&second, &["latents", "another `bwm prepare`"]);
+    assert!(!out.join("index.json").exists());
+    drop(held);
+}

@@ -191,6 +191,29 @@ struct ShardSkip {
     reason: String,
 }
 
+/// This rank's claim on the output folder, held while the process runs: a second `bwm prepare`
+/// of the same rank into the same folder is refused instead of encoding the same shards twice.
+pub const LOCK_PREFIX: &str = ".lock.rank-";
+
+fn lock_rank(out: &Path, rank: usize, world: usize) -> Result<std::fs::File> {
+    let path = out.join(format!("{LOCK_PREFIX}{rank}-of-{world}"));
+    let file = std::fs::OpenOptions::new()
+        .create(true)
+        .truncate(false)
+        .write(true)
+        .open(&path)
+        .with_context(|| format!("creating {}", path.display()))?;
+    match file.try_lock() {
+        Ok(()) => Ok(file),
+        Err(std::fs::TryLockError::WouldBlock) => bail!(
+            "{} is being written by another `bwm prepare` (rank {rank} of {world}, lock {}); wait for it to finish or choose another --out",
+            out.display(),
+            path.display()
+        ),
+        Err(std::fs::TryLockError::Error(e)) => Err(e).with_context(|| format!("locking {}", path.display())),
+    }
+}
+
 fn progress_name(rank: usize, world: usize) -> String {
     format!("progress.rank-{rank}-of-{world}.json")
 }
@@ -309,6 +332,7 @@ pub fn run(a: PrepareArgs) -> Result<()> {
     }
 
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    let _lock = lock_rank(&a.out, rank, world)?;
     if prepare_folder(&a.out, &hash, &record_json, a.overwrite, rank, world, shards)? {
         println!("prepare: {} already holds this cache, complete; nothing to do", a.out.join(INDEX_FILE).display());
         return Ok(());

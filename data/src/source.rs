@@ -54,6 +54,13 @@ impl CameraSelection {
         Self { cameras: vec![camera.to_string()], layout: CameraLayout::Single }
     }
 
+    /// The cameras a user listed (`--camera A,B`): none is the source's default, several are
+    /// stacked top to bottom.
+    pub fn from_names(cameras: &[String]) -> Self {
+        let layout = if cameras.len() > 1 { CameraLayout::StackVertically } else { CameraLayout::Single };
+        Self { cameras: cameras.to_vec(), layout }
+    }
+
     pub fn stacked(cameras: &[&str]) -> Self {
         Self { cameras: cameras.iter().map(|c| c.to_string()).collect(), layout: CameraLayout::StackVertically }
     }

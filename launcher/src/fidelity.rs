@@ -79,11 +79,7 @@ pub fn run(mut a: FidelityArgs) -> Result<()> {
     }
     let source = open_dataset(&a.data)?;
     let spec = ActionSpec::parse(&a.actions).context("--actions")?;
-    let cameras = if a.camera.is_empty() {
-        CameraSelection::default()
-    } else {
-        CameraSelection { cameras: a.camera.clone(), layout: if a.camera.len() > 1 { bwm_data::CameraLayout::StackVertically } else { Default::default() } }
-    };
+    let cameras = CameraSelection::from_names(&a.camera);
     let infos = source.episodes();
     let episodes: Vec<usize> = if a.episodes.is_empty() { (0..infos.len()).collect() } else { a.episodes.clone() };
     ensure!(episodes.len() >= 2, "fidelity needs at least two episodes (each is also driven by another's actions); {} selected", episodes.len());

@@ -19,7 +19,7 @@ use anyhow::{bail, ensure, Context, Result};
 use bwm_data::clips::{plan_clips, ClipPlan, ClipSpec, EpisodeFrames};
 use bwm_data::frames::fit;
 use bwm_data::latent_cache::{read_index, shard_file_name, write_atomically, write_index, write_shard, CacheIndex, ClipEntry, IndexExtras, ShardClip, CACHE_VERSION, INDEX_FILE};
-use bwm_data::source::{open_dataset, CameraLayout, CameraSelection, EpisodeSource};
+use bwm_data::source::{open_dataset, CameraSelection, EpisodeSource};
 use bwm_data::stats::{compute_stats, split_episodes, write_stat_json, SplitSpec, ValidationSize};
 use bwm_data::{ActionSpec, ActionStats, ResizeMode};
 use bwm_model::vae::WanVae;
@@ -251,7 +251,7 @@ pub fn run(a: PrepareArgs) -> Result<()> {
 
     let source = open_dataset(&a.data)?;
     let spec = action_spec(a.actions.as_deref(), &a.data)?;
-    let cameras = camera_selection(&a.camera);
+    let cameras = CameraSelection::from_names(&a.camera);
     let split = split_episodes(source.episodes(), &SplitSpec { seed: a.seed, validation: ValidationSize::Fraction(a.validation_fraction) })?;
     let order: Vec<usize> = split.train.iter().chain(&split.validation).copied().collect();
     println!("prepare: {} (rank {rank} of {world})", source.describe());
@@ -476,11 +476,6 @@ fn action_spec(arg: Option<&str>, data: &Path) -> Result<ActionSpec> {
         return Ok(if robotwin { ActionSpec::robotwin_eef_abs() } else { ActionSpec::eef_abs() });
     };
     ActionSpec::parse(arg).context("--actions")
-}
-
-fn camera_selection(cameras: &[String]) -> CameraSelection {
-    let layout = if cameras.len() > 1 { CameraLayout::StackVertically } else { CameraLayout::Single };
-    CameraSelection { cameras: cameras.to_vec(), layout }
 }
 
 /// The source frame size of each planned episode (from its x0); episodes whose x0 cannot be read

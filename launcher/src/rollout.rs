@@ -231,11 +231,7 @@ fn plan(a: &RolloutArgs, wm: &WorldModel, size: (u32, u32)) -> Result<Vec<Job>> 
     let data = a.data.as_ref().context("--data or --inputs")?;
     let source = open_dataset(data)?;
     let spec = ActionSpec::parse(&a.actions).context("--actions")?;
-    let cameras = if a.camera.is_empty() {
-        CameraSelection::default()
-    } else {
-        CameraSelection { cameras: a.camera.clone(), layout: if a.camera.len() > 1 { bwm_data::CameraLayout::StackVertically } else { Default::default() } }
-    };
+    let cameras = CameraSelection::from_names(&a.camera);
     let episodes: Vec<usize> = if a.episodes.is_empty() { (0..source.episodes().len()).collect() } else { a.episodes.clone() };
     println!("rollout: {} ({} episodes selected)", source.describe(), episodes.len());
     for &e in &episodes {

@@ -39,7 +39,8 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 FPS = 10
-EPISODE_COLORS = [(200, 40, 40), (40, 200, 40), (40, 40, 200), (200, 200, 40), (40, 200, 200), (200, 40, 200)]
+EPISODE_COLORS = [(200, 40, 40), (40, 200, 40), (40, 40, 200), (200, 200, 40), (40, 200, 200), (200, 40, 200),
+                  (120, 60, 20), (20, 60, 120)]
 CAMERA2 = (128, 128, 40)
 TASKS = ["stack the red block", "open the drawer", "push the cup"]
 
@@ -134,7 +135,8 @@ V21_VIDEO = "videos/chunk-{episode_chunk:03d}/{video_key}/episode_{episode_index
 
 
 def write_v21(root, lengths, cameras, tweak=None):
-    """tweak(e, length) -> dict of overrides for one episode: state, video_frames, video (bytes|None)."""
+    """tweak(e, length) -> dict of overrides for one episode: state, video_frames, video (bytes|None),
+    truncate_video (keep that share of the encoded file's bytes), parquet (bytes for the data file)."""
     os.makedirs(f"{root}/meta", exist_ok=True)
     index = 0
     episodes = []
@@ -145,6 +147,9 @@ def write_v21(root, lengths, cameras, tweak=None):
         path = f"{root}/" + V21_DATA.format(episode_chunk=0, episode_index=e)
         os.makedirs(os.path.dirname(path), exist_ok=True)
         pq.write_table(table, path)
+        if "parquet" in t:
+            with open(path, "wb") as f:
+                f.write(t["parquet"])
         for c, (key, (w, h)) in enumerate(cameras.items()):
             top = EPISODE_COLORS[e] if c == 0 else CAMERA2
             vpath = f"{root}/" + V21_VIDEO.format(episode_chunk=0, episode_index=e, video_key=key)
@@ -156,6 +161,11 @@ def write_v21(root, lengths, cameras, tweak=None):
                 else:
                     with open(vpath, "wb") as f:
                         f.write(t["video"])
+            if "truncate_video" in t:
+                with open(vpath, "rb") as f:
+                    data = f.read()
+                with open(vpath, "wb") as f:
+                    f.write(data[: int(len(data) * t["truncate_video"])])
         episodes.append({"episode_index": e, "tasks": [task], "length": length})
         index += length
     write_v21_meta(root, episodes, len(lengths) * len(cameras), V21_VIDEO, features(cameras, "h264"))
@@ -354,7 +364,8 @@ def write_robotwin_2026(root, e, length):
 
 
 def bad_episode(e, length):
-    """Episode 0 usable; 1 NaN state; 2 missing video; 3 video shorter than the rows; 4 too short; 5 garbage video."""
+    """Episode 0 usable; 1 NaN state; 2 missing video; 3 video shorter than the rows; 4 too short; 5 garbage video;
+    6 video cut off halfway, 7 parquet file cut off at two thirds (copies interrupted)."""
     if e == 1:
         s = state_rows(e, length)
         s[3, 2] = np.nan
@@ -365,6 +376,14 @@ def bad_episode(e, length):
         return {"video_frames": length - 2}
     if e == 5:
         return {"video": b"this is not an mp4 file" * 10}
+    if e == 6:
+        return {"truncate_video": 0.5}
+    if e == 7:
+        table = episode_table(e, length, 0, 0)
+        sink = pa.BufferOutputStream()
+        pq.write_table(table, sink)
+        data = sink.getvalue().to_pybytes()
+        return {"parquet": data[: len(data) * 2 // 3]}
     return {}
 
 
@@ -376,7 +395,7 @@ def main():
         shutil.rmtree(out)
     os.makedirs(out)
     write_v21(f"{out}/lerobot_v21", [10, 12, 9], {"observation.images.top": (64, 48), "observation.images.wrist": (64, 32)})
-    write_v21(f"{out}/lerobot_v21_bad", [12, 12, 12, 12, 3, 12], {"observation.images.top": (64, 48)}, bad_episode)
+    write_v21(f"{out}/lerobot_v21_bad", [12, 12, 12, 12, 3, 12, 12, 12], {"observation.images.top": (64, 48)}, bad_episode)
     write_v21_images(f"{out}/lerobot_v21_images", [6, 5], (64, 48))
     write_v30(f"{out}/lerobot_v30", [10, 12, 9], {"observation.images.top": (64, 64), "observation.images.wrist": (64, 64)},
               lambda e: 0 if e < 2 else 1)

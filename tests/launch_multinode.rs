@@ -238,6 +238,39 @@ fn two_launchers_as_two_nodes_equal_one_launcher_and_restart_together() {
     );
 }
 
+/// One node of two ranks, rank 1 killed after the checkpoint of step 1: with `--max-restarts 0`
+/// the launcher stops the other rank and exits non-zero naming the dead rank; with 1 it restarts
+/// the group, which resumes and finishes.
+#[test]
+fn a_killed_rank_fails_the_launch_without_restarts_and_is_restarted_with_one() {
+    let dir = temp_dir("launch-killed-rank");
+    write_cache(&dir.join("cache"));
+    let steps = 4;
+    let slow = [("BWM_FAULT_SLOW_CHECKPOINT_MS", "300")];
+    let mut run = |name: &str, restarts: &str| -> Proc {
+        let config = write_config(&dir, &format!("{name}.toml"), &dir.join(name), steps, 1);
+        let port = free_port().to_string();
+        let args = ["--nproc-per-node", "2", "--master-port", &port, "--max-restarts", restarts, "--grace-period", "10"];
+        let mut p = launch_env(name, &args, &config, &[], &slow);
+        p.wait_for("with the checkpoint of step 1", 3 * MINUTE, checkpoint_line(1));
+        let ranks = p.children();
+        assert_eq!(ranks.len(), 2, "two ranks: {ranks:?}");
+        signal(ranks[1], "KILL");
+        p
+    };
+
+    let mut none = run("none", "0");
+    assert!(!none.finish(2 * MINUTE).success(), "{}", none.text());
+    let last = none.text().trim().lines().last().unwrap_or_default().to_string();
+    assert!(last.starts_with("error: launch: rank 1") && last.contains("(after 0 restarts)"), "{last}\n{}", none.text());
+    assert!(latest_step(&dir.join("none")) < steps, "{}", none.text());
+
+    let mut one = run("one", "1");
+    assert!(one.finish(5 * MINUTE).success(), "{}", one.text());
+    assert!(one.text().contains("restarting the group (1/1)"), "{}", one.text());
+    assert_eq!(latest_step(&dir.join("one")), steps);
+}
+
 #[test]
 fn a_node_whose_launcher_stops_sending_heartbeats_counts_as_failed() {
     let dir = temp_dir("launch-heartbeat");

@@ -250,11 +250,21 @@ fn lerobot_and_robotwin_fixtures_prepare_with_defects_upscaling_and_enhancement(
     // A LeRobot dataset with one usable episode and one of each defect: skipped and counted.
     let bad = dir.join("bad");
     let stdout = prepare(&[&small[..], &["--data", fx.join("lerobot_v21_bad").to_str().unwrap(), "--out", bad.to_str().unwrap(), "--actions", "observation.state:0-5"]].concat());
-    assert!(stdout.contains("6 episodes: 1 used (2 clips), 5 skipped"), "{stdout}");
-    for reason in ["too short", "non-finite action", "missing video", "frame/row count mismatch", "unreadable video"] {
+    assert!(stdout.contains("8 episodes: 1 used (2 clips), 7 skipped"), "{stdout}");
+    for reason in ["too short", "non-finite action", "missing video", "frame/row count mismatch", "unreadable video", "unreadable data"] {
         assert!(stdout.contains(reason), "{reason}: {stdout}");
     }
     assert_eq!(LatentCache::open(&bad).unwrap().len(), 2);
+    // Statistics read the action data only: the NaN row and the corrupted parquet are skipped.
+    let stat = dir.join("bad-stat.json");
+    let out = Command::new(bwm())
+        .args(["stats", "--data", fx.join("lerobot_v21_bad").to_str().unwrap(), "--actions", "observation.state:0-5", "--out", stat.to_str().unwrap()])
+        .output()
+        .unwrap();
+    let (stdout, stderr) = show(&out);
+    assert!(out.status.success(), "{stderr}");
+    assert!(stdout.contains("8 episodes: 6 used") && stdout.contains("non-finite action") && stdout.contains("unreadable data"), "{stdout}");
+    assert!(ActionStats::read(&stat, "observation.state").unwrap().p01.iter().all(|v| v.is_finite()));
 
     // RoboTwin (original layout), the action preset picked from the format.
     let robotwin = fx.join("robotwin/original");

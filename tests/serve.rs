@@ -163,7 +163,12 @@ fn serve_round_trips_rejects_bad_requests_and_sheds_load() {
     }
 
     // Problems are named, with the right 4xx.
-    let cases: [(&str, Reply, u16, &str); 7] = [
+    let cases: [(&str, Reply, u16, &str); 12] = [
+        ("NaN action", http(&addr, "POST", "/v1/chunk", &body("nan_actions.msgpack"), None), 422, "NaN or infinite"),
+        ("infinite action", http(&addr, "POST", "/v1/chunk", &body("inf_actions.msgpack"), None), 422, "NaN or infinite"),
+        ("negative dimension", http(&addr, "POST", "/v1/chunk", &body("negative_dim.msgpack"), None), 422, "non-negative"),
+        ("dimensions overflowing", http(&addr, "POST", "/v1/chunk", &body("huge_dims.msgpack"), None), 422, "overflows"),
+        ("more rows than data", http(&addr, "POST", "/v1/chunk", &body("huge_rows.msgpack"), None), 422, "data bytes"),
         ("malformed msgpack", http(&addr, "POST", "/v1/chunk", &body("malformed.bin"), None), 400, "not valid msgpack"),
         ("wrong shape", http(&addr, "POST", "/v1/chunk", &body("wrong_shape.msgpack"), None), 422, "'actions' has 8 rows"),
         ("wrong dtype", http(&addr, "POST", "/v1/chunk", &body("wrong_dtype.msgpack"), None), 422, "'frames' must be uint8, got float32"),

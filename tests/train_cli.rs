@@ -11,11 +11,6 @@ use std::process::{Command, Stdio};
 
 use common::{assert_close, bwm, final_weights, free_port, python, temp_dir, write_cache, write_config};
 
-
-
-
-
-
 #[test]
 fn kill_during_checkpoint_write_then_resume_auto_and_tensorboard_read_back() {
     let dir = temp_dir("train-cli");
@@ -84,6 +79,78 @@ print(json.dumps({t: [e.step for e in acc.Scalars(t)] for t in tags}))
     assert!(tags.as_object().unwrap().keys().any(|k| k.starts_with("loss_by_t/")), "{tags}");
 }
 
+
+/// Ten `kill -9`s, half of them inside checkpoint writes (the fault hook holds each write open)
+/// and half at moments drawn from a fixed seed, each followed by `--resume auto`: the final
+/// weights equal an uninterrupted run's bit for bit, and no temporary is left behind.
+#[test]
+fn ten_kills_then_resume_auto_end_with_the_uninterrupted_weights() {
+    let dir = temp_dir("train-kills");
+    write_cache(&dir.join("cache"));
+    let steps = 40;
+    let straight = write_config(&dir, "straight.toml", &dir.join("straight"), steps, 1);
+    let out = Command::new(bwm()).args(["train", "--config"]).arg(&straight).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+
+    let config = write_config(&dir, "killed.toml", &dir.join("killed"), steps, 1);
+    let ckpts = dir.join("killed/checkpoints");
+    let mut rng = 0x9E37_79B9_7F4A_7C15_u64;
+    let mut next = move || {
+        rng ^= rng << 13;
+        rng ^= rng >> 7;
+        rng ^= rng << 17;
+        rng
+    };
+    for kill in 0..10 {
+        let mut child = Command::new(bwm())
+            .args(["train", "--resume", "auto", "--config"])
+            .arg(&config)
+            .env("BWM_FAULT_SLOW_CHECKPOINT_MS", if kill % 2 == 0 { "1000" } else { "0" })
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        // Even runs: inside their second checkpoint write (one step saved, the next half-written).
+        // Odd runs: at a drawn moment, during start-up or a few milliseconds after their r-th
+        // checkpoint write began (each run gets a few steps at most, so the kills end no run).
+        let (writes_before_kill, pause_ms) = match (kill % 2, next() % 4) {
+            (0, _) => (2, 0),
+            (_, 0) => (0, next() % 500),
+            (_, r) => (r, next() % 30),
+        };
+        let stderr = child.stderr.take().unwrap();
+        let mut writes = 0;
+        if writes_before_kill > 0 {
+            for line in BufReader::new(stderr).lines() {
+                if line.unwrap().starts_with("checkpoint: writing") {
+                    writes += 1;
+                    if writes == writes_before_kill {
+                        break;
+                    }
+                }
+            }
+        }
+        std::thread::sleep(std::time::Duration::from_millis(pause_ms));
+        child.kill().unwrap();
+        child.wait().unwrap();
+        assert_eq!(writes, writes_before_kill, "run {kill} ended before its kill");
+    }
+    let saved = std::fs::read_to_string(ckpts.join("latest")).unwrap();
+    assert!(saved.trim() < format!("step-{steps:08}").as_str(), "the kills must interrupt the run (latest {saved})");
+
+    let out = Command::new(bwm()).args(["train", "--resume", "auto", "--config"]).arg(&config).output().unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
+    assert!(stdout.contains("resumed from"), "{stdout}");
+    let (a, b) = (final_weights(&dir.join("straight")), final_weights(&dir.join("killed")));
+    assert_eq!(a.len(), b.len());
+    for ((na, ta), (nb, tb)) in a.iter().zip(&b) {
+        assert_eq!(na, nb);
+        assert!(ta.equal(tb), "{na} differs from the uninterrupted run's");
+    }
+    let names: Vec<String> = std::fs::read_dir(&ckpts).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().to_string()).collect();
+    assert!(!names.iter().any(|n| n.starts_with('.')), "temporaries left: {names:?}");
+}
 
 /// `bwm train` as ranks 0..world of one job (torchrun's variables set by hand), waiting for all.
 fn train_ranks(config: &Path, world: usize, resume: &str) {

@@ -82,11 +82,11 @@ if wants latents; then
 fi
 
 if wants train; then
-  # The validation episodes `bwm prepare` put last (its progress record names them).
-  holdout=$("$PYTHON" - "$RUN/latents" <<'PY'
-import glob, json, sys
-found = [json.load(open(p)) for p in glob.glob(sys.argv[1] + "/progress.*.json")]
-print(max([f.get("holdout_episodes", 0) for f in found] + [0]))
+  # The validation episodes `bwm prepare` put last (the plan recorded in the cache's index names them).
+  holdout=$("$PYTHON" - "$RUN/latents/index.json" <<'PY'
+import json, sys
+plan = json.load(open(sys.argv[1])).get("plan") or {}
+print(int(plan.get("holdout_episodes", 0)))
 PY
 )
   sets=(--set "run.out_dir=\"$RUN\"" --set "run.device=\"$DEVICE\"" --set "data.latent_cache=\"$RUN/latents\""

@@ -235,7 +235,10 @@ def run_evaluations(groups, a, ports, judge_url, episodes) -> dict:
         cmd = [a.bwm, "evaluate", "--config", config, "--out", out, *a.wm]
         log = open(os.path.join(out, "evaluate.log"), "w")
         print(f"study: evaluate {g}: {', '.join(variants)}: {shlex.join(cmd)}", flush=True)
-        procs.append((g, subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT), log, out))
+        # Each process gets its share of the cores for libtorch's CPU threads: by default every
+        # one would start a thread per core, and --jobs of them oversubscribe the machine.
+        env = dict(os.environ, OMP_NUM_THREADS=str(max(1, (os.cpu_count() or 1) // len(groups))))
+        procs.append((g, subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env), log, out))
     total = sum(len(v) for v in groups) * sum(len(e) for e in episodes.values())
     start, last = time.time(), 0.0
     while any(p.poll() is None for _, p, _, _ in procs):
@@ -344,7 +347,7 @@ def main(argv=None) -> None:
             ready = os.path.join(a.out, ready)
             if os.path.exists(ready):
                 os.remove(ready)
-            log = os.path.join(a.out, ready.replace("_ready.json", ".log"))
+            log = ready.replace("_ready.json", ".log")
             proc = subprocess.Popen([*cmd, "--ready", ready], stdout=open(log, "w"), stderr=subprocess.STDOUT)
             servers.append(proc)
             servers_info = wait_ready(proc, ready, what, log)

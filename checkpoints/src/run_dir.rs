@@ -148,18 +148,21 @@ impl CheckpointRoot {
         Ok(())
     }
 
-    /// Temporary folders of writers that died (any `.step-*.tmp-*` not of this process), and
-    /// staging folders of steps other than `step`.
+    /// What writers that died left (any `.step-*.tmp-*`, `.step-*.old-*` or `.latest.tmp-*` not
+    /// of this process), and staging folders of steps other than `step`.
     fn remove_stale_temporaries(&self, step: u64) -> Result<()> {
-        let mine = format!(".tmp-{}", std::process::id());
+        let pid = std::process::id();
         let staging = self.staging_path(step);
         for entry in fs::read_dir(&self.root)? {
             let entry = entry?;
             let name = entry.file_name().to_string_lossy().to_string();
-            let stale_temporary = name.contains(".tmp-") && !name.ends_with(&mine);
+            let dead_writer = |kind: &str| name.contains(kind) && !name.ends_with(&format!("{kind}{pid}"));
+            let stale_temporary = dead_writer(".tmp-") || dead_writer(".old-");
             let stale_staging = name.ends_with(STAGING_SUFFIX) && entry.path() != staging;
             if name.starts_with(".step-") && (stale_temporary || stale_staging) {
                 fs::remove_dir_all(entry.path()).ok();
+            } else if name.starts_with(&format!(".{LATEST}.tmp-")) && dead_writer(".tmp-") {
+                fs::remove_file(entry.path()).ok();
             }
         }
         Ok(())
@@ -216,6 +219,23 @@ mod tests {
         })
         .unwrap();
         assert!(current.is_dir() && !crashed.exists());
+    }
+
+    #[test]
+    fn a_dead_writers_leftovers_are_removed_by_the_next_save() {
+        let (_dir, root) = tmp("dead");
+        root.save(1, 3, |d| Ok(fs::write(d.join(STATE_FILE), "1")?)).unwrap();
+        // Killed between moving a re-saved step aside and renaming its replacement, and before
+        // `latest` was renamed: the step folder is missing, latest falls back to what is complete.
+        let dead = u32::MAX;
+        fs::rename(root.step_path(1), root.root.join(format!(".step-00000001.old-{dead}"))).unwrap();
+        fs::create_dir_all(root.root.join(format!(".step-00000002.tmp-{dead}"))).unwrap();
+        fs::write(root.root.join(format!(".latest.tmp-{dead}")), "step-00000002\n").unwrap();
+        assert!(root.latest().unwrap().is_none());
+        root.save(2, 3, |d| Ok(fs::write(d.join(STATE_FILE), "2")?)).unwrap();
+        let mut names: Vec<String> = fs::read_dir(&root.root).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+        names.sort();
+        assert_eq!(names, ["latest", "step-00000002"]);
     }
 
     #[test]

@@ -265,7 +265,7 @@ fn bad_episodes_are_skipped_with_reasons() {
     for s in &plan.report.skipped {
         eprintln!("  episode {}: {}: {}", s.index, s.kind, s.reason);
     }
-    assert_eq!((plan.report.episodes, plan.report.used), (6, 1));
+    assert_eq!((plan.report.episodes, plan.report.used), (8, 1));
     assert_eq!(plan.episodes[0].info.index, 0);
     assert_eq!(plan.report.clips, clip.windows(12).len());
     let kinds: Vec<(i64, DefectKind)> = plan.report.skipped.iter().map(|s| (s.index, s.kind)).collect();
@@ -276,16 +276,21 @@ fn bad_episodes_are_skipped_with_reasons() {
             (2, DefectKind::MissingVideo),
             (3, DefectKind::CountMismatch),
             (4, DefectKind::TooShort),
-            (5, DefectKind::UnreadableVideo)
+            (5, DefectKind::UnreadableVideo),
+            (6, DefectKind::UnreadableVideo),
+            (7, DefectKind::Unreadable)
         ]
     );
     assert!(plan.report.skipped[0].reason.contains("row 3"), "{}", plan.report.skipped[0].reason);
     let summary = plan.report.to_string();
-    assert!(summary.contains("6 episodes: 1 used") && summary.contains("1 missing video"), "{summary}");
+    assert!(summary.contains("8 episodes: 1 used") && summary.contains("1 missing video"), "{summary}");
+    assert!(plan.report.skipped[6].reason.contains("episode_000007.parquet"), "{}", plan.report.skipped[6].reason);
 
-    // Decoding the garbage video is an error, not a crash.
-    let e = ds.frames(5, 0..1, &CameraSelection::default()).unwrap_err();
-    assert_eq!(classify(&e), DefectKind::UnreadableVideo, "{e:#}");
+    // Decoding the garbage or cut-off video is an error, not a crash.
+    for e in [5, 6] {
+        let e = ds.frames(e, 0..1, &CameraSelection::default()).unwrap_err();
+        assert_eq!(classify(&e), DefectKind::UnreadableVideo, "{e:#}");
+    }
 
     // A column no episode has: the whole dataset is unusable, said in one line.
     let spec = ActionSpec { column: "observation.nope".into(), ..state_spec() };

@@ -9,6 +9,7 @@ mod agent;
 
 use std::fs::OpenOptions;
 use std::net::{SocketAddr, TcpListener, ToSocketAddrs};
+use std::os::unix::process::ExitStatusExt;
 use std::path::PathBuf;
 use std::process::{Child, Command, ExitStatus, Stdio};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -129,6 +130,7 @@ impl Plan {
         }
         let mut ranks = Ranks {
             procs: Vec::with_capacity(self.nproc),
+            failed: Vec::new(),
         };
         for local in 0..self.nproc {
             let rank = self.node_rank * self.nproc + local;
@@ -170,6 +172,8 @@ impl Plan {
 /// This node's running ranks.
 struct Ranks {
     procs: Vec<Proc>,
+    /// Positions in `procs` of the ranks that exited otherwise than 0, in the order seen.
+    failed: Vec<usize>,
 }
 
 struct Proc {
@@ -187,19 +191,27 @@ enum Outcome {
 
 impl Ranks {
     fn refresh(&mut self) -> Result<()> {
-        for p in self.procs.iter_mut().filter(|p| p.status.is_none()) {
+        let mut newly_failed = Vec::new();
+        for (i, p) in self.procs.iter_mut().enumerate().filter(|(_, p)| p.status.is_none()) {
             p.status = p
                 .child
                 .try_wait()
                 .with_context(|| format!("waiting for rank {}", p.rank))?;
+            if p.status.is_some_and(|s| !s.success()) {
+                newly_failed.push(i);
+            }
         }
+        // Seen in the same look, a rank killed by a signal is more likely the cause than one that
+        // exited with an error (its peers fail when it disappears).
+        newly_failed.sort_by_key(|&i| self.procs[i].status.and_then(|s| s.signal()).is_none());
+        self.failed.extend(newly_failed);
         Ok(())
     }
 
     fn first_failure(&self) -> Option<String> {
-        self.procs.iter().find_map(|p| match p.status {
-            Some(s) if !s.success() => Some(format!("rank {} exited with {s}", p.rank)),
-            _ => None,
+        self.failed.first().map(|&i| {
+            let p = &self.procs[i];
+            format!("rank {} exited with {}", p.rank, p.status.expect("a failed rank has a status"))
         })
     }
 

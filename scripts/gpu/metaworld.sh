@@ -4,7 +4,13 @@
 #                 gymnasium, farama-notifications, pyopengl, websockets; README of the device tool)
 #   .gl           the GL loader debs (libegl1, libglvnd0, libopengl0, ...), for MuJoCo through EGL
 #   .carry/bwm.xz the bwm binary built with --no-default-features (xz: the carry limit is 64 MiB)
-# Usage: bash scripts/gpu/metaworld.sh [STAGE ...]; logs and timings go to $OUT.
+# Usage: bash scripts/gpu/metaworld.sh [STAGE ...]; logs and timings go to $OUT, the run's small
+# outputs to $OUT/run.tar.gz. With no stage, every stage (independent ones side by side); that
+# takes longer than one device call, so run it detached:
+#   bash scripts/gpu/detached.sh start mw bash scripts/gpu/metaworld.sh; bash scripts/gpu/detached.sh wait mw 570 runs/metaworld/study
+# and the same `wait` in the calls that follow, back to back (a machine idle between calls goes
+# back, and one held 30 minutes goes back when the call in flight ends). The whole run takes about
+# 32 minutes on an H100: four calls, the last started before minute 30.
 set -uo pipefail
 source "$(dirname "$0")/common.sh"
 for f in .gl/*.deb; do dpkg -x "$f" /; done
@@ -29,12 +35,32 @@ for name in ("numpy", "torch", "pyarrow", "PIL", "scipy", "msgpack", "websockets
 if missing:
     raise SystemExit("missing on this machine: " + ", ".join(missing))
 PY
-bash bench/metaworld/recipe.sh "$@" 2>&1 | tee -a "$OUT/recipe.log"
-status=${PIPESTATUS[0]}
-# What the run measured comes back (small files only; the datasets and latents stay there).
+recipe() { bash bench/metaworld/recipe.sh "$@"; }
+if [ $# -gt 0 ]; then
+  recipe "$@" 2>&1 | tee -a "$OUT/recipe.log"
+  status=${PIPESTATUS[0]}
+else
+  # Every stage, the independent ones side by side: truth (MuJoCo, CPU) and the judge (a small
+  # CNN) beside the VAE, latents and DiT; fidelity beside the study.
+  status=0
+  recipe data 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
+  if [ $status = 0 ]; then
+    recipe truth > "$OUT/truth.log" 2>&1 & truth=$!
+    recipe judge > "$OUT/judge.log" 2>&1 & judge=$!
+    recipe vae latents train 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
+    wait $truth || { echo "metaworld: truth failed ($OUT/truth.log)"; status=1; }
+    wait $judge || { echo "metaworld: judge failed ($OUT/judge.log)"; status=1; }
+  fi
+  if [ $status = 0 ]; then
+    recipe fidelity > "$OUT/fidelity.log" 2>&1 & fidelity=$!
+    recipe study 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
+    wait $fidelity || { echo "metaworld: fidelity failed ($OUT/fidelity.log)"; status=1; }
+  fi
+fi
+# What the run measured comes back as one archive (small files only; the datasets, latents,
+# weights and videos stay on the machine).
 R=runs/metaworld
-mkdir -p "$OUT/run"
-cp $R/timings.tsv $R/*.svg $R/judge.json $R/metrics.jsonl "$OUT/run/" 2>/dev/null
-(cd $R && find fidelity study -type f \( -name '*.json' -o -name '*.jsonl' -o -name '*.csv' -o -name '*.svg' -o -name '*.log' \
-  -o -name '*.toml' -o -name '*.png' \) -not -path '*/videos/*' -size -3M -exec cp --parents {} "$OUT/run/" \; 2>/dev/null)
+(cd $R && find . -maxdepth 3 -type f \( -name '*.json' -o -name '*.jsonl' -o -name '*.csv' -o -name '*.svg' -o -name '*.log' \
+  -o -name '*.toml' -o -name '*.png' -o -name '*.tsv' \) -not -path '*/videos/*' -not -path './data/*' -not -path './latents/*' -size -3M -print0 |
+  tar -czf "$OUT/run.tar.gz" --null -T -)
 exit "$status"

@@ -87,6 +87,17 @@ def bodies(out, t, k, d):
     write("wrong_dtype.msgpack", {"frames": frames.astype(np.float32), "actions": actions, "normalized": True})
     bad = np.zeros((t, 33, 32, 3), np.uint8)
     write("bad_size.msgpack", {"frames": bad, "actions": actions, "normalized": True})
+    nan, inf = actions.copy(), actions.copy()
+    nan[1, 2], inf[0, 0] = np.nan, -np.inf
+    write("nan_actions.msgpack", {"frames": frames, "actions": nan, "normalized": True})
+    write("inf_actions.msgpack", {"frames": frames, "actions": inf, "normalized": True})
+
+    def declared(shape, data):  # an ndarray whose declared shape is not the data's
+        return {b"__ndarray__": True, b"data": data, b"dtype": "<f4", b"shape": shape}
+
+    write("negative_dim.msgpack", {"frames": frames, "actions": declared([-(t + k), d], actions.tobytes()), "normalized": True})
+    write("huge_dims.msgpack", {"frames": frames, "actions": declared([2**40, 2**40, d], actions.tobytes()), "normalized": True})
+    write("huge_rows.msgpack", {"frames": frames, "actions": declared([2**31, d], actions.tobytes()), "normalized": True})
     with open(os.path.join(out, "malformed.bin"), "wb") as f:
         f.write(b"\x85\xa6frames\xc4\x10not msgpack at all")
 

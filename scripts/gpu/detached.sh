@@ -1,0 +1,56 @@
+#!/usr/bin/env bash
+# Work longer than one device call (10 minutes) on a lent GPU machine: the device tool keeps a
+# process that started its own session running until the machine goes back, so
+#   bash scripts/gpu/detached.sh start NAME CMD [ARG ...]   runs CMD detached (setsid), its output
+#                                                          and exit status in /tmp/detached/NAME/,
+#                                                          and $OUT pointed at /tmp/detached/NAME/out
+#   bash scripts/gpu/detached.sh wait NAME SECONDS [DIR ...]  follows that output until CMD ends or
+#                                                          SECONDS pass, then packs NAME's out folder
+#                                                          and the files under 3 MB in each DIR (outside
+#                                                          videos/) into $OUT/NAME.tar.gz, partial if
+#                                                          CMD is still running
+# Calls that follow each other within the machine's idle time find the same process. `wait` exits 0
+# when CMD ended with 0, 1 when it failed, 3 while it is still running.
+set -uo pipefail
+usage() { echo "usage: detached.sh start NAME CMD [ARG ...] | wait NAME SECONDS [DIR ...]" >&2; exit 2; }
+[ $# -ge 2 ] || usage
+mode=$1 name=$2; shift 2
+dir=/tmp/detached/$name
+case "$mode" in
+  start)
+    [ $# -ge 1 ] || usage
+    if [ -f "$dir/pid" ] && [ ! -f "$dir/rc" ] && kill -0 "$(cat "$dir/pid")" 2>/dev/null; then
+      echo "detached: $name is already running (pid $(cat "$dir/pid"))" >&2; exit 1
+    fi
+    rm -rf "$dir"; mkdir -p "$dir/out"
+    OUT="$dir/out" setsid bash -c '"$@" > "'"$dir"'/log" 2>&1; echo $? > "'"$dir"'/rc"' detached "$@" < /dev/null &
+    echo $! > "$dir/pid"
+    echo "detached: $name started (pid $!, output in $dir/log)"
+    ;;
+  wait)
+    [ $# -ge 1 ] || usage
+    seconds=$1; shift
+    [ -d "$dir" ] || { echo "detached: nothing named $name was started on this machine" >&2; exit 1; }
+    deadline=$(( $(date +%s) + seconds ))
+    show() { # what the log gained since the last look
+      local seen size; seen=$(cat "$dir/seen" 2>/dev/null || echo 0); size=$(stat -c %s "$dir/log")
+      [ "$size" -gt "$seen" ] && tail -c +"$((seen + 1))" "$dir/log" | head -c "$((size - seen))"
+      echo "$size" > "$dir/seen"
+    }
+    while [ ! -f "$dir/rc" ] && [ "$(date +%s)" -lt "$deadline" ]; do show; sleep 5; done
+    show
+    mkdir -p "${OUT:-/tmp/out}"
+    cp "$dir/log" "${OUT:-/tmp/out}/$name.log"
+    rm -rf "$dir/pack"; mkdir -p "$dir/pack"; cp -r "$dir/out" "$dir/pack/out"
+    for d in "$@"; do
+      [ -d "$d" ] && find "$d" -type f -size -3M -not -path '*/videos/*' -exec cp --parents {} "$dir/pack/" \;
+    done
+    tar -czf "${OUT:-/tmp/out}/$name.tar.gz" -C "$dir/pack" .
+    if [ -f "$dir/rc" ]; then
+      rc=$(cat "$dir/rc"); echo "detached: $name ended with status $rc"
+      [ "$rc" = 0 ] && exit 0 || exit 1
+    fi
+    echo "detached: $name still running after $seconds s"; exit 3
+    ;;
+  *) usage ;;
+esac

@@ -2,7 +2,10 @@
 //! a good request round-trips through the Python client of docs/serve.md with the right shapes;
 //! a burst larger than queue + worker gets only 200s and 503s, at least one 503, none hanging;
 //! malformed, oversized and wrong-shape/dtype/size requests get 4xx with a message naming the
-//! problem; and the server still serves a good request afterwards.
+//! problem; 200 clients that send half a header do not keep /health or a real request from being
+//! answered and are answered 408 after the read timeout; clients that leave mid-request do not
+//! wedge the worker; declared bodies over the limit do not grow the server's memory; SIGTERM
+//! finishes the request in flight, refuses new connections and exits 0.
 
 mod common;
 
@@ -17,8 +20,6 @@ use std::time::{Duration, Instant};
 
 use serde_json::{json, Value};
 
-
-
 /// Kills the process it holds when dropped (also when an assertion fails).
 struct Guard(Child);
 
@@ -28,7 +29,6 @@ impl Drop for Guard {
         let _ = self.0.wait();
     }
 }
-
 
 /// Sends `raw` as is and reads the reply until the server closes.
 fn raw_exchange(addr: &str, raw: &[u8]) -> String {
@@ -187,10 +187,16 @@ fn serve_round_trips_rejects_bad_requests_and_sheds_load() {
     assert_eq!(wrong_method.status, 405, "{}", wrong_method.text());
     let chunked = raw_exchange(&addr, b"POST /v1/chunk HTTP/1.1\r\nHost: x\r\nTransfer-Encoding: chunked\r\n\r\n5\r\nhello\r\n0\r\n\r\n");
     assert!(chunked.starts_with("HTTP/1.1 411") && chunked.contains("Content-Length"), "{chunked}");
+    let long_head = format!("GET /health HTTP/1.1\r\nHost: x\r\nX-Long: {}\r\n\r\n", "a".repeat(20 << 10));
+    let many_headers = format!("GET /health HTTP/1.1\r\n{}\r\n", (0..70).map(|i| format!("X-{i}: y\r\n")).collect::<String>());
+    for head in [long_head, many_headers] {
+        let reply = raw_exchange(&addr, head.as_bytes());
+        assert!(reply.starts_with("HTTP/1.1 431"), "{reply:?}");
+    }
 
-    // Clients that send half a header and wait hold their connections, not the server: while 16
-    // of them hang, /health answers, and each of them is later answered 408.
-    let slow: Vec<TcpStream> = (0..16)
+    // Clients that send half a header and wait hold their connections, not the server: while 200
+    // of them hang, /health and a real request are answered, and each of them is later answered 408.
+    let slow: Vec<TcpStream> = (0..200)
         .map(|_| {
             let mut c = TcpStream::connect(&addr).unwrap();
             c.write_all(b"POST /v1/chunk HTTP/1.1\r\nHost: x\r\nContent-Le").unwrap();
@@ -199,17 +205,75 @@ fn serve_round_trips_rejects_bad_requests_and_sheds_load() {
         .collect();
     let h = health(&addr);
     assert_eq!(h["status"], "ok", "{h}");
-    let mut first = slow.into_iter().next().unwrap();
-    first.set_read_timeout(Some(Duration::from_secs(300))).unwrap();
-    let mut answer = String::new();
-    let _ = first.read_to_string(&mut answer);
-    assert!(answer.starts_with("HTTP/1.1 408"), "{answer:?}");
-
-    // Still serving.
     let r = http(&addr, "POST", "/v1/chunk", &good, None);
     assert_eq!((r.status, r.content_type.as_str()), (200, "application/msgpack"), "{}", r.text());
-    let h = health(&addr);
-    assert_eq!(h["queue_depth"], 0, "{h}");
-    assert!(h["served"].as_u64().unwrap() >= 4 && h["rejected_busy"].as_u64().unwrap() >= 1, "{h}");
-    drop(server);
+    for mut c in slow.into_iter().step_by(50) {
+        c.set_read_timeout(Some(Duration::from_secs(300))).unwrap();
+        let mut answer = String::new();
+        let _ = c.read_to_string(&mut answer);
+        assert!(answer.starts_with("HTTP/1.1 408") && answer.contains("--read-timeout-s"), "{answer:?}");
+    }
+
+    // Clients that go away mid-request: one inside its body, one before reading its reply. The
+    // worker is not left holding either: the next request is served and the queue drains.
+    let mut cut = TcpStream::connect(&addr).unwrap();
+    let head = format!("POST /v1/chunk HTTP/1.1\r\nHost: x\r\nContent-Length: {}\r\n\r\n", good.len());
+    cut.write_all(head.as_bytes()).and_then(|_| cut.write_all(&good[..good.len() / 2])).unwrap();
+    drop(cut);
+    let mut gone = TcpStream::connect(&addr).unwrap();
+    gone.write_all(head.as_bytes()).and_then(|_| gone.write_all(&good)).unwrap();
+    drop(gone);
+    let r = http(&addr, "POST", "/v1/chunk", &good, None);
+    assert_eq!(r.status, 200, "{}", r.text());
+    let drained = Instant::now();
+    loop {
+        let h = health(&addr);
+        if h["queue_depth"] == 0 && h["busy"] == false {
+            assert!(h["served"].as_u64().unwrap() >= 5 && h["rejected_busy"].as_u64().unwrap() >= 1, "{h}");
+            break;
+        }
+        assert!(drained.elapsed() < Duration::from_secs(300), "the queue never drained: {h}");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+
+    // A burst of requests that declare 1 GiB bodies and send some of it: each is refused from its
+    // Content-Length, and the server's memory does not grow with what was declared.
+    let rss = || -> u64 {
+        let status = std::fs::read_to_string(format!("/proc/{}/status", server.0.id())).unwrap();
+        status.lines().find_map(|l| l.strip_prefix("VmRSS:")).unwrap().trim().trim_end_matches(" kB").parse::<u64>().unwrap() * 1024
+    };
+    let before = rss();
+    let chunk = vec![0x90u8; 64 << 10];
+    for _ in 0..100 {
+        let r = http(&addr, "POST", "/v1/chunk", &chunk, Some(1 << 30));
+        assert_eq!(r.status, 413, "{}", r.text());
+    }
+    let grown = rss().saturating_sub(before);
+    assert!(grown < 64 << 20, "100 declared 1 GiB bodies grew the server by {grown} bytes");
+
+    // SIGTERM: the request in flight (its head read, its body still coming) is finished and
+    // answered; new connections are refused; the server exits 0.
+    let mut inflight = TcpStream::connect(&addr).unwrap();
+    inflight.set_read_timeout(Some(Duration::from_secs(120))).unwrap();
+    let head = format!("POST /v1/chunk HTTP/1.1\r\nHost: x\r\nExpect: 100-continue\r\nContent-Length: {}\r\n\r\n", good.len());
+    inflight.write_all(head.as_bytes()).unwrap();
+    let mut continued = [0u8; 25];
+    inflight.read_exact(&mut continued).unwrap();
+    assert!(continued.starts_with(b"HTTP/1.1 100 Continue"), "{:?}", String::from_utf8_lossy(&continued));
+    common::signal(server.0.id(), "TERM");
+    let stopping = Instant::now();
+    while !std::fs::read_to_string(&log).unwrap_or_default().contains("serve: stopping") {
+        assert!(stopping.elapsed() < Duration::from_secs(60), "no shutdown after SIGTERM");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    assert!(TcpStream::connect(&addr).is_err(), "a new connection is refused while stopping");
+    inflight.write_all(&good).unwrap();
+    let mut answer = Vec::new();
+    let _ = inflight.read_to_end(&mut answer);
+    assert!(answer.starts_with(b"HTTP/1.1 200"), "{}", String::from_utf8_lossy(&answer[..answer.len().min(200)]));
+    let mut server = server;
+    let status = server.0.wait().unwrap();
+    let text = std::fs::read_to_string(&log).unwrap();
+    assert!(status.success() && text.contains("serve: stopped"), "{status}\n{text}");
+    assert!(text.contains("serve: request method=POST path=/v1/chunk status=200 bytes_in="), "{text}");
 }

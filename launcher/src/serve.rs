@@ -1,15 +1,17 @@
 //! `bwm serve`: one world-model chunk per HTTP request, for clients that run the loop
 //! themselves (protocol: docs/serve.md).
 //!
-//! The model lives on one worker thread (it holds `Rc`s). Each connection gets a thread that
-//! reads and checks the request, then offers it to a bounded queue in front of the worker: a
-//! full queue is answered 503 at once. The HTTP/1.1 handling is our own, on std sockets, so that
-//! a body over the limit is refused from its Content-Length before any of it is buffered
-//! (tiny_http 0.12 allocates the whole unread remainder of a declared body when a request is
-//! dropped, which a single header could turn into an abort).
+//! The model lives on one worker thread (it holds `Rc`s) behind a bounded queue: a request that
+//! finds the queue full is answered 503 at once. HTTP is hyper's on a small tokio runtime, so a
+//! client that sends half a request costs a task, not a thread: while many such clients wait,
+//! /health and real requests are answered. A body over the limit is refused from its
+//! Content-Length before any of it is read, and bounded while it streams; a client gets
+//! --read-timeout-s to send its whole request (408 after). SIGTERM or Ctrl-C stops accepting,
+//! lets requests in flight finish and closes the connections that have not sent one.
 
-use std::io::{Read, Write};
-use std::net::{Shutdown, TcpListener, TcpStream};
+use std::convert::Infallible;
+use std::future::Future;
+use std::pin::Pin;
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::mpsc::{self, Sender};
 use std::sync::Arc;
@@ -17,9 +19,17 @@ use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Context, Result};
 use bwm_model::rollout::Rollout;
+use bytes::Bytes;
 use clap::Args;
+use http_body_util::{BodyExt, Full, LengthLimitError, Limited};
+use hyper::body::Incoming;
+use hyper::header::{HeaderValue, CONNECTION, CONTENT_LENGTH, CONTENT_TYPE, TRANSFER_ENCODING};
+use hyper::{Method, Request, Response, StatusCode};
+use hyper_util::rt::TokioIo;
 use rmpv::Value;
 use tch::{Kind, Tensor};
+use tokio::io::AsyncWriteExt;
+use tokio::sync::{oneshot, watch};
 
 use crate::msgpack_numpy::{self, map_get, scalar, str_map, Dtype, NdArray};
 use crate::world_model::{tensor_rows, WorldModel, WorldModelArgs};
@@ -40,14 +50,16 @@ pub struct ServeArgs {
     #[arg(long, default_value_t = 256 << 20)]
     max_body_bytes: usize,
     /// Open connections at most; further ones get 503 at once.
-    #[arg(long, default_value_t = 64)]
+    #[arg(long, default_value_t = 512)]
     max_connections: usize,
-    /// Seconds a client may take to send its request.
+    /// Seconds a client may take to send its request (408 after).
     #[arg(long, default_value_t = 60)]
     read_timeout_s: u64,
 }
 
+/// Request heads above these are answered 431 (by hyper).
 const MAX_HEAD: usize = 16 << 10;
+const MAX_HEADERS: usize = 64;
 
 /// A checked /v1/chunk request.
 struct ChunkRequest {
@@ -65,7 +77,7 @@ struct ChunkRequest {
 struct Job {
     request: ChunkRequest,
     received: Instant,
-    reply: mpsc::Sender<Result<Vec<u8>, ApiError>>,
+    reply: oneshot::Sender<Result<Vec<u8>, ApiError>>,
 }
 
 #[derive(Debug)]
@@ -112,6 +124,8 @@ struct Shared {
     max_connections: usize,
     read_timeout: Duration,
     counters: Arc<Counters>,
+    /// The model worker's queue (admission is bounded by `Counters::pending`).
+    jobs: Sender<Job>,
 }
 
 pub fn run(a: ServeArgs) -> Result<()> {
@@ -159,6 +173,11 @@ pub fn run(a: ServeArgs) -> Result<()> {
             }
             let counters = worker_counters;
             for job in job_rx {
+                if job.reply.is_closed() {
+                    // The client went away while its request waited: nobody reads this chunk.
+                    counters.pending.fetch_sub(1, Ordering::SeqCst);
+                    continue;
+                }
                 counters.busy.store(true, Ordering::SeqCst);
                 let queued = job.received.elapsed().as_secs_f64();
                 let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
@@ -178,8 +197,9 @@ pub fn run(a: ServeArgs) -> Result<()> {
     let info = ready_rx
         .recv()
         .map_err(|_| anyhow!("the model worker stopped while loading"))??;
-    let listener = TcpListener::bind((a.host.as_str(), a.port))
+    let listener = std::net::TcpListener::bind((a.host.as_str(), a.port))
         .with_context(|| format!("listening on {}:{}", a.host, a.port))?;
+    listener.set_nonblocking(true)?;
     let addr = listener.local_addr()?;
     let shared = Arc::new(Shared {
         info: info.clone(),
@@ -188,6 +208,7 @@ pub fn run(a: ServeArgs) -> Result<()> {
         max_connections: a.max_connections.max(1),
         read_timeout: Duration::from_secs(a.read_timeout_s.max(1)),
         counters,
+        jobs: job_tx,
     });
     println!(
         "serve: {} on {} ({}), d_a = {}, H = {}, K = {}, {} steps; queue {}, body limit {} bytes",
@@ -201,310 +222,245 @@ pub fn run(a: ServeArgs) -> Result<()> {
         a.queue,
         a.max_body_bytes
     );
+    // Two threads: the HTTP side only parses, checks and hands requests to the model worker.
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .context("starting the HTTP runtime")?;
+    runtime.block_on(accept_loop(listener, addr, shared))
+}
+
+async fn accept_loop(listener: std::net::TcpListener, addr: std::net::SocketAddr, shared: Arc<Shared>) -> Result<()> {
+    use tokio::signal::unix::{signal, SignalKind};
+    let listener = tokio::net::TcpListener::from_std(listener)?;
+    let mut terminate = signal(SignalKind::terminate()).context("handling SIGTERM")?;
+    let mut interrupt = signal(SignalKind::interrupt()).context("handling SIGINT")?;
+    let (stopping, stop) = watch::channel(false);
+    let mut connections = tokio::task::JoinSet::new();
     println!("serve: listening on http://{addr}");
+    use std::io::Write as _;
     let _ = std::io::stdout().flush();
-    for stream in listener.incoming() {
-        let stream = match stream {
-            Ok(s) => s,
-            Err(e) => {
-                eprintln!("serve: accept failed: {e}");
-                std::thread::sleep(Duration::from_millis(50));
-                continue;
-            }
-        };
-        let (shared, jobs) = (shared.clone(), job_tx.clone());
-        shared.counters.connections.fetch_add(1, Ordering::SeqCst);
-        let spawned = std::thread::Builder::new()
-            .name("http".into())
-            .spawn(move || {
-                connection(stream, &shared, &jobs);
-                shared.counters.connections.fetch_sub(1, Ordering::SeqCst);
-            });
-        if let Err(e) = spawned {
-            eprintln!("serve: cannot start a connection thread: {e}");
+    loop {
+        tokio::select! {
+            _ = terminate.recv() => break,
+            _ = interrupt.recv() => break,
+            Some(_) = connections.join_next(), if !connections.is_empty() => {}
+            accepted = listener.accept() => match accepted {
+                Ok((stream, _)) => {
+                    let open = shared.counters.connections.fetch_add(1, Ordering::SeqCst) + 1;
+                    connections.spawn(connection(stream, open, shared.clone(), stop.clone()));
+                }
+                Err(e) => {
+                    eprintln!("serve: accept failed: {e}");
+                    tokio::time::sleep(Duration::from_millis(50)).await;
+                }
+            },
         }
     }
+    drop(listener);
+    println!("serve: stopping: no new connections; {} open ones finish their requests", connections.len());
+    let _ = stopping.send(true);
+    while connections.join_next().await.is_some() {}
+    println!("serve: stopped");
     Ok(())
 }
 
-struct HttpRequest {
-    method: String,
-    path: String,
-    body: Vec<u8>,
-}
+type Reply = Response<Full<Bytes>>;
+type ReplyFuture = Pin<Box<dyn Future<Output = Result<Reply, Infallible>> + Send>>;
 
-/// Reads one request; Err carries the response to send (and whether body bytes were left
-/// unread). Ok(None): the client closed without sending a request.
-fn read_request(
-    stream: &mut TcpStream,
-    max_body: usize,
-) -> Result<Option<HttpRequest>, (ApiError, bool)> {
-    let mut buf = Vec::with_capacity(4096);
-    let mut chunk = [0u8; 4096];
-    let (head_len, method, path, length) = loop {
-        let n = match stream.read(&mut chunk) {
-            Ok(0) if buf.is_empty() => return Ok(None),
-            Ok(0) => {
-                return Err((
-                    api(400, "the connection closed inside the request head"),
-                    false,
-                ))
-            }
-            Ok(n) => n,
-            Err(e) => return Err((api(408, format!("reading the request: {e}")), false)),
-        };
-        buf.extend_from_slice(&chunk[..n]);
-        let mut headers = [httparse::EMPTY_HEADER; 64];
-        let mut req = httparse::Request::new(&mut headers);
-        match req.parse(&buf) {
-            Ok(httparse::Status::Complete(len)) => {
-                let mut length: Option<usize> = None;
-                let mut expect_continue = false;
-                for h in req.headers.iter() {
-                    let value = String::from_utf8_lossy(h.value).trim().to_string();
-                    if h.name.eq_ignore_ascii_case("content-length") {
-                        let v: usize = value.parse().map_err(|_| {
-                            (
-                                api(400, format!("Content-Length '{value}' is not a number")),
-                                true,
-                            )
-                        })?;
-                        if length.is_some_and(|l| l != v) {
-                            return Err((api(400, "conflicting Content-Length headers"), true));
-                        }
-                        length = Some(v);
-                    } else if h.name.eq_ignore_ascii_case("transfer-encoding") {
-                        return Err((api(411, "send the body with a Content-Length (chunked transfer encoding is not supported)"), true));
-                    } else if h.name.eq_ignore_ascii_case("expect")
-                        && value.eq_ignore_ascii_case("100-continue")
-                    {
-                        expect_continue = true;
-                    }
-                }
-                let method = req.method.unwrap_or_default().to_string();
-                let path = req
-                    .path
-                    .unwrap_or_default()
-                    .split('?')
-                    .next()
-                    .unwrap_or_default()
-                    .to_string();
-                let length = length.unwrap_or(0);
-                if length > max_body {
-                    return Err((api(413, format!("request body of {length} bytes exceeds the limit of {max_body} bytes (--max-body-bytes)")), true));
-                }
-                if expect_continue && length > buf.len() - len {
-                    let _ = stream.write_all(b"HTTP/1.1 100 Continue\r\n\r\n");
-                }
-                break (len, method, path, length);
-            }
-            Ok(httparse::Status::Partial) if buf.len() > MAX_HEAD => {
-                return Err((
-                    api(431, format!("request head longer than {MAX_HEAD} bytes")),
-                    true,
-                ));
-            }
-            Ok(httparse::Status::Partial) => {}
-            Err(httparse::Error::TooManyHeaders) => {
-                return Err((api(431, "more than 64 request headers"), true))
-            }
-            Err(e) => return Err((api(400, format!("malformed HTTP request: {e}")), true)),
-        }
-    };
-    let mut body = buf.split_off(head_len);
-    if body.len() > length {
-        return Err((
-            api(
-                400,
-                "more body bytes than the Content-Length says (pipelining is not supported)",
-            ),
-            false,
-        ));
-    }
-    let missing = length - body.len();
-    body.reserve_exact(missing);
-    if let Err(e) = stream.take(missing as u64).read_to_end(&mut body) {
-        return Err((api(408, format!("reading the request body: {e}")), false));
-    }
-    if body.len() < length {
-        return Err((
-            api(
-                400,
-                format!("the body ended after {} of {length} bytes", body.len()),
-            ),
-            false,
-        ));
-    }
-    Ok(Some(HttpRequest { method, path, body }))
-}
+/// Lowers the open-connection count when the connection's task ends, however it ends.
+struct Open(Arc<Counters>);
 
-fn reason(status: u16) -> &'static str {
-    match status {
-        200 => "OK",
-        400 => "Bad Request",
-        404 => "Not Found",
-        405 => "Method Not Allowed",
-        408 => "Request Timeout",
-        411 => "Length Required",
-        413 => "Content Too Large",
-        415 => "Unsupported Media Type",
-        422 => "Unprocessable Content",
-        431 => "Request Header Fields Too Large",
-        500 => "Internal Server Error",
-        503 => "Service Unavailable",
-        _ => "Unknown",
+impl Drop for Open {
+    fn drop(&mut self) {
+        self.0.connections.fetch_sub(1, Ordering::SeqCst);
     }
 }
 
-fn respond(stream: &mut TcpStream, status: u16, content_type: &str, body: &[u8]) {
-    let head = format!(
-        "HTTP/1.1 {status} {}\r\nContent-Type: {content_type}\r\nContent-Length: {}\r\nConnection: close\r\n\r\n",
-        reason(status),
-        body.len()
-    );
-    let _ = stream
-        .write_all(head.as_bytes())
-        .and_then(|_| stream.write_all(body))
-        .and_then(|_| stream.flush());
-}
-
-fn respond_error(stream: &mut TcpStream, e: &ApiError) {
-    let body = serde_json::json!({ "error": e.message, "status": e.status }).to_string();
-    respond(stream, e.status, "application/json", body.as_bytes());
-}
-
-/// Closes after an early reply while the client may still be sending: stop writing, keep
-/// reading for a moment so that the unread bytes do not turn into a reset that would hide the
-/// reply from the client.
-fn lingering_close(stream: &mut TcpStream) {
-    let _ = stream.shutdown(Shutdown::Write);
-    let _ = stream.set_read_timeout(Some(Duration::from_millis(500)));
-    let deadline = Instant::now() + Duration::from_secs(2);
-    let mut sink = [0u8; 65536];
-    while Instant::now() < deadline {
-        match stream.read(&mut sink) {
-            Ok(0) | Err(_) => break,
-            Ok(_) => {}
-        }
-    }
-}
-
-fn connection(mut stream: TcpStream, shared: &Shared, jobs: &Sender<Job>) {
-    let _ = stream.set_read_timeout(Some(shared.read_timeout));
-    let _ = stream.set_write_timeout(Some(Duration::from_secs(60)));
+/// One connection, one request (each response closes it). Until its request head has arrived
+/// the connection is closed at shutdown and answered 408 after the read timeout; once it has,
+/// the request runs to its end (its body has the rest of the read timeout).
+async fn connection(stream: tokio::net::TcpStream, open: usize, shared: Arc<Shared>, mut stop: watch::Receiver<bool>) {
+    let _open = Open(shared.counters.clone());
     let _ = stream.set_nodelay(true);
-    if shared.counters.connections.load(Ordering::SeqCst) > shared.max_connections {
-        respond_error(
-            &mut stream,
-            &api(
-                503,
-                format!(
-                    "server busy: more than {} open connections; retry later",
-                    shared.max_connections
-                ),
-            ),
-        );
-        lingering_close(&mut stream);
+    let mut stream = stream;
+    if open > shared.max_connections {
+        let e = api(503, format!("server busy: more than {} open connections; retry later", shared.max_connections));
+        let _ = stream.write_all(&raw_response(&e)).await;
+        let _ = stream.shutdown().await;
         return;
     }
-    let request = match read_request(&mut stream, shared.max_body) {
-        Ok(Some(r)) => r,
-        Ok(None) => return,
-        Err((e, unread)) => {
-            respond_error(&mut stream, &e);
-            if unread {
-                lingering_close(&mut stream);
-            }
-            return;
-        }
+    let arrived = Instant::now();
+    let started = Arc::new(AtomicBool::new(false));
+    let service = {
+        let (shared, started) = (shared.clone(), started.clone());
+        hyper::service::service_fn(move |req: Request<Incoming>| -> ReplyFuture {
+            started.store(true, Ordering::SeqCst);
+            Box::pin(handle(req, shared.clone(), arrived))
+        })
     };
-    match (request.method.as_str(), request.path.as_str()) {
-        ("GET", "/health") => {
-            let i = &shared.info;
-            let body = serde_json::json!({
-                "status": "ok",
-                "model": i.model,
-                "device": i.device,
-                "dtype": i.dtype,
-                "action_dim": i.action_dim,
-                "history": i.history,
-                "future": i.future,
-                "sample_steps": i.sample_steps,
-                "stats": i.stats,
-                "queue_depth": shared.counters.pending.load(Ordering::SeqCst)
-                    .saturating_sub(usize::from(shared.counters.busy.load(Ordering::SeqCst))),
-                "queue_capacity": shared.queue_capacity,
-                "busy": shared.counters.busy.load(Ordering::SeqCst),
-                "served": shared.counters.served.load(Ordering::SeqCst),
-                "rejected_busy": shared.counters.rejected_busy.load(Ordering::SeqCst),
-                "failed": shared.counters.failed.load(Ordering::SeqCst),
-            });
-            respond(
-                &mut stream,
-                200,
-                "application/json",
-                body.to_string().as_bytes(),
-            );
-        }
-        ("POST", "/v1/chunk") => match parse_chunk(&request.body, &shared.info) {
-            Err(e) => respond_error(&mut stream, &e),
-            Ok(chunk) => {
-                let capacity = shared.queue_capacity + 1;
-                let admitted = shared
-                    .counters
-                    .pending
-                    .fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| (n < capacity).then_some(n + 1))
-                    .is_ok();
-                if !admitted {
-                    shared.counters.rejected_busy.fetch_add(1, Ordering::SeqCst);
-                    let message = format!(
-                        "server busy: the model is generating and the queue is full ({} waiting); retry later",
-                        shared.queue_capacity
-                    );
-                    respond_error(&mut stream, &api(503, message));
-                    return;
+    let mut conn = hyper::server::conn::http1::Builder::new()
+        .keep_alive(false)
+        .max_buf_size(MAX_HEAD)
+        .max_headers(MAX_HEADERS)
+        .serve_connection(TokioIo::new(stream), service);
+    let deadline = tokio::time::sleep(shared.read_timeout);
+    tokio::pin!(deadline);
+    let mut timer_done = false;
+    loop {
+        let waiting = !started.load(Ordering::SeqCst);
+        tokio::select! {
+            _ = &mut conn => return,
+            _ = &mut deadline, if waiting && !timer_done => {
+                timer_done = true;
+                if started.load(Ordering::SeqCst) {
+                    continue;
                 }
-                let (tx, rx) = mpsc::channel();
-                let job = Job { request: chunk, received: Instant::now(), reply: tx };
-                if jobs.send(job).is_err() {
-                    shared.counters.pending.fetch_sub(1, Ordering::SeqCst);
-                    respond_error(&mut stream, &api(500, "the model worker stopped"));
+                let e = api(408, format!("no complete request within {} s (--read-timeout-s)", shared.read_timeout.as_secs()));
+                let mut io = conn.into_parts().io.into_inner();
+                let _ = io.write_all(&raw_response(&e)).await;
+                let _ = io.shutdown().await;
+                return;
+            }
+            _ = stop.changed(), if waiting => {
+                if !started.load(Ordering::SeqCst) {
                     return;
-                }
-                match rx.recv() {
-                    Ok(Ok(body)) => respond(&mut stream, 200, "application/msgpack", &body),
-                    Ok(Err(e)) => respond_error(&mut stream, &e),
-                    Err(_) => respond_error(&mut stream, &api(500, "the model worker stopped")),
                 }
             }
-        },
-        (_, "/health" | "/v1/chunk") => {
-            let allowed = if request.path == "/health" {
-                "GET"
-            } else {
-                "POST"
-            };
-            respond_error(
-                &mut stream,
-                &api(
-                    405,
-                    format!(
-                        "{} {} is not served; use {allowed}",
-                        request.method, request.path
-                    ),
-                ),
-            );
         }
-        _ => respond_error(
-            &mut stream,
-            &api(
-                404,
-                format!(
-                    "no endpoint {} (endpoints: POST /v1/chunk, GET /health)",
-                    request.path
-                ),
-            ),
-        ),
+    }
+}
+
+/// A whole HTTP/1.1 error response, for the two cases answered outside hyper's request cycle.
+fn raw_response(e: &ApiError) -> Vec<u8> {
+    let body = error_json(e);
+    let reason = StatusCode::from_u16(e.status).ok().and_then(|s| s.canonical_reason()).unwrap_or("");
+    let mut out = format!(
+        "HTTP/1.1 {} {reason}\r\nContent-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n",
+        e.status,
+        body.len()
+    )
+    .into_bytes();
+    out.extend_from_slice(body.as_bytes());
+    out
+}
+
+fn error_json(e: &ApiError) -> String {
+    serde_json::json!({ "error": e.message, "status": e.status }).to_string()
+}
+
+fn reply(status: u16, content_type: &'static str, body: Vec<u8>) -> Reply {
+    let mut r = Response::new(Full::new(Bytes::from(body)));
+    *r.status_mut() = StatusCode::from_u16(status).unwrap_or(StatusCode::INTERNAL_SERVER_ERROR);
+    r.headers_mut().insert(CONTENT_TYPE, HeaderValue::from_static(content_type));
+    r.headers_mut().insert(CONNECTION, HeaderValue::from_static("close"));
+    r
+}
+
+/// Routes one request and logs it as one line.
+async fn handle(req: Request<Incoming>, shared: Arc<Shared>, arrived: Instant) -> Result<Reply, Infallible> {
+    let (method, path) = (req.method().clone(), req.uri().path().to_string());
+    let start = Instant::now();
+    let (response, bytes_in) = match route(req, &shared, arrived).await {
+        Ok((r, n)) => (r, n),
+        Err(e) => (reply(e.status, "application/json", error_json(&e).into_bytes()), 0),
+    };
+    println!(
+        "serve: request method={method} path={path} status={} bytes_in={bytes_in} bytes_out={} ms={:.1}",
+        response.status().as_u16(),
+        hyper::body::Body::size_hint(response.body()).exact().unwrap_or(0),
+        start.elapsed().as_secs_f64() * 1e3
+    );
+    Ok(response)
+}
+
+async fn route(req: Request<Incoming>, shared: &Shared, arrived: Instant) -> Result<(Reply, usize), ApiError> {
+    let path = req.uri().path();
+    match (req.method(), path) {
+        (&Method::GET, "/health") => Ok((reply(200, "application/json", health(shared).into_bytes()), 0)),
+        (&Method::POST, "/v1/chunk") => chunk(req, shared, arrived).await,
+        (m, "/health" | "/v1/chunk") => {
+            let allowed = if path == "/health" { "GET" } else { "POST" };
+            Err(api(405, format!("{m} {path} is not served; use {allowed}")))
+        }
+        _ => Err(api(404, format!("no endpoint {path} (endpoints: POST /v1/chunk, GET /health)"))),
+    }
+}
+
+fn health(shared: &Shared) -> String {
+    let (i, c) = (&shared.info, &shared.counters);
+    serde_json::json!({
+        "status": "ok",
+        "model": i.model,
+        "device": i.device,
+        "dtype": i.dtype,
+        "action_dim": i.action_dim,
+        "history": i.history,
+        "future": i.future,
+        "sample_steps": i.sample_steps,
+        "stats": i.stats,
+        "queue_depth": c.pending.load(Ordering::SeqCst).saturating_sub(usize::from(c.busy.load(Ordering::SeqCst))),
+        "queue_capacity": shared.queue_capacity,
+        "busy": c.busy.load(Ordering::SeqCst),
+        "served": c.served.load(Ordering::SeqCst),
+        "rejected_busy": c.rejected_busy.load(Ordering::SeqCst),
+        "failed": c.failed.load(Ordering::SeqCst),
+    })
+    .to_string()
+}
+
+/// Reads the body within the limit and the rest of the read timeout, checks it and waits for
+/// the model worker's answer.
+async fn chunk(req: Request<Incoming>, shared: &Shared, arrived: Instant) -> Result<(Reply, usize), ApiError> {
+    if req.headers().contains_key(TRANSFER_ENCODING) {
+        return Err(api(411, "send the body with a Content-Length (chunked transfer encoding is not supported)"));
+    }
+    let declared = match req.headers().get(CONTENT_LENGTH) {
+        None => 0,
+        Some(v) => v
+            .to_str()
+            .ok()
+            .and_then(|v| v.trim().parse::<u64>().ok())
+            .ok_or_else(|| api(400, format!("Content-Length '{}' is not a number", String::from_utf8_lossy(v.as_bytes()))))?,
+    };
+    let max = shared.max_body;
+    if declared > max as u64 {
+        return Err(api(413, format!("request body of {declared} bytes exceeds the limit of {max} bytes (--max-body-bytes)")));
+    }
+    let left = shared.read_timeout.saturating_sub(arrived.elapsed());
+    let body = match tokio::time::timeout(left, Limited::new(req.into_body(), max).collect()).await {
+        Err(_) => return Err(api(408, format!("the request body did not arrive within {} s (--read-timeout-s)", shared.read_timeout.as_secs()))),
+        Ok(Err(e)) if e.downcast_ref::<LengthLimitError>().is_some() => {
+            return Err(api(413, format!("request body exceeds the limit of {max} bytes (--max-body-bytes)")))
+        }
+        Ok(Err(e)) => return Err(api(400, format!("reading the request body: {e}"))),
+        Ok(Ok(collected)) => collected.to_bytes(),
+    };
+    let request = parse_chunk(&body, &shared.info)?;
+    let capacity = shared.queue_capacity + 1;
+    let admitted = shared
+        .counters
+        .pending
+        .fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| (n < capacity).then_some(n + 1))
+        .is_ok();
+    if !admitted {
+        shared.counters.rejected_busy.fetch_add(1, Ordering::SeqCst);
+        return Err(api(
+            503,
+            format!("server busy: the model is generating and the queue is full ({} waiting); retry later", shared.queue_capacity),
+        ));
+    }
+    let (tx, rx) = oneshot::channel();
+    let job = Job { request, received: Instant::now(), reply: tx };
+    if shared.jobs.send(job).is_err() {
+        shared.counters.pending.fetch_sub(1, Ordering::SeqCst);
+        return Err(api(500, "the model worker stopped"));
+    }
+    match rx.await {
+        Ok(Ok(out)) => Ok((reply(200, "application/msgpack", out), body.len())),
+        Ok(Err(e)) => Err(e),
+        Err(_) => Err(api(500, "the model worker stopped")),
     }
 }
 

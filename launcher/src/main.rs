@@ -9,7 +9,6 @@ mod evaluate;
 mod export;
 mod fidelity;
 mod launch;
-mod msgpack_numpy;
 mod prepare;
 mod rollout;
 mod serve;
@@ -20,6 +19,7 @@ mod train_vae;
 mod world_model;
 
 use anyhow::Result;
+use bwm_inference::msgpack_numpy;
 use clap::{Parser, Subcommand};
 
 #[derive(Parser)]

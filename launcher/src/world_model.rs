@@ -1,18 +1,12 @@
-//! What `bwm rollout`, `bwm evaluate` and `bwm serve` share: the trained model, the VAE, the
-//! action statistics and the rollout settings, from one set of flags.
+//! The world-model flags that `bwm rollout`, `bwm fidelity`, `bwm evaluate`, `bwm serve` and
+//! `bwm bench-rollout` share; they set `bwm_inference::WorldModelOptions`.
 
 use std::path::PathBuf;
 
-use anyhow::{bail, ensure, Context, Result};
-use bwm_checkpoints::open::{build_model, open_any, trained_residual};
-use bwm_data::ActionStats;
-use bwm_model::rollout::{default_history_sigma, Rollout, RolloutSpec};
-use bwm_model::vae::{VaeConfig, WanVae};
-use bwm_model::{BwmModel, ModelConfig};
+use anyhow::Result;
+pub use bwm_inference::world_model::{WorldModel, WorldModelOptions};
 use bwm_trainer::config::Residual;
-use bwm_trainer::devices::{parse_device, parse_kind};
 use clap::Args;
-use tch::{Device, Kind, Tensor};
 
 #[derive(Args, Clone, Debug)]
 pub struct WorldModelArgs {
@@ -66,117 +60,28 @@ pub struct WorldModelArgs {
     pub seed: u64,
 }
 
-pub struct WorldModel {
-    pub model: BwmModel,
-    pub vae: WanVae,
-    pub stats: Option<ActionStats>,
-    pub spec: RolloutSpec,
-    pub device: Device,
-}
-
 impl WorldModelArgs {
-    pub fn spec(&self) -> Result<RolloutSpec> {
-        let sigma = self.history_sigma.unwrap_or_else(default_history_sigma);
-        let spec = RolloutSpec {
+    pub fn options(&self) -> WorldModelOptions {
+        WorldModelOptions {
+            checkpoint: self.checkpoint.clone(),
+            random_weights: self.random_weights.clone(),
+            model_preset: self.model_preset.clone(),
+            vae: if self.random_vae { None } else { self.vae.clone() },
+            stats: self.stats.clone(),
+            stats_group: self.stats_group.clone(),
+            device: self.device.clone(),
+            dtype: self.dtype.clone(),
+            residual: self.residual,
             history: self.history,
             future: self.future,
-            steps: self.sample_steps,
+            sample_steps: self.sample_steps,
             shift: self.shift,
-            history_sigma: (sigma > 0.0).then_some(sigma),
+            history_sigma: self.history_sigma,
             seed: self.seed,
-        };
-        spec.validate().context("rollout settings (--history/--future/--sample-steps/--shift/--history-sigma)")?;
-        Ok(spec)
+        }
     }
 
     pub fn load(&self) -> Result<WorldModel> {
-        let spec = self.spec()?;
-        let device = parse_device(&self.device)?;
-        let kind = match self.dtype.as_str() {
-            "auto" if device.is_cuda() => Kind::BFloat16,
-            "auto" => Kind::Float,
-            s => parse_kind(s)?,
-        };
-        let preset = self.model_preset.as_deref().map(ModelConfig::preset).transpose()?;
-        // The residual stream the weights were trained with, unless --residual says otherwise.
-        let (mut model, trained) = match (&self.checkpoint, &self.random_weights) {
-            (Some(ckpt), _) => {
-                let opened = open_any(ckpt).with_context(|| format!("--checkpoint {ckpt}"))?;
-                let trained = trained_residual(&opened).with_context(|| format!("--checkpoint {ckpt}"))?;
-                let trained = trained.map(|r| r.parse::<Residual>().map_err(|e| anyhow::anyhow!("--checkpoint {ckpt}: model.residual {e}"))).transpose()?;
-                (build_model(opened, preset.as_ref(), kind, device).with_context(|| format!("--checkpoint {ckpt}"))?, trained)
-            }
-            (None, Some(name)) => (BwmModel::random(&ModelConfig::preset(name)?, kind, device, self.seed as i64)?, None),
-            (None, None) => bail!("pass --checkpoint (trained weights) or --random-weights PRESET"),
-        };
-        model.dit.residual = self.residual.or(trained).unwrap_or_default().kind(kind);
-        let vae = match &self.vae {
-            Some(path) => WanVae::load_any(path, kind, device).with_context(|| format!("--vae {}", path.display()))?,
-            None => WanVae::random(&VaeConfig::wan22(), kind, device, self.seed as i64)?.0,
-        };
-        ensure!(
-            vae.cfg.z_dim == model.cfg.dit.in_dim,
-            "the VAE's latents have {} channels but the model takes {}",
-            vae.cfg.z_dim,
-            model.cfg.dit.in_dim
-        );
-        let stats = match &self.stats {
-            Some(path) => {
-                let s = ActionStats::read(path, &self.stats_group)?;
-                ensure!(
-                    s.dim() as i64 == model.cfg.action.action_dim,
-                    "{} group '{}' has {} dimensions, the model takes {} action values",
-                    path.display(),
-                    self.stats_group,
-                    s.dim(),
-                    model.cfg.action.action_dim
-                );
-                Some(s)
-            }
-            None => None,
-        };
-        Ok(WorldModel { model, vae, stats, spec, device })
+        self.options().load()
     }
-}
-
-impl WorldModel {
-    pub fn action_dim(&self) -> usize {
-        self.model.cfg.action.action_dim as usize
-    }
-
-    /// Raw action rows to the model's normalized [rows, d_a] tensor (needs --stats).
-    pub fn normalize(&self, rows: &[Vec<f32>]) -> Result<Tensor> {
-        let stats = self.stats.as_ref().context("raw actions need the training statistics: pass --stats stat.json")?;
-        self.rows_to_tensor(rows.iter().map(|r| stats.normalize(r)).collect())
-    }
-
-    /// Normalized rows back to raw units (needs --stats).
-    pub fn denormalize(&self, normalized: &Tensor) -> Result<Vec<Vec<f32>>> {
-        let stats = self.stats.as_ref().context("raw actions need the training statistics: pass --stats stat.json")?;
-        Ok(tensor_rows(normalized)?.iter().map(|r| stats.denormalize(r)).collect())
-    }
-
-    /// Rows already in the model's [-1, 1] space.
-    pub fn rows_to_tensor(&self, rows: Vec<Vec<f32>>) -> Result<Tensor> {
-        let d = self.action_dim();
-        ensure!(!rows.is_empty(), "no action rows");
-        if let Some((i, r)) = rows.iter().enumerate().find(|(_, r)| r.len() != d) {
-            bail!("action row {i} has {} values; the model takes {d}", r.len());
-        }
-        let flat: Vec<f32> = rows.into_iter().flatten().collect();
-        Ok(Tensor::from_slice(&flat).view([-1, d as i64]))
-    }
-
-    /// A rollout from x0 [3, H, W] in [-1, 1] and its normalized action a0 [d_a].
-    pub fn rollout(&self, x0: &Tensor, a0: &Tensor) -> Result<Rollout<'_>> {
-        Rollout::new(&self.model, &self.vae, self.spec.clone(), x0, a0)
-    }
-}
-
-/// A [rows, d] float tensor as rows of f32.
-pub fn tensor_rows(t: &Tensor) -> Result<Vec<Vec<f32>>> {
-    let s = t.size();
-    ensure!(s.len() == 2, "expected [rows, d] actions, got {s:?}");
-    let flat = Vec::<f32>::try_from(t.to_device(Device::Cpu).to_kind(Kind::Float).contiguous().view([-1]))?;
-    Ok(flat.chunks(s[1].max(1) as usize).map(|c| c.to_vec()).collect())
 }

@@ -29,7 +29,12 @@ CHUNKS_SIZE = 1000
 # Where exploration sends the hand (inside the mocap bounds, around the table).
 EXPLORE_LOW = np.array([-0.35, 0.40, 0.05])
 EXPLORE_HIGH = np.array([0.35, 0.95, 0.40])
-DEGRADED_MODES = ("pause", "wrong", "burst", "stop", "explore", "late")
+# Degraded modes and their weights among degraded episodes. "miss" (the expert steering on an
+# object estimate off by 2-12 cm) is weighted up: its hand goes through the expert's motions close
+# to the object, succeeding or not depending on the distance and direction, and a world model (and
+# a judge) that saw few such episodes shows the drawer opening or the button pressed whenever the
+# hand passes near them.
+DEGRADED_MODES = {"pause": 1, "wrong": 1, "miss": 3, "burst": 1, "stop": 1, "explore": 1, "late": 1}
 
 
 class Behaviour:
@@ -41,7 +46,8 @@ class Behaviour:
 
         self.policies, self.task, self.rng = policies, task, rng
         self.noise = rng.uniform(0.05, 0.4)
-        self.mode = rng.choice(DEGRADED_MODES) if rng.random() < degraded_fraction else "expert"
+        modes, weights = list(DEGRADED_MODES), np.array(list(DEGRADED_MODES.values()), float)
+        self.mode = str(rng.choice(modes, p=weights / weights.sum())) if rng.random() < degraded_fraction else "expert"
         self.explore = np.zeros(frames, bool)  # frames spent on random waypoints
         self.hold = np.zeros(frames, bool)  # frames spent still
         self.burst = np.zeros(frames, bool)  # frames of heavy noise
@@ -51,14 +57,22 @@ class Behaviour:
             start = int(rng.integers(0, frames))
             return slice(start, start + int(rng.integers(lo, hi)))
 
-        if self.mode == "expert" and rng.random() < 0.4:
-            self.explore[: rng.integers(5, 25)] = True
+        def perception_error(lo: float, hi: float) -> np.ndarray:
+            angle = rng.uniform(0, 2 * np.pi)
+            return np.array([np.cos(angle), np.sin(angle), 0.0]) * rng.uniform(lo, hi)
+
+        if self.mode == "expert":
+            # Up to 3 cm off: approaches vary, and the expert still succeeds.
+            self.offset = perception_error(0.0, 0.03)
+            if rng.random() < 0.4:
+                self.explore[: rng.integers(5, 25)] = True
+        elif self.mode == "miss":
+            self.offset = perception_error(0.02, 0.12)
         elif self.mode == "pause":
             for _ in range(rng.integers(2, 5)):
                 self.hold[span(8, 25)] = True
         elif self.mode == "wrong":
-            angle = rng.uniform(0, 2 * np.pi)
-            self.offset = np.array([np.cos(angle), np.sin(angle), 0.0]) * rng.uniform(0.05, 0.15) + [0, 0, rng.uniform(-0.02, 0.1)]
+            self.offset = perception_error(0.05, 0.15) + [0, 0, rng.uniform(-0.02, 0.1)]
         elif self.mode == "burst":
             for _ in range(rng.integers(1, 4)):
                 self.burst[span(10, 30)] = True
@@ -201,7 +215,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--seed-start", type=int, default=0, help="seeds seed-start .. seed-start+episodes-1 (train from 0, validation from 100000)")
     parser.add_argument("--frames", type=int, default=120, help="frames per episode (all episodes have this length)")
     parser.add_argument("--resolution", type=int, default=64)
-    parser.add_argument("--degraded-fraction", type=float, default=0.3, help="share of episodes degraded so that they fail or succeed late")
+    parser.add_argument("--degraded-fraction", type=float, default=0.4, help="share of episodes degraded so that they fail or succeed late")
     parser.add_argument("--out", required=True, help="dataset folder (must not exist unless --force)")
     parser.add_argument("--workers", type=int, default=min(4, os.cpu_count() or 1))
     parser.add_argument("--force", action="store_true", help="replace --out if it exists")

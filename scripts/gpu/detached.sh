@@ -7,7 +7,9 @@
 #   bash scripts/gpu/detached.sh wait NAME SECONDS [DIR ...]  follows that output until CMD ends or
 #                                                          SECONDS pass, then packs NAME's out folder
 #                                                          and the files under 3 MB in each DIR (outside
-#                                                          videos/) into $OUT/NAME.tar.gz, partial if
+#                                                          videos/) into $OUT/NAME.tar.gz, the first
+#                                                          episode of each videos/ folder into
+#                                                          $OUT/NAME-videos.tar.gz, both partial if
 #                                                          CMD is still running
 # Calls that follow each other within the machine's idle time find the same process. `wait` exits 0
 # when CMD ended with 0, 1 when it failed, 3 while it is still running.
@@ -42,10 +44,18 @@ case "$mode" in
     mkdir -p "${OUT:-/tmp/out}"
     cp "$dir/log" "${OUT:-/tmp/out}/$name.log"
     rm -rf "$dir/pack"; mkdir -p "$dir/pack"; cp -r "$dir/out" "$dir/pack/out"
+    rm -rf "$dir/videos"; mkdir -p "$dir/videos"
     for d in "$@"; do
       [ -d "$d" ] && find "$d" -type f -size -3M -not -path '*/videos/*' -exec cp --parents {} "$dir/pack/" \;
+      # The first episode of each videos/ folder, in an archive of its own: files over the device
+      # tool's 16 MiB limit do not come back, and the measurements must.
+      [ -d "$d" ] && find "$d" -type f -size -3M -path '*/videos/*' -name 'episode_000.*' -exec cp --parents {} "$dir/videos/" \;
     done
     tar -czf "${OUT:-/tmp/out}/$name.tar.gz" -C "$dir/pack" .
+    tar -czf "${OUT:-/tmp/out}/$name-videos.tar.gz" -C "$dir/videos" .
+    if [ "$(stat -c %s "${OUT:-/tmp/out}/$name-videos.tar.gz")" -gt $((15 << 20)) ]; then
+      rm "${OUT:-/tmp/out}/$name-videos.tar.gz"; echo "detached: the videos' archive is over 15 MiB; left out"
+    fi
     if [ -f "$dir/rc" ]; then
       rc=$(cat "$dir/rc"); echo "detached: $name ended with status $rc"
       [ "$rc" = 0 ] && exit 0 || exit 1

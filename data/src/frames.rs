@@ -146,3 +146,21 @@ pub fn frame_strip(rows: &[Vec<RgbImage>]) -> Result<RgbImage> {
     }
     Ok(canvas)
 }
+
+/// A `--resize` value: crop, pad or stretch.
+pub fn parse_resize(s: &str) -> Result<ResizeMode, String> {
+    match s {
+        "crop" => Ok(ResizeMode::Crop),
+        "pad" => Ok(ResizeMode::Pad),
+        "stretch" => Ok(ResizeMode::Stretch),
+        _ => Err(format!("'{s}': expected crop, pad or stretch")),
+    }
+}
+
+/// `WIDTHxHEIGHT` with both multiples of `multiple`.
+pub fn parse_resolution(s: &str, multiple: u32) -> Result<(u32, u32)> {
+    let (w, h) = s.split_once('x').with_context(|| format!("resolution '{s}': expected WIDTHxHEIGHT"))?;
+    let (w, h): (u32, u32) = (w.trim().parse()?, h.trim().parse()?);
+    ensure!(w > 0 && h > 0 && w % multiple == 0 && h % multiple == 0, "resolution {w}x{h}: width and height must be positive multiples of {multiple}");
+    Ok((w, h))
+}

@@ -4,7 +4,11 @@
 //! Open a model with [`WorldModelOptions::load`], start a [`Rollout`] from an episode's first
 //! frame and action with [`WorldModel::rollout`], then call [`Rollout::next_chunk`] with each
 //! chunk's actions to get its frames; [`server::serve`] puts the same model behind HTTP
-//! (`docs/serve.md`). `examples/step.rs` steps a tiny random model twice and writes the frames:
+//! (`docs/serve.md`). Above the model sit the data engine ([`rollout::run`]: generated episodes
+//! as a LeRobot dataset), the fidelity report ([`fidelity::run`]: whole-episode rollouts scored
+//! against the real frames) and the policy evaluator ([`evaluate::run`]: policies served over
+//! openpi's websocket protocol in closed loop, judged, with per-task success rates); each is what
+//! the `bwm` subcommand of the same name runs. `examples/step.rs` steps a tiny random model twice and writes the frames:
 //!
 //! ```no_run
 //! use bwm_inference::{WorldModelOptions, tch::{Kind, Tensor}};
@@ -17,7 +21,10 @@
 //! # anyhow::Ok(())
 //! ```
 
+pub mod evaluate;
+pub mod fidelity;
 pub mod msgpack_numpy;
+pub mod rollout;
 pub mod server;
 pub mod world_model;
 

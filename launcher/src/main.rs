@@ -19,7 +19,6 @@ mod train_vae;
 mod world_model;
 
 use anyhow::Result;
-use bwm_inference::msgpack_numpy;
 use clap::{Parser, Subcommand};
 
 #[derive(Parser)]

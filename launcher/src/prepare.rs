@@ -30,7 +30,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use serde::{Deserialize, Serialize};
 use tch::{Device, Kind, Tensor};
 
-use crate::train_vae::{parse_resize, parse_resolution};
+use bwm_data::frames::{parse_resize, parse_resolution};
 
 #[derive(Args)]
 pub struct PrepareArgs {

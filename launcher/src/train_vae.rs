@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 
 use anyhow::{ensure, Context, Result};
-use bwm_data::frames::{fit, frames_to_tensor};
+use bwm_data::frames::{fit, frames_to_tensor, parse_resize, parse_resolution};
 use bwm_data::source::{open_dataset, CameraSelection, EpisodeSource};
 use bwm_data::ResizeMode;
 use bwm_model::vae::VaeConfig;
@@ -107,23 +107,6 @@ fn read_frame_sets(path: &std::path::Path) -> Result<FrameSets> {
     }
     ensure!(!data.train.is_empty() && !data.holdout.is_empty(), "{}: needs training and held-out videos", path.display());
     Ok(data)
-}
-
-pub fn parse_resize(s: &str) -> Result<ResizeMode, String> {
-    match s {
-        "crop" => Ok(ResizeMode::Crop),
-        "pad" => Ok(ResizeMode::Pad),
-        "stretch" => Ok(ResizeMode::Stretch),
-        _ => Err(format!("'{s}': expected crop, pad or stretch")),
-    }
-}
-
-/// `WIDTHxHEIGHT` with both multiples of `multiple`.
-pub fn parse_resolution(s: &str, multiple: u32) -> Result<(u32, u32)> {
-    let (w, h) = s.split_once('x').with_context(|| format!("resolution '{s}': expected WIDTHxHEIGHT"))?;
-    let (w, h): (u32, u32) = (w.trim().parse()?, h.trim().parse()?);
-    ensure!(w > 0 && h > 0 && w % multiple == 0 && h % multiple == 0, "resolution {w}x{h}: width and height must be positive multiples of {multiple}");
-    Ok((w, h))
 }
 
 /// Every frame of each episode (positions in `source.episodes()`), resized, as [3, F, H, W] in [-1, 1].

@@ -1,4 +1,4 @@
-//! `bwm evaluate`: policies in closed loop with the world model. For each policy, task and
+//! The policy evaluator (`bwm evaluate`): policies in closed loop with the world model. For each policy, task and
 //! episode: connect to the policy's openpi websocket server, then repeatedly send the latest
 //! frame (split into its camera views, resized) with the policy's last command as its state,
 //! turn the returned action chunk into poses (the adapter), generate that many frames, and ask
@@ -15,15 +15,14 @@ mod tasks;
 
 use std::fs::File;
 use std::io::Write;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::time::{Duration, Instant};
 
 use anyhow::{ensure, Context, Result};
 use bwm_data::frames::{frames_to_tensor, tensor_to_frames};
-use clap::Args;
 use image::RgbImage;
 
-use crate::world_model::{WorldModel, WorldModelArgs};
+use crate::world_model::{WorldModel, WorldModelOptions};
 use adapter::{Adapter, Fk};
 use config::{AdapterKind, ChunkMode, EvalConfig, PolicyConfig};
 use judge::{Judge, Subject, Verdict};
@@ -31,23 +30,13 @@ use openpi::PolicyClient;
 use report::EpisodeRecord;
 use tasks::{Start, Task};
 
-#[derive(Args)]
-pub struct EvaluateArgs {
-    #[command(flatten)]
-    wm: WorldModelArgs,
-    /// Evaluation config (TOML): policies, tasks, observation layout, adapters, judge
-    /// (see configs/evaluate-example.toml).
-    #[arg(long)]
-    config: PathBuf,
-    /// Output folder: videos/, episodes.jsonl, success_rates.csv, policies.csv, summary.json.
-    #[arg(long, default_value = "runs/evaluate")]
-    out: PathBuf,
-}
-
-pub fn run(a: EvaluateArgs) -> Result<()> {
-    let cfg = EvalConfig::read(&a.config)?;
+/// Runs the evaluation that `config` (TOML: policies, tasks, observation layout, adapters, judge;
+/// `configs/evaluate-example.toml`) describes with the world model `options` opens, and writes
+/// videos/, episodes.jsonl, success_rates.csv, policies.csv and summary.json into `out`.
+pub fn run(options: &WorldModelOptions, config: &Path, out: &Path) -> Result<()> {
+    let cfg = EvalConfig::read(config)?;
     ensure!(
-        a.wm.stats.is_some(),
+        options.stats.is_some(),
         "evaluate turns policy commands into the model's normalized actions: pass --stats stat.json (the statistics the model was trained with)"
     );
     let reference = cfg
@@ -83,7 +72,7 @@ pub fn run(a: EvaluateArgs) -> Result<()> {
             }
         }
     }
-    let wm = a.wm.load()?;
+    let wm = options.load()?;
     let d = wm.action_dim();
     for t in &tasks {
         for s in &t.starts {
@@ -98,8 +87,8 @@ pub fn run(a: EvaluateArgs) -> Result<()> {
             }
         }
     }
-    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
-    let episodes_path = a.out.join("episodes.jsonl");
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let episodes_path = out.join("episodes.jsonl");
     let mut episodes_file = File::create(&episodes_path)
         .with_context(|| format!("creating {}", episodes_path.display()))?;
     let per_policy: usize = tasks.iter().map(|t| t.starts.len()).sum();
@@ -133,8 +122,8 @@ pub fn run(a: EvaluateArgs) -> Result<()> {
                         .join(&policy.name)
                         .join(&task.cfg.name)
                         .join(format!("episode_{i:03}.mp4"));
-                    let path = a.out.join(&rel);
-                    std::fs::create_dir_all(path.parent().unwrap_or(&a.out))?;
+                    let path = out.join(&rel);
+                    std::fs::create_dir_all(path.parent().unwrap_or(out))?;
                     let written = bwm_data::video::write_mp4_or_sheet(&path, &run.frames, start.fps, 24)
                         .with_context(|| format!("writing {}", path.display()))?;
                     Some(rel.with_file_name(written.file_name().unwrap_or_default()).display().to_string())
@@ -167,9 +156,9 @@ pub fn run(a: EvaluateArgs) -> Result<()> {
     let policies: Vec<String> = cfg.policies.iter().map(|p| p.name.clone()).collect();
     let task_names: Vec<String> = tasks.iter().map(|t| t.cfg.name.clone()).collect();
     let summary = report::summarize(&policies, &task_names, &records, reference.as_ref());
-    report::write(&a.out, &summary)?;
+    report::write(out, &summary)?;
     print!("{}", report::render(&summary));
-    println!("evaluate: results in {}", a.out.display());
+    println!("evaluate: results in {}", out.display());
     Ok(())
 }
 

@@ -7,7 +7,7 @@ use anyhow::{bail, ensure, Context, Result};
 use bwm_data::{ActionSpec, CameraSelection, ResizeMode};
 use serde::Deserialize;
 
-use crate::train_vae::parse_resolution;
+use bwm_data::frames::parse_resolution;
 
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]

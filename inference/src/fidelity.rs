@@ -1,0 +1,348 @@
+//! The fidelity report (`bwm fidelity`): how well the world model simulates held-out episodes. Each episode is rolled
+//! out autoregressively from its first frame over its whole length, driven by its own recorded
+//! actions and by another episode's, and scored frame by frame (PSNR, SSIM) against the real
+//! frames, next to the copy-last-frame baseline (x0 held for the whole episode).
+
+use std::collections::BTreeMap;
+use std::io::Write;
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{ensure, Context, Result};
+use bwm_data::frames::{fit, frame_strip, frames_to_tensor};
+use bwm_data::source::{open_dataset, CameraSelection};
+use bwm_data::{ActionSpec, ResizeMode};
+use bwm_trainer::image_metrics::{psnr, ssim};
+use image::RgbImage;
+use serde_json::{json, Value};
+
+use crate::rollout::generate_frames;
+use bwm_data::frames::parse_resolution;
+use crate::world_model::WorldModelOptions;
+
+/// What `run` scores and where it writes the report (the flags of `bwm fidelity`).
+#[derive(Clone, Debug)]
+pub struct FidelityOptions {
+    /// Dataset of held-out episodes (x0, recorded actions and the real frames).
+    pub data: PathBuf,
+    /// Episode positions to score (default: all); at least two, as each is also driven by
+    /// another's actions (the next listed episode of the same task).
+    pub episodes: Vec<usize>,
+    /// How the dataset's action vectors are read: a preset (eef_abs, ...), COLUMN:INDICES or a
+    /// spec JSON file; the definition the model was trained with.
+    pub actions: String,
+    /// Cameras; several are stacked top to bottom (default: the dataset's default camera).
+    pub camera: Vec<String>,
+    /// Frame size WIDTHxHEIGHT, the size the model was trained at.
+    pub resolution: String,
+    /// How frames of another aspect ratio are fitted to --resolution.
+    pub resize: ResizeMode,
+    /// Longest rollout, in frames including x0 (default: the whole episode).
+    pub max_frames: Option<usize>,
+    /// Horizons (frames after x0) at which mean PSNR/SSIM are reported, besides the full episode.
+    pub horizons: Vec<usize>,
+    /// Side-by-side videos per task (real | own actions | other actions | copy-last-frame).
+    pub videos: usize,
+    /// Output folder: fidelity.json, episodes.jsonl, `psnr_<task>.svg`, `ssim_<task>.svg`, videos/.
+    pub out: PathBuf,
+}
+
+/// The predictors scored, in report order.
+const PREDICTORS: [&str; 3] = ["model", "other_actions", "copy_last_frame"];
+
+/// Per-frame scores of one episode (frame 1 first; x0 is given, not scored).
+struct Scored {
+    task: String,
+    psnr: BTreeMap<&'static str, Vec<f64>>,
+    ssim: BTreeMap<&'static str, Vec<f64>>,
+}
+
+/// Scores the world model that `options` opens on the held-out episodes `a` names and writes
+/// fidelity.json, episodes.jsonl, the per-task curves and side-by-side videos into `a.out`.
+pub fn run(options: &WorldModelOptions, a: &FidelityOptions) -> Result<()> {
+    let mut options = options.clone();
+    let size = parse_resolution(&a.resolution, 16)?;
+    ensure!(a.horizons.iter().all(|&h| h > 0), "--horizons must be positive frame counts");
+    if options.stats.is_none() {
+        if let Some(found) = Some(a.data.join("stat.json")).filter(|p| p.exists()) {
+            println!("fidelity: action statistics from {}", found.display());
+            options.stats = Some(found);
+        }
+    }
+    let source = open_dataset(&a.data)?;
+    let spec = ActionSpec::parse(&a.actions).context("--actions")?;
+    let cameras = CameraSelection::from_names(&a.camera);
+    let infos = source.episodes();
+    let episodes: Vec<usize> = if a.episodes.is_empty() { (0..infos.len()).collect() } else { a.episodes.clone() };
+    ensure!(episodes.len() >= 2, "fidelity needs at least two episodes (each is also driven by another's actions); {} selected", episodes.len());
+    for &e in &episodes {
+        ensure!(e < infos.len(), "--episodes {e}: the dataset has {} episodes", infos.len());
+    }
+    let wm = options.load()?;
+    println!(
+        "fidelity: {} episodes of {}; chunks of {} frames, {} history frames, {} sampler steps",
+        episodes.len(),
+        source.describe(),
+        wm.spec.future,
+        wm.spec.history,
+        wm.spec.steps
+    );
+    std::fs::create_dir_all(a.out.join("videos")).with_context(|| format!("creating {}", a.out.display()))?;
+    let episodes_path = a.out.join("episodes.jsonl");
+    let mut episodes_file = std::fs::File::create(&episodes_path).with_context(|| format!("creating {}", episodes_path.display()))?;
+    let mut scored = Vec::new();
+    let mut videos_per_task: BTreeMap<String, usize> = BTreeMap::new();
+    let start = Instant::now();
+    for (i, &e) in episodes.iter().enumerate() {
+        let t0 = Instant::now();
+        let info = &infos[e];
+        let other = other_episode(&episodes, i, |p| infos[p].task.as_str());
+        let length = info.length.min(infos[other].length).min(a.max_frames.unwrap_or(usize::MAX)).max(1);
+        ensure!(length >= 2, "episode {} has fewer than two frames to score", info.index);
+        let what = |p: usize| format!("episode {} (position {p})", infos[p].index);
+        let own = source.vectors(e, &spec).with_context(|| what(e))?[..length].to_vec();
+        let others = source.vectors(other, &spec).with_context(|| what(other))?[..length].to_vec();
+        let truth: Vec<RgbImage> =
+            source.frames(e, 0..length, &cameras).with_context(|| what(e))?.iter().map(|f| fit(f, size.0, size.1, a.resize)).collect();
+        let progress = |label: &'static str| {
+            move |chunk: usize, total: usize, made: usize| {
+                print!("\r  episode {} ({label}): chunk {chunk} ({made}/{total} frames)   ", info.index);
+                let _ = std::io::stdout().flush();
+            }
+        };
+        let model = generate_frames(&wm, &truth[0], &wm.normalize(&own)?, &mut progress("own actions"))?;
+        let driven_by_other = generate_frames(&wm, &truth[0], &wm.normalize(&others)?, &mut progress("other actions"))?;
+        let copy_last = vec![truth[0].clone(); length];
+        let record = score(&info.task, &truth, [&model, &driven_by_other, &copy_last])?;
+        let mean = |m: &BTreeMap<&str, Vec<f64>>, k: &str| m[k].iter().sum::<f64>() / m[k].len() as f64;
+        println!(
+            "\r  episode {} ({}; other actions from episode {}): {} frames, PSNR model {:.2} / other actions {:.2} / copy-last {:.2} dB ({:.1} s)",
+            info.index,
+            display_task(&info.task),
+            infos[other].index,
+            length,
+            mean(&record.psnr, "model"),
+            mean(&record.psnr, "other_actions"),
+            mean(&record.psnr, "copy_last_frame"),
+            t0.elapsed().as_secs_f64()
+        );
+        let line = json!({
+            "episode_index": info.index,
+            "task": info.task,
+            "other_episode_index": infos[other].index,
+            "frames": length,
+            "psnr": record.psnr,
+            "ssim": record.ssim,
+        });
+        writeln!(episodes_file, "{line}").with_context(|| format!("writing {}", episodes_path.display()))?;
+        let shown = videos_per_task.entry(info.task.clone()).or_default();
+        if *shown < a.videos {
+            *shown += 1;
+            let panels: Vec<RgbImage> = (0..length)
+                .map(|k| frame_strip(&[vec![truth[k].clone(), model[k].clone(), driven_by_other[k].clone(), copy_last[k].clone()]]))
+                .collect::<Result<_>>()?;
+            let path = a.out.join("videos").join(format!("{}_episode_{:06}.mp4", file_stem(&info.task), info.index));
+            bwm_data::video::write_mp4_or_sheet(&path, &panels, source.fps(e)?, 8)?;
+        }
+        scored.push(record);
+    }
+    let mut by_task: BTreeMap<String, Vec<&Scored>> = BTreeMap::new();
+    for s in &scored {
+        by_task.entry(s.task.clone()).or_default().push(s);
+    }
+    let mut tasks = serde_json::Map::new();
+    for (task, group) in &by_task {
+        let summary = summarize(group, &a.horizons);
+        for metric in ["psnr", "ssim"] {
+            let series: Vec<(String, Vec<(f64, f64)>)> = PREDICTORS
+                .iter()
+                .map(|p| {
+                    let curve = summary["per_frame"][p][metric].as_array().cloned().unwrap_or_default();
+                    (p.replace('_', " "), curve.iter().enumerate().map(|(k, v)| ((k + 1) as f64, v.as_f64().unwrap_or(f64::NAN))).collect())
+                })
+                .collect();
+            let path = a.out.join(format!("{metric}_{}.svg", file_stem(task)));
+            let title = format!("{} per frame, {} ({} episodes)", metric.to_uppercase(), display_task(task), group.len());
+            bwm_trainer::report::line_plot(&series, &title, "frames after x0", metric, &path)?;
+        }
+        tasks.insert(task.clone(), summary);
+    }
+    let all = summarize(&scored.iter().collect::<Vec<_>>(), &a.horizons);
+    let report = json!({
+        "data": a.data.display().to_string(),
+        "checkpoint": options.checkpoint,
+        "episodes": scored.len(),
+        "resolution": a.resolution,
+        "history": wm.spec.history,
+        "future": wm.spec.future,
+        "sample_steps": wm.spec.steps,
+        "seed": wm.spec.seed,
+        "tasks": tasks,
+        "all": all,
+        "seconds": start.elapsed().as_secs_f64(),
+    });
+    let path = a.out.join("fidelity.json");
+    bwm_data::latent_cache::write_atomically(&a.out, "fidelity.json", serde_json::to_string_pretty(&report)?.as_bytes())?;
+    println!("{}", render(&report, &a.horizons));
+    println!("fidelity: {} ({:.1} s)", path.display(), start.elapsed().as_secs_f64());
+    Ok(())
+}
+
+/// The episode whose actions drive the counterfactual rollout of `episodes[i]`: the next listed
+/// one of the same task, else the next listed one.
+fn other_episode<'a>(episodes: &[usize], i: usize, task: impl Fn(usize) -> &'a str) -> usize {
+    let n = episodes.len();
+    let after = (1..n).map(|d| episodes[(i + d) % n]);
+    after.clone().find(|&p| task(p) == task(episodes[i])).unwrap_or_else(|| episodes[(i + 1) % n])
+}
+
+fn score(task: &str, truth: &[RgbImage], predicted: [&Vec<RgbImage>; 3]) -> Result<Scored> {
+    let real = frames_to_tensor(truth)?;
+    let mut out = Scored { task: task.to_string(), psnr: BTreeMap::new(), ssim: BTreeMap::new() };
+    for (name, frames) in PREDICTORS.iter().zip(predicted) {
+        ensure!(frames.len() == truth.len(), "{name}: {} frames for {} real ones", frames.len(), truth.len());
+        let pred = frames_to_tensor(frames)?;
+        let (mut p, mut s) = (Vec::new(), Vec::new());
+        for k in 1..truth.len() as i64 {
+            let (x, y) = (pred.narrow(1, k, 1), real.narrow(1, k, 1));
+            p.push(psnr(&x, &y));
+            s.push(ssim(&x, &y));
+        }
+        out.psnr.insert(name, p);
+        out.ssim.insert(name, s);
+    }
+    Ok(out)
+}
+
+/// Per-frame mean curves and horizon means (frames 1..=h of each episode that long, then the mean
+/// over those episodes), with the model's margins over the two baselines.
+fn summarize(group: &[&Scored], horizons: &[usize]) -> Value {
+    let longest = group.iter().map(|s| s.psnr["model"].len()).max().unwrap_or(0);
+    let mut per_frame = serde_json::Map::new();
+    for p in PREDICTORS {
+        let curve = |m: fn(&Scored) -> &BTreeMap<&'static str, Vec<f64>>| -> Vec<f64> {
+            (0..longest)
+                .map(|k| {
+                    let v: Vec<f64> = group.iter().filter_map(|s| m(s)[p].get(k).copied()).collect();
+                    v.iter().sum::<f64>() / v.len() as f64
+                })
+                .collect()
+        };
+        per_frame.insert(p.into(), json!({ "psnr": curve(|s| &s.psnr), "ssim": curve(|s| &s.ssim) }));
+    }
+    let mut at = serde_json::Map::new();
+    let mut margins = serde_json::Map::new();
+    let mut keys: Vec<(String, Option<usize>)> = horizons.iter().map(|&h| (h.to_string(), Some(h))).collect();
+    keys.push(("full".into(), None));
+    for (key, h) in keys {
+        let episodes: Vec<&&Scored> = group.iter().filter(|s| h.is_none_or(|h| s.psnr["model"].len() >= h)).collect();
+        if episodes.is_empty() {
+            continue;
+        }
+        let mean_of = |m: fn(&Scored) -> &BTreeMap<&'static str, Vec<f64>>, p: &str| -> f64 {
+            let per_episode: Vec<f64> = episodes
+                .iter()
+                .map(|s| {
+                    let v = &m(s)[p];
+                    let v = &v[..h.unwrap_or(v.len()).min(v.len())];
+                    v.iter().sum::<f64>() / v.len() as f64
+                })
+                .collect();
+            per_episode.iter().sum::<f64>() / per_episode.len() as f64
+        };
+        let mut row = serde_json::Map::new();
+        for p in PREDICTORS {
+            row.insert(p.into(), json!({ "psnr": mean_of(|s| &s.psnr, p), "ssim": mean_of(|s| &s.ssim, p) }));
+        }
+        row.insert("episodes".into(), json!(episodes.len()));
+        let model = mean_of(|s| &s.psnr, "model");
+        margins.insert(
+            key.clone(),
+            json!({
+                "psnr_over_copy_last_frame_db": model - mean_of(|s| &s.psnr, "copy_last_frame"),
+                "psnr_over_other_actions_db": model - mean_of(|s| &s.psnr, "other_actions"),
+            }),
+        );
+        at.insert(key, Value::Object(row));
+    }
+    json!({ "episodes": group.len(), "horizons": at, "margins": margins, "per_frame": per_frame })
+}
+
+fn render(report: &Value, horizons: &[usize]) -> String {
+    let mut out = String::from("fidelity: mean PSNR dB (SSIM) over frames 1..h; model = own actions\n");
+    let mut keys: Vec<String> = horizons.iter().map(usize::to_string).collect();
+    keys.push("full".into());
+    let mut sections: Vec<(String, &Value)> = report["tasks"].as_object().map(|m| m.iter().map(|(k, v)| (display_task(k), v)).collect()).unwrap_or_default();
+    sections.push(("all tasks".into(), &report["all"]));
+    for (name, v) in sections {
+        out += &format!("  {name} ({} episodes)\n    {:>6} {:>16} {:>16} {:>16} {:>10} {:>10}\n", v["episodes"], "h", "model", "other actions", "copy-last", "vs copy", "vs other");
+        for k in &keys {
+            let row = &v["horizons"][k];
+            if row.is_null() {
+                continue;
+            }
+            let cell = |p: &str| format!("{:.2} ({:.3})", row[p]["psnr"].as_f64().unwrap_or(f64::NAN), row[p]["ssim"].as_f64().unwrap_or(f64::NAN));
+            let m = &v["margins"][k];
+            out += &format!(
+                "    {k:>6} {:>16} {:>16} {:>16} {:>+10.2} {:>+10.2}\n",
+                cell("model"),
+                cell("other_actions"),
+                cell("copy_last_frame"),
+                m["psnr_over_copy_last_frame_db"].as_f64().unwrap_or(f64::NAN),
+                m["psnr_over_other_actions_db"].as_f64().unwrap_or(f64::NAN)
+            );
+        }
+    }
+    out
+}
+
+fn display_task(task: &str) -> String {
+    if task.is_empty() {
+        "(no task)".into()
+    } else {
+        task.to_string()
+    }
+}
+
+/// A task name as a file-name part.
+fn file_stem(task: &str) -> String {
+    let s: String = task.chars().map(|c| if c.is_ascii_alphanumeric() || c == '-' || c == '_' { c } else { '_' }).collect();
+    if s.is_empty() {
+        "all".into()
+    } else {
+        s
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn other_episode_prefers_the_same_task() {
+        let tasks = ["a", "b", "a", "b"];
+        let eps = [0, 1, 2, 3];
+        assert_eq!(other_episode(&eps, 0, |p| tasks[p]), 2);
+        assert_eq!(other_episode(&eps, 2, |p| tasks[p]), 0);
+        assert_eq!(other_episode(&eps, 3, |p| tasks[p]), 1);
+        let single = ["a", "b"];
+        assert_eq!(other_episode(&[0, 1], 0, |p| single[p]), 1);
+    }
+
+    #[test]
+    fn summary_means_horizons_over_long_enough_episodes() {
+        let mk = |task: &str, model: Vec<f64>| {
+            let n = model.len();
+            let m: BTreeMap<&'static str, Vec<f64>> =
+                [("model", model), ("other_actions", vec![10.0; n]), ("copy_last_frame", vec![5.0; n])].into_iter().collect();
+            Scored { task: task.into(), psnr: m.clone(), ssim: m }
+        };
+        let (a, b) = (mk("t", vec![30.0, 20.0, 10.0, 0.0]), mk("t", vec![20.0, 20.0]));
+        let s = summarize(&[&a, &b], &[2, 4]);
+        assert_eq!(s["horizons"]["2"]["model"]["psnr"], json!(22.5));
+        assert_eq!(s["horizons"]["4"]["episodes"], json!(1));
+        assert_eq!(s["horizons"]["4"]["model"]["psnr"], json!(15.0));
+        assert_eq!(s["margins"]["2"]["psnr_over_copy_last_frame_db"], json!(17.5));
+        assert_eq!(s["per_frame"]["model"]["psnr"], json!([25.0, 20.0, 10.0, 0.0]));
+    }
+}

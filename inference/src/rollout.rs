@@ -1,0 +1,320 @@
+//! The data engine (`bwm rollout`): drive the world model from each episode's first frame with
+//! ground-truth, file or perturbed actions, and write the generated episodes as a LeRobot v2.1
+//! dataset (frame t shown while action t was applied; frame 0 is the real x0). With ground-truth
+//! actions, also side-by-side videos (real left, generated right) and per-episode PSNR/SSIM.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{bail, ensure, Context, Result};
+use bwm_data::frames::{fit, frames_to_tensor, tensor_to_frames};
+use bwm_data::lerobot_writer::{DatasetFeatures, LeRobotWriter};
+use bwm_data::source::{open_dataset, CameraSelection};
+use bwm_data::{ActionSpec, ResizeMode};
+use bwm_model::keyed_rng::{self, Purpose};
+use bwm_trainer::image_metrics::{psnr, ssim};
+use image::RgbImage;
+use serde::Deserialize;
+use tch::Tensor;
+
+use bwm_data::frames::parse_resolution;
+use crate::world_model::{WorldModel, WorldModelOptions};
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Drive {
+    /// The episode's own actions.
+    Gt,
+    /// The episode's actions plus Gaussian noise (--perturb-std, in normalized units), clipped
+    /// to [-1, 1]: new trajectories near the recorded ones.
+    Perturbed,
+    /// Actions read from CSV files (one row per frame, the first row applied to x0).
+    File,
+}
+
+impl std::str::FromStr for Drive {
+    type Err = String;
+
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s {
+            "gt" => Ok(Drive::Gt),
+            "perturbed" => Ok(Drive::Perturbed),
+            "file" => Ok(Drive::File),
+            _ => Err(format!("'{s}': expected gt, perturbed or file")),
+        }
+    }
+}
+
+/// What `run` generates, from where, and where it writes it (the flags of `bwm rollout`).
+#[derive(Clone, Debug)]
+pub struct RolloutOptions {
+    /// Dataset whose episodes give x0 (and the actions for --drive gt|perturbed).
+    pub data: Option<PathBuf>,
+    /// Episode positions to roll out (default: all).
+    pub episodes: Vec<usize>,
+    /// Instead of a dataset: JSON lines {"x0": image file, "actions": CSV file, "task": text}.
+    pub inputs: Option<PathBuf>,
+    /// Which actions drive the episodes.
+    pub drive: Drive,
+    /// --drive file with a dataset: the folder of `episode_<index:06>.csv` files.
+    pub actions_dir: Option<PathBuf>,
+    /// Standard deviation of the noise of --drive perturbed, in normalized action units.
+    pub perturb_std: f64,
+    /// Action CSV files hold normalized values (default: raw, normalized with --stats).
+    pub normalized: bool,
+    /// How the dataset's action vectors are read: a preset (eef_abs, joint_abs, eef_delta,
+    /// joint_delta, robotwin_eef_abs), COLUMN:INDICES (e.g. observation.state:0-3) or a spec JSON file.
+    pub actions: String,
+    /// Cameras; several are stacked top to bottom (default: the dataset's default camera).
+    pub camera: Vec<String>,
+    /// Frame size WIDTHxHEIGHT (multiples of 32), the size the model was trained at.
+    pub resolution: String,
+    /// How frames of another aspect ratio are fitted to --resolution.
+    pub resize: ResizeMode,
+    /// Longest episode to generate, in frames including x0 (default: the whole episode).
+    pub max_frames: Option<usize>,
+    /// Frame rate of --inputs episodes (dataset episodes keep theirs).
+    pub fps: f64,
+    /// Output LeRobot v2.1 dataset folder.
+    pub out: PathBuf,
+    /// Continue an interrupted run into --out (finished episodes are kept).
+    pub resume: bool,
+}
+
+/// One episode to generate.
+struct Job {
+    name: String,
+    task: String,
+    x0: RgbImage,
+    /// Raw driving actions, one per frame (row 0 belongs to x0).
+    raw: Option<Vec<Vec<f32>>>,
+    /// Normalized driving actions [T, d].
+    normalized: Tensor,
+    /// The real frames (ground-truth drive only).
+    truth: Option<Vec<RgbImage>>,
+    fps: f64,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct InputLine {
+    x0: PathBuf,
+    actions: PathBuf,
+    #[serde(default)]
+    task: String,
+}
+
+/// Rolls the world model that `options` opens out over the episodes `a` names and writes them as a
+/// LeRobot v2.1 dataset (with comparisons against the real frames under the ground-truth drive).
+pub fn run(options: &WorldModelOptions, a: &RolloutOptions) -> Result<()> {
+    let mut options = options.clone();
+    let size = parse_resolution(&a.resolution, 32)?;
+    if options.stats.is_none() {
+        if let Some(found) = a.data.as_ref().map(|d| d.join("stat.json")).filter(|p| p.exists()) {
+            println!("rollout: action statistics from {}", found.display());
+            options.stats = Some(found);
+        }
+    }
+    match (a.drive, &a.inputs, &a.actions_dir) {
+        (Drive::File, None, None) => bail!("--drive file needs --actions-dir (with --data) or --inputs"),
+        (Drive::Gt | Drive::Perturbed, Some(_), _) => bail!("--inputs gives no recorded actions to replay: use --drive file"),
+        _ => {}
+    }
+    ensure!(a.perturb_std >= 0.0 && a.perturb_std.is_finite(), "--perturb-std must be a non-negative number");
+    let wm = options.load()?;
+    println!(
+        "rollout: {} on {:?}; chunks of {} frames, {} history frames, {} sampler steps",
+        if options.checkpoint.is_some() { "trained model" } else { "random weights" },
+        wm.device,
+        wm.spec.future,
+        wm.spec.history,
+        wm.spec.steps
+    );
+    let jobs = plan(a, options.seed, &wm, size)?;
+    ensure!(!jobs.is_empty(), "nothing to roll out");
+    let d = wm.action_dim();
+    let features = DatasetFeatures {
+        action_names: (0..d).map(|j| format!("a{j}")).collect(),
+        state_names: (0..d).map(|j| format!("a{j}")).collect(),
+        video_key: "observation.images.generated".into(),
+        size,
+        fps: jobs[0].fps,
+        robot_type: "bwm_world_model".into(),
+    };
+    let mut writer = if a.resume { LeRobotWriter::resume(&a.out, features)? } else { LeRobotWriter::create(&a.out, features)? };
+    let done = writer.len();
+    if done > 0 {
+        println!("rollout: {} episodes already in {}; continuing", done, a.out.display());
+    }
+    let compare_dir = a.out.join("compare");
+    let start = Instant::now();
+    let mut metrics = Vec::new();
+    for job in jobs.iter().skip(done) {
+        let t0 = Instant::now();
+        let frames = generate(&wm, job, &mut |chunk, total, made| {
+            print!("\r  {}: chunk {chunk} ({made}/{total} frames, {:.1} s)   ", job.name, t0.elapsed().as_secs_f64());
+            let _ = std::io::stdout().flush();
+        })?;
+        println!();
+        let raw = match &job.raw {
+            Some(r) => r.clone(),
+            None => wm.denormalize(&job.normalized)?,
+        };
+        let episode = writer.add_episode(&frames, &raw, &raw, &job.task)?;
+        if let Some(truth) = &job.truth {
+            std::fs::create_dir_all(&compare_dir)?;
+            let (p, s) = compare(&frames, truth)?;
+            let side: Vec<RgbImage> = truth.iter().zip(&frames).map(|(t, g)| side_by_side(t, g)).collect();
+            bwm_data::video::write_mp4_or_sheet(&compare_dir.join(format!("episode_{episode:06}.mp4")), &side, job.fps, 16)?;
+            metrics.push(serde_json::json!({ "episode_index": episode, "source": job.name, "frames": frames.len(), "psnr": p, "ssim": s }));
+            println!("  {}: episode {episode}, {} frames, PSNR {p:.2} dB, SSIM {s:.4} ({:.1} s)", job.name, frames.len(), t0.elapsed().as_secs_f64());
+        } else {
+            println!("  {}: episode {episode}, {} frames ({:.1} s)", job.name, frames.len(), t0.elapsed().as_secs_f64());
+        }
+    }
+    if !metrics.is_empty() {
+        let lines: String = metrics.iter().map(|m| m.to_string() + "\n").collect();
+        let path = compare_dir.join("metrics.jsonl");
+        let mut f = std::fs::OpenOptions::new().create(true).append(true).open(&path).with_context(|| format!("opening {}", path.display()))?;
+        f.write_all(lines.as_bytes())?;
+        let mean = |k: &str| metrics.iter().filter_map(|m| m[k].as_f64()).sum::<f64>() / metrics.len() as f64;
+        println!("rollout: mean PSNR {:.2} dB, mean SSIM {:.4} over {} episodes ({})", mean("psnr"), mean("ssim"), metrics.len(), path.display());
+    }
+    println!(
+        "rollout: {} episodes in {} ({} new) in {:.1} s",
+        writer.len(),
+        a.out.display(),
+        writer.len() - done,
+        start.elapsed().as_secs_f64()
+    );
+    Ok(())
+}
+
+fn generate(wm: &WorldModel, job: &Job, progress: &mut dyn FnMut(usize, usize, usize)) -> Result<Vec<RgbImage>> {
+    generate_frames(wm, &job.x0, &job.normalized, progress)
+}
+
+/// An episode generated from `x0` driven by `normalized` actions [T, d_a] (row 0 belongs to x0):
+/// x0, then one frame per action after the first. `progress(chunk, T, frames so far)`.
+pub fn generate_frames(wm: &WorldModel, x0: &RgbImage, normalized: &Tensor, progress: &mut dyn FnMut(usize, usize, usize)) -> Result<Vec<RgbImage>> {
+    let total = normalized.size()[0] as usize;
+    let x0_t = frames_to_tensor(std::slice::from_ref(x0))?.squeeze_dim(1);
+    let mut rollout = wm.rollout(&x0_t, &normalized.get(0))?;
+    let mut frames = vec![x0.clone()];
+    if total > 1 {
+        rollout.run(&normalized.narrow(0, 1, total as i64 - 1), &mut |chunk| {
+            frames.extend(tensor_to_frames(&chunk.frames)?);
+            progress(chunk.index, total, frames.len());
+            Ok(())
+        })?;
+    }
+    Ok(frames)
+}
+
+fn plan(a: &RolloutOptions, seed: u64, wm: &WorldModel, size: (u32, u32)) -> Result<Vec<Job>> {
+    let cap = |n: usize| a.max_frames.map_or(n, |m| n.min(m.max(1)));
+    let mut jobs = Vec::new();
+    if let Some(list) = &a.inputs {
+        let text = std::fs::read_to_string(list).with_context(|| format!("reading {}", list.display()))?;
+        let base = list.parent().unwrap_or(Path::new("."));
+        for (n, line) in text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty()) {
+            let at = || format!("{} line {}", list.display(), n + 1);
+            let input: InputLine = serde_json::from_str(line).with_context(at)?;
+            let x0_path = base.join(&input.x0);
+            let x0 = image::open(&x0_path).with_context(|| format!("{}: reading {}", at(), x0_path.display()))?.to_rgb8();
+            let rows = read_csv(&base.join(&input.actions)).with_context(at)?;
+            let rows = rows[..cap(rows.len())].to_vec();
+            let (raw, normalized) = driving(wm, rows, a.normalized)?;
+            jobs.push(Job { name: format!("input {}", n + 1), task: input.task, x0: fit(&x0, size.0, size.1, a.resize), raw, normalized, truth: None, fps: a.fps });
+        }
+        return Ok(jobs);
+    }
+    let data = a.data.as_ref().context("--data or --inputs")?;
+    let source = open_dataset(data)?;
+    let spec = ActionSpec::parse(&a.actions).context("--actions")?;
+    let cameras = CameraSelection::from_names(&a.camera);
+    let episodes: Vec<usize> = if a.episodes.is_empty() { (0..source.episodes().len()).collect() } else { a.episodes.clone() };
+    println!("rollout: {} ({} episodes selected)", source.describe(), episodes.len());
+    for &e in &episodes {
+        let info = source.episodes().get(e).with_context(|| format!("--episodes {e}: the dataset has {} episodes", source.episodes().len()))?;
+        let length = cap(info.length);
+        let name = format!("episode {}", info.index);
+        let recorded = || -> Result<Vec<Vec<f32>>> { Ok(source.vectors(e, &spec)?[..length].to_vec()) };
+        let (raw, normalized) = match a.drive {
+            Drive::Gt => driving(wm, recorded()?, false)?,
+            Drive::Perturbed => {
+                let clean = wm.normalize(&recorded()?)?;
+                let noise = keyed_rng::normal(&clean.size(), seed, info.index as u64, Purpose::Augment);
+                (None, (clean + noise * a.perturb_std).clamp(-1.0, 1.0))
+            }
+            Drive::File => {
+                let dir = a.actions_dir.as_ref().context("--drive file needs --actions-dir")?;
+                let rows = read_csv(&dir.join(format!("episode_{:06}.csv", info.index))).with_context(|| name.clone())?;
+                let rows = rows[..cap(rows.len())].to_vec();
+                driving(wm, rows, a.normalized)?
+            }
+        };
+        let frames_needed = if a.drive == Drive::Gt { length } else { 1 };
+        let frames = source.frames(e, 0..frames_needed, &cameras).with_context(|| name.clone())?;
+        let frames: Vec<RgbImage> = frames.iter().map(|f| fit(f, size.0, size.1, a.resize)).collect();
+        let truth = (a.drive == Drive::Gt).then(|| frames.clone());
+        jobs.push(Job { name, task: info.task.clone(), x0: frames[0].clone(), raw, normalized, truth, fps: source.fps(e)? });
+    }
+    Ok(jobs)
+}
+
+/// (raw rows when known, normalized tensor) from rows in raw or normalized units.
+fn driving(wm: &WorldModel, rows: Vec<Vec<f32>>, normalized: bool) -> Result<(Option<Vec<Vec<f32>>>, Tensor)> {
+    ensure!(!rows.is_empty(), "no action rows");
+    if let Some((t, _)) = rows.iter().enumerate().find(|(_, r)| r.iter().any(|v| !v.is_finite())) {
+        bail!("action row {t} holds NaN or infinite values");
+    }
+    if normalized {
+        let t = wm.rows_to_tensor(rows)?;
+        ensure!(t.abs().max().double_value(&[]) <= 1.0 + 1e-6, "normalized actions must lie in [-1, 1]");
+        Ok((None, t))
+    } else {
+        let t = wm.normalize(&rows)?;
+        Ok((Some(rows), t))
+    }
+}
+
+/// Rows of numbers; a first line that does not parse as numbers is a header.
+fn read_csv(path: &Path) -> Result<Vec<Vec<f32>>> {
+    let mut reader = csv::ReaderBuilder::new()
+        .has_headers(false)
+        .trim(csv::Trim::All)
+        .from_path(path)
+        .with_context(|| format!("opening {}", path.display()))?;
+    let mut rows = Vec::new();
+    for (i, record) in reader.records().enumerate() {
+        let record = record.with_context(|| format!("{}: line {}", path.display(), i + 1))?;
+        let parsed: std::result::Result<Vec<f32>, _> = record.iter().map(str::parse::<f32>).collect();
+        match parsed {
+            Ok(r) => rows.push(r),
+            Err(_) if i == 0 => continue,
+            Err(e) => bail!("{}: line {}: {e}", path.display(), i + 1),
+        }
+    }
+    ensure!(!rows.is_empty(), "{}: no action rows", path.display());
+    Ok(rows)
+}
+
+/// Mean PSNR and SSIM of the generated frames after x0 against the real ones.
+fn compare(generated: &[RgbImage], truth: &[RgbImage]) -> Result<(f64, f64)> {
+    ensure!(generated.len() == truth.len(), "{} generated frames, {} real", generated.len(), truth.len());
+    if generated.len() < 2 {
+        return Ok((f64::NAN, f64::NAN));
+    }
+    let g = frames_to_tensor(&generated[1..])?;
+    let t = frames_to_tensor(&truth[1..])?;
+    Ok((psnr(&g, &t), ssim(&g, &t)))
+}
+
+pub fn side_by_side(left: &RgbImage, right: &RgbImage) -> RgbImage {
+    let (w, h) = left.dimensions();
+    let mut out = RgbImage::new(w * 2, h);
+    image::imageops::replace(&mut out, left, 0, 0);
+    image::imageops::replace(&mut out, right, i64::from(w), 0);
+    out
+}

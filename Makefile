@@ -23,4 +23,4 @@ test:
 	@$(ENV) && bash scripts/test.sh
 
 build:
-	@$(ENV) && cargo build --release -p bwm-launcher
+	@$(ENV) && cargo build --release -p bwm-cli

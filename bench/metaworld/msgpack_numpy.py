@@ -1,4 +1,4 @@
-"""openpi's msgpack-numpy encoding (openpi_client/msgpack_numpy.py), as launcher/src/msgpack_numpy.rs
+"""openpi's msgpack-numpy encoding (openpi_client/msgpack_numpy.py), as inference/src/msgpack_numpy.rs
 reads and writes it: an array travels as {b"__ndarray__": True, b"data": raw C-order bytes,
 b"dtype": numpy dtype.str, b"shape": [...]}, a numpy scalar as {b"__npgeneric__": True, b"data",
 b"dtype"}; the marker keys are bytes (msgpack bin), ordinary keys str."""

@@ -8,17 +8,16 @@ mod demo;
 mod evaluate;
 mod export;
 mod fidelity;
-mod launch;
 mod prepare;
 mod rollout;
 mod serve;
 mod stats;
-mod submit;
 mod train;
 mod train_vae;
 mod world_model;
 
 use anyhow::Result;
+use bwm_launcher::{launch, submit};
 use clap::{Parser, Subcommand};
 
 #[derive(Parser)]

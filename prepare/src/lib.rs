@@ -1,4 +1,4 @@
-//! `bwm prepare`: cut a dataset's episodes (any format `open_dataset` detects) into action-aligned
+//! The latent cache from a dataset (what `bwm prepare` runs): cut a dataset's episodes (any format `open_dataset` detects) into action-aligned
 //! clips, encode them with the VAE, and write the latent cache the trainer reads (layout in
 //! `bwm_data::latent_cache`): shards of `--clips-per-shard` clips, each written whole, so an
 //! interrupted run leaves only complete shards, and a rerun with the same arguments skips them.
@@ -24,100 +24,75 @@ use bwm_data::stats::{compute_stats, split_episodes, write_stat_json, SplitSpec,
 use bwm_data::{ActionSpec, ActionStats, ResizeMode};
 use bwm_model::vae::WanVae;
 use bwm_trainer::devices::parse_device;
-use clap::Args;
 use image::RgbImage;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::{Deserialize, Serialize};
 use tch::{Device, Kind, Tensor};
 
-use bwm_data::frames::{parse_resize, parse_resolution};
+use bwm_data::frames::parse_resolution;
 
-#[derive(Args)]
-pub struct PrepareArgs {
+/// The dataset, VAE, clip geometry and output of one `run` (the flags of `bwm prepare`).
+#[derive(Clone, Debug)]
+pub struct PrepareOptions {
     /// Dataset: BWM layout, LeRobot v2.1/v3.0 or RoboTwin 2.0 HDF5 (detected from the files).
-    #[arg(long, default_value = "../shared/data/bwm-demo")]
-    data: PathBuf,
+    pub data: PathBuf,
     /// VAE: a `bwm train-vae` output, or the published Wan2.2_VAE.pth / safetensors (not needed
     /// with --merge).
-    #[arg(long, conflicts_with = "random_vae")]
-    vae: Option<PathBuf>,
+    pub vae: Option<PathBuf>,
     /// A random full-width Wan2.2 VAE instead of --vae: for timing `prepare` where no weights are
     /// at hand (the latents mean nothing).
-    #[arg(long)]
-    random_vae: bool,
+    pub random_vae: bool,
     /// VAE weights and activations: auto (bf16 on CUDA, f32 on CPU), bf16 or f32.
-    #[arg(long, default_value = "auto")]
-    dtype: String,
+    pub dtype: String,
     /// Output folder of the latent cache.
-    #[arg(long)]
-    out: PathBuf,
+    pub out: PathBuf,
     /// Clip frame size WIDTHxHEIGHT (multiples of 32).
-    #[arg(long, default_value = "640x480")]
-    resolution: String,
-    #[arg(long, default_value = "crop", value_parser = parse_resize)]
-    resize: ResizeMode,
+    pub resolution: String,
+    /// How frames of another aspect ratio are fitted to --resolution.
+    pub resize: ResizeMode,
     /// Encode frames smaller than --resolution (after --resize) anyway; refused by default, since
     /// naively upscaled frames cost quality (re-render at the target size instead).
-    #[arg(long)]
-    allow_upscale: bool,
+    pub allow_upscale: bool,
     /// History frames H and future frames K (multiples of 4).
-    #[arg(long, default_value_t = 8)]
-    history: usize,
-    #[arg(long, default_value_t = 72)]
-    future: usize,
+    pub history: usize,
+    pub future: usize,
     /// Frames between the starts of consecutive clips of an episode.
-    #[arg(long, default_value_t = 8)]
-    stride: usize,
+    pub stride: usize,
     /// Action vector: a preset (eef_abs, joint_abs, eef_delta, joint_delta, robotwin_eef_abs),
     /// COLUMN:INDICES (e.g. observation.state:0-5,7), or a JSON file holding an action spec.
     /// Default: robotwin_eef_abs for RoboTwin HDF5, eef_abs otherwise.
-    #[arg(long)]
-    actions: Option<String>,
+    pub actions: Option<String>,
     /// Cameras, comma-separated; several are stacked top to bottom. Default: the dataset's camera.
-    #[arg(long, value_delimiter = ',')]
-    camera: Vec<String>,
+    pub camera: Vec<String>,
     /// stat.json normalizing the actions. Default: the dataset's own stat.json when it has one,
     /// else statistics of the training episodes, written to OUT/stat.json.
-    #[arg(long)]
-    stats: Option<PathBuf>,
+    pub stats: Option<PathBuf>,
     /// Fraction of episodes held out for validation (by episode, deterministic in --seed, as
     /// `bwm stats` splits): left out of computed statistics, their clips last in the cache.
-    #[arg(long, default_value_t = 0.0)]
-    validation_fraction: f64,
-    #[arg(long, default_value_t = 0)]
-    seed: u64,
+    pub validation_fraction: f64,
+    pub seed: u64,
     /// A command enhancing each episode's first frame x0 before resizing (e.g. super-resolution):
     /// {in} is replaced by the path of a PNG to read, {out} by the PNG path to write.
-    #[arg(long)]
-    enhance_x0: Option<String>,
+    pub enhance_x0: Option<String>,
     /// Keep the clips' pixel frames in the cache (validation against real pixels).
-    #[arg(long)]
-    keep_frames: bool,
+    pub keep_frames: bool,
     /// Raw clips: store the clips' pixel frames (u8) and actions without encoding them; the
     /// trainer encodes each batch as it reads it (set data.vae). --vae is then optional and only
     /// fixes the latent shape (default: the Wan2.2 VAE's).
-    #[arg(long)]
-    raw: bool,
+    pub raw: bool,
     /// Clips per shard file.
-    #[arg(long, default_value_t = 64)]
-    clips_per_shard: usize,
+    pub clips_per_shard: usize,
     /// Clips encoded by one VAE call.
-    #[arg(long, default_value_t = 1)]
-    batch: usize,
+    pub batch: usize,
     /// This process's rank among --world processes sharing the work (default: RANK, or 0).
-    #[arg(long)]
-    rank: Option<usize>,
+    pub rank: Option<usize>,
     /// Processes sharing the work (default: WORLD_SIZE, or 1).
-    #[arg(long)]
-    world: Option<usize>,
+    pub world: Option<usize>,
     /// Replace a cache in --out that was prepared with other arguments.
-    #[arg(long)]
-    overwrite: bool,
+    pub overwrite: bool,
     /// Only write index.json from the ranks' finished shards (after a multi-process run).
-    #[arg(long)]
-    merge: bool,
-    #[arg(long, default_value = "auto")]
-    device: String,
+    pub merge: bool,
+    pub device: String,
 }
 
 /// Changes whenever what a plan means changes, so older caches are not continued by mistake.
@@ -222,7 +197,9 @@ fn fnv1a(bytes: &[u8]) -> u64 {
     bytes.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &b| (h ^ b as u64).wrapping_mul(0x0000_0100_0000_01b3))
 }
 
-pub fn run(a: PrepareArgs) -> Result<()> {
+/// Encodes this rank's shards of the latent cache `a` describes (or, with `a.merge`, writes the
+/// index of a cache whose ranks have all finished).
+pub fn run(a: &PrepareOptions) -> Result<()> {
     if a.merge {
         return merge_command(&a.out);
     }
@@ -530,7 +507,7 @@ fn check_no_upscale(sizes: &[(u32, u32)], dst: (u32, u32), mode: ResizeMode) -> 
 
 /// The normalization statistics, where they come from, and whether they were computed here.
 fn action_stats(
-    a: &PrepareArgs,
+    a: &PrepareOptions,
     source: &dyn EpisodeSource,
     train: &[usize],
     spec: &ActionSpec,

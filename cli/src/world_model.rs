@@ -1,10 +1,13 @@
 //! The world-model flags that `bwm rollout`, `bwm fidelity`, `bwm evaluate`, `bwm serve` and
-//! `bwm bench-rollout` share; they set `bwm_inference::WorldModelOptions`.
+//! `bwm bench-rollout` share (they set `bwm_inference::WorldModelOptions`), and the episode flags
+//! of `bwm rollout` and `bwm fidelity`.
 
 use std::path::PathBuf;
 
 use anyhow::Result;
 pub use bwm_inference::world_model::{WorldModel, WorldModelOptions};
+use bwm_data::frames::parse_resize;
+use bwm_data::ResizeMode;
 use bwm_trainer::config::Residual;
 use clap::Args;
 
@@ -84,4 +87,26 @@ impl WorldModelArgs {
     pub fn load(&self) -> Result<WorldModel> {
         self.options().load()
     }
+}
+
+/// How `bwm rollout` and `bwm fidelity` read a dataset's episodes.
+#[derive(Args, Clone, Debug)]
+pub struct EpisodeArgs {
+    /// How the dataset's action vectors are read: a preset (eef_abs, joint_abs, eef_delta,
+    /// joint_delta, robotwin_eef_abs), COLUMN:INDICES (e.g. observation.state:0-3) or a spec JSON
+    /// file; the definition the model was trained with.
+    #[arg(long, default_value = "eef_abs")]
+    pub actions: String,
+    /// Cameras; several are stacked top to bottom (default: the dataset's default camera).
+    #[arg(long, value_delimiter = ',')]
+    pub camera: Vec<String>,
+    /// Frame size WIDTHxHEIGHT, the size the model was trained at.
+    #[arg(long, default_value = "640x480")]
+    pub resolution: String,
+    /// How frames of another aspect ratio are fitted to --resolution: crop, pad or stretch.
+    #[arg(long, default_value = "crop", value_parser = parse_resize)]
+    pub resize: ResizeMode,
+    /// Longest rollout, in frames including x0 (default: the whole episode).
+    #[arg(long)]
+    pub max_frames: Option<usize>,
 }

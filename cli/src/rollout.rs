@@ -3,17 +3,17 @@
 use std::path::PathBuf;
 
 use anyhow::Result;
-use bwm_data::frames::parse_resize;
-use bwm_data::ResizeMode;
 use bwm_inference::rollout::{Drive, RolloutOptions};
 use clap::Args;
 
-use crate::world_model::WorldModelArgs;
+use crate::world_model::{EpisodeArgs, WorldModelArgs};
 
 #[derive(Args)]
 pub struct RolloutArgs {
     #[command(flatten)]
     wm: WorldModelArgs,
+    #[command(flatten)]
+    episode: EpisodeArgs,
     /// Dataset whose episodes give x0 (and the actions for --drive gt|perturbed).
     #[arg(long, required_unless_present = "inputs")]
     data: Option<PathBuf>,
@@ -36,21 +36,6 @@ pub struct RolloutArgs {
     /// Action CSV files hold normalized values (default: raw, normalized with --stats).
     #[arg(long)]
     normalized: bool,
-    /// How the dataset's action vectors are read: a preset (eef_abs, joint_abs, eef_delta,
-    /// joint_delta, robotwin_eef_abs), COLUMN:INDICES (e.g. observation.state:0-3) or a spec JSON file.
-    #[arg(long, default_value = "eef_abs")]
-    actions: String,
-    /// Cameras; several are stacked top to bottom (default: the dataset's default camera).
-    #[arg(long, value_delimiter = ',')]
-    camera: Vec<String>,
-    /// Frame size WIDTHxHEIGHT (multiples of 32), the size the model was trained at.
-    #[arg(long, default_value = "640x480")]
-    resolution: String,
-    #[arg(long, default_value = "crop", value_parser = parse_resize)]
-    resize: ResizeMode,
-    /// Longest episode to generate, in frames including x0 (default: the whole episode).
-    #[arg(long)]
-    max_frames: Option<usize>,
     /// Frame rate of --inputs episodes (dataset episodes keep theirs).
     #[arg(long, default_value_t = 30.0)]
     fps: f64,
@@ -71,11 +56,11 @@ pub fn run(a: RolloutArgs) -> Result<()> {
         actions_dir: a.actions_dir,
         perturb_std: a.perturb_std,
         normalized: a.normalized,
-        actions: a.actions,
-        camera: a.camera,
-        resolution: a.resolution,
-        resize: a.resize,
-        max_frames: a.max_frames,
+        actions: a.episode.actions,
+        camera: a.episode.camera,
+        resolution: a.episode.resolution,
+        resize: a.episode.resize,
+        max_frames: a.episode.max_frames,
         fps: a.fps,
         out: a.out,
         resume: a.resume,

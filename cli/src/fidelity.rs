@@ -3,17 +3,17 @@
 use std::path::PathBuf;
 
 use anyhow::Result;
-use bwm_data::frames::parse_resize;
-use bwm_data::ResizeMode;
 use bwm_inference::fidelity::FidelityOptions;
 use clap::Args;
 
-use crate::world_model::WorldModelArgs;
+use crate::world_model::{EpisodeArgs, WorldModelArgs};
 
 #[derive(Args)]
 pub struct FidelityArgs {
     #[command(flatten)]
     wm: WorldModelArgs,
+    #[command(flatten)]
+    episode: EpisodeArgs,
     /// Dataset of held-out episodes (x0, recorded actions and the real frames).
     #[arg(long)]
     data: PathBuf,
@@ -21,21 +21,6 @@ pub struct FidelityArgs {
     /// another's actions (the next listed episode of the same task).
     #[arg(long, value_delimiter = ',')]
     episodes: Vec<usize>,
-    /// How the dataset's action vectors are read: a preset (eef_abs, ...), COLUMN:INDICES or a
-    /// spec JSON file; the definition the model was trained with.
-    #[arg(long, default_value = "eef_abs")]
-    actions: String,
-    /// Cameras; several are stacked top to bottom (default: the dataset's default camera).
-    #[arg(long, value_delimiter = ',')]
-    camera: Vec<String>,
-    /// Frame size WIDTHxHEIGHT, the size the model was trained at.
-    #[arg(long, default_value = "640x480")]
-    resolution: String,
-    #[arg(long, default_value = "crop", value_parser = parse_resize)]
-    resize: ResizeMode,
-    /// Longest rollout, in frames including x0 (default: the whole episode).
-    #[arg(long)]
-    max_frames: Option<usize>,
     /// Horizons (frames after x0) at which mean PSNR/SSIM are reported, besides the full episode.
     #[arg(long, value_delimiter = ',', default_value = "8,16,32,64")]
     horizons: Vec<usize>,
@@ -51,11 +36,11 @@ pub fn run(a: FidelityArgs) -> Result<()> {
     let options = FidelityOptions {
         data: a.data,
         episodes: a.episodes,
-        actions: a.actions,
-        camera: a.camera,
-        resolution: a.resolution,
-        resize: a.resize,
-        max_frames: a.max_frames,
+        actions: a.episode.actions,
+        camera: a.episode.camera,
+        resolution: a.episode.resolution,
+        resize: a.episode.resize,
+        max_frames: a.episode.max_frames,
         horizons: a.horizons,
         videos: a.videos,
         out: a.out,

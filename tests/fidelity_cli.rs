@@ -8,7 +8,7 @@ mod common;
 use std::process::Command;
 
 use bwm_data::frames::{fit, frames_to_tensor};
-use bwm_data::source::{open_dataset, CameraSelection};
+use bwm_data::{open_dataset, CameraSelection};
 use bwm_data::ResizeMode;
 use bwm_trainer::image_metrics::psnr;
 use common::{bwm, demo_data, temp_dir, write_random_vae};

@@ -247,7 +247,7 @@ fn a_killed_rank_fails_the_launch_without_restarts_and_is_restarted_with_one() {
     write_cache(&dir.join("cache"));
     let steps = 4;
     let slow = [("BWM_FAULT_SLOW_CHECKPOINT_MS", "300")];
-    let mut run = |name: &str, restarts: &str| -> Proc {
+    let run = |name: &str, restarts: &str| -> Proc {
         let config = write_config(&dir, &format!("{name}.toml"), &dir.join(name), steps, 1);
         let port = free_port().to_string();
         let args = ["--nproc-per-node", "2", "--master-port", &port, "--max-restarts", restarts, "--grace-period", "10"];

@@ -15,7 +15,7 @@ use std::sync::OnceLock;
 
 use bwm_data::frames::{fit, frames_to_tensor};
 use bwm_data::latent_cache::LatentCache;
-use bwm_data::source::{open_dataset, CameraSelection};
+use bwm_data::{open_dataset, CameraSelection};
 use bwm_data::{ActionSpec, ActionStats, ResizeMode};
 use bwm_model::vae::WanVae;
 use common::{assert_close, bwm, demo_data, final_weights, python, shared_dir, temp_dir, write_random_vae};

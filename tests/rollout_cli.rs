@@ -8,7 +8,7 @@ mod common;
 
 use std::process::Command;
 
-use bwm_data::source::{open_dataset, CameraSelection};
+use bwm_data::{open_dataset, CameraSelection};
 use bwm_data::ActionSpec;
 use common::{bwm, demo_data, python, temp_dir, write_random_vae};
 

@@ -222,7 +222,7 @@ pub struct VaeConvertReport {
 /// into one safetensors file with `to` names. `dtype` `None` keeps the stored dtypes.
 pub fn convert_vae(input: &Path, output: &Path, to: VaeNaming, dtype: Option<ExportDtype>, overwrite: bool) -> Result<VaeConvertReport> {
     ensure!(is_single_file(output), "{}: the VAE is written as one .safetensors file", output.display());
-    let source = bwm_model::weights::open_source(input)?;
+    let source = bwm_model::weight_file::open_source(input)?;
     let names = source.names();
     let wan_keys = wan_vae_keys()?;
     let to_diffusers: BTreeMap<String, String> = wan_keys.iter().map(|k| (k.clone(), diffusers_key(k))).collect();

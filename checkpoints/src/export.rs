@@ -143,10 +143,6 @@ pub struct Prepared {
     pub ema: bool,
 }
 
-/// Whether `dir` is a training checkpoint folder (`state.json` + `model.safetensors`).
-pub fn is_training_checkpoint(dir: &Path) -> bool {
-    dir.is_dir() && dir.join(crate::run_dir::STATE_FILE).is_file()
-}
 
 fn config_from_options(opts: &ExportOptions) -> Result<(Option<ModelConfig>, Option<RunInfo>)> {
     match (&opts.config, &opts.preset) {
@@ -169,7 +165,7 @@ pub fn prepare(input: &str, opts: &ExportOptions) -> Result<Prepared> {
         bail!("{input}: the temporary folder of an interrupted checkpoint save, not a checkpoint");
     }
     let (primary, cfg, state, run): (Box<dyn WeightSource>, ModelConfig, Option<CheckpointState>, Option<RunInfo>) =
-        if is_training_checkpoint(path) {
+        if crate::run_dir::is_training_checkpoint(path) {
             let state = CheckpointState::read(path)?;
             let stored = state.run.model.clone();
             if let Some(given) = &given_cfg {

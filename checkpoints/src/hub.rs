@@ -536,7 +536,7 @@ impl<R: Read> Read for ProgressReader<'_, R> {
 /// Uploads every file of `folder` (hidden files skipped) to the model repo `opts.repo_id` in one
 /// commit, creating the repo when needed. An error when there is no token.
 pub fn push_folder(folder: &Path, opts: &PushOptions, progress: &mut dyn FnMut(&PushEvent)) -> Result<PushReport> {
-    ensure!(crate::open::is_repo_id(&opts.repo_id) && !opts.repo_id.contains('@'), "--push expects OWNER/NAME, got '{}'", opts.repo_id);
+    ensure!(is_repo_id(&opts.repo_id) && !opts.repo_id.contains('@'), "--push expects OWNER/NAME, got '{}'", opts.repo_id);
     let token = opts.token.clone().with_context(|| {
         format!(
             "pushing to {} needs a Hugging Face token with write access: set HF_TOKEN (create one at {}/settings/tokens) or log in with `hf auth login`",
@@ -578,6 +578,14 @@ pub fn push_folder(folder: &Path, opts: &PushOptions, progress: &mut dyn FnMut(&
         regular_files: files.len() - lfs.len(),
         lfs_skipped,
     })
+}
+
+/// Whether `s` reads as a Hub repo id (`owner/name`, optionally `@revision`).
+pub fn is_repo_id(s: &str) -> bool {
+    let id = s.split_once('@').map(|(a, _)| a).unwrap_or(s);
+    let parts: Vec<&str> = id.split('/').collect();
+    let ok = |p: &str| !p.is_empty() && !p.starts_with('.') && p.chars().all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c));
+    parts.len() == 2 && parts.iter().all(|p| ok(p))
 }
 
 #[cfg(test)]

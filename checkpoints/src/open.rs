@@ -52,13 +52,6 @@ impl std::fmt::Debug for OpenedWeights {
     }
 }
 
-/// Whether `s` reads as a Hub repo id (`owner/name`, optionally `@revision`).
-pub fn is_repo_id(s: &str) -> bool {
-    let id = s.split_once('@').map(|(a, _)| a).unwrap_or(s);
-    let parts: Vec<&str> = id.split('/').collect();
-    let ok = |p: &str| !p.is_empty() && !p.starts_with('.') && p.chars().all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c));
-    parts.len() == 2 && parts.iter().all(|p| ok(p))
-}
 
 /// Opens weights from a local file or folder, or a Hub repo id (`owner/name[@revision]`) through
 /// hf-hub's cache (`HF_HOME`, `HF_ENDPOINT`, `HF_TOKEN`; with `HF_HUB_OFFLINE=1` only the cache is
@@ -68,7 +61,7 @@ pub fn open_any(path_or_repo_id: &str) -> Result<OpenedWeights> {
     if path.exists() {
         return open_local(path);
     }
-    if is_repo_id(path_or_repo_id) {
+    if crate::hub::is_repo_id(path_or_repo_id) {
         let env = crate::hub::HubEnv::from_env();
         let snapshot = crate::hub::snapshot_for_loading(path_or_repo_id, &env)
             .with_context(|| format!("'{path_or_repo_id}' is no local file or folder; read as a Hub repo id"))?;
@@ -189,7 +182,7 @@ fn open_dir(dir: &Path) -> Result<OpenedWeights> {
     if let Some(cfg) = RepoConfig::read(dir)? {
         return open_export(dir, cfg);
     }
-    if crate::export::is_training_checkpoint(dir) {
+    if crate::run_dir::is_training_checkpoint(dir) {
         return open_training_checkpoint(dir);
     }
     let config_json = read_json(&dir.join(CONFIG_FILE))?;
@@ -349,7 +342,7 @@ pub fn check_fits(source: &dyn WeightSource, cfg: &ModelConfig, what: &str) -> R
 /// `config.json` (`training.residual`). `None` for weights that do not say (official, release,
 /// foreign files).
 pub fn trained_residual(opened: &OpenedWeights) -> Result<Option<String>> {
-    if crate::export::is_training_checkpoint(&opened.location) {
+    if crate::run_dir::is_training_checkpoint(&opened.location) {
         return Ok(crate::run_info::CheckpointState::read(&opened.location)?.run.residual);
     }
     let training = opened.repo_config.as_ref().and_then(|c| c.training.as_ref());

@@ -169,6 +169,11 @@ impl CheckpointRoot {
     }
 }
 
+/// Whether `dir` is a training checkpoint folder (`state.json` + `model.safetensors`).
+pub fn is_training_checkpoint(dir: &Path) -> bool {
+    dir.is_dir() && dir.join(STATE_FILE).is_file()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

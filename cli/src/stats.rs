@@ -4,7 +4,7 @@
 use std::path::PathBuf;
 
 use anyhow::Result;
-use bwm_data::source::open_dataset;
+use bwm_data::open_dataset;
 use bwm_data::stats::{compute_stats, split_episodes, write_stat_json, SplitSpec, ValidationSize};
 use bwm_data::ActionSpec;
 use clap::Args;

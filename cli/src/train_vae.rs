@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use anyhow::{ensure, Context, Result};
 use bwm_data::frames::{fit, frames_to_tensor, parse_resize, parse_resolution};
-use bwm_data::source::{open_dataset, CameraSelection, EpisodeSource};
+use bwm_data::{open_dataset, CameraSelection, EpisodeSource};
 use bwm_data::ResizeMode;
 use bwm_model::vae::VaeConfig;
 use bwm_trainer::devices::parse_device;

@@ -9,6 +9,7 @@ pub mod frames;
 pub mod latent_cache;
 pub mod lerobot;
 pub mod lerobot_writer;
+pub mod open;
 pub mod prefetch;
 pub mod robotwin;
 pub mod source;
@@ -17,7 +18,7 @@ pub mod table;
 pub mod video;
 
 pub use actions::{ActionSpec, QuatOrder, QuatToEuler};
-pub use bwm_layout::{BwmDataset, Episode};
+pub use bwm_layout::{BwmDataset, BwmSource, Episode};
 pub use clips::{plan_clips, read_clip_frames, ClipPlan, ClipSpec, ClipWindow, EpisodeClips, EpisodeFrames, SkipReport, Skipped};
 pub use defect::{classify, Defect, DefectKind};
 pub use frames::ResizeMode;
@@ -25,6 +26,7 @@ pub use latent_cache::{CacheIndex, CacheWriter, ClipEntry, IndexExtras, LatentCa
 pub use prefetch::{prefetch_clips, Prefetcher};
 pub use lerobot::{LeRobotDataset, LeRobotVersion};
 pub use robotwin::{RoboTwinDataset, RoboTwinLayout};
-pub use source::{open_dataset, BwmSource, CameraLayout, CameraSelection, EpisodeInfo, EpisodeSource};
+pub use open::open_dataset;
+pub use source::{CameraLayout, CameraSelection, EpisodeInfo, EpisodeSource};
 pub use stats::{compute_stats, split_episodes, write_stat_json, ActionStats, EpisodeSplit, SplitSpec, StatsResult, ValidationSize};
 pub use video::{Mp4Encoder, StreamInfo, VideoInfo};

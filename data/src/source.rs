@@ -1,19 +1,18 @@
 //! One interface over the episode datasets users bring: the BWM release layout, LeRobot v2.1 and
-//! v3.0, and RoboTwin 2.0 HDF5 (both variants), detected from the files (`open_dataset`).
+//! v3.0, and RoboTwin 2.0 HDF5 (both variants): the `EpisodeSource` trait and the helpers the
+//! sources share; each source lives in its format's module, and `crate::open` picks one by the files.
 
 use std::ops::Range;
-use std::path::{Path, PathBuf};
-use std::sync::OnceLock;
+use std::path::Path;
 
-use anyhow::{bail, ensure, Context, Result};
+use anyhow::{ensure, Context, Result};
 use image::RgbImage;
 use serde::{Deserialize, Serialize};
 
 use crate::actions::ActionSpec;
-use crate::bwm_layout::BwmDataset;
 use crate::defect::{defect, DefectKind};
 use crate::frames::stack_views_vertically;
-use crate::{lerobot, robotwin, table, video};
+use crate::video;
 
 /// One episode as a dataset lists it.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize)]
@@ -97,36 +96,6 @@ pub trait EpisodeSource: Send + Sync {
     fn fps(&self, episode: usize) -> Result<f64>;
 }
 
-/// Opens a dataset, detecting its format:
-/// - a directory with `demo.jsonl`, or a `.jsonl` manifest: the BWM release layout;
-/// - a directory with `meta/info.json`: LeRobot, v2.0/v2.1 (`meta/episodes.jsonl`, one file per
-///   episode) or v3.0 (`meta/episodes/*/*.parquet`, many episodes per file) by its `codebase_version`;
-/// - an `.hdf5` file, or a directory holding `*.hdf5` files (directly or in `data/`): RoboTwin 2.0,
-///   original or 2026 layout, per file.
-pub fn open_dataset(path: &Path) -> Result<Box<dyn EpisodeSource>> {
-    ensure!(path.exists(), "dataset {} does not exist", path.display());
-    if path.is_file() {
-        return match path.extension().and_then(|e| e.to_str()) {
-            Some("jsonl") => Ok(Box::new(BwmSource::open(path)?)),
-            Some("hdf5" | "h5") => Ok(Box::new(robotwin::RoboTwinDataset::open(path)?)),
-            _ => bail!("{}: not a dataset (expected a directory, a .jsonl manifest or an .hdf5 file)", path.display()),
-        };
-    }
-    if path.join("demo.jsonl").is_file() {
-        return Ok(Box::new(BwmSource::open(path)?));
-    }
-    if path.join("meta/info.json").is_file() {
-        return Ok(Box::new(lerobot::LeRobotDataset::open(path)?));
-    }
-    if robotwin::has_hdf5_files(path)? {
-        return Ok(Box::new(robotwin::RoboTwinDataset::open(path)?));
-    }
-    bail!(
-        "{}: no dataset format recognized (looked for demo.jsonl, meta/info.json, and *.hdf5 files here or in data/)",
-        path.display()
-    )
-}
-
 /// Checks that `range` lies inside an episode of `length` frames.
 pub(crate) fn check_range(range: &Range<usize>, length: usize, what: &str) -> Result<()> {
     ensure!(range.start <= range.end, "{what}: frame range {}..{} is reversed", range.start, range.end);
@@ -181,116 +150,4 @@ pub(crate) fn video_frame_count(path: &Path, what: &str) -> Result<usize> {
             None => Ok(video::probe(path)?.frames),
         }
     })())
-}
-
-/// The BWM release layout (`demo.jsonl`, parquet per episode, one mp4 per episode).
-pub struct BwmSource {
-    pub dataset: BwmDataset,
-    infos: Vec<EpisodeInfo>,
-    fps: Vec<OnceLock<f64>>,
-}
-
-/// The camera name of the BWM layout's single video.
-pub const BWM_CAMERA: &str = "video";
-
-impl BwmSource {
-    pub fn open(path: &Path) -> Result<Self> {
-        Ok(Self::new(BwmDataset::open(path)?))
-    }
-
-    pub fn new(dataset: BwmDataset) -> Self {
-        let infos = dataset
-            .episodes
-            .iter()
-            .map(|e| EpisodeInfo { index: e.episode_index, length: e.length, task: e.task.clone() })
-            .collect();
-        let fps = dataset.episodes.iter().map(|_| OnceLock::new()).collect();
-        Self { dataset, infos, fps }
-    }
-
-    fn episode(&self, episode: usize) -> Result<&crate::bwm_layout::Episode> {
-        self.dataset
-            .episodes
-            .get(episode)
-            .with_context(|| format!("{}: episode {episode} out of range ({} episodes)", self.dataset.root.display(), self.dataset.episodes.len()))
-    }
-
-    fn video_path(&self, episode: usize) -> Result<PathBuf> {
-        Ok(self.dataset.root.join(&self.episode(episode)?.video))
-    }
-
-    fn check_cameras(&self, cameras: &CameraSelection) -> Result<()> {
-        let names = cameras.resolve(|| Ok(BWM_CAMERA.to_string()))?;
-        ensure!(
-            names.iter().all(|c| c == BWM_CAMERA),
-            "{}: the BWM layout has one camera, '{BWM_CAMERA}' (asked for {})",
-            self.dataset.root.display(),
-            names.join(", ")
-        );
-        Ok(())
-    }
-
-    fn what(&self, episode: usize) -> String {
-        let index = self.infos.get(episode).map_or(-1, |e| e.index);
-        format!("{} episode {index}", self.dataset.root.display())
-    }
-}
-
-impl EpisodeSource for BwmSource {
-    fn describe(&self) -> String {
-        format!("BWM layout at {} ({} episodes)", self.dataset.root.display(), self.infos.len())
-    }
-
-    fn episodes(&self) -> &[EpisodeInfo] {
-        &self.infos
-    }
-
-    fn cameras(&self) -> Vec<String> {
-        vec![BWM_CAMERA.to_string()]
-    }
-
-    fn vectors(&self, episode: usize, spec: &ActionSpec) -> Result<Vec<Vec<f32>>> {
-        let ep = self.episode(episode)?;
-        self.dataset.actions(ep, spec).with_context(|| self.what(episode))
-    }
-
-    fn frames(&self, episode: usize, range: Range<usize>, cameras: &CameraSelection) -> Result<Vec<RgbImage>> {
-        let what = self.what(episode);
-        self.check_cameras(cameras)?;
-        let ep = self.episode(episode)?;
-        check_range(&range, ep.length, &what)?;
-        let window = ep.window().with_context(|| what.clone())?;
-        let path = self.video_path(episode)?;
-        require_file(&path, &what)?;
-        unreadable_video(video::read_frames(&path, window.start + range.start..window.start + range.end)).with_context(|| what)
-    }
-
-    fn frame_count(&self, episode: usize, cameras: &CameraSelection) -> Result<usize> {
-        let what = self.what(episode);
-        self.check_cameras(cameras)?;
-        let ep = self.episode(episode)?;
-        let window = ep.window().with_context(|| what.clone())?;
-        let video = video_frame_count(&self.video_path(episode)?, &what)?;
-        let parquet = self.dataset.root.join(&ep.action);
-        let rows = table::num_rows(&parquet).with_context(|| what.clone())?;
-        if video != rows {
-            return defect(
-                DefectKind::CountMismatch,
-                format!("{what}: the video has {video} frames but {} has {rows} rows", parquet.display()),
-            );
-        }
-        Ok(video.saturating_sub(window.start).min(ep.length))
-    }
-
-    fn fps(&self, episode: usize) -> Result<f64> {
-        if let Some(&fps) = self.fps.get(episode).and_then(OnceLock::get) {
-            return Ok(fps);
-        }
-        let path = self.video_path(episode)?;
-        let fps = video::stream_info(&path).with_context(|| self.what(episode))?.fps;
-        if let Some(slot) = self.fps.get(episode) {
-            let _ = slot.set(fps);
-        }
-        Ok(fps)
-    }
 }

@@ -10,7 +10,7 @@ use std::time::Instant;
 
 use anyhow::{ensure, Context, Result};
 use bwm_data::frames::{fit, frame_strip, frames_to_tensor};
-use bwm_data::source::{open_dataset, CameraSelection};
+use bwm_data::{open_dataset, CameraSelection};
 use bwm_data::{ActionSpec, ResizeMode};
 use bwm_trainer::image_metrics::{psnr, ssim};
 use image::RgbImage;

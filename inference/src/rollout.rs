@@ -10,7 +10,7 @@ use std::time::Instant;
 use anyhow::{bail, ensure, Context, Result};
 use bwm_data::frames::{fit, frames_to_tensor, tensor_to_frames};
 use bwm_data::lerobot_writer::{DatasetFeatures, LeRobotWriter};
-use bwm_data::source::{open_dataset, CameraSelection};
+use bwm_data::{open_dataset, CameraSelection};
 use bwm_data::{ActionSpec, ResizeMode};
 use bwm_model::keyed_rng::{self, Purpose};
 use bwm_trainer::image_metrics::{psnr, ssim};

@@ -14,6 +14,7 @@ pub mod sampler;
 pub mod schedule;
 pub mod vae;
 pub mod vb;
+pub mod weight_file;
 pub mod weights;
 
 pub use bwm::{frame_timesteps, BwmModel, Layout};

@@ -723,7 +723,7 @@ impl WanVae {
 
     /// Weights by name (the keys of `Wan2.2_VAE.pth`) from the `.pth` itself or safetensors.
     pub fn load(path: &std::path::Path, cfg: &VaeConfig, kind: Kind, device: tch::Device) -> Result<Self> {
-        let source = crate::weights::open_source(path)?;
+        let source = crate::weight_file::open_source(path)?;
         let store = crate::vb::ParamStore::from_weights(source, &[], kind, device);
         let vae = Self::new(&store.root(), cfg)?;
         store.check_all_consumed()?;

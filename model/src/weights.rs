@@ -242,12 +242,3 @@ pub fn read_all(path: impl AsRef<Path>) -> Result<BTreeMap<String, Tensor>, Weig
     }
     Ok(out)
 }
-
-/// Opens a weight file by its kind: a PyTorch `.pth`/`.pt` archive, or safetensors (a file, a
-/// shard index, or a directory).
-pub fn open_source(path: &Path) -> Result<Box<dyn WeightSource>, WeightsError> {
-    match path.extension().and_then(|e| e.to_str()) {
-        Some("pth") | Some("pt") | Some("bin") => Ok(Box::new(crate::pth::PthSource::open(path)?)),
-        _ => Ok(Box::new(SafetensorsSource::open(path)?)),
-    }
-}

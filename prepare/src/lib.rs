@@ -19,7 +19,7 @@ use anyhow::{bail, ensure, Context, Result};
 use bwm_data::clips::{plan_clips, ClipPlan, ClipSpec, EpisodeFrames};
 use bwm_data::frames::fit;
 use bwm_data::latent_cache::{read_index, shard_file_name, write_atomically, write_index, write_shard, CacheIndex, ClipEntry, IndexExtras, ShardClip, CACHE_VERSION, INDEX_FILE};
-use bwm_data::source::{open_dataset, CameraSelection, EpisodeSource};
+use bwm_data::{open_dataset, CameraSelection, EpisodeSource};
 use bwm_data::stats::{compute_stats, split_episodes, write_stat_json, SplitSpec, ValidationSize};
 use bwm_data::{ActionSpec, ActionStats, ResizeMode};
 use bwm_model::vae::WanVae;

@@ -547,6 +547,36 @@ impl Trainer {
     }
 }
 
+impl validation::ValidationRun for Trainer {
+    fn config(&self) -> &RunConfig {
+        &self.cfg
+    }
+    fn model(&self) -> &BwmModel {
+        &self.model
+    }
+    fn objective(&self) -> &Objective {
+        &self.objective
+    }
+    fn device(&self) -> Device {
+        self.device
+    }
+    fn cache(&self) -> &LatentCache {
+        &self.cache
+    }
+    fn validation_clips(&self) -> std::ops::Range<usize> {
+        self.train_clips..self.cache.len()
+    }
+    fn clip(&self, i: usize) -> Result<Clip> {
+        Trainer::clip(self, i)
+    }
+    fn out_path(&self, name: &str) -> PathBuf {
+        Trainer::out_path(self, name)
+    }
+    fn events(&mut self) -> Option<&mut EventWriter> {
+        Trainer::events(self)
+    }
+}
+
 /// Adds each block's gradients into the fp32 accumulators as the recomputing backward walk
 /// produces them, so no model-dtype gradient of a block outlives its backward; on the step's last
 /// micro-batch, with `reduce`, it then starts reducing the block's gradients across the ranks

@@ -2,16 +2,38 @@
 //! the predicted future with the real one: latent MSE always; PSNR, SSIM and a frame strip
 //! (ground truth over prediction) when a VAE is configured.
 
+use std::ops::Range;
+use std::path::PathBuf;
+
 use anyhow::{Context, Result};
 use bwm_data::frames::{frame_strip, tensor_to_frames};
+use bwm_data::latent_cache::{Clip, LatentCache};
 use bwm_model::sampler::sample_chunk;
+use bwm_model::BwmModel;
 use bwm_model::vae::WanVae;
 use bwm_model::FlowSchedule;
 use tch::{Device, Kind, Tensor};
 
+use crate::config::RunConfig;
 use crate::image_metrics::{psnr, ssim};
 use crate::keyed_rng::{self, Purpose};
-use crate::trainer::Trainer;
+use crate::objective::Objective;
+use crate::tensorboard::EventWriter;
+
+/// What validation reads from the run it validates (`Trainer` is one).
+pub trait ValidationRun {
+    fn config(&self) -> &RunConfig;
+    fn model(&self) -> &BwmModel;
+    fn objective(&self) -> &Objective;
+    fn device(&self) -> Device;
+    fn cache(&self) -> &LatentCache;
+    /// Positions in the cache of the held-out clips.
+    fn validation_clips(&self) -> Range<usize>;
+    /// Clip `i` of the cache with its latents (encoded now for a raw cache).
+    fn clip(&self, i: usize) -> Result<Clip>;
+    fn out_path(&self, name: &str) -> PathBuf;
+    fn events(&mut self) -> Option<&mut EventWriter>;
+}
 
 pub struct ValidationReport {
     pub latent_mse: f64,
@@ -35,42 +57,43 @@ impl ValidationReport {
 
 /// Predicted latents of one clip: condition prefix (clean x0, history perturbed with a fixed
 /// draw) re-imposed at each of `steps` Euler steps from keyed noise.
-pub fn rollout_clip(trainer: &Trainer, clean: &Tensor, actions: &Tensor, key: u64, steps: usize) -> Result<Tensor> {
-    let p = trainer.objective.condition_latents;
+pub fn rollout_clip(run: &(impl ValidationRun + ?Sized), clean: &Tensor, actions: &Tensor, key: u64, steps: usize) -> Result<Tensor> {
+    let p = run.objective().condition_latents;
     let shape = clean.size();
-    let seed = trainer.cfg.run.seed;
+    let seed = run.config().run.seed;
     let history_noise = keyed_rng::normal(&shape, seed, key, Purpose::Validation).to_device(clean.device());
     let noise = keyed_rng::normal(&shape, seed, key | 1 << 63, Purpose::Validation).to_device(clean.device());
-    let sh = trainer.objective.history_sigma;
+    let sh = run.objective().history_sigma;
     let prefix = Tensor::cat(
         &[clean.narrow(2, 0, 1), clean.narrow(2, 1, p - 1) * (1.0 - sh) + history_noise.narrow(2, 1, p - 1) * sh],
         2,
     );
-    let schedule = FlowSchedule::inference(steps, trainer.cfg.objective.shift);
-    let kind = trainer.model.store.kind();
+    let schedule = FlowSchedule::inference(steps, run.config().objective.shift);
+    let kind = run.model().store.kind();
     let out = tch::no_grad(|| {
-        sample_chunk(&trainer.model, &prefix.to_kind(kind), &noise.to_kind(kind), actions, &schedule, &mut |_, _, _| {})
+        sample_chunk(run.model(), &prefix.to_kind(kind), &noise.to_kind(kind), actions, &schedule, &mut |_, _, _| {})
     })?;
     Ok(out.to_kind(Kind::Float))
 }
 
-pub fn run(trainer: &mut Trainer, step: u64) -> Result<ValidationReport> {
-    let device = trainer.device;
-    let cfg = trainer.cfg.validation.clone();
+/// Validates `run` at `step` over its held-out clips; writes the strip and the TensorBoard scalars.
+pub fn run(run: &mut (impl ValidationRun + ?Sized), step: u64) -> Result<ValidationReport> {
+    let device = run.device();
+    let cfg = run.config().validation.clone();
     let vae = match &cfg.vae {
         Some(path) => Some(WanVae::load_any(path, Kind::Float, device).with_context(|| format!("validation.vae {}", path.display()))?),
         None => None,
     };
-    let p = trainer.objective.condition_latents;
-    let index = &trainer.cache.index;
-    let condition_pixels = index.pixel_frames - index.future_frames;
+    let p = run.objective().condition_latents;
+    let future_frames = run.cache().index.future_frames;
+    let condition_pixels = run.cache().index.pixel_frames - future_frames;
     let (mut mse_sum, mut psnr_sum, mut ssim_sum, mut n) = (0.0, 0.0, 0.0, 0usize);
     let mut strip_rows = Vec::new();
-    for clip_index in trainer.train_clips..trainer.cache.len() {
-        let clip = trainer.clip(clip_index)?;
+    for clip_index in run.validation_clips() {
+        let clip = run.clip(clip_index)?;
         let clean = clip.latents.unsqueeze(0);
         let actions = clip.actions.unsqueeze(0);
-        let predicted = rollout_clip(trainer, &clean, &actions, clip_index as u64, cfg.sample_steps)?;
+        let predicted = rollout_clip(run, &clean, &actions, clip_index as u64, cfg.sample_steps)?;
         let f = clean.size()[2];
         mse_sum += (predicted.narrow(2, p, f - p) - clean.narrow(2, p, f - p)).square().mean(Kind::Double).double_value(&[]);
         n += 1;
@@ -83,7 +106,7 @@ pub fn run(trainer: &mut Trainer, step: u64) -> Result<ValidationReport> {
                 };
                 Ok((pred, truth))
             })?;
-            let future = |t: &Tensor| t.narrow(1, condition_pixels as i64, index.future_frames as i64);
+            let future = |t: &Tensor| t.narrow(1, condition_pixels as i64, future_frames as i64);
             let (pf, tf) = (future(&pred_px), future(&truth_px));
             psnr_sum += psnr(&pf, &tf);
             ssim_sum += ssim(&pf, &tf);
@@ -102,16 +125,16 @@ pub fn run(trainer: &mut Trainer, step: u64) -> Result<ValidationReport> {
         report.psnr = Some(psnr_sum / n as f64);
         report.ssim = Some(ssim_sum / n as f64);
         let strip = frame_strip(&strip_rows)?;
-        let dir = trainer.out_path("validation");
+        let dir = run.out_path("validation");
         std::fs::create_dir_all(&dir)?;
         let path = dir.join(format!("step-{step:08}.png"));
         strip.save(&path).with_context(|| format!("writing {}", path.display()))?;
-        if let Some(ev) = trainer.events() {
+        if let Some(ev) = run.events() {
             ev.image_rgb("validation/truth_over_prediction", &strip, step)?;
         }
         report.strip = Some(path);
     }
-    if let Some(ev) = trainer.events() {
+    if let Some(ev) = run.events() {
         ev.scalar("validation/latent_mse", report.latent_mse, step)?;
         if let (Some(p), Some(s)) = (report.psnr, report.ssim) {
             ev.scalar("validation/psnr", p, step)?;

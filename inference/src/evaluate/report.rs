@@ -223,40 +223,50 @@ fn opt(v: Option<f64>) -> String {
     v.map_or_else(String::new, |v| format!("{v:.6}"))
 }
 
+/// A CSV file through the `csv` crate, which quotes names holding commas or quotes.
+fn write_csv(path: &Path, header: &[&str], rows: impl IntoIterator<Item = Vec<String>>) -> Result<()> {
+    let what = || format!("writing {}", path.display());
+    let mut w = csv::Writer::from_path(path).with_context(what)?;
+    w.write_record(header).with_context(what)?;
+    for row in rows {
+        w.write_record(&row).with_context(what)?;
+    }
+    w.flush().with_context(what)?;
+    Ok(())
+}
+
 /// success_rates.csv, policies.csv and summary.json in `dir`.
 pub fn write(dir: &Path, summary: &Summary) -> Result<()> {
-    let mut csv =
-        String::from("policy,task,episodes,successes,errors,success_rate,reference_success_rate\n");
-    for r in &summary.rates {
-        csv += &format!(
-            "{},{},{},{},{},{:.6},{}\n",
-            r.policy,
-            r.task,
-            r.episodes,
-            r.successes,
-            r.errors,
-            r.success_rate,
-            opt(r.reference)
-        );
-    }
-    std::fs::write(dir.join("success_rates.csv"), csv)
-        .with_context(|| format!("writing {}", dir.join("success_rates.csv").display()))?;
-    let mut csv =
-        String::from("rank,policy,success_rate,tasks,episodes,errors,reference_success_rate\n");
-    for p in &summary.policies {
-        csv += &format!(
-            "{},{},{:.6},{},{},{},{}\n",
-            p.rank,
-            p.policy,
-            p.success_rate,
-            p.tasks,
-            p.episodes,
-            p.errors,
-            opt(p.reference)
-        );
-    }
-    std::fs::write(dir.join("policies.csv"), csv)
-        .with_context(|| format!("writing {}", dir.join("policies.csv").display()))?;
+    write_csv(
+        &dir.join("success_rates.csv"),
+        &["policy", "task", "episodes", "successes", "errors", "success_rate", "reference_success_rate"],
+        summary.rates.iter().map(|r| {
+            vec![
+                r.policy.clone(),
+                r.task.clone(),
+                r.episodes.to_string(),
+                r.successes.to_string(),
+                r.errors.to_string(),
+                format!("{:.6}", r.success_rate),
+                opt(r.reference),
+            ]
+        }),
+    )?;
+    write_csv(
+        &dir.join("policies.csv"),
+        &["rank", "policy", "success_rate", "tasks", "episodes", "errors", "reference_success_rate"],
+        summary.policies.iter().map(|p| {
+            vec![
+                p.rank.to_string(),
+                p.policy.clone(),
+                format!("{:.6}", p.success_rate),
+                p.tasks.to_string(),
+                p.episodes.to_string(),
+                p.errors.to_string(),
+                opt(p.reference),
+            ]
+        }),
+    )?;
     let json = serde_json::to_string_pretty(summary)?;
     std::fs::write(dir.join("summary.json"), json + "\n")
         .with_context(|| format!("writing {}", dir.join("summary.json").display()))?;
@@ -379,5 +389,22 @@ mod tests {
         assert!((a.mae.unwrap() - (0.1 + 0.2 + 0.1) / 3.0).abs() < 1e-12);
         assert_eq!(a.pearson_r, pearson(&[0.5, 1.0, 1.0], &[0.4, 0.8, 0.9]));
         assert_eq!(a.policy_pearson_r, None, "one policy");
+    }
+
+    #[test]
+    fn the_csv_files_quote_names_with_commas_and_read_back() {
+        let records = vec![rec("pi0, fast", "open \"drawer\"", true, false), rec("plain", "open \"drawer\"", false, false)];
+        let s = summarize(&["pi0, fast".into(), "plain".into()], &["open \"drawer\"".into()], &records, None);
+        let dir = bwm_testdir::TestDir::new("eval-report");
+        write(dir.path(), &s).unwrap();
+        let text = std::fs::read_to_string(dir.path().join("success_rates.csv")).unwrap();
+        assert!(text.starts_with("policy,task,episodes,successes,errors,success_rate,reference_success_rate\n"), "{text}");
+        let mut reader = csv::Reader::from_path(dir.path().join("success_rates.csv")).unwrap();
+        let rows: Vec<Vec<String>> = reader.records().map(|r| r.unwrap().iter().map(String::from).collect()).collect();
+        assert_eq!(rows[0], ["pi0, fast", "open \"drawer\"", "1", "1", "0", "1.000000", ""]);
+        assert_eq!(rows[1][..2], ["plain", "open \"drawer\""]);
+        let mut reader = csv::Reader::from_path(dir.path().join("policies.csv")).unwrap();
+        let first = reader.records().next().unwrap().unwrap();
+        assert_eq!((&first[0], &first[1]), ("1", "pi0, fast"));
     }
 }

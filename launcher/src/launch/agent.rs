@@ -7,6 +7,10 @@
 //! when all have); `stop` when the restarts are used up, a node was signalled, or a node does not
 //! join within --rdzv-timeout; `finish` when every node's ranks exited 0. The store beats too, so
 //! the other launchers notice a lost node 0. Messages are JSON objects, one a line.
+//!
+//! Written by hand (std sockets, a thread per node, serde_json) because torchrun's elastic agent
+//! and its c10d rendezvous have no Rust counterpart; a line protocol between a handful of
+//! launchers needs no async runtime, and blocking reads with timeouts are what notice a lost node.
 
 use std::collections::HashMap;
 use std::io::{BufRead, BufReader, Read, Write};

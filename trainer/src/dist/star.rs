@@ -7,6 +7,11 @@
 //! ("rank 2 did not join") reaches the waiting ranks before their own timeout fires. Any failure
 //! breaks the star: rank 0 sends the message to every rank it can still reach, each side shuts its
 //! sending half, and later calls fail at once.
+//!
+//! Written over std sockets rather than a crate: tch exposes neither c10d's TCPStore nor Gloo,
+//! no maintained Rust crate speaks their protocols, and a general store (etcd, Redis clients) needs
+//! a server the job does not have. What the trainer needs is small (join, a keyed exchange, and
+//! rank 0's deterministic reduction in rank order) and its failure messages must name the rank.
 
 use anyhow::{anyhow, bail, Context, Result};
 use std::io::{self, Read, Write};

@@ -60,15 +60,9 @@ struct Scored {
 /// Scores the world model that `options` opens on the held-out episodes `a` names and writes
 /// fidelity.json, episodes.jsonl, the per-task curves and side-by-side videos into `a.out`.
 pub fn run(options: &WorldModelOptions, a: &FidelityOptions) -> Result<()> {
-    let mut options = options.clone();
     let size = parse_resolution(&a.resolution, 16)?;
     ensure!(a.horizons.iter().all(|&h| h > 0), "--horizons must be positive frame counts");
-    if options.stats.is_none() {
-        if let Some(found) = Some(a.data.join("stat.json")).filter(|p| p.exists()) {
-            println!("fidelity: action statistics from {}", found.display());
-            options.stats = Some(found);
-        }
-    }
+    let options = options.with_stats_beside(Some(&a.data), "fidelity");
     let source = open_dataset(&a.data)?;
     let spec = ActionSpec::parse(&a.actions).context("--actions")?;
     let cameras = CameraSelection::from_names(&a.camera);

@@ -107,14 +107,8 @@ struct InputLine {
 /// Rolls the world model that `options` opens out over the episodes `a` names and writes them as a
 /// LeRobot v2.1 dataset (with comparisons against the real frames under the ground-truth drive).
 pub fn run(options: &WorldModelOptions, a: &RolloutOptions) -> Result<()> {
-    let mut options = options.clone();
+    let options = options.with_stats_beside(a.data.as_deref(), "rollout");
     let size = parse_resolution(&a.resolution, 32)?;
-    if options.stats.is_none() {
-        if let Some(found) = a.data.as_ref().map(|d| d.join("stat.json")).filter(|p| p.exists()) {
-            println!("rollout: action statistics from {}", found.display());
-            options.stats = Some(found);
-        }
-    }
     match (a.drive, &a.inputs, &a.actions_dir) {
         (Drive::File, None, None) => bail!("--drive file needs --actions-dir (with --data) or --inputs"),
         (Drive::Gt | Drive::Perturbed, Some(_), _) => bail!("--inputs gives no recorded actions to replay: use --drive file"),

@@ -1,7 +1,7 @@
 //! A trained world model ready to roll out: the DiT with its action encoder, the VAE, the action
 //! statistics and the rollout settings, opened from one set of options.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use anyhow::{bail, ensure, Context, Result};
 use bwm_checkpoints::open::{build_model, open_any, trained_residual};
@@ -80,6 +80,19 @@ pub struct WorldModel {
 }
 
 impl WorldModelOptions {
+    /// These options, with `stats` set to the `stat.json` beside `dataset` when none is given and
+    /// that file exists (said on stdout, after `who`).
+    pub fn with_stats_beside(&self, dataset: Option<&Path>, who: &str) -> WorldModelOptions {
+        let mut options = self.clone();
+        if options.stats.is_none() {
+            if let Some(found) = dataset.map(|d| d.join("stat.json")).filter(|p| p.exists()) {
+                println!("{who}: action statistics from {}", found.display());
+                options.stats = Some(found);
+            }
+        }
+        options
+    }
+
     pub fn spec(&self) -> Result<RolloutSpec> {
         let sigma = self.history_sigma.unwrap_or_else(default_history_sigma);
         let spec = RolloutSpec {

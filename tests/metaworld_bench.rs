@@ -1,7 +1,8 @@
 //! The Meta-World benchmark (bench/metaworld) end to end on CPU at toy sizes, through the same
 //! recipe the GPU run uses: generate.py writes training and held-out datasets from MuJoCo, then
 //! `bwm train-vae`, `bwm prepare`, `bwm train`, `bwm fidelity`, the truth of the policy variants in
-//! the simulator, judge.py and study.py (policy_server.py + judge over `bwm evaluate`). The numbers
+//! the simulator, judge.py and study.py (policy_server.py + judge over `bwm evaluate`, and the judge
+//! on the simulator's own frames of the same episodes). The numbers
 //! of a toy model mean nothing; the test checks that every stage runs on the real path and writes
 //! what it promises, that the datasets keep the generator's contract (bench/metaworld/tests/
 //! check_dataset.py) and that generation is deterministic whatever the worker count.
@@ -39,7 +40,7 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
             .env("PYTHON", python())
             .env("DEVICE", "cpu")
             .envs([("TRAIN_EPISODES", "3"), ("VAL_EPISODES", "1"), ("FRAMES", "100"), ("WORKERS", "2")])
-            .envs([("VAE_STEPS", "2"), ("VAE_EPISODES", "6"), ("VAE_BATCH", "2"), ("TRAIN_STEPS", "2"), ("SAMPLE_STEPS", "2")])
+            .envs([("VAE_STEPS", "2"), ("VAE_EPISODES", "6"), ("VAE_BATCH", "2"), ("VAE_STRIDE", "8"), ("TRAIN_STEPS", "2"), ("SAMPLE_STEPS", "2")])
             .env(
                 "TRAIN_SETS",
                 "model.dit.dim=48 model.dit.ffn_dim=96 model.dit.num_layers=1 train.micro_batch=2 checkpoint.every=2 validation.every=2 validation.sample_steps=2",
@@ -81,6 +82,10 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
         assert!(std::fs::read(val.join(&file)).unwrap() == std::fs::read(again.join(&file)).unwrap(), "{file} differs between worker counts");
     }
 
+    // The VAE of stride 8 (an 8x8 latent grid at 64x64) carried through to the latent cache.
+    let index = json(&runs.join("latents/index.json"));
+    assert_eq!(index["latent_shape"], serde_json::json!([48, 9, 8, 8]), "{index}");
+
     let fidelity = json(&runs.join("fidelity/fidelity.json"));
     assert_eq!(fidelity["episodes"], 2, "{fidelity}");
 
@@ -98,8 +103,12 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
         assert_eq!(r["errors"], 0, "no episode failed on an error: {r}");
         assert!(r["true"].as_f64().is_some_and(|v| (0.0..=1.0).contains(&v)), "{r}");
         assert!(r["estimated"].as_f64().is_some_and(|v| (0.0..=1.0).contains(&v)), "{r}");
+        assert!(r["judged_simulator"].as_f64().is_some_and(|v| (0.0..=1.0).contains(&v)), "{r}");
     }
     assert_eq!(study["all"]["n"], 4, "{study}");
+    assert_eq!(study["judge_on_simulator_frames"]["n"], 4, "{study}");
+    let judged = json(&runs.join("study/judged.json"));
+    assert_eq!(judged["judged"]["drawer-open-v3"]["wrong"].as_array().map(Vec::len), Some(1), "{judged}");
     assert!(study["per_task"]["drawer-open-v3"]["mae"].is_number(), "{study}");
     assert!(runs.join("study/study.svg").is_file() && runs.join("study/eval-1/episodes.jsonl").is_file());
 }

@@ -184,29 +184,36 @@ def make_policy(task: str, variant: str, seed: int) -> Policy:
     return Policy(task, variant, seed)
 
 
-def measure_truth(task: str, variant: str, seeds, horizon: int = 120, chunk: int = 24, resolution: int = 64) -> list[bool]:
-    """Runs the policy in the simulator as the world-model evaluator does (a frame every `chunk`
-    steps, `chunk` commands back); an episode succeeds if the simulator's success flag is raised
-    at any step within `horizon`."""
+def run_episode(task: str, variant: str, seed: int, horizon: int = 120, chunk: int = 24, resolution: int = 64,
+                record: bool = False) -> tuple[bool, np.ndarray | None]:
+    """One episode of the policy in the simulator as the world-model evaluator runs it (a frame
+    every `chunk` steps, `chunk` commands back). Returns whether the simulator's success flag was
+    raised within `horizon` steps and, with `record`, every frame from x0 on (uint8 [T, H, W, 3];
+    the episode then runs the whole horizon instead of stopping at success)."""
     from mw import Sim
 
-    results = []
-    for seed in seeds:
-        policy = make_policy(task, variant, seed)
-        with Sim(task, seed, resolution) as sim:
-            image, state = sim.reset()
-            success, t = False, 0
-            while t < horizon and not success:
-                commands = policy.act(image, state, min(chunk, horizon - t))
-                for i, command in enumerate(commands):
-                    last = i == len(commands) - 1
-                    image, state, done = sim.step(command, render=last)
-                    t += 1
-                    if done:
-                        success = True
-                        break
-        results.append(success)
-    return results
+    policy = make_policy(task, variant, seed)
+    with Sim(task, seed, resolution) as sim:
+        image, state = sim.reset()
+        frames = [image] if record else None
+        success, t = False, 0
+        while t < horizon and (record or not success):
+            commands = policy.act(image, state, min(chunk, horizon - t))
+            for i, command in enumerate(commands):
+                last = i == len(commands) - 1
+                image, state, done = sim.step(command, render=record or last)
+                t += 1
+                success |= done
+                if record:
+                    frames.append(image)
+                elif done:
+                    break
+    return success, (np.stack(frames) if record else None)
+
+
+def measure_truth(task: str, variant: str, seeds, horizon: int = 120, chunk: int = 24, resolution: int = 64) -> list[bool]:
+    """Per seed: whether the episode succeeds in the simulator within `horizon` (run_episode)."""
+    return [run_episode(task, variant, seed, horizon, chunk, resolution)[0] for seed in seeds]
 
 
 if __name__ == "__main__":

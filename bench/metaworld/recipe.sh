@@ -29,6 +29,7 @@ WORKERS="${WORKERS:-$(nproc)}"
 VAE_STEPS="${VAE_STEPS:-2000}"
 VAE_EPISODES="${VAE_EPISODES:-200}"
 VAE_BATCH="${VAE_BATCH:-32}"
+VAE_STRIDE="${VAE_STRIDE:-16}"           # pixels per latent cell: 16 (4x4 latents at 64x64) or 8 (8x8)
 TRAIN_STEPS="${TRAIN_STEPS:-}"            # default: configs/metaworld.toml's
 TRAIN_SETS="${TRAIN_SETS:-}"              # more `--set KEY=VALUE` for bwm train, space-separated
 SAMPLE_STEPS="${SAMPLE_STEPS:-20}"        # Euler steps per generated chunk
@@ -68,7 +69,7 @@ fi
 if wants vae; then
   if [ -f "$RUN/vae.safetensors" ]; then echo "recipe: $RUN/vae.safetensors exists"; else
     timed vae "$BWM" train-vae --data "$RUN/data/train" --max-episodes "$VAE_EPISODES" --holdout-tail 0.1 \
-      --resolution 64x64 --dim 32 --dec-dim 32 --clip-frames 9 --batch "$VAE_BATCH" --steps "$VAE_STEPS" --lr 1e-3 \
+      --resolution 64x64 --dim 32 --dec-dim 32 --spatial-stride "$VAE_STRIDE" --clip-frames 9 --batch "$VAE_BATCH" --steps "$VAE_STEPS" --lr 1e-3 \
       --no-flip --eval-every 1000 --device "$DEVICE" --out "$RUN/vae.safetensors"
   fi
 fi

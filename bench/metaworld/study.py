@@ -13,8 +13,13 @@ Truth: policies.measure_truth over the same seeds (cached in DIR/truth.json). Th
 split over --jobs `bwm evaluate` processes that share the servers (a variant's episodes stay in
 one process, in order, so that the policy server hands out seeds in the dataset's order).
 
+Judge on the simulator: the same episodes run again in the simulator with every frame rendered and
+judged as the world model's are (cached in DIR/judged.json), so that the judge's own error is
+measured apart from the world model's.
+
 Writes DIR/study.json (rates and agreement: Pearson r, Spearman rank correlation, MAE, per task
-and over all variants; whether the best variant is ranked first), DIR/study.csv,
+and over all variants; whether the best variant is ranked first; the same for the judge on the
+simulator's frames), DIR/study.csv,
 DIR/study.svg (estimated against true rates) and each process's evaluate output in DIR/eval-*/.
 Everything after `--` goes to `bwm evaluate` (the world model's flags).
 """
@@ -34,6 +39,9 @@ import time
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+# The judge's probability at or above which an episode counts as a success (evaluate.toml's
+# judge.threshold, and the same rule on the simulator's frames).
+THRESHOLD = 0.5
 
 
 # --- the held-out episodes -----------------------------------------------------------------------
@@ -75,6 +83,66 @@ def measure_truth(episodes, variants, horizon, chunk, resolution, workers) -> di
             truth.setdefault(task, {})[variant] = outcome
             print(f"study: truth {n}/{len(jobs)}: {task} {variant} {100 * np.mean(outcome):.0f}% ({time.time() - start:.0f} s)", flush=True)
     return truth
+
+
+_judge = None
+
+
+def _load_judge(path: str) -> None:
+    global _judge
+    import torch
+    from judge import Judge
+
+    torch.set_num_threads(1)
+    _judge = Judge(path, "cpu", None)
+
+
+def _judged_job(job):
+    task, variant, seeds, horizon, chunk, resolution = job
+    import policies
+
+    probs = []
+    for seed in seeds:
+        _, frames = policies.run_episode(task, variant, seed, horizon, chunk, resolution, record=True)
+        probs.append(_judge.judge({"frames": frames, "task": task, "prompt": task})["success_probability"])
+    return task, variant, probs
+
+
+def judge_simulator(episodes, variants, horizon, chunk, resolution, workers, judge: str) -> dict:
+    """{task: {variant: [judge's success probability per episode]}} on the simulator's own frames
+    of the same episodes: the judge's share of the study's error, apart from the world model's."""
+    jobs = [(t, v, [s for _, s in eps], horizon, chunk, resolution) for t, eps in episodes.items() for v in variants]
+    out: dict = {}
+    start = time.time()
+    with multiprocessing.get_context("spawn").Pool(workers, initializer=_load_judge, initargs=(judge,)) as pool:
+        for n, (task, variant, probs) in enumerate(pool.imap_unordered(_judged_job, jobs), 1):
+            out.setdefault(task, {})[variant] = probs
+            rate = np.mean([p >= THRESHOLD for p in probs])
+            print(f"study: judge on simulator frames {n}/{len(jobs)}: {task} {variant} {100 * rate:.0f}% ({time.time() - start:.0f} s)", flush=True)
+    return out
+
+
+def cached(path: str, name: str, key: dict, measure):
+    """`measure()`, or what the JSON file at `path` holds under `name` when it was measured for
+    the same `key`; written atomically with the seconds it took."""
+    if os.path.exists(path):
+        with open(path) as f:
+            found = json.load(f)
+        if found.get("key") == key:
+            return found[name]
+    t0 = time.time()
+    value = measure()
+    with open(path + ".tmp", "w") as f:
+        json.dump({"key": key, name: value, "seconds": time.time() - t0}, f)
+    os.replace(path + ".tmp", path)
+    return value
+
+
+def file_digest(path: str) -> str:
+    import hashlib
+
+    with open(path, "rb") as f:
+        return hashlib.sha256(f.read()).hexdigest()
 
 
 # --- agreement -------------------------------------------------------------------------------------
@@ -120,13 +188,16 @@ def agreement(names: list[str], estimated: list[float], true: list[float]) -> di
     }
 
 
-def summarize(truth: dict, estimates: dict, tasks: list[str], variants: list[str]) -> dict:
+def summarize(truth: dict, estimates: dict, judged: dict, tasks: list[str], variants: list[str]) -> dict:
+    """Agreement of the world model's estimates with the truth; `judged` (the judge on the
+    simulator's frames) adds that column and its own agreement, the judge's share of the error."""
     rows = []
     for t in tasks:
         for v in variants:
             est = estimates[t][v]
             rows.append({"task": t, "variant": v, "episodes": len(truth[t][v]), "true": float(np.mean(truth[t][v])),
-                         "estimated": float(np.mean([e["success"] for e in est])), "errors": sum(e["error"] is not None for e in est)})
+                         "estimated": float(np.mean([e["success"] for e in est])), "errors": sum(e["error"] is not None for e in est),
+                         "judged_simulator": float(np.mean([p >= THRESHOLD for p in judged[t][v]]))})
     per_task = {}
     for t in tasks:
         mine = [r for r in rows if r["task"] == t]
@@ -134,7 +205,9 @@ def summarize(truth: dict, estimates: dict, tasks: list[str], variants: list[str
     overall = agreement([f"{r['variant']}/{r['task']}" for r in rows], [r["estimated"] for r in rows], [r["true"] for r in rows])
     mean = lambda v, key: float(np.mean([r[key] for r in rows if r["variant"] == v]))
     by_variant = agreement(variants, [mean(v, "estimated") for v in variants], [mean(v, "true") for v in variants])
-    return {"rates": rows, "per_task": per_task, "all": overall, "variants_mean_over_tasks": by_variant}
+    judge_alone = agreement([f"{r['variant']}/{r['task']}" for r in rows], [r["judged_simulator"] for r in rows], [r["true"] for r in rows])
+    return {"rates": rows, "per_task": per_task, "all": overall, "variants_mean_over_tasks": by_variant,
+            "judge_on_simulator_frames": judge_alone}
 
 
 def fmt(v) -> str:
@@ -211,7 +284,7 @@ def write_config(path: str, variants: list[str], ports: dict, judge_url: str, da
         "[judge]",
         'kind = "http"',
         f"url = {toml_str(judge_url)}",
-        "threshold = 0.5",
+        f"threshold = {THRESHOLD}",
         "",
     ]
     for v in variants:
@@ -315,23 +388,15 @@ def main(argv=None) -> None:
     os.makedirs(a.out, exist_ok=True)
     episodes = episodes_by_task(a.data, tasks, a.episodes)
 
-    truth_path = os.path.join(a.out, "truth.json")
     key = {"episodes": {t: [s for _, s in e] for t, e in episodes.items()}, "horizon": a.horizon, "chunk": a.chunk,
            "resolution": a.resolution, "variants": variants}
-    truth = None
-    if os.path.exists(truth_path):
-        with open(truth_path) as f:
-            cached = json.load(f)
-        truth = cached["truth"] if cached.get("key") == key else None
-    if truth is None:
-        t0 = time.time()
-        truth = measure_truth(episodes, variants, a.horizon, a.chunk, a.resolution, a.workers)
-        with open(truth_path + ".tmp", "w") as f:
-            json.dump({"key": key, "truth": truth, "seconds": time.time() - t0}, f)
-        os.replace(truth_path + ".tmp", truth_path)
+    truth_path = os.path.join(a.out, "truth.json")
+    truth = cached(truth_path, "truth", key, lambda: measure_truth(episodes, variants, a.horizon, a.chunk, a.resolution, a.workers))
     if a.truth_only:
         print(f"study: true success rates in {truth_path}")
         return
+    judged = cached(os.path.join(a.out, "judged.json"), "judged", {**key, "judge": file_digest(a.judge)},
+                    lambda: judge_simulator(episodes, variants, a.horizon, a.chunk, a.resolution, a.workers, a.judge))
 
     seeds_path = os.path.join(a.out, "episode_seeds.json")
     with open(seeds_path, "w") as f:
@@ -367,24 +432,25 @@ def main(argv=None) -> None:
             except subprocess.TimeoutExpired:
                 proc.kill()
 
-    summary = summarize(truth, estimates, tasks, variants)
+    summary = summarize(truth, estimates, judged, tasks, variants)
     summary["episodes_per_rate"] = a.episodes
     summary["horizon"] = a.horizon
     summary["world_model_flags"] = wm
     with open(os.path.join(a.out, "study.json"), "w") as f:
         json.dump(summary, f, indent=1)
     with open(os.path.join(a.out, "study.csv"), "w") as f:
-        f.write("task,variant,episodes,true_success_rate,estimated_success_rate,errors\n")
+        f.write("task,variant,episodes,true_success_rate,estimated_success_rate,errors,judge_on_simulator_rate\n")
         for r in summary["rates"]:
-            f.write(f"{r['task']},{r['variant']},{r['episodes']},{r['true']:.4f},{r['estimated']:.4f},{r['errors']}\n")
+            f.write(f"{r['task']},{r['variant']},{r['episodes']},{r['true']:.4f},{r['estimated']:.4f},{r['errors']},{r['judged_simulator']:.4f}\n")
     a_ = summary["all"]
     title = f"r = {fmt(a_['pearson_r'])}, rho = {fmt(a_['spearman_rho'])}, MAE = {fmt(a_['mae'])}"
     with open(os.path.join(a.out, "study.svg"), "w") as f:
         f.write(svg_scatter(summary["rates"], tasks, title))
-    print(f"{'task':26s} {'variant':10s} {'true':>6s} {'world model':>11s}")
+    print(f"{'task':26s} {'variant':10s} {'true':>6s} {'world model':>11s} {'judge on simulator':>18s}")
     for r in summary["rates"]:
-        print(f"{r['task']:26s} {r['variant']:10s} {r['true']:6.2f} {r['estimated']:11.2f}")
-    for name, g in [*summary["per_task"].items(), ("all variants x tasks", summary["all"]), ("variants (mean over tasks)", summary["variants_mean_over_tasks"])]:
+        print(f"{r['task']:26s} {r['variant']:10s} {r['true']:6.2f} {r['estimated']:11.2f} {r['judged_simulator']:18.2f}")
+    for name, g in [*summary["per_task"].items(), ("all variants x tasks", summary["all"]), ("variants (mean over tasks)", summary["variants_mean_over_tasks"]),
+                    ("the judge alone, on the simulator's frames", summary["judge_on_simulator_frames"])]:
         print(f"{name}: Pearson r {fmt(g['pearson_r'])}, Spearman {fmt(g['spearman_rho'])}, MAE {fmt(g['mae'])}, "
               f"best {'/'.join(g['best_true'])} ranked first: {g['best_ranked_first']}")
     print(f"study: wrote {os.path.join(a.out, 'study.json')}, study.csv, study.svg")

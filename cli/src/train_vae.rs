@@ -26,7 +26,7 @@ pub struct TrainVaeArgs {
     /// Output VAE file (safetensors with its config and latent statistics).
     #[arg(long, default_value = "runs/vae/vae.safetensors")]
     pub out: PathBuf,
-    /// Frame size WIDTHxHEIGHT, multiples of 16.
+    /// Frame size WIDTHxHEIGHT, multiples of the spatial stride.
     #[arg(long, default_value = "64x48")]
     pub resolution: String,
     /// How frames of another aspect ratio are fitted: crop (BWM), pad or stretch.
@@ -37,6 +37,10 @@ pub struct TrainVaeArgs {
     pub dim: i64,
     #[arg(long, default_value_t = 16)]
     pub dec_dim: i64,
+    /// Pixels per latent cell along each side: 16 (Wan2.2) or 8 (one stage fewer: a 2x finer
+    /// latent grid, for small frames).
+    #[arg(long, default_value_t = 16)]
+    pub spatial_stride: i64,
     /// Frames per training clip (1+4k).
     #[arg(long, default_value_t = 5)]
     pub clip_frames: usize,
@@ -58,7 +62,7 @@ pub struct TrainVaeArgs {
     /// Do not mirror training clips left-right at random (augmentation against memorizing).
     #[arg(long)]
     pub no_flip: bool,
-    /// Train on random WIDTHxHEIGHT windows (multiples of 16) of the frames instead of whole
+    /// Train on random WIDTHxHEIGHT windows (multiples of the spatial stride) of the frames instead of whole
     /// frames (augmentation against memorizing positions); PSNR is measured on whole frames.
     #[arg(long)]
     pub crop: Option<String>,
@@ -123,7 +127,8 @@ pub fn episode_videos(source: &dyn EpisodeSource, episodes: &[usize], cameras: &
 }
 
 pub fn run(a: TrainVaeArgs) -> Result<()> {
-    let size = parse_resolution(&a.resolution, 16)?;
+    let cfg = VaeConfig::with_width(a.dim, a.dec_dim).with_spatial_stride(a.spatial_stride).context("--spatial-stride")?;
+    let size = parse_resolution(&a.resolution, cfg.spatial_stride() as u32)?;
     let device = parse_device(&a.device)?;
     let data = match &a.frames {
         Some(path) => {
@@ -138,7 +143,7 @@ pub fn run(a: TrainVaeArgs) -> Result<()> {
         println!("train-vae: wrote the frames to {}", path.display());
         return Ok(());
     }
-    train(&a, data, device)
+    train(&a, cfg, data, device)
 }
 
 fn decode_frame_sets(a: &TrainVaeArgs, size: (u32, u32)) -> Result<FrameSets> {
@@ -172,10 +177,13 @@ fn decode_frame_sets(a: &TrainVaeArgs, size: (u32, u32)) -> Result<FrameSets> {
     Ok(FrameSets { train: episode_videos(source.as_ref(), &train, &cameras, size, a.resize)?, holdout: episode_videos(source.as_ref(), &holdout, &cameras, size, a.resize)? })
 }
 
-fn train(a: &TrainVaeArgs, data: FrameSets, device: tch::Device) -> Result<()> {
+fn train(a: &TrainVaeArgs, cfg: VaeConfig, data: FrameSets, device: tch::Device) -> Result<()> {
     let frames: i64 = data.train.iter().map(|t| t.size()[1]).sum();
-    let cfg = VaeConfig::with_width(a.dim, a.dec_dim);
-    println!("train-vae: {frames} training frames; VAE dim {} / dec_dim {} (z {}), {} steps of {} clips x {} frames on {:?}", cfg.dim, cfg.dec_dim, cfg.z_dim, a.steps, a.batch, a.clip_frames, device);
+    let stride = cfg.spatial_stride();
+    println!(
+        "train-vae: {frames} training frames; VAE dim {} / dec_dim {} (z {}, spatial stride {stride}), {} steps of {} clips x {} frames on {:?}",
+        cfg.dim, cfg.dec_dim, cfg.z_dim, a.steps, a.batch, a.clip_frames, device
+    );
     let settings = VaeTrainSettings {
         cfg,
         clip_frames: a.clip_frames,
@@ -187,7 +195,7 @@ fn train(a: &TrainVaeArgs, data: FrameSets, device: tch::Device) -> Result<()> {
         device,
         eval_every: a.eval_every,
         flip: !a.no_flip,
-        crop: a.crop.as_deref().map(|c| parse_resolution(c, 16).map(|(w, h)| (w as i64, h as i64))).transpose().context("--crop")?,
+        crop: a.crop.as_deref().map(|c| parse_resolution(c, stride as u32).map(|(w, h)| (w as i64, h as i64))).transpose().context("--crop")?,
     };
     let trained = train_vae(&data, &settings, &mut |line| println!("  {line}"))?;
     save_trained_vae(&trained, &a.out)?;

@@ -1,5 +1,5 @@
 //! The Wan2.2 VAE (`WanVAE_` of `wan/modules/vae2_2.py`, `VideoVAE38_` in DiffSynth-Studio):
-//! 2x2 patchify, causal 3D convolutions run chunk by chunk with a feature cache, 16x spatial and
+//! 2x2 patchify, causal 3D convolutions run chunk by chunk with a feature cache, 16x (or 8x) spatial and
 //! 4x temporal compression, 48 latent channels. Field paths equal the keys of `Wan2.2_VAE.pth`.
 //!
 //! Encode runs the first frame alone, then 4 frames at a time; decode runs one latent frame at a
@@ -60,14 +60,30 @@ impl VaeConfig {
         Self { dim, dec_dim, ..Self::wan22() }
     }
 
+    /// The same architecture with a spatial stride of 16 (Wan2.2's four stages) or 8 (its first
+    /// stage, which halves space only, left out: twice the latent grid per side, for frames too
+    /// small for a 16x grid to place things in).
+    pub fn with_spatial_stride(self, stride: i64) -> Result<Self> {
+        match stride {
+            16 => Ok(Self { dim_mult: vec![1, 2, 4, 4], temporal_downsample: vec![false, true, true], ..self }),
+            8 => Ok(Self { dim_mult: vec![2, 4, 4], temporal_downsample: vec![true, true], ..self }),
+            _ => anyhow::bail!("the VAE's spatial stride must be 8 or 16, got {stride}"),
+        }
+    }
+
     pub fn validate(&self) -> Result<()> {
         ensure!(self.dim > 0 && self.dec_dim > 0 && self.z_dim > 0, "vae.dim, vae.dec_dim and vae.z_dim must be positive");
-        ensure!(self.dim_mult.len() == 4, "vae.dim_mult must have 4 stages (16x spatial compression), got {:?}", self.dim_mult);
+        ensure!(
+            matches!(self.dim_mult.len(), 3 | 4),
+            "vae.dim_mult must have 3 or 4 stages (8x or 16x spatial compression), got {:?}",
+            self.dim_mult
+        );
         ensure!(self.dim_mult.iter().all(|&m| m > 0), "vae.dim_mult must be positive");
         ensure!(self.num_res_blocks > 0, "vae.num_res_blocks must be positive");
         ensure!(
-            self.temporal_downsample.len() == 3,
-            "vae.temporal_downsample must have 3 entries, got {:?}",
+            self.temporal_downsample.len() == self.dim_mult.len() - 1,
+            "vae.temporal_downsample must have one entry per downsampling stage ({}), got {:?}",
+            self.dim_mult.len() - 1,
             self.temporal_downsample
         );
         ensure!(
@@ -75,6 +91,19 @@ impl VaeConfig {
             "vae.temporal_downsample must halve time twice (4x), got {:?}",
             self.temporal_downsample
         );
+        // Each stage's parameter-free shortcut averages groups of its input values (channels x
+        // the cells it merges) into each output channel, so a stage may widen by at most that factor.
+        let widths: Vec<i64> = std::iter::once(1).chain(self.dim_mult.iter().copied()).collect();
+        for (i, pair) in widths.windows(2).enumerate() {
+            let merged = self.temporal_downsample.get(i).map_or(1, |&t| if t { 8 } else { 4 });
+            ensure!(
+                pair[0] * merged % pair[1] == 0 && pair[0] * merged >= pair[1],
+                "vae.dim_mult {:?}: stage {i} widens x{} {} (it can widen by a divisor of {merged})",
+                self.dim_mult,
+                pair[1] as f64 / pair[0] as f64,
+                if i + 1 == self.dim_mult.len() { "without downsampling" } else { "while downsampling" }
+            );
+        }
         Ok(())
     }
 
@@ -82,12 +111,15 @@ impl VaeConfig {
         1 << self.temporal_downsample.iter().filter(|&&t| t).count()
     }
 
-    pub const SPATIAL_STRIDE: i64 = 16;
+    /// Pixels per latent cell along each side: the 2x2 patchify times 2 per downsampling stage.
+    pub fn spatial_stride(&self) -> i64 {
+        2 << (self.dim_mult.len().max(1) - 1)
+    }
 
-    /// [z, 1 + (F - 1) / temporal stride, H / 16, W / 16]: the latent shape of a clip of `frames`
-    /// pixel frames (1 + stride * k) of `height` x `width`.
+    /// [z, 1 + (F - 1) / temporal stride, H / s, W / s] (s = `spatial_stride`): the latent shape of
+    /// a clip of `frames` pixel frames (1 + stride * k) of `height` x `width`.
     pub fn latent_shape(&self, frames: i64, height: i64, width: i64) -> Vec<i64> {
-        let s = Self::SPATIAL_STRIDE;
+        let s = self.spatial_stride();
         vec![self.z_dim, 1 + (frames - 1) / self.temporal_stride(), height / s, width / s]
     }
 }
@@ -613,17 +645,17 @@ impl WanVae {
         ensure!(s.len() == 5 && s[1] == 3, "video must be [B, 3, F, H, W], got shape {s:?}");
         let ts = self.cfg.temporal_stride();
         ensure!(s[2] >= 1 && (s[2] - 1) % ts == 0, "video has {} frames; the VAE needs 1+{ts}k frames (1, 5, 9, ...)", s[2]);
+        let stride = self.cfg.spatial_stride();
         ensure!(
-            s[3] > 0 && s[4] > 0 && s[3] % VaeConfig::SPATIAL_STRIDE == 0 && s[4] % VaeConfig::SPATIAL_STRIDE == 0,
-            "video frames are {}x{} (HxW); both must be positive multiples of {}",
+            s[3] > 0 && s[4] > 0 && s[3] % stride == 0 && s[4] % stride == 0,
+            "video frames are {}x{} (HxW); both must be positive multiples of {stride}",
             s[3],
             s[4],
-            VaeConfig::SPATIAL_STRIDE
         );
         Ok(())
     }
 
-    /// Encoder output (mean and log-variance, unnormalized) [B, 2*z, 1+k, H/16, W/16].
+    /// Encoder output (mean and log-variance, unnormalized) [B, 2*z, 1+k, H/s, W/s].
     pub fn encode_moments(&self, video: &Tensor) -> Result<Tensor> {
         self.check_video(video)?;
         self.encode_moments_checked(video)
@@ -642,7 +674,7 @@ impl WanVae {
         Ok(self.conv1.forward(&Tensor::cat(&outs, 2), None))
     }
 
-    /// Normalized latent means (mu - mean) / std, [B, z, 1+k, H/16, W/16]; deterministic.
+    /// Normalized latent means (mu - mean) / std, [B, z, 1+k, H/s, W/s]; deterministic.
     pub fn encode(&self, video: &Tensor) -> Result<Tensor> {
         Ok(self.normalized_mean(&self.encode_moments(video)?))
     }

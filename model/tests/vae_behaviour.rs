@@ -88,3 +88,33 @@ fn bad_inputs_are_clear_errors() {
     let e = format!("{:#}", WanVae::load(&wide, &small(), Kind::Float, Device::Cpu).err().unwrap());
     assert!(e.contains("encoder.conv1.weight") && e.contains("expected [8, 12, 3, 3, 3]"), "{e}");
 }
+
+#[test]
+fn a_vae_of_stride_8_doubles_the_latent_grid_and_keeps_its_properties() {
+    let cfg = small().with_spatial_stride(8).unwrap();
+    assert_eq!((cfg.spatial_stride(), small().spatial_stride()), (8, 16));
+    assert_eq!(cfg.latent_shape(13, 32, 48), [48, 4, 4, 6]);
+    let (vae, _) = WanVae::random(&cfg, Kind::Float, Device::Cpu, 8).unwrap();
+    let long = video(13, 32, 48, 9);
+    let full = tch::no_grad(|| vae.encode(&long)).unwrap();
+    assert_eq!(full.size(), [1, 48, 4, 4, 6]);
+    let prefix = tch::no_grad(|| vae.encode(&long.narrow(2, 0, 5))).unwrap();
+    assert!(rel_err(&prefix, &full.narrow(2, 0, 2)) < 1e-6, "encoding is causal");
+
+    let mut stream = vae.decoder_stream();
+    let streamed: Vec<Tensor> = tch::no_grad(|| (0..4).map(|i| stream.next(&full.narrow(2, i, 1)).unwrap()).collect());
+    let whole = tch::no_grad(|| vae.decode(&full)).unwrap();
+    assert_eq!(whole.size(), [1, 3, 13, 32, 48]);
+    assert_eq!(rel_err(&Tensor::cat(&streamed, 2), &whole), 0.0);
+
+    let e = format!("{:#}", vae.encode(&video(5, 36, 48, 0)).err().expect("36 is not a multiple of 8"));
+    assert!(e.contains("36x48") && e.contains("multiples of 8"), "{e}");
+    let e = format!("{:#}", small().with_spatial_stride(4).err().unwrap());
+    assert!(e.contains("8 or 16, got 4"), "{e}");
+    let two_stages = VaeConfig { dim_mult: vec![1, 2], temporal_downsample: vec![true], ..small() };
+    assert!(format!("{:#}", two_stages.validate().err().unwrap()).contains("3 or 4 stages"));
+    // Widening in the last stage, which does not downsample, leaves its shortcut nothing to average.
+    let widening = VaeConfig { dim_mult: vec![1, 2, 4], temporal_downsample: vec![true, true], ..small() };
+    let e = format!("{:#}", widening.validate().err().unwrap());
+    assert!(e.contains("stage 2 widens x2 without downsampling"), "{e}");
+}

@@ -31,7 +31,7 @@ pub struct VaeTrainSettings {
     pub eval_every: u64,
     /// Mirror each training clip left-right with probability 1/2.
     pub flip: bool,
-    /// Train on a random (width, height) window of each clip (multiples of 16): the network
+    /// Train on a random (width, height) window of each clip (multiples of the spatial stride): the network
     /// cannot tie what it reconstructs to a position in the frame. Evaluation uses whole frames.
     pub crop: Option<(i64, i64)>,
 }

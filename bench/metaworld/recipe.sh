@@ -9,7 +9,8 @@
 #            simulator on the held-out placements (CPU; $RUN/study/truth.json)
 #   judge    bench/metaworld/judge.py: a success classifier on real frames (accuracy on held-out ones)
 #   study    bench/metaworld/study.py: every policy variant through `bwm evaluate` against its true
-#            success rate in the simulator: $RUN/study/ (study.json, study.csv, study.svg)
+#            success rate in the simulator, and the judge on the simulator's own frames of the same
+#            episodes: $RUN/study/ (study.json, study.csv, study.svg, judged.json)
 # Usage (repository root): bash bench/metaworld/recipe.sh [STAGE ...]   (default: all)
 # Each stage is skipped when its output exists; `train` resumes from its last checkpoint.
 # Environment: RUN (output folder, default runs/metaworld), BWM (the bwm binary, default

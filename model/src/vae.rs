@@ -64,9 +64,10 @@ impl VaeConfig {
     /// stage, which halves space only, left out: twice the latent grid per side, for frames too
     /// small for a 16x grid to place things in).
     pub fn with_spatial_stride(self, stride: i64) -> Result<Self> {
+        let Self { dim_mult, temporal_downsample, .. } = Self::wan22();
         match stride {
-            16 => Ok(Self { dim_mult: vec![1, 2, 4, 4], temporal_downsample: vec![false, true, true], ..self }),
-            8 => Ok(Self { dim_mult: vec![2, 4, 4], temporal_downsample: vec![true, true], ..self }),
+            16 => Ok(Self { dim_mult, temporal_downsample, ..self }),
+            8 => Ok(Self { dim_mult: dim_mult[1..].to_vec(), temporal_downsample: temporal_downsample[1..].to_vec(), ..self }),
             _ => anyhow::bail!("the VAE's spatial stride must be 8 or 16, got {stride}"),
         }
     }

@@ -22,7 +22,7 @@
 //! projection and chunked in the same order), `condition_embedder.time_proj` is Linear(D, 6D) with
 //! the same row order as `time_projection.1` (`unflatten(2, (6, -1))` on both sides), q/k/v/o stay
 //! separate Linears (no fused `to_qkv`), the RMSNorms over the full width (`rms_norm_across_heads`)
-//! keep their [D] weights. [`transform_tensor`] is therefore the identity; it exists so that a
+//! keep their `[D]` weights. [`transform_tensor`] is therefore the identity; it exists so that a
 //! future layout with a real transform has one place to put it.
 
 use std::fmt;

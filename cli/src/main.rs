@@ -1,7 +1,6 @@
 //! `bwm`: the one command of the BWM trainer.
 
 mod bench;
-mod bench_breakdown;
 mod bench_train;
 mod convert;
 mod demo;

@@ -1,16 +1,16 @@
-//! `bwm train-vae`: fit a small Wan2.2-architecture VAE to a dataset's frames.
+//! `bwm train-vae`: fit a small Wan2.2-architecture VAE to a dataset's frames
+//! (`bwm_trainer::vae_frames` selects them, `bwm_trainer::vae_train` trains).
 
 use std::path::PathBuf;
 
-use anyhow::{ensure, Context, Result};
-use bwm_data::frames::{fit, frames_to_tensor, parse_resize, parse_resolution};
-use bwm_data::{open_dataset, CameraSelection, EpisodeSource};
-use bwm_data::ResizeMode;
+use anyhow::{Context, Result};
+use bwm_data::frames::{parse_resize, parse_resolution};
+use bwm_data::{open_dataset, CameraSelection, ResizeMode};
 use bwm_model::vae::VaeConfig;
 use bwm_trainer::devices::parse_device;
+use bwm_trainer::vae_frames::FrameSelection;
 use bwm_trainer::vae_train::{save_trained_vae, train_vae, FrameSets, VaeTrainSettings};
 use clap::Args;
-use tch::Tensor;
 
 #[derive(Args)]
 pub struct TrainVaeArgs {
@@ -82,64 +82,20 @@ pub struct TrainVaeArgs {
     pub frames: Option<PathBuf>,
 }
 
-fn to_u8(t: &Tensor) -> Tensor {
-    ((t + 1.0) * 127.5).round().clamp(0.0, 255.0).to_kind(tch::Kind::Uint8)
-}
-
-fn write_frame_sets(path: &std::path::Path, data: &FrameSets) -> Result<()> {
-    let mut named: Vec<(String, Tensor)> = Vec::new();
-    for (split, videos) in [("train", &data.train), ("holdout", &data.holdout)] {
-        for (i, v) in videos.iter().enumerate() {
-            named.push((format!("{split}.{i:04}"), to_u8(v)));
-        }
-    }
-    Tensor::write_safetensors(&named, path).with_context(|| format!("writing {}", path.display()))
-}
-
-fn read_frame_sets(path: &std::path::Path) -> Result<FrameSets> {
-    let mut named = Tensor::read_safetensors(path).with_context(|| format!("reading {}", path.display()))?;
-    named.sort_by(|a, b| a.0.cmp(&b.0));
-    let mut data = FrameSets { train: vec![], holdout: vec![] };
-    for (name, t) in named {
-        ensure!(t.kind() == tch::Kind::Uint8 && t.dim() == 4 && t.size()[0] == 3, "{}: '{name}' is not a [3, F, H, W] u8 video", path.display());
-        let v = t.to_kind(tch::Kind::Float) / 127.5 - 1.0;
-        match name.split('.').next() {
-            Some("train") => data.train.push(v),
-            Some("holdout") => data.holdout.push(v),
-            _ => anyhow::bail!("{}: unexpected tensor '{name}' (expected train.N / holdout.N)", path.display()),
-        }
-    }
-    ensure!(!data.train.is_empty() && !data.holdout.is_empty(), "{}: needs training and held-out videos", path.display());
-    Ok(data)
-}
-
-/// Every frame of each episode (positions in `source.episodes()`), resized, as [3, F, H, W] in [-1, 1].
-pub fn episode_videos(source: &dyn EpisodeSource, episodes: &[usize], cameras: &CameraSelection, size: (u32, u32), mode: ResizeMode) -> Result<Vec<Tensor>> {
-    episodes
-        .iter()
-        .map(|&i| {
-            let length = source.episodes()[i].length;
-            let frames = source.frames(i, 0..length, cameras)?;
-            let resized: Vec<_> = frames.iter().map(|f| fit(f, size.0, size.1, mode)).collect();
-            frames_to_tensor(&resized).with_context(|| format!("episode position {i} of {}", source.describe()))
-        })
-        .collect()
-}
-
 pub fn run(a: TrainVaeArgs) -> Result<()> {
     let cfg = VaeConfig::with_width(a.dim, a.dec_dim).with_spatial_stride(a.spatial_stride).context("--spatial-stride")?;
     let size = parse_resolution(&a.resolution, cfg.spatial_stride() as u32)?;
     let device = parse_device(&a.device)?;
     let data = match &a.frames {
         Some(path) => {
-            let data = read_frame_sets(path)?;
+            let data = FrameSets::read(path)?;
             println!("train-vae: {} training and {} held-out videos from {}", data.train.len(), data.holdout.len(), path.display());
             data
         }
         None => decode_frame_sets(&a, size)?,
     };
     if let Some(path) = &a.dump_frames {
-        write_frame_sets(path, &data)?;
+        data.write(path)?;
         println!("train-vae: wrote the frames to {}", path.display());
         return Ok(());
     }
@@ -153,28 +109,8 @@ fn decode_frame_sets(a: &TrainVaeArgs, size: (u32, u32)) -> Result<FrameSets> {
         1 => CameraSelection::single(&a.camera[0]),
         _ => CameraSelection::stacked(&a.camera.iter().map(String::as_str).collect::<Vec<_>>()),
     };
-    let n = source.episodes().len().min(a.max_episodes.unwrap_or(usize::MAX));
-    ensure!(n > 0, "{}: no episodes", source.describe());
-    if a.holdout.is_empty() {
-        ensure!(a.holdout_tail > 0.0 && a.holdout_tail < 1.0, "--holdout-tail must lie in (0, 1), got {}", a.holdout_tail);
-        let all: Vec<usize> = (0..n).collect();
-        let videos = episode_videos(source.as_ref(), &all, &cameras, size, a.resize)?;
-        let (mut train, mut holdout) = (Vec::new(), Vec::new());
-        for v in videos {
-            let f = v.size()[1];
-            let held = ((f as f64 * a.holdout_tail).round() as i64).clamp(1, f - 1);
-            train.push(v.narrow(1, 0, f - held));
-            holdout.push(v.narrow(1, f - held, held));
-        }
-        println!("train-vae: {n} episodes, the last {:.0}% of each held out, frames at {}x{} ({:?})", a.holdout_tail * 100.0, size.0, size.1, a.resize);
-        return Ok(FrameSets { train, holdout });
-    }
-    let holdout = a.holdout.clone();
-    ensure!(holdout.iter().all(|&i| i < n), "--holdout {holdout:?}: the dataset has episodes 0..{n}");
-    let train: Vec<usize> = (0..n).filter(|i| !holdout.contains(i)).collect();
-    ensure!(!train.is_empty(), "every episode is held out; nothing to train on");
-    println!("train-vae: {} episodes for training {:?}, held out {:?}, frames at {}x{} ({:?})", train.len(), train, holdout, size.0, size.1, a.resize);
-    Ok(FrameSets { train: episode_videos(source.as_ref(), &train, &cameras, size, a.resize)?, holdout: episode_videos(source.as_ref(), &holdout, &cameras, size, a.resize)? })
+    let selection = FrameSelection { cameras, max_episodes: a.max_episodes, holdout: a.holdout.clone(), holdout_tail: a.holdout_tail, size, resize: a.resize };
+    FrameSets::from_dataset(source.as_ref(), &selection)
 }
 
 fn train(a: &TrainVaeArgs, cfg: VaeConfig, data: FrameSets, device: tch::Device) -> Result<()> {

@@ -59,7 +59,7 @@ impl BwmDataset {
         Ok(Self { root, episodes })
     }
 
-    /// The action vectors of one episode, [frames][d_a]: parquet rows
+    /// The action vectors of one episode, `[frames][d_a]`: parquet rows
     /// `start_frame..start_frame + length`, selected and converted as `spec` says.
     pub fn actions(&self, episode: &Episode, spec: &ActionSpec) -> Result<Vec<Vec<f32>>> {
         let path = self.root.join(&episode.action);
@@ -104,7 +104,7 @@ impl Episode {
     }
 }
 
-/// Reads a list<float> column of a parquet file, one Vec per row (list, large-list or
+/// Reads a `list<float>` column of a parquet file, one Vec per row (list, large-list or
 /// fixed-size-list columns of any numbers; a scalar column gives 1-wide rows).
 pub fn read_list_column(path: &Path, column: &str) -> Result<Vec<Vec<f32>>> {
     let batches = table::read_columns(path, &[column], None)?;

@@ -2,7 +2,7 @@
 //! The trainer never decodes video.
 //!
 //! Layout (version 2): shard files `shard-NNNNN.safetensors`, each holding n clips stacked:
-//! `latents` [n, C, F, h, w] bf16, `actions` [n, F_pixel, d_a] normalized f32, `episode` [n] i64,
+//! `latents` `[n, C, F, h, w]` bf16, `actions` `[n, F_pixel, d_a]` normalized f32, `episode` `[n]` i64,
 //! `frame_ids` [n, F_pixel] i64 and, when the cache keeps pixels, `frames` [n, 3, F_pixel, H, W]
 //! u8 (validation against real pixels). A cache of raw clips (`has_latents: false`, written by
 //! `bwm prepare --raw`) has `frames` and no `latents`: the trainer encodes them as it reads them.

@@ -8,7 +8,9 @@
 //! as a LeRobot dataset), the fidelity report ([`fidelity::run`]: whole-episode rollouts scored
 //! against the real frames) and the policy evaluator ([`evaluate::run`]: policies served over
 //! openpi's websocket protocol in closed loop, judged, with per-task success rates); each is what
-//! the `bwm` subcommand of the same name runs. `examples/step.rs` steps a tiny random model twice and writes the frames:
+//! the `bwm` subcommand of the same name runs. [`bench`](mod@bench) times the DiT, the VAE and whole rollout
+//! chunks; [`demo`] is `bwm demo`. `examples/step.rs` steps a tiny random model twice and writes
+//! the frames:
 //!
 //! ```no_run
 //! use bwm_inference::{WorldModelOptions, tch::{Kind, Tensor}};
@@ -21,6 +23,8 @@
 //! # anyhow::Ok(())
 //! ```
 
+pub mod bench;
+pub mod demo;
 pub mod evaluate;
 pub mod fidelity;
 pub mod msgpack_numpy;

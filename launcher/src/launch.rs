@@ -55,7 +55,7 @@ pub struct LaunchArgs {
     /// Seconds to wait for every node's launcher to join, at the start and at each restart.
     #[arg(long, default_value_t = 300.0)]
     rdzv_timeout: f64,
-    /// Append each rank's stdout and stderr to DIR/rank-<RANK>.log instead of the launcher's.
+    /// Append each rank's stdout and stderr to `DIR/rank-<RANK>.log` instead of the launcher's.
     #[arg(long, value_name = "DIR")]
     log_dir: Option<PathBuf>,
     /// The `bwm` subcommand each rank runs, e.g. `-- train --config configs/tiny.toml`.

@@ -88,7 +88,7 @@ pub struct Rollout<'m> {
 }
 
 impl<'m> Rollout<'m> {
-    /// Starts a rollout at the episode's first frame `x0` [3, H, W] with its action `a0` [d_a].
+    /// Starts a rollout at the episode's first frame `x0` `[3, H, W]` with its action `a0` `[d_a]`.
     pub fn new(model: &'m BwmModel, vae: &'m WanVae, spec: RolloutSpec, x0: &Tensor, a0: &Tensor) -> Result<Self> {
         spec.validate()?;
         let d = model.cfg.action.action_dim;

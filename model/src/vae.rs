@@ -826,7 +826,7 @@ impl WanVae {
 }
 
 /// Metadata key of a VAE file written by `bwm train-vae`: the `VaeConfig` as JSON. Such a file
-/// also holds `latents_mean` and `latents_std` [z], the statistics its latents are normalized with.
+/// also holds `latents_mean` and `latents_std` `[z]`, the statistics its latents are normalized with.
 pub const TRAINED_CONFIG_KEY: &str = "bwm.vae_config";
 
 impl WanVae {
@@ -840,7 +840,7 @@ impl WanVae {
         Ok(())
     }
 
-    /// The latent normalization constants [z] (mean, std).
+    /// The latent normalization constants `[z]` (mean, std).
     pub fn latent_stats(&self) -> (Tensor, Tensor) {
         (self.mean.flatten(0, -1), self.inv_std.reciprocal().flatten(0, -1))
     }

@@ -40,3 +40,11 @@ pub fn parse_kind(s: &str) -> Result<Kind> {
         _ => bail!("dtype '{s}': expected f32 or bf16"),
     }
 }
+
+/// Waits for the work queued on `device` (a no-op on the CPU): what a wall-clock timing of GPU
+/// work needs before reading the clock.
+pub fn synchronize(device: Device) {
+    if let Device::Cuda(i) = device {
+        tch::Cuda::synchronize(i as i64);
+    }
+}

@@ -1,6 +1,7 @@
 //! Training: the BWM objective, AdamW with fp32 master weights, per-block recomputation, the
 //! run loop with checkpoints, metrics, TensorBoard and validation.
 
+pub mod bench;
 pub mod config;
 pub mod device_memory;
 pub mod devices;
@@ -17,6 +18,7 @@ pub mod recompute;
 pub mod report;
 pub mod tensorboard;
 pub mod trainer;
+pub mod vae_frames;
 pub mod vae_train;
 pub mod validation;
 

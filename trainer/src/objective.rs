@@ -1,7 +1,7 @@
 //! The BWM flow-matching objective (ARCHITECTURE.md, Training): per sample a timestep from the
 //! shifted 1000-step grid; x0's latent clean, history latents (1-s_h) z + s_h e_h, future latents
 //! (1-s) z + s e; per-frame timesteps 0 on the condition latents; target v = e - z; loss =
-//! train_weights[t] * MSE over the future latents, in fp32, averaged over the batch.
+//! `train_weights[t]` * MSE over the future latents, in fp32, averaged over the batch.
 
 use anyhow::{ensure, Result};
 use bwm_model::FlowSchedule;
@@ -30,7 +30,7 @@ pub struct Prepared {
     pub input: Tensor,
     pub frame_timesteps: Tensor,
     pub target: Tensor,
-    /// train_weights[t] per sample, [B] fp32.
+    /// `train_weights[t]` per sample, `[B]` fp32.
     pub weights: Tensor,
     pub timestep_indices: Vec<usize>,
 }
@@ -102,7 +102,7 @@ impl Objective {
         })
     }
 
-    /// Per-sample weighted MSE [B] over the future latents of `prediction` [B, C, F, H, W].
+    /// Per-sample weighted MSE `[B]` over the future latents of `prediction` `[B, C, F, H, W]`.
     pub fn per_sample_loss(&self, prediction: &Tensor, prepared: &Prepared) -> Tensor {
         let f = prediction.size()[2];
         let p = self.condition_latents;

@@ -44,6 +44,7 @@ pub struct VaeTrainReport {
 }
 
 /// Videos [3, F, H, W] in [-1, 1]: the training episodes and the held-out ones.
+#[derive(Debug)]
 pub struct FrameSets {
     pub train: Vec<Tensor>,
     pub holdout: Vec<Tensor>,

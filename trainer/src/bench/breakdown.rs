@@ -11,14 +11,10 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use bwm_model::nn::{attention, Linear};
-use bwm_trainer::Trainer;
 use tch::{Device, Kind, Tensor};
 
-fn sync(device: Device) {
-    if let Device::Cuda(i) = device {
-        tch::Cuda::synchronize(i as i64);
-    }
-}
+use crate::devices::synchronize as sync;
+use crate::Trainer;
 
 /// Median seconds of `f` over 5 runs after 2 warm-up runs.
 fn time(device: Device, mut f: impl FnMut() -> Result<()>) -> Result<f64> {

@@ -1,0 +1,83 @@
+//! `bwm info`, the inference benchmarks and `bwm demo` end to end on the CPU at tiny sizes: each
+//! runs its real path (random weights, the bundled episodes) and prints what its docs promise.
+//! The timings themselves are not checked, only that the measurements are there and consistent.
+
+mod common;
+
+use std::process::Command;
+
+use common::{bwm, demo_data, temp_dir, write_random_vae};
+
+/// Runs `bwm ARGS` and returns its standard output; fails the test on a non-zero exit.
+fn run(args: &[&str]) -> String {
+    let out = Command::new(bwm()).args(args).current_dir(env!("CARGO_MANIFEST_DIR")).output().unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(out.status.success(), "bwm {args:?}:\n{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
+    stdout
+}
+
+fn line<'a>(stdout: &'a str, prefix: &str) -> &'a str {
+    stdout.lines().find(|l| l.trim_start().starts_with(prefix)).unwrap_or_else(|| panic!("no line starting '{prefix}' in:\n{stdout}"))
+}
+
+/// The number after `label` on `line`.
+fn number_after(line: &str, label: &str) -> f64 {
+    let at = line.find(label).unwrap_or_else(|| panic!("no '{label}' in '{line}'")) + label.len();
+    line[at..].split_whitespace().next().unwrap().trim_end_matches(['s', ',']).parse().unwrap_or_else(|e| panic!("'{line}' after '{label}': {e}"))
+}
+
+#[test]
+fn info_counts_add_up_to_the_total() {
+    let out = run(&["info", "--preset", "tiny"]);
+    let dit = number_after(line(&out, "DiT:"), "tensors");
+    let action = number_after(line(&out, "action encoder:"), "tensors");
+    let total = number_after(line(&out, "total:"), "tensors");
+    assert!(dit > 0.0 && action > 0.0 && dit + action == total, "{out}");
+}
+
+#[test]
+fn bench_forward_reports_the_clip_and_its_iterations() {
+    let out = run(&["bench-forward", "--preset", "tiny", "--device", "cpu", "--dtype", "f32", "--frames", "9", "--height", "64", "--width", "64", "--warmup", "1", "--iters", "2"]);
+    let l = line(&out, "bench-forward");
+    // 9 frames -> 3 latent frames of 4x4, 1x2x2 patches: 3 x 2 x 2 tokens.
+    assert!(l.contains("dtype=f32 clip=9x64x64 latents=[1,48,3,4,4] tokens=12"), "{l}");
+    assert!(l.contains("over 2 iters"), "{l}");
+    assert!(number_after(l, "mean") >= number_after(l, "min"), "{l}");
+}
+
+#[test]
+fn bench_vae_encodes_decodes_and_streams() {
+    let out = run(&["bench-vae", "--device", "cpu", "--dtype", "f32", "--frames", "5", "--height", "32", "--width", "32", "--iters", "1", "--stream-seconds", "1", "--fps", "8"]);
+    assert!(line(&out, "bench-vae iter 0:").contains("encode 5x32x32 f32 -> [1, 48, 2, 2, 2]"), "{out}");
+    // 8 frames at 8 fps: 1 + 4k latent chunks give 9 frames (the first chunk decodes to one).
+    assert!(line(&out, "stream-decode:").starts_with("stream-decode: 9 frames"), "{out}");
+}
+
+#[test]
+fn bench_rollout_times_each_chunk() {
+    let dir = temp_dir("bench-rollout");
+    let vae = dir.path().join("vae.safetensors");
+    write_random_vae(&vae, 3);
+    let out = run(&[
+        "bench-rollout", "--random-weights", "tiny", "--vae", vae.to_str().unwrap(), "--device", "cpu", "--height", "32", "--width", "32", "--history", "4", "--future", "4",
+        "--sample-steps", "2", "--chunks", "2",
+    ]);
+    assert!(line(&out, "bench-rollout:").contains("x0 + 4 history frames, 4 frames per chunk, 2 Euler steps"), "{out}");
+    for i in 0..2 {
+        let l = line(&out, &format!("chunk {i}:"));
+        assert!(l.contains("; 4 frames;"), "{l}");
+        let parts = ["encode", "DiT", "decode"].map(|p| number_after(l, &format!("{p} ")));
+        assert!(number_after(l, &format!("chunk {i}:")) + 0.02 + 1e-9 >= parts.iter().sum::<f64>(), "the parts exceed the chunk: {l}");
+    }
+}
+
+#[test]
+fn demo_samples_the_clip_and_keeps_the_condition() {
+    let data = demo_data();
+    let out = run(&["demo", "--data", data.to_str().unwrap(), "--steps", "3"]);
+    assert!(out.contains("clip: x0 + 8 history + 8 future frames = 17 action frames"), "{out}");
+    assert_eq!(out.lines().filter(|l| l.trim_start().starts_with("step ")).count(), 3, "{out}");
+    assert!(line(&out, "condition prefix kept exactly").ends_with("max |diff| = 0e0"), "{out}");
+    let err = Command::new(bwm()).args(["demo", "--data", data.to_str().unwrap(), "--episode", "99"]).output().unwrap();
+    assert!(!err.status.success() && String::from_utf8_lossy(&err.stderr).contains("--episode 99 out of range"), "{err:?}");
+}

@@ -1,0 +1,103 @@
+//! `bwm bench-train`: time the real training step (objective, recomputation, AdamW with fp32
+//! masters) of a run config on random weights and a synthetic one-clip latent cache of the
+//! config's clip size; prints step time, throughput, MFU and device memory, and with a breakdown
+//! where the step's time goes ([`breakdown`]).
+
+pub mod breakdown;
+
+use std::path::PathBuf;
+
+use anyhow::Result;
+use bwm_data::latent_cache::{CacheIndex, CacheWriter, ClipEntry};
+use tch::{Device, Kind, Tensor};
+
+use crate::{Resume, RunConfig, Trainer};
+
+/// What [`run`] times: a run config (with `--set` overrides) at a clip size.
+#[derive(Clone, Debug)]
+pub struct BenchTrainOptions {
+    pub config: PathBuf,
+    /// `KEY=VALUE` overrides of the config, as `bwm train --set` takes them.
+    pub overrides: Vec<String>,
+    /// Pixel frames per clip: x0 + history + future.
+    pub history: usize,
+    pub future: usize,
+    pub height: i64,
+    pub width: i64,
+    pub steps: u64,
+    /// After the steps, time one DiT block and its parts and print the step's breakdown.
+    pub breakdown: bool,
+    /// Scratch folder for the synthetic cache and the run's logs (a rank's own `rank-N` below it
+    /// when `RANK` is set).
+    pub out: PathBuf,
+}
+
+/// Writes the synthetic cache under `out`, trains `steps` steps on it from random weights and
+/// prints each step's line, then the breakdown when asked.
+pub fn run(a: &BenchTrainOptions) -> Result<()> {
+    // Ranks of a data-parallel benchmark (`bwm launch -- bench-train`) each get their own folder.
+    let out_root = match std::env::var("RANK") {
+        Ok(rank) => a.out.join(format!("rank-{rank}")),
+        Err(_) => a.out.clone(),
+    };
+    let cache_dir = out_root.join("cache");
+    let pixel_frames = 1 + a.history + a.future;
+    let latent_shape = bwm_model::vae::VaeConfig::wan22().latent_shape(pixel_frames as i64, a.height, a.width);
+    let index = CacheIndex::new(latent_shape.clone(), 14, a.history, a.future, [a.width as u32, a.height as u32], 30.0, "synthetic (bench-train)");
+    let mut w = CacheWriter::create(&cache_dir, index)?;
+    for episode in 0..2 {
+        let latents = Tensor::randn(latent_shape.as_slice(), (Kind::Float, Device::Cpu));
+        let actions = Tensor::rand([pixel_frames as i64, 14], (Kind::Float, Device::Cpu)) * 2.0 - 1.0;
+        w.add(ClipEntry { file: String::new(), episode, frames: (0..pixel_frames).collect(), task: "bench".into() }, &latents, &actions, None)?;
+    }
+    w.finish()?;
+    let mut overrides = vec![
+        format!("data.latent_cache=\"{}\"", cache_dir.display()),
+        "data.holdout_episodes=0".into(),
+        "model.init={from=\"random\"}".into(),
+        format!("run.out_dir=\"{}\"", out_root.join("run").display()),
+        format!("train.steps={}", a.steps),
+        "log.tensorboard=false".into(),
+    ];
+    overrides.extend(a.overrides.iter().cloned());
+    let cfg = RunConfig::load(&a.config, &overrides)?;
+    let out = cfg.out_dir();
+    if out.exists() {
+        std::fs::remove_dir_all(&out)?;
+    }
+    let mut t = Trainer::new(cfg, Resume::No)?;
+    println!(
+        "bench-train: {} ({} parameters, {} trained) on {:?}, {:?}, clip {}x{} with {} frames -> latents {:?}, micro-batch {} x accumulation {}, recompute {}",
+        t.cfg.model.preset,
+        t.model.store.num_parameters(),
+        t.opt.num_trainable(),
+        t.device,
+        t.cfg.model.dtype,
+        a.width,
+        a.height,
+        pixel_frames,
+        latent_shape,
+        t.cfg.train.micro_batch,
+        t.cfg.train.grad_accum,
+        t.cfg.train.recompute
+    );
+    let mut timed = Vec::new();
+    for _ in 0..a.steps {
+        let m = t.train_step()?;
+        println!("{}", m.summary_line(a.steps));
+        timed.push((m.seconds, m.collective_s));
+    }
+    if a.breakdown {
+        // The first step includes warm-up (allocator, autotuning); the median of the others.
+        let mut later: Vec<(f64, f64)> = timed.iter().skip(1).copied().collect();
+        if later.is_empty() {
+            later = timed;
+        }
+        later.sort_by(|x, y| x.0.total_cmp(&y.0));
+        let (seconds, collectives) = later[later.len() / 2];
+        for line in breakdown::breakdown(&t, seconds, collectives)? {
+            println!("{line}");
+        }
+    }
+    Ok(())
+}

@@ -45,7 +45,8 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
                 "TRAIN_SETS",
                 "model.dit.dim=48 model.dit.ffn_dim=96 model.dit.num_layers=1 train.micro_batch=2 checkpoint.every=2 validation.every=2 validation.sample_steps=2",
             )
-            .envs([("JUDGE_STEPS", "5"), ("STUDY_EPISODES", "1"), ("STUDY_JOBS", "2"), ("STUDY_HORIZON", "48"), ("STUDY_VARIANTS", "expert,wrong")]),
+            .envs([("JUDGE_STEPS", "5"), ("STUDY_EPISODES", "1"), ("STUDY_JOBS", "2"), ("STUDY_HORIZON", "48"), ("STUDY_VARIANTS", "expert,wrong")])
+            .env("PROBE_VARIANTS", "wrong-0cm,wrong-6cm"),
         "recipe.sh",
     );
 
@@ -56,7 +57,7 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
     assert_eq!(losses.lines().map(|l| l.split('\t').next().unwrap()).collect::<Vec<_>>(), ["1", "2"], "{losses}");
 
     let timings = std::fs::read_to_string(runs.join("timings.tsv")).unwrap();
-    for stage in ["data-train", "data-val", "vae", "latents", "train", "fidelity", "truth", "judge", "study"] {
+    for stage in ["data-train", "data-val", "vae", "latents", "train", "fidelity", "truth", "judge", "study", "probe"] {
         assert!(timings.lines().any(|l| l.split('\t').next() == Some(stage)), "no {stage} in timings.tsv:\n{timings}\n{log}");
     }
 
@@ -111,6 +112,14 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
     assert_eq!(judged["judged"]["drawer-open-v3"]["wrong"].as_array().map(Vec::len), Some(1), "{judged}");
     assert!(study["per_task"]["drawer-open-v3"]["mae"].is_number(), "{study}");
     assert!(runs.join("study/study.svg").is_file() && runs.join("study/eval-1/episodes.jsonl").is_file());
+
+    // The probe: the graded `wrong` variants through the same study, in their own folder.
+    let probe = json(&runs.join("probe/study.json"));
+    let names: Vec<_> = probe["rates"].as_array().unwrap().iter().map(|r| format!("{}/{}", r["task"].as_str().unwrap(), r["variant"].as_str().unwrap())).collect();
+    assert_eq!(names.len(), 4, "{probe}");
+    for v in ["wrong-0cm", "wrong-6cm"] {
+        assert!(names.iter().any(|n| n.ends_with(&format!("/{v}"))), "{v} missing: {names:?}");
+    }
 }
 
 #[test]

@@ -6,13 +6,17 @@ SawyerButtonPressTopdownV3Policy) in terms of the estimated object and the comma
 integrating their own commands with `next_state` over the chunk they return.
 
 Variants degrade the expert in one way each, with per-episode parameters drawn from the policy's
-seed, so their true success rates spread (README.md has them). Imports numpy only.
+seed, so their true success rates spread (README.md has them). Beside the named ones,
+`wrong-<d>cm` is the expert with every target moved d cm along the task's `wrong` offset: a
+graded `wrong` whose success falls with d, for probing whether a world model's contact follows a
+shifted command. Imports numpy only.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import re
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -107,6 +111,32 @@ VARIANT_PARAMS = {
     },
 }
 VARIANTS: dict[str, list[str]] = {task: list(v) for task, v in VARIANT_PARAMS.items()}
+GRADED = re.compile(r"wrong-(\d+(?:\.\d+)?)cm")
+
+
+def variant_params(task: str, variant: str) -> Params:
+    """A named variant's parameters, or those of `wrong-<d>cm` (see the module's docstring)."""
+    if task not in VARIANT_PARAMS:
+        raise ValueError(f"unknown task {task!r} (known: {', '.join(VARIANT_PARAMS)})")
+    if variant in VARIANT_PARAMS[task]:
+        return VARIANT_PARAMS[task][variant]
+    m = GRADED.fullmatch(variant)
+    if not m:
+        raise ValueError(f"unknown variant {variant!r} for {task} (known: {', '.join(VARIANTS[task])}, wrong-<d>cm)")
+    direction = np.array(VARIANT_PARAMS[task]["wrong"].target)
+    offset = direction / np.linalg.norm(direction) * float(m[1]) / 100
+    return replace(EXPERT, target=tuple(float(x) for x in offset))
+
+
+def check_variants(tasks: list[str], variants: list[str]) -> str | None:
+    """None when every variant is defined for every task, else what is wrong, in one line."""
+    for v in variants:
+        for t in tasks:
+            try:
+                variant_params(t, v)
+            except ValueError as e:
+                return str(e)
+    return None
 
 
 def expert_target(task: str, obj: np.ndarray, state: np.ndarray) -> tuple[np.ndarray, float, bool]:
@@ -134,11 +164,7 @@ GRIP = {"drawer-open-v3": -1.0, "button-press-topdown-v3": 1.0}
 
 class Policy:
     def __init__(self, task: str, variant: str, seed: int):
-        if task not in VARIANT_PARAMS:
-            raise ValueError(f"unknown task {task!r} (known: {', '.join(VARIANT_PARAMS)})")
-        if variant not in VARIANT_PARAMS[task]:
-            raise ValueError(f"unknown variant {variant!r} for {task} (known: {', '.join(VARIANTS[task])})")
-        self.task, self.variant, self.p = task, variant, VARIANT_PARAMS[task][variant]
+        self.task, self.variant, self.p = task, variant, variant_params(task, variant)
         self.reset(seed)
 
     def reset(self, seed: int) -> None:

@@ -193,7 +193,7 @@ def main(argv=None) -> None:
     ap.add_argument("--ready", help="JSON file written once every port listens")
     ap.add_argument("--lifetime", type=float, help="exit after this many seconds")
     a = ap.parse_args(argv)
-    from policies import VARIANTS, make_policy
+    from policies import VARIANTS, check_variants, make_policy
 
     tasks = a.tasks.split(",") if a.tasks else list(VARIANTS)
     for t in tasks:
@@ -201,9 +201,9 @@ def main(argv=None) -> None:
             ap.error(f"unknown task {t!r} (known: {', '.join(VARIANTS)})")
     shared = [v for v in VARIANTS[tasks[0]] if all(v in VARIANTS[t] for t in tasks)]
     variants = a.variants.split(",") if a.variants else shared
-    for v in variants:
-        if v not in shared:
-            ap.error(f"variant {v!r} is not served by every task of {', '.join(tasks)} (shared: {', '.join(shared)})")
+    problem = check_variants(tasks, variants)
+    if problem:
+        ap.error(f"{problem} (shared named variants: {', '.join(shared)})")
     if a.chunk < 1:
         ap.error("--chunk must be at least 1")
     per_task = None

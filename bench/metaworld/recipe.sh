@@ -11,6 +11,9 @@
 #   study    bench/metaworld/study.py: every policy variant through `bwm evaluate` against its true
 #            success rate in the simulator, and the judge on the simulator's own frames of the same
 #            episodes: $RUN/study/ (study.json, study.csv, study.svg, judged.json)
+#   probe    the same study over graded `wrong-<d>cm` variants (the expert with its targets moved d
+#            cm along the task's `wrong` offset): does the model's contact follow a shifted
+#            command as the simulator's does? $RUN/probe/ (same files as study/)
 # Usage (repository root): bash bench/metaworld/recipe.sh [STAGE ...]   (default: all)
 # Each stage is skipped when its output exists; `train` resumes from its last checkpoint.
 # Environment: RUN (output folder, default runs/metaworld), BWM (the bwm binary, default
@@ -39,14 +42,15 @@ STUDY_EPISODES="${STUDY_EPISODES:-50}"    # per task and variant, the first held
 STUDY_JOBS="${STUDY_JOBS:-8}"             # bwm evaluate processes at once
 STUDY_HORIZON="${STUDY_HORIZON:-$FRAMES}" # frames after x0, in the simulator and the world model
 STUDY_VARIANTS="${STUDY_VARIANTS:-}"      # comma-separated (default: all)
+PROBE_VARIANTS="${PROBE_VARIANTS:-wrong-0cm,wrong-1cm,wrong-2cm,wrong-3cm,wrong-4cm,wrong-5cm,wrong-6cm}"
 STAGES=()
 for arg in "$@"; do
   case "$arg" in
-    data|vae|latents|train|fidelity|truth|judge|study) STAGES+=("$arg") ;;
-    *) echo "recipe: unknown stage '$arg' (stages: data vae latents train fidelity truth judge study)" >&2; exit 2 ;;
+    data|vae|latents|train|fidelity|truth|judge|study|probe) STAGES+=("$arg") ;;
+    *) echo "recipe: unknown stage '$arg' (stages: data vae latents train fidelity truth judge study probe)" >&2; exit 2 ;;
   esac
 done
-[ ${#STAGES[@]} -gt 0 ] || STAGES=(data vae latents train fidelity truth judge study)
+[ ${#STAGES[@]} -gt 0 ] || STAGES=(data vae latents train fidelity truth judge study probe)
 [ -x "$BWM" ] || { echo "recipe: no bwm binary at $BWM (make build, or set BWM)" >&2; exit 1; }
 mkdir -p "$RUN"
 wants() { [[ " ${STAGES[*]} " == *" $1 "* ]]; }
@@ -110,8 +114,8 @@ if wants fidelity; then
     --horizons 8,16,32,64 --videos 4 --out "$RUN/fidelity"
 fi
 
-STUDY_ARGS=(--data "$RUN/data/val" --episodes "$STUDY_EPISODES" --horizon "$STUDY_HORIZON" ${STUDY_VARIANTS:+--variants "$STUDY_VARIANTS"}
-            --workers "$WORKERS" --out "$RUN/study")
+COMMON_STUDY_ARGS=(--data "$RUN/data/val" --episodes "$STUDY_EPISODES" --horizon "$STUDY_HORIZON" --workers "$WORKERS")
+STUDY_ARGS=("${COMMON_STUDY_ARGS[@]}" ${STUDY_VARIANTS:+--variants "$STUDY_VARIANTS"} --out "$RUN/study")
 if wants truth; then
   timed truth "$PYTHON" bench/metaworld/study.py "${STUDY_ARGS[@]}" --truth-only
 fi
@@ -127,5 +131,11 @@ if wants study; then
   world_model
   timed study "$PYTHON" bench/metaworld/study.py "${STUDY_ARGS[@]}" --judge "$RUN/judge.pt" --bwm "$BWM" \
     --jobs "$STUDY_JOBS" -- "${WM[@]}"
+fi
+
+if wants probe; then
+  world_model
+  timed probe "$PYTHON" bench/metaworld/study.py "${COMMON_STUDY_ARGS[@]}" --variants "$PROBE_VARIANTS" --out "$RUN/probe" \
+    --judge "$RUN/judge.pt" --bwm "$BWM" --jobs "$STUDY_JOBS" -- "${WM[@]}"
 fi
 echo "recipe: done; stage times in $RUN/timings.tsv"

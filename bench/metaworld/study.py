@@ -372,9 +372,9 @@ def main(argv=None) -> None:
             ap.error(f"unknown task {t!r} (known: {', '.join(policies.VARIANTS)})")
     shared = [v for v in policies.VARIANTS[tasks[0]] if all(v in policies.VARIANTS[t] for t in tasks)]
     variants = a.variants.split(",") if a.variants else shared
-    for v in variants:
-        if v not in shared:
-            ap.error(f"variant {v!r} is not defined for every task (shared: {', '.join(shared)})")
+    problem = policies.check_variants(tasks, variants)
+    if problem:
+        ap.error(f"{problem} (shared named variants: {', '.join(shared)})")
     if a.episodes < 1 or a.jobs < 1 or a.workers < 1:
         ap.error("--episodes, --jobs and --workers must be at least 1")
     if a.truth_only:

@@ -7,11 +7,13 @@
 # Usage: bash scripts/gpu/metaworld.sh [STAGE ...]; logs and timings go to $OUT, the run's small
 # outputs to $OUT/run.tar.gz. With no stage, every stage (independent ones side by side); that
 # takes longer than one device call, so run it detached:
-#   bash scripts/gpu/detached.sh start mw bash scripts/gpu/metaworld.sh; bash scripts/gpu/detached.sh wait mw 570 runs/metaworld/study
+#   bash scripts/gpu/detached.sh start mw bash scripts/gpu/metaworld.sh; bash scripts/gpu/detached.sh wait mw 570 runs/metaworld/study runs/metaworld/probe
 # and the same `wait` in the calls that follow, back to back (a machine idle between calls goes
 # back, and one held 30 minutes goes back when the call in flight ends). The whole run takes about
-# 32 minutes on an H100: four calls, the last started before minute 30. SKIP_FIDELITY=1 leaves out
-# the fidelity stage (which otherwise runs beside the study and slows it).
+# 32 minutes on an H100 without the probe (about 3 minutes more with it): four calls, the last
+# started before minute 30. SKIP_FIDELITY=1 leaves out
+# the fidelity stage (which otherwise runs beside the study and slows it); SKIP_PROBE=1 the probe
+# (graded `wrong` variants, after the study).
 set -uo pipefail
 source "$(dirname "$0")/common.sh"
 for f in .gl/*.deb; do dpkg -x "$f" /; done
@@ -56,6 +58,9 @@ else
     fidelity=
     [ "${SKIP_FIDELITY:-0}" = 1 ] || { recipe fidelity > "$OUT/fidelity.log" 2>&1 & fidelity=$!; }
     recipe study 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
+    if [ $status = 0 ] && [ "${SKIP_PROBE:-0}" != 1 ]; then
+      recipe probe 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
+    fi
     [ -z "$fidelity" ] || wait $fidelity || { echo "metaworld: fidelity failed ($OUT/fidelity.log)"; status=1; }
   fi
 fi

@@ -18,8 +18,10 @@ demo: build
 	"$$bwm" train --config configs/tiny.toml --set run.device='"cpu"' --resume auto
 
 # Every test binary runs even when one fails; one summary line of counts at the end; the tests
-# write under one folder of the run, removed afterwards (scripts/test.sh).
-test:
+# write under one folder of the run, removed afterwards (scripts/test.sh). The end-to-end tests
+# run the `bwm` binary, which `cargo test` does not build (it belongs to another package): build
+# first, so that `make test` works on a fresh clone without `make build`.
+test: build
 	@$(ENV) && bash scripts/test.sh
 
 build:

@@ -3,6 +3,7 @@
 BWM_ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 export BWM_VENV="${BWM_VENV:-$BWM_ROOT/.venv}"
 bash "$BWM_ROOT/scripts/setup.sh" || return 1 2>/dev/null || exit 1
+export TORCHINDUCTOR_CACHE_DIR="${TORCHINDUCTOR_CACHE_DIR:-$BWM_VENV/.torchinductor}"
 export VIRTUAL_ENV="$BWM_VENV"
 export PATH="$BWM_VENV/bin:$PATH"
 export LIBTORCH_USE_PYTORCH=1

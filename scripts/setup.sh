@@ -37,6 +37,9 @@ if [ ${#missing[@]} -gt 0 ]; then
   apt_install || { "${SUDO[@]}" apt-get update -q >&2 && apt_install; }
 fi
 
+# Importing diffusers makes torch create its compile cache; keep it in the virtualenv, not as
+# torchinductor_$USER in the temporary folder of everyone who sources scripts/env.sh.
+export TORCHINDUCTOR_CACHE_DIR="${TORCHINDUCTOR_CACHE_DIR:-$VENV/.torchinductor}"
 if ! { [ -x "$VENV/bin/python" ] && "$VENV/bin/python" - "$TORCH_VERSION" <<'PY' 2>/dev/null
 import sys, torch, numpy, safetensors, tensorboard, pyarrow, h5py, cv2, torchaudio, diffsynth, diffusers, websockets, msgpack
 sys.exit(0 if torch.__version__.split("+")[0] == sys.argv[1] else 1)

@@ -58,11 +58,19 @@ impl ValidationReport {
 /// Predicted latents of one clip: condition prefix (clean x0, history perturbed with a fixed
 /// draw) re-imposed at each of `steps` Euler steps from keyed noise.
 pub fn rollout_clip(run: &(impl ValidationRun + ?Sized), clean: &Tensor, actions: &Tensor, key: u64, steps: usize) -> Result<Tensor> {
+    rollout_clips(run, clean, actions, &[key], steps)
+}
+
+/// `rollout_clip` for a batch of clips [B, ...] in one sampling loop, clip i drawing its noise
+/// from `keys[i]` as it would alone.
+pub fn rollout_clips(run: &(impl ValidationRun + ?Sized), clean: &Tensor, actions: &Tensor, keys: &[u64], steps: usize) -> Result<Tensor> {
     let p = run.objective().condition_latents;
-    let shape = clean.size();
+    let mut shape = clean.size();
+    anyhow::ensure!(shape[0] == keys.len() as i64, "{} clips but {} noise keys", shape[0], keys.len());
+    shape[0] = 1;
     let seed = run.config().run.seed;
-    let history_noise = keyed_rng::normal(&shape, seed, key, Purpose::Validation).to_device(clean.device());
-    let noise = keyed_rng::normal(&shape, seed, key | 1 << 63, Purpose::Validation).to_device(clean.device());
+    let draw = |salt: u64| Tensor::cat(&keys.iter().map(|&k| keyed_rng::normal(&shape, seed, k | salt, Purpose::Validation)).collect::<Vec<_>>(), 0).to_device(clean.device());
+    let (history_noise, noise) = (draw(0), draw(1 << 63));
     let sh = run.objective().history_sigma;
     let prefix = Tensor::cat(
         &[clean.narrow(2, 0, 1), clean.narrow(2, 1, p - 1) * (1.0 - sh) + history_noise.narrow(2, 1, p - 1) * sh],
@@ -89,34 +97,40 @@ pub fn run(run: &mut (impl ValidationRun + ?Sized), step: u64) -> Result<Validat
     let condition_pixels = run.cache().index.pixel_frames - future_frames;
     let (mut mse_sum, mut psnr_sum, mut ssim_sum, mut n) = (0.0, 0.0, 0.0, 0usize);
     let mut strip_rows = Vec::new();
-    for clip_index in run.validation_clips() {
-        let clip = run.clip(clip_index)?;
-        let clean = clip.latents.unsqueeze(0);
-        let actions = clip.actions.unsqueeze(0);
-        let predicted = rollout_clip(run, &clean, &actions, clip_index as u64, cfg.sample_steps)?;
+    // Held-out clips go through the sampler a training micro-batch at a time: one clip per loop
+    // made validation cost more than the training between two validations on small models.
+    let batch = run.config().train.micro_batch.max(1);
+    let held_out: Vec<usize> = run.validation_clips().collect();
+    for indices in held_out.chunks(batch) {
+        let clips = indices.iter().map(|&i| run.clip(i)).collect::<Result<Vec<_>>>()?;
+        let clean = Tensor::stack(&clips.iter().map(|c| c.latents.shallow_clone()).collect::<Vec<_>>(), 0);
+        let actions = Tensor::stack(&clips.iter().map(|c| c.actions.shallow_clone()).collect::<Vec<_>>(), 0);
+        let keys: Vec<u64> = indices.iter().map(|&i| i as u64).collect();
+        let predicted = rollout_clips(run, &clean, &actions, &keys, cfg.sample_steps)?;
         let f = clean.size()[2];
-        mse_sum += (predicted.narrow(2, p, f - p) - clean.narrow(2, p, f - p)).square().mean(Kind::Double).double_value(&[]);
-        n += 1;
+        let err = (predicted.narrow(2, p, f - p) - clean.narrow(2, p, f - p)).square();
+        mse_sum += err.flatten(1, -1).mean_dim(1, false, Kind::Double).sum(Kind::Double).double_value(&[]);
+        n += clips.len();
         if let Some(vae) = &vae {
-            let (pred_px, truth_px) = tch::no_grad(|| -> Result<(Tensor, Tensor)> {
-                let pred = vae.decode(&predicted)?.squeeze_dim(0).clamp(-1.0, 1.0);
-                let truth = match &clip.frames {
+            let decoded = tch::no_grad(|| vae.decode(&predicted))?.clamp(-1.0, 1.0);
+            for (j, clip) in clips.iter().enumerate() {
+                let pred_px = decoded.get(j as i64);
+                let truth_px = match &clip.frames {
                     Some(frames) => frames.to_kind(Kind::Float) / 127.5 - 1.0,
-                    None => vae.decode(&clean)?.squeeze_dim(0).clamp(-1.0, 1.0),
+                    None => tch::no_grad(|| vae.decode(&clean.narrow(0, j as i64, 1)))?.squeeze_dim(0).clamp(-1.0, 1.0),
                 };
-                Ok((pred, truth))
-            })?;
-            let future = |t: &Tensor| t.narrow(1, condition_pixels as i64, future_frames as i64);
-            let (pf, tf) = (future(&pred_px), future(&truth_px));
-            psnr_sum += psnr(&pf, &tf);
-            ssim_sum += ssim(&pf, &tf);
-            if strip_rows.is_empty() {
-                let pick = |t: &Tensor| -> Result<Vec<image::RgbImage>> {
-                    let frames = tensor_to_frames(&t.to_device(Device::Cpu))?;
-                    let stride = (frames.len() / 8).max(1);
-                    Ok(frames.into_iter().step_by(stride).take(8).collect())
-                };
-                strip_rows = vec![pick(&tf)?, pick(&pf)?];
+                let future = |t: &Tensor| t.narrow(1, condition_pixels as i64, future_frames as i64);
+                let (pf, tf) = (future(&pred_px), future(&truth_px));
+                psnr_sum += psnr(&pf, &tf);
+                ssim_sum += ssim(&pf, &tf);
+                if strip_rows.is_empty() {
+                    let pick = |t: &Tensor| -> Result<Vec<image::RgbImage>> {
+                        let frames = tensor_to_frames(&t.to_device(Device::Cpu))?;
+                        let stride = (frames.len() / 8).max(1);
+                        Ok(frames.into_iter().step_by(stride).take(8).collect())
+                    };
+                    strip_rows = vec![pick(&tf)?, pick(&pf)?];
+                }
             }
         }
     }

@@ -5,7 +5,7 @@ mod common;
 
 use bwm_trainer::objective::Objective;
 use bwm_trainer::recompute::{forward_backward, BlockGradSink, GradsInParams, Recompute};
-use bwm_trainer::{Resume, Trainer};
+use bwm_trainer::{validation, Resume, Trainer};
 use common::*;
 use tch::{Kind, Tensor};
 
@@ -262,4 +262,46 @@ fn init_from_pretrained_dit_and_from_a_release_checkpoint() {
     for (n, w) in params.iter().filter(|(n, _)| !n.starts_with("text_embedding.")) {
         assert!(loaded[n].equal(w), "{n} not loaded from the release layout");
     }
+}
+
+#[test]
+fn batched_validation_rollouts_equal_one_clip_at_a_time() {
+    let dir = tmp_dir("validation-batch");
+    let cache = write_cache(&dir.join("cache"), 5, 17);
+    let t = trainer(config(&cache, &dir.join("out"), ""), Resume::No).unwrap();
+    let clips: Vec<_> = (0..3).map(|i| t.cache.load(i, tch::Device::Cpu).unwrap()).collect();
+    let stack = |f: &dyn Fn(&bwm_data::latent_cache::Clip) -> Tensor| Tensor::stack(&clips.iter().map(f).collect::<Vec<_>>(), 0);
+    let (clean, actions) = (stack(&|c| c.latents.shallow_clone()), stack(&|c| c.actions.shallow_clone()));
+    let keys = [4u64, 9, 2];
+    let batched = validation::rollout_clips(&t, &clean, &actions, &keys, 3).unwrap();
+    for (j, &key) in keys.iter().enumerate() {
+        let j = j as i64;
+        let alone = validation::rollout_clip(&t, &clean.narrow(0, j, 1), &actions.narrow(0, j, 1), key, 3).unwrap();
+        let d = max_abs_diff(&batched.narrow(0, j, 1), &alone);
+        assert!(d < 1e-4, "clip {j}: batched rollout differs from its own by {d}");
+    }
+    // Different keys draw different noise: the clips' futures are not all alike.
+    assert!(max_abs_diff(&batched.narrow(0, 0, 1), &batched.narrow(0, 1, 1)) > 1e-3);
+    assert!(validation::rollout_clips(&t, &clean, &actions, &keys[..2], 3).is_err());
+
+    // A validation pass over 3 held-out clips in micro-batches of 2 (2 + 1) reports the mean of
+    // the clips' own future-latent errors.
+    let extra = "[data]\nholdout_episodes = 3\n[train]\nmicro_batch = 2\n[validation]\nsample_steps = 3";
+    let mut t = trainer(config(&cache, &dir.join("out2"), extra), Resume::No).unwrap();
+    let held_out: Vec<usize> = bwm_trainer::validation::ValidationRun::validation_clips(&t).collect();
+    assert_eq!(held_out, vec![2, 3, 4]);
+    let p = t.objective.condition_latents;
+    let expected = held_out
+        .iter()
+        .map(|&i| {
+            let clip = t.cache.load(i, tch::Device::Cpu).unwrap();
+            let clean = clip.latents.unsqueeze(0);
+            let pred = validation::rollout_clip(&t, &clean, &clip.actions.unsqueeze(0), i as u64, 3).unwrap();
+            let f = clean.size()[2];
+            (pred.narrow(2, p, f - p) - clean.narrow(2, p, f - p)).square().mean(Kind::Double).double_value(&[])
+        })
+        .sum::<f64>()
+        / 3.0;
+    let report = validation::run(&mut t, 0).unwrap();
+    assert!((report.latent_mse - expected).abs() < 1e-6 * expected.max(1.0), "{} vs {expected}", report.latent_mse);
 }

@@ -8,6 +8,10 @@ train: judge.py train --data TRAIN_DATASET [...] --val VAL_DATASET [...] --out j
   softness, noise). Writes judge.pt (weights + normalisation per task) and judge.json: accuracy,
   balanced accuracy and confusion counts on the held-out datasets' frames, and the same per
   episode under the serving rule.
+score: judge.py score --model judge.pt --val VAL_DATASET [...] --reconstructed REC [...] --out FILE
+  The trained judge on every held-out frame and on the same frames after a round trip through the
+  world model's VAE (`bwm reconstruct`, one file per dataset): what it concludes from a perfect
+  world model's frames, beside the real ones.
 serve: judge.py serve --model judge.pt --port 9000 [--ready FILE]
   POST (any path) msgpack-numpy {"frames": uint8 [T, H, W, 3], "task", "prompt", "policy",
   "episode"} -> JSON {"success_probability": p, ...}; GET /healthz -> OK.
@@ -65,8 +69,8 @@ def image_column(info: dict) -> str:
 
 
 def load_frames(root: str, max_frames: int, rng: np.random.Generator, known=()) -> dict[str, dict]:
-    """Per task: frames uint8 [N, H, W, 3], success flags, episode indices (at most max_frames,
-    drawn evenly across episodes)."""
+    """Per task: frames uint8 [N, H, W, 3], success flags, episode indices and frame positions in
+    their episode (at most max_frames, drawn evenly across episodes)."""
     import pyarrow.parquet as pq
     from PIL import Image
 
@@ -84,7 +88,7 @@ def load_frames(root: str, max_frames: int, rng: np.random.Generator, known=()) 
     for task, eps in by_task.items():
         total = sum(ep["length"] for ep in eps)
         keep = min(1.0, max_frames / total)
-        frames, flags, episodes = [], [], []
+        frames, flags, episodes, positions = [], [], [], []
         for ep in eps:
             i = ep["episode_index"]
             path = os.path.join(root, info["data_path"].format(episode_chunk=i // chunks, episode_index=i))
@@ -95,7 +99,9 @@ def load_frames(root: str, max_frames: int, rng: np.random.Generator, known=()) 
             frames += [np.asarray(Image.open(io.BytesIO(cells[r])).convert("RGB")) for r in rows]
             flags.append(np.asarray(table.column(flag).to_numpy(zero_copy_only=False), bool)[rows])
             episodes.append(np.full(len(rows), i))
-        out[task] = {"frames": np.stack(frames), "success": np.concatenate(flags), "episode": np.concatenate(episodes)}
+            positions.append(rows)
+        out[task] = {"frames": np.stack(frames), "success": np.concatenate(flags), "episode": np.concatenate(episodes),
+                     "row": np.concatenate(positions)}
     return out
 
 
@@ -203,6 +209,20 @@ def scores(truth: np.ndarray, predicted: np.ndarray) -> dict:
             "recall": recall, "specificity": specificity, "tp": tp, "fp": fp, "tn": tn, "fn": fn}
 
 
+def held_out_scores(h: dict, probs: np.ndarray, window: int) -> tuple[dict, dict]:
+    """Frame scores and episode scores (success held `window` frames, the serving rule) of
+    per-frame probabilities over held-out frames `h` (load_frames' layout)."""
+    eps = np.unique(h["episode"])
+    truth = np.array([h["success"][h["episode"] == e].any() for e in eps])
+    guess = np.array([aggregate(probs[h["episode"] == e], window) >= 0.5 for e in eps])
+    return scores(h["success"], probs >= 0.5), scores(truth, guess)
+
+
+def describe(f: dict, e: dict) -> str:
+    return (f"accuracy {f['accuracy']:.3f}, balanced {f['balanced_accuracy']:.3f} (tp {f['tp']} fp {f['fp']} tn {f['tn']} "
+            f"fn {f['fn']}); episodes: accuracy {e['accuracy']:.3f} (tp {e['tp']} fp {e['fp']} tn {e['tn']} fn {e['fn']})")
+
+
 def pick_device(name: str) -> str:
     import torch
 
@@ -247,15 +267,9 @@ def train(a) -> None:
         if task in held:
             h = held[task]
             probs = predict(net, mean, std, h["frames"], device)
-            entry["held_out_frames"] = scores(h["success"], probs >= 0.5)
-            eps = np.unique(h["episode"])
-            truth = np.array([h["success"][h["episode"] == e].any() for e in eps])
-            guess = np.array([aggregate(probs[h["episode"] == e], a.window) >= 0.5 for e in eps])
-            entry["held_out_episodes"] = scores(truth, guess)
-            f, e = entry["held_out_frames"], entry["held_out_episodes"]
-            print(f"judge: {task}: held-out frames: accuracy {f['accuracy']:.3f}, balanced {f['balanced_accuracy']:.3f} "
-                  f"(tp {f['tp']} fp {f['fp']} tn {f['tn']} fn {f['fn']}); episodes: accuracy {e['accuracy']:.3f} "
-                  f"(tp {e['tp']} fp {e['fp']} tn {e['tn']} fn {e['fn']})", flush=True)
+            f, e = held_out_scores(h, probs, a.window)
+            entry["held_out_frames"], entry["held_out_episodes"] = f, e
+            print(f"judge: {task}: held-out frames: {describe(f, e)}", flush=True)
         models[task] = {"state_dict": {k: v.cpu() for k, v in net.state_dict().items()}, "mean": mean.cpu(), "std": std.cpu(),
                         "resolution": list(d["frames"].shape[1:3])}
         report["tasks"][task] = entry
@@ -265,6 +279,61 @@ def train(a) -> None:
     with open(out_json, "w") as f:
         json.dump(report, f, indent=2)
     print(f"judge: {a.out} and {out_json} written in {report['seconds']:.0f} s", flush=True)
+
+
+def reconstructed_frames(d: dict, reconstruction: dict, source: str) -> np.ndarray:
+    """The frames of `d` (load_frames' layout) taken from a `bwm reconstruct` output instead."""
+    out = np.empty_like(d["frames"])
+    for e in np.unique(d["episode"]):
+        key = f"episode.{e}"
+        if key not in reconstruction:
+            raise ValueError(f"{source} has no {key}: reconstruct the same dataset, every episode")
+        video = reconstruction[key]
+        at = np.flatnonzero(d["episode"] == e)
+        rows = d["row"][at]
+        if video.ndim != 4 or video.shape[0] != 3 or rows.max() >= video.shape[1] or video.shape[2:] != d["frames"].shape[1:3]:
+            raise ValueError(f"{source}: {key} is {list(video.shape)}, not [3, F, H, W] covering {rows.max() + 1} frames of "
+                             f"{d['frames'].shape[1]}x{d['frames'].shape[2]}")
+        out[at] = video[:, rows].transpose(1, 2, 3, 0)
+    return out
+
+
+def score(a) -> None:
+    """The judge on held-out frames and on the same frames after a round trip through the VAE a
+    world model decodes with (`bwm reconstruct`): what it would conclude from a perfect world
+    model's frames."""
+    from safetensors.numpy import load_file
+
+    from mw import TASKS
+
+    if len(a.reconstructed) != len(a.val):
+        raise ValueError(f"{len(a.val)} --val datasets but {len(a.reconstructed)} --reconstructed files (one per dataset, same order)")
+    device = pick_device(a.device)
+    judge = Judge(a.model, device, a.window)
+    real, rec = [], []
+    for root, path in zip(a.val, a.reconstructed):
+        part = load_frames(root, 1 << 62, np.random.default_rng(0), TASKS)
+        reconstruction = load_file(path)
+        real.append(part)
+        rec.append({t: dict(d, frames=reconstructed_frames(d, reconstruction, path)) for t, d in part.items()})
+    real, rec = merge(real), merge(rec)
+    report = {"judge": a.model, "window": judge.window, "reconstructed": a.reconstructed, "tasks": {}}
+    for task in sorted(real):
+        if task not in judge.models:
+            raise ValueError(f"{a.model} has no model for task {task!r} (models: {', '.join(judge.models)})")
+        net, mean, std, _ = judge.models[task]
+        entry = {}
+        for name, d in (("real", real[task]), ("reconstructed", rec[task])):
+            f, e = held_out_scores(d, predict(net, mean, std, d["frames"], device), judge.window)
+            entry[name] = {"frames": f, "episodes": e}
+            print(f"judge: {task}: {name} held-out frames: {describe(f, e)}", flush=True)
+        diff = real[task]["frames"].astype(np.float64) - rec[task]["frames"].astype(np.float64)
+        entry["reconstruction_psnr_db"] = float(10 * np.log10(255.0 ** 2 / max(np.mean(diff ** 2), 1e-12)))
+        report["tasks"][task] = entry
+    with open(a.out + ".tmp", "w") as f:
+        json.dump(report, f, indent=2)
+    os.replace(a.out + ".tmp", a.out)
+    print(f"judge: wrote {a.out}", flush=True)
 
 
 # --- serving -------------------------------------------------------------------------------------
@@ -375,7 +444,7 @@ def serve(a) -> None:
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description="Meta-World success judge: train a frame classifier per task, or serve it over HTTP")
+    ap = argparse.ArgumentParser(description="Meta-World success judge: train a frame classifier per task, score it, or serve it over HTTP")
     sub = ap.add_subparsers(dest="command", required=True)
     t = sub.add_parser("train", help="train on datasets' frames labelled by the simulator's success flag")
     t.add_argument("--data", nargs="+", required=True, help="LeRobot v2.1 datasets from generate.py")
@@ -389,6 +458,13 @@ def main(argv=None) -> None:
     t.add_argument("--window", type=int, default=3, help="consecutive frames the serving rule asks for")
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--device", default="auto", help="auto, cpu or cuda")
+    c = sub.add_parser("score", help="a trained judge on held-out frames and on the same frames through a VAE (bwm reconstruct)")
+    c.add_argument("--model", default="judge.pt")
+    c.add_argument("--val", nargs="+", required=True, help="held-out LeRobot datasets")
+    c.add_argument("--reconstructed", nargs="+", required=True, help="`bwm reconstruct` outputs, one per --val dataset")
+    c.add_argument("--out", required=True, help="JSON report")
+    c.add_argument("--window", type=int, help="override the model's window")
+    c.add_argument("--device", default="auto")
     s = sub.add_parser("serve", help="answer bwm evaluate's HTTP judge requests")
     s.add_argument("--model", default="judge.pt")
     s.add_argument("--host", default="127.0.0.1")
@@ -401,7 +477,7 @@ def main(argv=None) -> None:
     if getattr(a, "window", None) is not None and a.window < 1:
         ap.error("--window must be at least 1")
     try:
-        (train if a.command == "train" else serve)(a)
+        {"train": train, "score": score, "serve": serve}[a.command](a)
     except (ValueError, FileNotFoundError) as e:
         raise SystemExit(f"judge: {e}")
 

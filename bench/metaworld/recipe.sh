@@ -8,6 +8,9 @@
 #   truth    bench/metaworld/study.py --truth-only: each policy variant's true success rate in the
 #            simulator on the held-out placements (CPU; $RUN/study/truth.json)
 #   judge    bench/metaworld/judge.py: a success classifier on real frames (accuracy on held-out ones)
+#   ceiling  bwm reconstruct + judge.py score: the judge on the held-out frames after a round trip
+#            through the VAE, i.e. what it concludes from a perfect world model's frames:
+#            $RUN/ceiling/judge.json
 #   study    bench/metaworld/study.py: every policy variant through `bwm evaluate` against its true
 #            success rate in the simulator, and the judge on the simulator's own frames of the same
 #            episodes: $RUN/study/ (study.json, study.csv, study.svg, judged.json)
@@ -46,11 +49,11 @@ PROBE_VARIANTS="${PROBE_VARIANTS:-wrong-0cm,wrong-1cm,wrong-2cm,wrong-3cm,wrong-
 STAGES=()
 for arg in "$@"; do
   case "$arg" in
-    data|vae|latents|train|fidelity|truth|judge|study|probe) STAGES+=("$arg") ;;
-    *) echo "recipe: unknown stage '$arg' (stages: data vae latents train fidelity truth judge study probe)" >&2; exit 2 ;;
+    data|vae|latents|train|fidelity|truth|judge|ceiling|study|probe) STAGES+=("$arg") ;;
+    *) echo "recipe: unknown stage '$arg' (stages: data vae latents train fidelity truth judge ceiling study probe)" >&2; exit 2 ;;
   esac
 done
-[ ${#STAGES[@]} -gt 0 ] || STAGES=(data vae latents train fidelity truth judge study probe)
+[ ${#STAGES[@]} -gt 0 ] || STAGES=(data vae latents train fidelity truth judge ceiling study probe)
 [ -x "$BWM" ] || { echo "recipe: no bwm binary at $BWM (make build, or set BWM)" >&2; exit 1; }
 mkdir -p "$RUN"
 wants() { [[ " ${STAGES[*]} " == *" $1 "* ]]; }
@@ -125,6 +128,16 @@ if wants judge; then
     timed judge "$PYTHON" bench/metaworld/judge.py train --data "$RUN/data/train" --val "$RUN/data/val" \
       --steps "$JUDGE_STEPS" --device "$DEVICE" --out "$RUN/judge.pt"
   fi
+fi
+
+if wants ceiling; then
+  ceiling() {
+    "$BWM" reconstruct --data "$RUN/data/val" --vae "$RUN/vae.safetensors" --resolution 64x64 --device "$DEVICE" \
+      --out "$RUN/ceiling/val.safetensors" &&
+    "$PYTHON" bench/metaworld/judge.py score --model "$RUN/judge.pt" --val "$RUN/data/val" \
+      --reconstructed "$RUN/ceiling/val.safetensors" --device "$DEVICE" --out "$RUN/ceiling/judge.json"
+  }
+  timed ceiling ceiling
 fi
 
 if wants study; then

@@ -8,6 +8,7 @@ mod evaluate;
 mod export;
 mod fidelity;
 mod prepare;
+mod reconstruct;
 mod rollout;
 mod serve;
 mod stats;
@@ -59,6 +60,9 @@ enum Command {
     Train(train::TrainArgs),
     /// Fit a small Wan2.2-architecture VAE to a dataset's frames (real pixels for CPU runs).
     TrainVae(train_vae::TrainVaeArgs),
+    /// Round-trip a dataset's frames through a trained VAE: what a world model decoding with it
+    /// can show at best (u8 safetensors per episode, and the PSNR).
+    Reconstruct(reconstruct::ReconstructArgs),
     /// Print a model preset's module tree summary: tensors and parameters (nothing is allocated).
     Info(bench::InfoArgs),
     /// Time the DiT forward on random weights of a preset at a given clip size.
@@ -90,6 +94,7 @@ fn main() {
         Command::Submit(a) => submit::run(a),
         Command::Train(a) => train::run(a),
         Command::TrainVae(a) => train_vae::run(a),
+        Command::Reconstruct(a) => reconstruct::run(a),
         Command::Info(a) => bench::info(a),
         Command::BenchForward(a) => bench::forward(a),
         Command::BenchVae(a) => bench::vae(a),

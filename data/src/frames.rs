@@ -75,6 +75,11 @@ pub fn frames_to_tensor(frames: &[RgbImage]) -> Result<Tensor> {
     Ok((t.permute([3, 0, 1, 2]).to_kind(Kind::Float) / 127.5 - 1.0).contiguous())
 }
 
+/// Pixels in [-1, 1] (any shape, values outside clamped) as u8 0..255, rounded.
+pub fn unit_to_u8(t: &Tensor) -> Tensor {
+    ((t.clamp(-1.0, 1.0) + 1.0) * 127.5).round().to_kind(Kind::Uint8)
+}
+
 /// The inverse of `frames_to_tensor` for [3, F, H, W] or [1, 3, F, H, W] (any float kind and
 /// device): values are clamped to [-1, 1] and rounded to the nearest 8-bit level.
 pub fn tensor_to_frames(t: &Tensor) -> Result<Vec<RgbImage>> {
@@ -87,7 +92,7 @@ pub fn tensor_to_frames(t: &Tensor) -> Result<Vec<RgbImage>> {
     ensure!(t.is_floating_point(), "expected a floating-point tensor, got {:?}", t.kind());
     let t = t.to_device(Device::Cpu).to_kind(Kind::Float).view([3, f, h, w]);
     ensure!(!bool::try_from(t.isnan().any())?, "tensor of shape {size:?} holds NaN");
-    let bytes = ((t.clamp(-1.0, 1.0) + 1.0) * 127.5).round().to_kind(Kind::Uint8).permute([1, 2, 3, 0]).contiguous();
+    let bytes = unit_to_u8(&t).permute([1, 2, 3, 0]).contiguous();
     let bytes = Vec::<u8>::try_from(bytes.view([-1])).context("copying frame bytes out of the tensor")?;
     let (w, h) = (u32::try_from(w)?, u32::try_from(h)?);
     let frame_len = (w * h * 3) as usize;

@@ -619,11 +619,7 @@ fn generate(wm: &WorldModel, req: &ChunkRequest, queued: f64) -> Result<Vec<u8>,
     let chunk = rollout
         .next_chunk(&actions.narrow(0, t, n))
         .map_err(failed)?;
-    let pixels = ((chunk.frames.clamp(-1.0, 1.0) + 1.0) * 127.5)
-        .round()
-        .to_kind(Kind::Uint8)
-        .permute([1, 2, 3, 0])
-        .contiguous();
+    let pixels = bwm_data::frames::unit_to_u8(&chunk.frames).permute([1, 2, 3, 0]).contiguous();
     let pixels = Vec::<u8>::try_from(pixels.view([-1])).map_err(|e| failed(e.into()))?;
     let applied = if req.normalized {
         tensor_rows(&chunk.actions)

@@ -695,6 +695,22 @@ impl WanVae {
         Ok(latents.to_kind(Kind::BFloat16))
     }
 
+    /// The VAE's reconstruction of video [B, 3, F, H, W] in [-1, 1], for any F >= 1: the last
+    /// frame is repeated up to the next 1+4k frames for the encoder and the repeats dropped after
+    /// decoding. Clamped to [-1, 1]; no gradients.
+    pub fn round_trip(&self, video: &Tensor) -> Result<Tensor> {
+        let s = video.size();
+        ensure!(s.len() == 5 && s[1] == 3 && s[2] >= 1, "video must be [B, 3, F, H, W] with F >= 1, got shape {s:?}");
+        let ts = self.cfg.temporal_stride();
+        let pad = (ts - (s[2] - 1) % ts) % ts;
+        let padded = match pad {
+            0 => video.shallow_clone(),
+            _ => Tensor::cat(&[video.shallow_clone(), video.narrow(2, s[2] - 1, 1).repeat([1, 1, pad, 1, 1])], 2),
+        };
+        let out = tch::no_grad(|| self.encode(&padded).and_then(|z| self.decode(&z)))?;
+        Ok(out.narrow(2, 0, s[2]).clamp(-1.0, 1.0))
+    }
+
     /// Starts a streaming decode of normalized latents: one latent frame in, its pixel frames out.
     pub fn decoder_stream(&self) -> DecodeStream<'_> {
         DecodeStream { vae: self, cache: FeatCache::default(), first: true }

@@ -118,3 +118,19 @@ fn a_vae_of_stride_8_doubles_the_latent_grid_and_keeps_its_properties() {
     let e = format!("{:#}", widening.validate().err().unwrap());
     assert!(e.contains("stage 2 widens x2 without downsampling"), "{e}");
 }
+
+#[test]
+fn a_round_trip_keeps_any_frame_count_and_equals_decode_of_encode() {
+    let (vae, _) = WanVae::random(&small(), Kind::Float, Device::Cpu, 4).unwrap();
+    let v = video(7, 32, 32, 5);
+    let back = vae.round_trip(&v).unwrap();
+    assert_eq!(back.size(), v.size());
+    assert!(back.max().double_value(&[]) <= 1.0 && back.min().double_value(&[]) >= -1.0);
+    // 7 frames are padded to 9 with the last frame; the first 7 decoded frames are kept.
+    let padded = Tensor::cat(&[v.shallow_clone(), v.narrow(2, 6, 1).repeat([1, 1, 2, 1, 1])], 2);
+    let direct = tch::no_grad(|| vae.decode(&vae.encode(&padded).unwrap())).unwrap().clamp(-1.0, 1.0);
+    assert!(rel_err(&back, &direct.narrow(2, 0, 7)) < 1e-6);
+    assert_eq!(vae.round_trip(&v.narrow(2, 0, 5)).unwrap().size(), [1, 3, 5, 32, 32]);
+    let err = vae.round_trip(&v.narrow(1, 0, 2)).unwrap_err().to_string();
+    assert!(err.contains("[B, 3, F, H, W]"), "{err}");
+}

@@ -45,17 +45,24 @@ case "$mode" in
     cp "$dir/log" "${OUT:-/tmp/out}/$name.log"
     rm -rf "$dir/pack"; mkdir -p "$dir/pack"; cp -r "$dir/out" "$dir/pack/out"
     rm -rf "$dir/videos"; mkdir -p "$dir/videos"
+    # The first episode of each videos/ folder goes in an archive of its own, as many as fit in
+    # 14 MiB (files over the device tool's 16 MiB limit do not come back, and the measurements must).
+    video_bytes=0 video_left=0
     for d in "$@"; do
-      [ -d "$d" ] && find "$d" -type f -size -3M -not -path '*/videos/*' -exec cp --parents {} "$dir/pack/" \;
-      # The first episode of each videos/ folder, in an archive of its own: files over the device
-      # tool's 16 MiB limit do not come back, and the measurements must.
-      [ -d "$d" ] && find "$d" -type f -size -3M -path '*/videos/*' -name 'episode_000.*' -exec cp --parents {} "$dir/videos/" \;
+      [ -d "$d" ] || continue
+      find "$d" -type f -size -3M -not -path '*/videos/*' -exec cp --parents {} "$dir/pack/" \;
+      while IFS= read -r f; do
+        size=$(stat -c %s "$f")
+        if [ $((video_bytes + size)) -le $((14 << 20)) ]; then
+          cp --parents "$f" "$dir/videos/"; video_bytes=$((video_bytes + size))
+        else
+          video_left=$((video_left + 1))
+        fi
+      done < <(find "$d" -type f -size -3M -path '*/videos/*' -name 'episode_000.*' | sort)
     done
+    [ "$video_left" -gt 0 ] && echo "detached: $video_left episode videos left out of $name-videos.tar.gz (over 14 MiB in all)"
     tar -czf "${OUT:-/tmp/out}/$name.tar.gz" -C "$dir/pack" .
     tar -czf "${OUT:-/tmp/out}/$name-videos.tar.gz" -C "$dir/videos" .
-    if [ "$(stat -c %s "${OUT:-/tmp/out}/$name-videos.tar.gz")" -gt $((15 << 20)) ]; then
-      rm "${OUT:-/tmp/out}/$name-videos.tar.gz"; echo "detached: the videos' archive is over 15 MiB; left out"
-    fi
     if [ -f "$dir/rc" ]; then
       rc=$(cat "$dir/rc"); echo "detached: $name ended with status $rc"
       [ "$rc" = 0 ] && exit 0 || exit 1

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # bench/metaworld/recipe.sh on a lent GPU machine (device tool), from the repo root. Carry:
 #   .whl          bench/metaworld's wheels for that machine's Python 3.12 (metaworld, mujoco,
-#                 gymnasium, farama-notifications, pyopengl, websockets; README of the device tool)
+#                 gymnasium, farama-notifications, pyopengl, websockets, safetensors; README of the
+#                 device tool)
 #   .gl           the GL loader debs (libegl1, libglvnd0, libopengl0, ...), for MuJoCo through EGL
 #   .carry/bwm.xz the bwm binary built with --no-default-features (xz: the carry limit is 64 MiB)
 # Usage: bash scripts/gpu/metaworld.sh [STAGE ...]; logs and timings go to $OUT, the run's small
@@ -29,7 +30,7 @@ nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | 
 python3 - <<'PY' || exit 1
 import importlib
 missing = []
-for name in ("numpy", "torch", "pyarrow", "PIL", "scipy", "msgpack", "websockets", "metaworld", "mujoco"):
+for name in ("numpy", "torch", "pyarrow", "PIL", "scipy", "msgpack", "safetensors", "websockets", "metaworld", "mujoco"):
     try:
         m = importlib.import_module(name)
         print(f"{name} {getattr(m, '__version__', '')}")
@@ -44,7 +45,7 @@ if [ $# -gt 0 ]; then
   status=${PIPESTATUS[0]}
 else
   # Every stage, the independent ones side by side: truth (MuJoCo, CPU) and the judge (a small
-  # CNN) beside the VAE, latents and DiT; fidelity beside the study.
+  # CNN) beside the VAE, latents and DiT; fidelity and the judge's ceiling beside the study.
   status=0
   recipe data 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
   if [ $status = 0 ]; then
@@ -57,11 +58,13 @@ else
   if [ $status = 0 ]; then
     fidelity=
     [ "${SKIP_FIDELITY:-0}" = 1 ] || { recipe fidelity > "$OUT/fidelity.log" 2>&1 & fidelity=$!; }
+    recipe ceiling > "$OUT/ceiling.log" 2>&1 & ceiling=$!
     recipe study 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
     if [ $status = 0 ] && [ "${SKIP_PROBE:-0}" != 1 ]; then
       recipe probe 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
     fi
     [ -z "$fidelity" ] || wait $fidelity || { echo "metaworld: fidelity failed ($OUT/fidelity.log)"; status=1; }
+    wait $ceiling || { echo "metaworld: ceiling failed ($OUT/ceiling.log)"; status=1; }
   fi
 fi
 # What the run measured comes back as one archive (small files only; the datasets, latents,

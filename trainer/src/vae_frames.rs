@@ -1,14 +1,17 @@
 //! The frames a VAE is trained on ([`FrameSets`]): decoded and resized from any dataset `bwm
 //! prepare` reads, split into training and held-out videos, and stored as u8 safetensors so that
-//! a machine without FFmpeg can train from frames decoded elsewhere.
+//! a machine without FFmpeg can train from frames decoded elsewhere; and a dataset's frames after
+//! a round trip through a trained VAE ([`reconstruct`]).
 
 use std::path::Path;
 
 use anyhow::{bail, ensure, Context, Result};
-use bwm_data::frames::{fit, frames_to_tensor};
+use bwm_data::frames::{fit, frames_to_tensor, unit_to_u8};
 use bwm_data::{CameraSelection, EpisodeSource, ResizeMode};
+use bwm_model::vae::WanVae;
 use tch::{Kind, Tensor};
 
+use crate::image_metrics::psnr;
 use crate::vae_train::FrameSets;
 
 /// Which episodes and frames of a dataset become [`FrameSets`], at what size.
@@ -39,8 +42,47 @@ pub fn episode_videos(source: &dyn EpisodeSource, episodes: &[usize], cameras: &
         .collect()
 }
 
-fn to_u8(t: &Tensor) -> Tensor {
-    ((t + 1.0) * 127.5).round().clamp(0.0, 255.0).to_kind(Kind::Uint8)
+/// One episode's frames after a round trip through a VAE ([`reconstruct`]).
+pub struct Reconstruction {
+    /// The dataset's own episode number.
+    pub episode_index: i64,
+    /// [3, F, H, W] u8.
+    pub frames: Tensor,
+    /// PSNR (dB) of the reconstruction against the episode's resized frames.
+    pub psnr: f64,
+}
+
+/// Every frame of the episodes at `episodes` (positions in `source.episodes()`) through `vae` on
+/// `device`: what a world model decoding with this VAE could show at best. `on_episode(done)`
+/// after each.
+pub fn reconstruct(
+    source: &dyn EpisodeSource,
+    episodes: &[usize],
+    cameras: &CameraSelection,
+    size: (u32, u32),
+    mode: ResizeMode,
+    vae: &WanVae,
+    device: tch::Device,
+    on_episode: &mut dyn FnMut(usize),
+) -> Result<Vec<Reconstruction>> {
+    let mut out = Vec::with_capacity(episodes.len());
+    for (done, &i) in episodes.iter().enumerate() {
+        let video = episode_videos(source, &[i], cameras, size, mode)?.remove(0);
+        let back = vae.round_trip(&video.to_device(device).unsqueeze(0))?.squeeze_dim(0).to_device(tch::Device::Cpu);
+        let frames = unit_to_u8(&back);
+        out.push(Reconstruction { episode_index: source.episodes()[i].index, psnr: psnr(&back, &video), frames });
+        on_episode(done + 1);
+    }
+    Ok(out)
+}
+
+/// Writes reconstructions as u8 tensors `episode.<episode_index>` ([3, F, H, W]) of one
+/// safetensors file, through a temporary file renamed into place.
+pub fn write_reconstructions(path: &Path, reconstructions: &[Reconstruction]) -> Result<()> {
+    let named: Vec<(String, &Tensor)> = reconstructions.iter().map(|r| (format!("episode.{}", r.episode_index), &r.frames)).collect();
+    let tmp = path.with_extension("safetensors.partial");
+    Tensor::write_safetensors(&named, &tmp).with_context(|| format!("writing {}", tmp.display()))?;
+    std::fs::rename(&tmp, path).with_context(|| format!("renaming {} to {}", tmp.display(), path.display()))
 }
 
 impl FrameSets {
@@ -78,7 +120,7 @@ impl FrameSets {
         let mut named: Vec<(String, Tensor)> = Vec::new();
         for (split, videos) in [("train", &self.train), ("holdout", &self.holdout)] {
             for (i, v) in videos.iter().enumerate() {
-                named.push((format!("{split}.{i:04}"), to_u8(v)));
+                named.push((format!("{split}.{i:04}"), unit_to_u8(v)));
             }
         }
         Tensor::write_safetensors(&named, path).with_context(|| format!("writing {}", path.display()))

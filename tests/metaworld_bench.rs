@@ -109,6 +109,7 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
         let (a, b) = (t["real"]["frames"]["accuracy"].as_f64().unwrap(), judge["tasks"][task]["held_out_frames"]["accuracy"].as_f64().unwrap());
         assert!((a - b).abs() <= 0.02, "{ceiling}\n{judge}");
         assert!(t["reconstruction_psnr_db"].as_f64().is_some_and(|p| p > 0.0 && p < 100.0), "{ceiling}");
+        assert_eq!(t["object_position"]["episodes"], 1, "{ceiling}");
     }
 
     let study = json(&runs.join("study/study.json"));

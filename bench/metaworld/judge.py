@@ -298,6 +298,25 @@ def reconstructed_frames(d: dict, reconstruction: dict, source: str) -> np.ndarr
     return out
 
 
+def object_position_error(task: str, real: dict, rec: dict) -> dict:
+    """Where policies.perceive places the object in each episode's first frame, real against
+    reconstructed: how far (cm, in xy) the decoder moves what a policy, and the world model,
+    must locate."""
+    import policies
+
+    errors, unseen = [], 0
+    for at in np.flatnonzero(real["row"] == 0):
+        a, b = policies.perceive(task, real["frames"][at]), policies.perceive(task, rec["frames"][at])
+        if a is None or b is None:
+            unseen += 1
+        else:
+            errors.append(100 * float(np.linalg.norm(a[:2] - b[:2])))
+    e = np.array(errors)
+    return {"episodes": len(errors) + unseen, "unseen": unseen,
+            "mean_cm": float(e.mean()) if len(e) else None, "p90_cm": float(np.percentile(e, 90)) if len(e) else None,
+            "max_cm": float(e.max()) if len(e) else None}
+
+
 def score(a) -> None:
     """The judge on held-out frames and on the same frames after a round trip through the VAE a
     world model decodes with (`bwm reconstruct`): what it would conclude from a perfect world
@@ -329,6 +348,12 @@ def score(a) -> None:
             print(f"judge: {task}: {name} held-out frames: {describe(f, e)}", flush=True)
         diff = real[task]["frames"].astype(np.float64) - rec[task]["frames"].astype(np.float64)
         entry["reconstruction_psnr_db"] = float(10 * np.log10(255.0 ** 2 / max(np.mean(diff ** 2), 1e-12)))
+        entry["object_position"] = object_position_error(task, real[task], rec[task])
+        o = entry["object_position"]
+        if o["mean_cm"] is not None:
+            print(f"judge: {task}: reconstruction {entry['reconstruction_psnr_db']:.2f} dB; the object perceived "
+                  f"{o['mean_cm']:.2f} cm from where the real first frame shows it (p90 {o['p90_cm']:.2f}, max {o['max_cm']:.2f}; "
+                  f"{o['unseen']} of {o['episodes']} unseen)", flush=True)
         report["tasks"][task] = entry
     with open(a.out + ".tmp", "w") as f:
         json.dump(report, f, indent=2)

@@ -123,6 +123,12 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
         assert!(r["judged_simulator"].as_f64().is_some_and(|v| (0.0..=1.0).contains(&v)), "{r}");
     }
     assert_eq!(study["all"]["n"], 4, "{study}");
+    assert_eq!(study["per_episode"]["n"], 4, "one episode per rate, each paired with its truth: {study}");
+    for r in rates {
+        let e = &r["per_episode"];
+        let counts: u64 = ["both_success", "missed", "invented", "both_fail"].iter().map(|k| e[k].as_u64().unwrap()).sum();
+        assert_eq!(counts, 1, "{r}");
+    }
     assert_eq!(study["judge_on_simulator_frames"]["n"], 4, "{study}");
     let judged = json(&runs.join("study/judged.json"));
     assert_eq!(judged["judged"]["drawer-open-v3"]["wrong"].as_array().map(Vec::len), Some(1), "{judged}");
@@ -136,6 +142,11 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
     for v in ["wrong-0cm", "wrong-6cm"] {
         assert!(names.iter().any(|n| n.ends_with(&format!("/{v}"))), "{v} missing: {names:?}");
     }
+}
+
+#[test]
+fn the_study_scores_rates_and_episodes() {
+    run(Command::new(python()).arg(Path::new(ROOT).join("bench/metaworld/tests/test_study.py")), "test_study.py");
 }
 
 #[test]

@@ -188,16 +188,34 @@ def agreement(names: list[str], estimated: list[float], true: list[float]) -> di
     }
 
 
+def episode_agreement(true: list[bool], estimated: list[bool]) -> dict:
+    """Whether the world model gets *which* episodes succeed: the share of episodes whose outcome
+    it draws as the simulator does, and Cohen's kappa (that share above what the two success
+    rates alone would give by chance; None when chance already explains everything)."""
+    t, e = np.asarray(true, bool), np.asarray(estimated, bool)
+    observed = float((t == e).mean())
+    chance = float(t.mean() * e.mean() + (1 - t.mean()) * (1 - e.mean()))
+    kappa = (observed - chance) / (1 - chance) if chance < 1 else None
+    return {"n": len(t), "agreement": observed, "chance": chance, "kappa": kappa,
+            "both_success": int((t & e).sum()), "missed": int((t & ~e).sum()), "invented": int((~t & e).sum()), "both_fail": int((~t & ~e).sum())}
+
+
 def summarize(truth: dict, estimates: dict, judged: dict, tasks: list[str], variants: list[str]) -> dict:
     """Agreement of the world model's estimates with the truth; `judged` (the judge on the
     simulator's frames) adds that column and its own agreement, the judge's share of the error."""
-    rows = []
+    rows, pooled_true, pooled_est = [], [], []
     for t in tasks:
         for v in variants:
             est = estimates[t][v]
+            # Episode k of a task is the k-th held-out placement and policy seed in both.
+            by_episode = {e["episode"]: bool(e["success"]) for e in est}
+            paired = [(bool(ok), by_episode[k]) for k, ok in enumerate(truth[t][v]) if k in by_episode]
+            pooled_true += [p[0] for p in paired]
+            pooled_est += [p[1] for p in paired]
             rows.append({"task": t, "variant": v, "episodes": len(truth[t][v]), "true": float(np.mean(truth[t][v])),
                          "estimated": float(np.mean([e["success"] for e in est])), "errors": sum(e["error"] is not None for e in est),
-                         "judged_simulator": float(np.mean([p >= THRESHOLD for p in judged[t][v]]))})
+                         "judged_simulator": float(np.mean([p >= THRESHOLD for p in judged[t][v]])),
+                         "per_episode": episode_agreement([p[0] for p in paired], [p[1] for p in paired])})
     per_task = {}
     for t in tasks:
         mine = [r for r in rows if r["task"] == t]
@@ -207,7 +225,7 @@ def summarize(truth: dict, estimates: dict, judged: dict, tasks: list[str], vari
     by_variant = agreement(variants, [mean(v, "estimated") for v in variants], [mean(v, "true") for v in variants])
     judge_alone = agreement([f"{r['variant']}/{r['task']}" for r in rows], [r["judged_simulator"] for r in rows], [r["true"] for r in rows])
     return {"rates": rows, "per_task": per_task, "all": overall, "variants_mean_over_tasks": by_variant,
-            "judge_on_simulator_frames": judge_alone}
+            "judge_on_simulator_frames": judge_alone, "per_episode": episode_agreement(pooled_true, pooled_est)}
 
 
 def fmt(v) -> str:
@@ -446,13 +464,18 @@ def main(argv=None) -> None:
     title = f"r = {fmt(a_['pearson_r'])}, rho = {fmt(a_['spearman_rho'])}, MAE = {fmt(a_['mae'])}"
     with open(os.path.join(a.out, "study.svg"), "w") as f:
         f.write(svg_scatter(summary["rates"], tasks, title))
-    print(f"{'task':26s} {'variant':10s} {'true':>6s} {'world model':>11s} {'judge on simulator':>18s}")
+    print(f"{'task':26s} {'variant':10s} {'true':>6s} {'world model':>11s} {'judge on simulator':>18s} {'same outcome':>12s} {'kappa':>6s}")
     for r in summary["rates"]:
-        print(f"{r['task']:26s} {r['variant']:10s} {r['true']:6.2f} {r['estimated']:11.2f} {r['judged_simulator']:18.2f}")
+        e = r["per_episode"]
+        print(f"{r['task']:26s} {r['variant']:10s} {r['true']:6.2f} {r['estimated']:11.2f} {r['judged_simulator']:18.2f} "
+              f"{e['agreement']:12.2f} {fmt(e['kappa']):>6s}")
     for name, g in [*summary["per_task"].items(), ("all variants x tasks", summary["all"]), ("variants (mean over tasks)", summary["variants_mean_over_tasks"]),
                     ("the judge alone, on the simulator's frames", summary["judge_on_simulator_frames"])]:
         print(f"{name}: Pearson r {fmt(g['pearson_r'])}, Spearman {fmt(g['spearman_rho'])}, MAE {fmt(g['mae'])}, "
               f"best {'/'.join(g['best_true'])} ranked first: {g['best_ranked_first']}")
+    e = summary["per_episode"]
+    print(f"per episode, pooled: the world model draws the simulator's outcome in {e['agreement']:.3f} of {e['n']} episodes "
+          f"(chance {e['chance']:.3f}, kappa {fmt(e['kappa'])}; missed {e['missed']} successes, invented {e['invented']})")
     print(f"study: wrote {os.path.join(a.out, 'study.json')}, study.csv, study.svg")
 
 

@@ -100,6 +100,19 @@ print(json.dumps(t["action"]))
     let rows = got.vectors(0, &spec).unwrap();
     assert!(rows.iter().zip(&recorded).any(|(a, r)| a.iter().zip(r).any(|(x, y)| (x - y).abs() > 1e-4)));
 
+    // DPM-Solver++(2M) in place of Euler: the same episode, other frames (its last step is second
+    // order); an unknown solver is refused by name.
+    let dpm = dir.join("dpm");
+    let d = rollout(&["--vae", vae.to_str().unwrap(), "--data", data.to_str().unwrap(), "--out", dpm.to_str().unwrap(), "--episodes", "0", "--solver", "dpm++2m"]);
+    assert!(d.status.success());
+    let psnr = |root: &std::path::Path| -> f64 {
+        let text = std::fs::read_to_string(root.join("compare/metrics.jsonl")).unwrap();
+        serde_json::from_str::<serde_json::Value>(text.lines().next().unwrap()).unwrap()["psnr"].as_f64().unwrap()
+    };
+    assert!(psnr(&dpm).is_finite() && psnr(&dpm) != psnr(&out), "dpm++2m {} vs euler {}", psnr(&dpm), psnr(&out));
+    let bad = rollout(&["--vae", vae.to_str().unwrap(), "--data", data.to_str().unwrap(), "--out", dir.join("bad").to_str().unwrap(), "--solver", "unipc"]);
+    assert!(!bad.status.success() && String::from_utf8_lossy(&bad.stderr).contains("dpm++2m"));
+
     // Bad input: clear errors, nothing written.
     let bad = rollout(&["--vae", vae.to_str().unwrap(), "--data", data.to_str().unwrap(), "--out", dir.join("bad").to_str().unwrap(), "--drive", "file"]);
     assert!(!bad.status.success() && String::from_utf8_lossy(&bad.stderr).contains("--actions-dir"));

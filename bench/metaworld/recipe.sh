@@ -39,7 +39,8 @@ VAE_BATCH="${VAE_BATCH:-32}"
 VAE_STRIDE="${VAE_STRIDE:-16}"           # pixels per latent cell: 16 (4x4 latents at 64x64) or 8 (8x8)
 TRAIN_STEPS="${TRAIN_STEPS:-}"            # default: configs/metaworld.toml's
 TRAIN_SETS="${TRAIN_SETS:-}"              # more `--set KEY=VALUE` for bwm train, space-separated
-SAMPLE_STEPS="${SAMPLE_STEPS:-20}"        # Euler steps per generated chunk
+SAMPLE_STEPS="${SAMPLE_STEPS:-20}"        # sampler steps per generated chunk
+SOLVER="${SOLVER:-euler}"                 # euler or dpm++2m (bwm --solver)
 JUDGE_STEPS="${JUDGE_STEPS:-600}"
 STUDY_EPISODES="${STUDY_EPISODES:-50}"    # per task and variant, the first held-out episodes
 STUDY_JOBS="${STUDY_JOBS:-8}"             # bwm evaluate processes at once
@@ -108,7 +109,7 @@ fi
 world_model() {
   local ckpt="$RUN/checkpoints/$(cat "$RUN/checkpoints/latest")"
   WM=(--checkpoint "$ckpt" --vae "$RUN/vae.safetensors" --stats "$RUN/latents/stat.json" --stats-group observation.state
-      --history 8 --future 24 --sample-steps "$SAMPLE_STEPS" --device "$DEVICE")
+      --history 8 --future 24 --sample-steps "$SAMPLE_STEPS" --solver "$SOLVER" --device "$DEVICE")
 }
 
 if wants fidelity; then

@@ -51,11 +51,15 @@ pub struct WorldModelArgs {
     /// Frames K generated per chunk (the training clips' K).
     #[arg(long, default_value_t = 72)]
     pub future: usize,
-    /// Euler steps per chunk.
+    /// Sampler steps per chunk.
     #[arg(long, default_value_t = 50)]
     pub sample_steps: usize,
     #[arg(long, default_value_t = bwm_model::schedule::DEFAULT_SHIFT)]
     pub shift: f64,
+    /// How the sampler steps: euler (the reference's) or dpm++2m (DPM-Solver++(2M), second
+    /// order at one model evaluation per step).
+    #[arg(long, default_value = "euler")]
+    pub solver: bwm_model::schedule::Solver,
     /// Noise level of the history latents (default: the training level, 0.2083); 0 turns it off.
     #[arg(long)]
     pub history_sigma: Option<f64>,
@@ -79,6 +83,7 @@ impl WorldModelArgs {
             future: self.future,
             sample_steps: self.sample_steps,
             shift: self.shift,
+            solver: self.solver,
             history_sigma: self.history_sigma,
             seed: self.seed,
         }

@@ -7,6 +7,7 @@ use anyhow::{bail, ensure, Context, Result};
 use bwm_checkpoints::open::{build_model, open_any, trained_residual};
 use bwm_data::ActionStats;
 use bwm_model::rollout::{default_history_sigma, Rollout, RolloutSpec};
+use bwm_model::schedule::Solver;
 use bwm_model::vae::{VaeConfig, WanVae};
 use bwm_model::{BwmModel, ModelConfig};
 use bwm_trainer::config::Residual;
@@ -41,9 +42,11 @@ pub struct WorldModelOptions {
     pub history: usize,
     /// Frames K generated per chunk (the training clips' K).
     pub future: usize,
-    /// Euler steps per chunk.
+    /// Sampler steps per chunk.
     pub sample_steps: usize,
     pub shift: f64,
+    /// How the sampler steps: Euler (the reference's) or DPM-Solver++(2M).
+    pub solver: Solver,
     /// Noise level of the history latents (None: the training level, 0.2083); 0 turns it off.
     pub history_sigma: Option<f64>,
     pub seed: u64,
@@ -65,6 +68,7 @@ impl Default for WorldModelOptions {
             future: 72,
             sample_steps: 50,
             shift: bwm_model::schedule::DEFAULT_SHIFT,
+            solver: Solver::Euler,
             history_sigma: None,
             seed: 0,
         }
@@ -100,6 +104,7 @@ impl WorldModelOptions {
             future: self.future,
             steps: self.sample_steps,
             shift: self.shift,
+            solver: self.solver,
             history_sigma: (sigma > 0.0).then_some(sigma),
             seed: self.seed,
         };

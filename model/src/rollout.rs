@@ -14,7 +14,7 @@ use tch::{Device, Kind, Tensor};
 use crate::bwm::BwmModel;
 use crate::keyed_rng::{self, Purpose};
 use crate::sampler::sample_chunk;
-use crate::schedule::{FlowSchedule, DEFAULT_SHIFT, NUM_TRAIN_TIMESTEPS};
+use crate::schedule::{FlowSchedule, Solver, DEFAULT_SHIFT, NUM_TRAIN_TIMESTEPS};
 use crate::vae::WanVae;
 
 /// The history-noise level the BWM release trains and samples with (`FlowSchedule::history_sigma`).
@@ -28,9 +28,11 @@ pub struct RolloutSpec {
     pub history: usize,
     /// K: pixel frames generated per chunk (a positive multiple of 4).
     pub future: usize,
-    /// Euler steps per chunk.
+    /// Sampler steps per chunk.
     pub steps: usize,
     pub shift: f64,
+    /// How the sampler steps (Euler: the reference's).
+    pub solver: Solver,
     /// Noise level of the history latents in the prefix (drawn once per chunk); None: clean.
     pub history_sigma: Option<f64>,
     pub seed: u64,
@@ -39,7 +41,7 @@ pub struct RolloutSpec {
 impl RolloutSpec {
     /// BWM defaults: 50 steps, shift 5, history noise 0.2083.
     pub fn new(history: usize, future: usize) -> Self {
-        Self { history, future, steps: 50, shift: DEFAULT_SHIFT, history_sigma: Some(default_history_sigma()), seed: 0 }
+        Self { history, future, steps: 50, shift: DEFAULT_SHIFT, solver: Solver::Euler, history_sigma: Some(default_history_sigma()), seed: 0 }
     }
 
     pub fn validate(&self) -> Result<()> {
@@ -109,7 +111,7 @@ impl<'m> Rollout<'m> {
         Ok(Self {
             model,
             vae,
-            schedule: FlowSchedule::inference(spec.steps, spec.shift),
+            schedule: FlowSchedule::inference(spec.steps, spec.shift).with_solver(spec.solver),
             spec,
             x0: x0.to_device(Device::Cpu).to_kind(Kind::Float),
             a0: a0.to_device(Device::Cpu).to_kind(Kind::Float),

@@ -1,5 +1,6 @@
-//! Euler sampling of one chunk with a fixed condition prefix (clean x0 latent + perturbed history),
-//! re-imposed before every step and at the end (BWM inference, without the release's sigma=1 bug).
+//! Sampling of one chunk with a fixed condition prefix (clean x0 latent + perturbed history),
+//! re-imposed before every step and at the end (BWM inference, without the release's sigma=1 bug),
+//! stepped by the schedule's solver (Euler unless chosen otherwise).
 
 use anyhow::{ensure, Result};
 use tch::Tensor;
@@ -26,12 +27,13 @@ pub fn sample_chunk(
     let (b, frames, p) = (ns[0], ns[2], ps[2]);
     let future = ns[2] - p;
     let mut latents = noise.shallow_clone();
+    let mut stepper = schedule.stepper();
     for i in 0..schedule.len() {
         latents = Tensor::cat(&[prefix.shallow_clone(), latents.narrow(2, p, future)], 2);
         let t = Tensor::full([b], schedule.timesteps[i], (tch::Kind::Float, noise.device()));
         let v = model.forward(&latents, &frame_timesteps(&t, frames, p), actions)?;
         on_step(i, &latents, &v);
-        latents = schedule.euler_step(&latents, &v, i);
+        latents = stepper.step(&latents, &v, i);
     }
     Ok(Tensor::cat(&[prefix.shallow_clone(), latents.narrow(2, p, future)], 2))
 }

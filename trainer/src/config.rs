@@ -368,9 +368,12 @@ pub struct ValidationSection {
     /// Roll out held-out clips every N steps (0 = off).
     #[serde(default)]
     pub every: u64,
-    /// Euler steps of the validation rollout.
+    /// Sampler steps of the validation rollout.
     #[serde(default = "default_sample_steps")]
     pub sample_steps: usize,
+    /// How the validation sampler steps: "euler" or "dpm++2m".
+    #[serde(default)]
+    pub solver: bwm_model::schedule::Solver,
     /// VAE to decode rollouts into pixels for PSNR/SSIM and the frame strip: a `bwm train-vae`
     /// output or the published Wan2.2 VAE (`.pth` or safetensors).
     #[serde(default)]
@@ -383,7 +386,7 @@ fn default_sample_steps() -> usize {
 
 impl Default for ValidationSection {
     fn default() -> Self {
-        Self { every: 0, sample_steps: default_sample_steps(), vae: None }
+        Self { every: 0, sample_steps: default_sample_steps(), solver: Default::default(), vae: None }
     }
 }
 

@@ -76,7 +76,7 @@ pub fn rollout_clips(run: &(impl ValidationRun + ?Sized), clean: &Tensor, action
         &[clean.narrow(2, 0, 1), clean.narrow(2, 1, p - 1) * (1.0 - sh) + history_noise.narrow(2, 1, p - 1) * sh],
         2,
     );
-    let schedule = FlowSchedule::inference(steps, run.config().objective.shift);
+    let schedule = FlowSchedule::inference(steps, run.config().objective.shift).with_solver(run.config().validation.solver);
     let kind = run.model().store.kind();
     let out = tch::no_grad(|| {
         sample_chunk(run.model(), &prefix.to_kind(kind), &noise.to_kind(kind), actions, &schedule, &mut |_, _, _| {})

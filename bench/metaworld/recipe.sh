@@ -46,6 +46,7 @@ STUDY_EPISODES="${STUDY_EPISODES:-50}"    # per task and variant, the first held
 STUDY_JOBS="${STUDY_JOBS:-8}"             # bwm evaluate processes at once
 STUDY_HORIZON="${STUDY_HORIZON:-$FRAMES}" # frames after x0, in the simulator and the world model
 STUDY_VARIANTS="${STUDY_VARIANTS:-}"      # comma-separated (default: all)
+STUDY_DIR="${STUDY_DIR:-$RUN/study}"      # where the study writes (another, to compare sampler settings)
 PROBE_VARIANTS="${PROBE_VARIANTS:-wrong-0cm,wrong-1cm,wrong-2cm,wrong-3cm,wrong-4cm,wrong-5cm,wrong-6cm}"
 STAGES=()
 for arg in "$@"; do
@@ -119,7 +120,7 @@ if wants fidelity; then
 fi
 
 COMMON_STUDY_ARGS=(--data "$RUN/data/val" --episodes "$STUDY_EPISODES" --horizon "$STUDY_HORIZON" --workers "$WORKERS")
-STUDY_ARGS=("${COMMON_STUDY_ARGS[@]}" ${STUDY_VARIANTS:+--variants "$STUDY_VARIANTS"} --out "$RUN/study")
+STUDY_ARGS=("${COMMON_STUDY_ARGS[@]}" ${STUDY_VARIANTS:+--variants "$STUDY_VARIANTS"} --out "$STUDY_DIR")
 if wants truth; then
   timed truth "$PYTHON" bench/metaworld/study.py "${STUDY_ARGS[@]}" --truth-only
 fi

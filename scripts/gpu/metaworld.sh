@@ -14,7 +14,8 @@
 # 32 minutes on an H100 without the probe (about 3 minutes more with it): four calls, the last
 # started before minute 30. SKIP_FIDELITY=1 leaves out
 # the fidelity stage (which otherwise runs beside the study and slows it); SKIP_PROBE=1 the probe
-# (graded `wrong` variants, after the study).
+# (graded `wrong` variants, after the study). COMPARE_SOLVER=dpm++2m studies the same model a
+# second time with that sampler (runs/metaworld/study-dpm++2m).
 set -uo pipefail
 source "$(dirname "$0")/common.sh"
 for f in .gl/*.deb; do dpkg -x "$f" /; done
@@ -60,6 +61,10 @@ else
     [ "${SKIP_FIDELITY:-0}" = 1 ] || { recipe fidelity > "$OUT/fidelity.log" 2>&1 & fidelity=$!; }
     recipe ceiling > "$OUT/ceiling.log" 2>&1 & ceiling=$!
     recipe study 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
+    if [ $status = 0 ] && [ -n "${COMPARE_SOLVER:-}" ]; then
+      SOLVER=$COMPARE_SOLVER STUDY_DIR=runs/metaworld/study-$COMPARE_SOLVER recipe study 2>&1 | tee -a "$OUT/recipe.log"
+      [ "${PIPESTATUS[0]}" = 0 ] || status=1
+    fi
     if [ $status = 0 ] && [ "${SKIP_PROBE:-0}" != 1 ]; then
       recipe probe 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
     fi

@@ -46,11 +46,7 @@ pub fn run(a: ReconstructArgs) -> Result<()> {
     let source = open_dataset(&a.data)?;
     let n = source.episodes().len().min(a.max_episodes.unwrap_or(usize::MAX));
     ensure!(n > 0, "{}: no episodes", source.describe());
-    let cameras = match a.camera.len() {
-        0 => CameraSelection::default(),
-        1 => CameraSelection::single(&a.camera[0]),
-        _ => CameraSelection::stacked(&a.camera.iter().map(String::as_str).collect::<Vec<_>>()),
-    };
+    let cameras = CameraSelection::from_names(&a.camera);
     if let Some(dir) = a.out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     }

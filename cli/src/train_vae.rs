@@ -104,11 +104,7 @@ pub fn run(a: TrainVaeArgs) -> Result<()> {
 
 fn decode_frame_sets(a: &TrainVaeArgs, size: (u32, u32)) -> Result<FrameSets> {
     let source = open_dataset(&a.data)?;
-    let cameras = match a.camera.len() {
-        0 => CameraSelection::default(),
-        1 => CameraSelection::single(&a.camera[0]),
-        _ => CameraSelection::stacked(&a.camera.iter().map(String::as_str).collect::<Vec<_>>()),
-    };
+    let cameras = CameraSelection::from_names(&a.camera);
     let selection = FrameSelection { cameras, max_episodes: a.max_episodes, holdout: a.holdout.clone(), holdout_tail: a.holdout_tail, size, resize: a.resize };
     FrameSets::from_dataset(source.as_ref(), &selection)
 }

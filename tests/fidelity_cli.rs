@@ -38,6 +38,7 @@ fn fidelity_report_scores_rollouts_and_baselines_per_frame_and_horizon() {
 
     let report: Value = serde_json::from_str(&std::fs::read_to_string(out.join("fidelity.json")).unwrap()).unwrap();
     assert_eq!(report["episodes"], 3);
+    assert_eq!(report["solver"], "euler", "the sampler is recorded: {report}");
     let lines: Vec<Value> = std::fs::read_to_string(out.join("episodes.jsonl")).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect();
     assert_eq!(lines.len(), 3);
 

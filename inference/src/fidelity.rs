@@ -170,6 +170,7 @@ pub fn run(options: &WorldModelOptions, a: &FidelityOptions) -> Result<()> {
         "history": wm.spec.history,
         "future": wm.spec.future,
         "sample_steps": wm.spec.steps,
+        "solver": wm.spec.solver.to_string(),
         "seed": wm.spec.seed,
         "tasks": tasks,
         "all": all,

@@ -101,6 +101,7 @@ struct ModelInfo {
     history: usize,
     future: usize,
     sample_steps: usize,
+    solver: String,
     stats: bool,
 }
 
@@ -166,6 +167,7 @@ pub fn serve(wm: &WorldModelOptions, a: &ServeOptions) -> Result<()> {
                 history: wm.spec.history,
                 future: wm.spec.future,
                 sample_steps: wm.spec.steps,
+                solver: wm.spec.solver.to_string(),
                 stats: wm.stats.is_some(),
             };
             if ready_tx.send(Ok(info)).is_err() {
@@ -399,6 +401,7 @@ fn health(shared: &Shared) -> String {
         "history": i.history,
         "future": i.future,
         "sample_steps": i.sample_steps,
+        "solver": i.solver,
         "stats": i.stats,
         "queue_depth": c.pending.load(Ordering::SeqCst).saturating_sub(usize::from(c.busy.load(Ordering::SeqCst))),
         "queue_capacity": shared.queue_capacity,
@@ -668,6 +671,7 @@ mod tests {
             history: 4,
             future: 4,
             sample_steps: 1,
+            solver: "euler".into(),
             stats: false,
         }
     }

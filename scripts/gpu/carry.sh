@@ -1,0 +1,54 @@
+#!/usr/bin/env bash
+# What the GPU scripts need carried to a lent machine (device tool), prepared on this machine from
+# the repo root: .carry/bwm.xz (the bwm binary built with --no-default-features, stripped and
+# xz-compressed: the carry limit is 64 MiB), .whl (bench/metaworld's wheels for that machine's
+# Python 3.12) and .gl (the GL loader debs MuJoCo's EGL rendering needs there). Each part is
+# skipped when present; --rebuild rebuilds and repacks the binary. Then, for example:
+#   run(carry=[".whl", ".gl", ".carry"], command="bash scripts/gpu/metaworld.sh data")
+# The three folders must be git-ignored (.git/info/exclude) so that the device tool carries them
+# only when asked. Respects BWM_VENV and CARGO_TARGET_DIR (default ~/.cache/bwm-gpu-target, kept
+# apart from the CPU build's target: the feature sets differ).
+set -euo pipefail
+cd "$(dirname "${BASH_SOURCE[0]}")/../.."
+rebuild=0
+case "${1:-}" in
+  "") ;;
+  --rebuild) rebuild=1 ;;
+  *) echo "usage: scripts/gpu/carry.sh [--rebuild]" >&2; exit 2 ;;
+esac
+for d in .carry .whl .gl; do
+  git check-ignore -q "$d/x" || { echo "carry: $d is not git-ignored; add /$d/ to .git/info/exclude" >&2; exit 1; }
+done
+export CARGO_TARGET_DIR="${CARGO_TARGET_DIR:-$HOME/.cache/bwm-gpu-target}"
+source scripts/env.sh
+
+if [ $rebuild = 1 ] || [ ! -f .carry/bwm.xz ]; then
+  echo "carry: building bwm without FFmpeg/HDF5 into $CARGO_TARGET_DIR (several minutes cold)"
+  cargo build --release -p bwm-cli --no-default-features
+  mkdir -p .carry
+  strip -o .carry/bwm.tmp "$CARGO_TARGET_DIR/release/bwm"
+  xz -T0 -6 -c .carry/bwm.tmp > .carry/bwm.xz.tmp && rm .carry/bwm.tmp && mv .carry/bwm.xz.tmp .carry/bwm.xz
+fi
+
+# Pinned as bench/metaworld/requirements.txt and the virtualenv's safetensors; websockets as the
+# venv's. The lent machines run Python 3.12 on x86_64.
+WHEELS=(metaworld==3.1.1 mujoco==3.3.0 gymnasium==1.4.0 farama-notifications==0.0.4 PyOpenGL==3.1.10 glfw==2.11.0
+        "websockets==$("$BWM_VENV/bin/python" -c 'import websockets; print(websockets.__version__)')"
+        "safetensors==$("$BWM_VENV/bin/python" -c 'import safetensors; print(safetensors.__version__)')")
+if [ ! -d .whl ] || [ "$(ls .whl/*.whl 2>/dev/null | wc -l)" -lt ${#WHEELS[@]} ]; then
+  mkdir -p .whl
+  "$BWM_VENV/bin/pip" download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+    --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64 \
+    --platform manylinux2014_x86_64 --platform manylinux1_x86_64 -d .whl "${WHEELS[@]}"
+fi
+
+if [ "$(ls .gl/*.deb 2>/dev/null | wc -l)" -lt 7 ]; then
+  mkdir -p .gl
+  lists=$(mktemp -d)
+  trap 'rm -rf "$lists"' EXIT
+  mkdir -p "$lists/partial"
+  apt=(-oAPT::Architecture=amd64 -oAPT::Architectures=amd64 "-oDir::State::Lists=$lists")
+  apt-get "${apt[@]}" update > /dev/null
+  (cd .gl && apt-get "${apt[@]}" download libvulkan1 libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2)
+fi
+echo "carry: $(du -sh .carry | cut -f1) binary, $(ls .whl | wc -l) wheels, $(ls .gl | wc -l) GL debs; pass carry [\".whl\", \".gl\", \".carry\"]"

@@ -15,42 +15,58 @@ pub fn shift_sigma(sigma: f64, shift: f64) -> f64 {
     shift * sigma / (1.0 + (shift - 1.0) * sigma)
 }
 
-/// How a sampling loop steps from one grid sigma to the next.
+/// How a sampling loop steps from one grid sigma to the next. Named in configs and on the
+/// command line as [`Solver::name`] gives it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(into = "String", try_from = "String")]
 pub enum Solver {
     /// First order: x + v (sigma_next - sigma), as DiffSynth-Studio and the Wan code sample.
     #[default]
-    #[serde(rename = "euler")]
     Euler,
     /// DPM-Solver++(2M) (Lu et al. 2022) in its flow-matching form: second-order multistep on the
     /// data prediction z = x - sigma v with alpha = 1 - sigma; the first step (from sigma 1, where
     /// lambda = ln(alpha/sigma) is -inf) is Euler's, and the last (into sigma 0, lambda +inf) is
     /// second-order Adams-Bashforth on the velocity in sigma. One model evaluation per step.
-    #[serde(rename = "dpm++2m")]
     DpmPp2M,
 }
 
 impl Solver {
-    pub const NAMES: &'static str = "euler, dpm++2m";
+    pub const ALL: [Solver; 2] = [Solver::Euler, Solver::DpmPp2M];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Solver::Euler => "euler",
+            Solver::DpmPp2M => "dpm++2m",
+        }
+    }
 }
 
 impl FromStr for Solver {
     type Err = anyhow::Error;
     fn from_str(s: &str) -> anyhow::Result<Self> {
-        match s {
-            "euler" => Ok(Solver::Euler),
-            "dpm++2m" => Ok(Solver::DpmPp2M),
-            _ => anyhow::bail!("unknown solver '{s}' (known: {})", Solver::NAMES),
-        }
+        Self::ALL.into_iter().find(|solver| solver.name() == s).ok_or_else(|| {
+            let known: Vec<_> = Self::ALL.iter().map(|solver| solver.name()).collect();
+            anyhow::anyhow!("unknown solver '{s}' (known: {})", known.join(", "))
+        })
+    }
+}
+
+impl TryFrom<String> for Solver {
+    type Error = anyhow::Error;
+    fn try_from(s: String) -> anyhow::Result<Self> {
+        s.parse()
+    }
+}
+
+impl From<Solver> for String {
+    fn from(solver: Solver) -> String {
+        solver.name().to_string()
     }
 }
 
 impl std::fmt::Display for Solver {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(match self {
-            Solver::Euler => "euler",
-            Solver::DpmPp2M => "dpm++2m",
-        })
+        f.write_str(self.name())
     }
 }
 
@@ -217,10 +233,15 @@ mod tests {
 
     #[test]
     fn solver_names_round_trip() {
-        for solver in [Solver::Euler, Solver::DpmPp2M] {
+        for solver in Solver::ALL {
             assert_eq!(solver.to_string().parse::<Solver>().unwrap(), solver);
+            let json = serde_json::to_string(&solver).unwrap();
+            assert_eq!(json, format!("\"{}\"", solver.name()));
+            assert_eq!(serde_json::from_str::<Solver>(&json).unwrap(), solver);
         }
         let err = "unipc".parse::<Solver>().unwrap_err().to_string();
+        assert!(err.contains("unipc") && err.contains("dpm++2m"), "{err}");
+        let err = serde_json::from_str::<Solver>("\"unipc\"").unwrap_err().to_string();
         assert!(err.contains("unipc") && err.contains("dpm++2m"), "{err}");
     }
 

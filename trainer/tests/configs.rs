@@ -28,4 +28,14 @@ fn public_checkpoint_and_tiny_configs() {
     let t = load("tiny.toml");
     assert_eq!(t.model.preset, "tiny");
     assert!(t.validation.vae.is_some());
+    assert_eq!(t.validation.solver, bwm_model::schedule::Solver::Euler);
+}
+
+#[test]
+fn the_validation_solver_is_named_as_on_the_command_line() {
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../configs/tiny.toml");
+    let c = RunConfig::load(&path, &["validation.solver=dpm++2m".to_string()]).unwrap();
+    assert_eq!(c.validation.solver, bwm_model::schedule::Solver::DpmPp2M);
+    let err = format!("{:#}", RunConfig::load(&path, &["validation.solver=unipc".to_string()]).unwrap_err());
+    assert!(err.contains("unipc") && err.contains("dpm++2m"), "{err}");
 }

@@ -39,7 +39,7 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
             .env("BWM", bwm())
             .env("PYTHON", python())
             .env("DEVICE", "cpu")
-            .envs([("TRAIN_EPISODES", "3"), ("VAL_EPISODES", "1"), ("FRAMES", "100"), ("WORKERS", "2")])
+            .envs([("TRAIN_EPISODES", "3"), ("VAL_EPISODES", "1"), ("FRAMES", "100"), ("RESOLUTION", "64"), ("WORKERS", "2")])
             .envs([("VAE_STEPS", "2"), ("VAE_EPISODES", "6"), ("VAE_BATCH", "2"), ("VAE_STRIDE", "8"), ("TRAIN_STEPS", "2"), ("SAMPLE_STEPS", "2")])
             .env(
                 "TRAIN_SETS",

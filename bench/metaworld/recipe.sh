@@ -32,11 +32,19 @@ TASKS="${TASKS:-drawer-open-v3,button-press-topdown-v3}"
 TRAIN_EPISODES="${TRAIN_EPISODES:-400}"   # per task, seeds 0..
 VAL_EPISODES="${VAL_EPISODES:-50}"        # per task, seeds 100000.. (never trained on)
 FRAMES="${FRAMES:-120}"
+RESOLUTION="${RESOLUTION:-128}"          # frames are RESOLUTION x RESOLUTION pixels (8x8 latent cells at 128)
 WORKERS="${WORKERS:-$(nproc)}"
-VAE_STEPS="${VAE_STEPS:-2000}"
+VAE_STEPS="${VAE_STEPS:-1200}"
 VAE_EPISODES="${VAE_EPISODES:-200}"
-VAE_BATCH="${VAE_BATCH:-32}"
-VAE_STRIDE="${VAE_STRIDE:-16}"           # pixels per latent cell: 16 (4x4 latents at 64x64) or 8 (8x8)
+VAE_BATCH="${VAE_BATCH:-4}"
+# The VAE trains on clips as long as the DiT's (x0 + 8 + 24 = 33 frames): its causal convolutions
+# see the video's start in every 9-frame clip, and one trained on those decodes the later latents
+# of a 33-frame clip poorly (docs/fidelity.md, runs 10 and 11).
+VAE_CLIP_FRAMES="${VAE_CLIP_FRAMES:-33}"  # frames per VAE training clip (1+4k)
+# Share of each VAE episode held out for its PSNR; default: enough frames for one clip.
+VAE_HOLDOUT_TAIL="${VAE_HOLDOUT_TAIL:-$(awk -v c="$VAE_CLIP_FRAMES" -v f="$FRAMES" 'BEGIN { t = int(100 * (c + 2) / f + 0.999) / 100; print (t < 0.1 ? 0.1 : t) }')}"
+VAE_STRIDE="${VAE_STRIDE:-16}"           # pixels per latent cell: 16 or 8
+KEEP_FRAMES="${KEEP_FRAMES:-0}"          # 1: the latent cache also keeps pixel frames (training's validation scores against them; 23 GB at 128x128)
 TRAIN_STEPS="${TRAIN_STEPS:-}"            # default: configs/metaworld.toml's
 TRAIN_SETS="${TRAIN_SETS:-}"              # more `--set KEY=VALUE` for bwm train, space-separated
 SAMPLE_STEPS="${SAMPLE_STEPS:-20}"        # sampler steps per generated chunk
@@ -72,23 +80,24 @@ if wants data; then
     if [ -f "$RUN/data/$split/meta/info.json" ]; then echo "recipe: $RUN/data/$split exists"; continue; fi
     if [ $split = train ]; then n=$TRAIN_EPISODES; s=0; else n=$VAL_EPISODES; s=100000; fi
     timed "data-$split" "$PYTHON" bench/metaworld/generate.py --tasks "$TASKS" --episodes "$n" --seed-start "$s" \
-      --frames "$FRAMES" --resolution 64 --workers "$WORKERS" --out "$RUN/data/$split"
+      --frames "$FRAMES" --resolution "$RESOLUTION" --workers "$WORKERS" --out "$RUN/data/$split"
   done
 fi
 
 if wants vae; then
   if [ -f "$RUN/vae.safetensors" ]; then echo "recipe: $RUN/vae.safetensors exists"; else
-    timed vae "$BWM" train-vae --data "$RUN/data/train" --max-episodes "$VAE_EPISODES" --holdout-tail 0.1 \
-      --resolution 64x64 --dim 32 --dec-dim 32 --spatial-stride "$VAE_STRIDE" --clip-frames 9 --batch "$VAE_BATCH" --steps "$VAE_STEPS" --lr 1e-3 \
+    timed vae "$BWM" train-vae --data "$RUN/data/train" --max-episodes "$VAE_EPISODES" --holdout-tail "$VAE_HOLDOUT_TAIL" \
+      --resolution "${RESOLUTION}x$RESOLUTION" --dim 32 --dec-dim 32 --spatial-stride "$VAE_STRIDE" --clip-frames "$VAE_CLIP_FRAMES" --batch "$VAE_BATCH" --steps "$VAE_STEPS" --lr 1e-3 \
       --no-flip --eval-every 1000 --device "$DEVICE" --out "$RUN/vae.safetensors"
   fi
 fi
 
 if wants latents; then
   if [ -f "$RUN/latents/index.json" ]; then echo "recipe: $RUN/latents exists"; else
-    timed latents "$BWM" prepare --data "$RUN/data/train" --vae "$RUN/vae.safetensors" --resolution 64x64 \
+    keep=(); [ "$KEEP_FRAMES" = 1 ] && keep=(--keep-frames)
+    timed latents "$BWM" prepare --data "$RUN/data/train" --vae "$RUN/vae.safetensors" --resolution "${RESOLUTION}x$RESOLUTION" \
       --history 8 --future 24 --stride 4 --actions observation.state:0-3 --validation-fraction 0.02 \
-      --keep-frames --batch 64 --device "$DEVICE" --out "$RUN/latents"
+      "${keep[@]}" --batch 64 --device "$DEVICE" --out "$RUN/latents"
   fi
 fi
 
@@ -115,11 +124,11 @@ world_model() {
 
 if wants fidelity; then
   world_model
-  timed fidelity "$BWM" fidelity "${WM[@]}" --data "$RUN/data/val" --actions observation.state:0-3 --resolution 64x64 \
+  timed fidelity "$BWM" fidelity "${WM[@]}" --data "$RUN/data/val" --actions observation.state:0-3 --resolution "${RESOLUTION}x$RESOLUTION" \
     --horizons 8,16,32,64 --videos 4 --out "$RUN/fidelity"
 fi
 
-COMMON_STUDY_ARGS=(--data "$RUN/data/val" --episodes "$STUDY_EPISODES" --horizon "$STUDY_HORIZON" --workers "$WORKERS")
+COMMON_STUDY_ARGS=(--data "$RUN/data/val" --episodes "$STUDY_EPISODES" --horizon "$STUDY_HORIZON" --resolution "$RESOLUTION" --workers "$WORKERS")
 STUDY_ARGS=("${COMMON_STUDY_ARGS[@]}" ${STUDY_VARIANTS:+--variants "$STUDY_VARIANTS"} --out "$STUDY_DIR")
 if wants truth; then
   timed truth "$PYTHON" bench/metaworld/study.py "${STUDY_ARGS[@]}" --truth-only
@@ -134,7 +143,7 @@ fi
 
 if wants ceiling; then
   ceiling() {
-    "$BWM" reconstruct --data "$RUN/data/val" --vae "$RUN/vae.safetensors" --resolution 64x64 --device "$DEVICE" \
+    "$BWM" reconstruct --data "$RUN/data/val" --vae "$RUN/vae.safetensors" --resolution "${RESOLUTION}x$RESOLUTION" --device "$DEVICE" \
       --out "$RUN/ceiling/val.safetensors" &&
     "$PYTHON" bench/metaworld/judge.py score --model "$RUN/judge.pt" --val "$RUN/data/val" \
       --reconstructed "$RUN/ceiling/val.safetensors" --device "$DEVICE" --out "$RUN/ceiling/judge.json"

@@ -104,6 +104,12 @@ pub fn train_vae(data: &FrameSets, s: &VaeTrainSettings, on_log: &mut dyn FnMut(
     let starts = clip_starts(&data.train, s.clip_frames, 1);
     ensure!(!starts.is_empty(), "no training video has {} frames", s.clip_frames);
     ensure!(!data.holdout.is_empty(), "no held-out video to measure PSNR on");
+    let longest_holdout = data.holdout.iter().map(|v| v.size()[1]).max().unwrap_or(0);
+    ensure!(
+        longest_holdout >= s.clip_frames as i64,
+        "the held-out videos have at most {longest_holdout} frames, fewer than one {}-frame clip to measure PSNR on: raise --holdout-tail, hold out whole episodes (--holdout), or lower --clip-frames",
+        s.clip_frames
+    );
     let (mut vae, store) = WanVae::random(&s.cfg, Kind::Float, s.device, s.seed as i64)?;
     let z = s.cfg.z_dim;
     let identity = (Tensor::zeros([z], (Kind::Float, s.device)), Tensor::ones([z], (Kind::Float, s.device)));
@@ -247,5 +253,28 @@ mod tests {
         let trained = train_vae(&data, &s, &mut |l| lines.push(l.to_string())).unwrap();
         assert!(trained.report.holdout_psnr.is_finite() && trained.report.train_psnr.is_finite(), "{lines:?}");
         assert!(lines.iter().any(|l| l.contains("step     2/2")), "{lines:?}");
+    }
+
+    #[test]
+    fn held_out_videos_shorter_than_a_clip_are_refused_before_training() {
+        let video = |frames: i64| Tensor::zeros([3, frames, 16, 16], (Kind::Float, Device::Cpu));
+        let data = FrameSets { train: vec![video(33)], holdout: vec![video(12)] };
+        let s = VaeTrainSettings {
+            cfg: VaeConfig::with_width(4, 4),
+            clip_frames: 33,
+            batch: 1,
+            steps: 1,
+            lr: 1e-3,
+            kl_weight: 1e-6,
+            seed: 0,
+            device: Device::Cpu,
+            eval_every: 0,
+            flip: false,
+            crop: None,
+        };
+        let mut lines = Vec::new();
+        let err = train_vae(&data, &s, &mut |l| lines.push(l.to_string())).err().expect("a 12-frame hold-out cannot hold a 33-frame clip");
+        assert!(err.to_string().contains("at most 12 frames") && err.to_string().contains("--holdout-tail"), "{err}");
+        assert!(lines.is_empty(), "no training step ran: {lines:?}");
     }
 }

@@ -118,6 +118,7 @@ fn demo_cache_round_trips_resumes_after_interruption_and_splits_across_ranks() {
     let stdout = run(&full, &[]);
     assert!(stdout.contains("clips/s"), "{stdout}");
     assert!(stdout.contains("3 episodes: 3 used (15 clips), 0 skipped"), "{stdout}");
+    assert!(stdout.contains("warning: this VAE was trained on 5-frame clips and these clips have 9 frames"), "{stdout}");
     let cache = LatentCache::open(&full).unwrap();
     assert_eq!(cache.len(), 15);
     assert_eq!(cache.index.latent_shape, [48, 3, 2, 4]);

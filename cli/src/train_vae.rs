@@ -41,7 +41,9 @@ pub struct TrainVaeArgs {
     /// latent grid, for small frames).
     #[arg(long, default_value_t = 16)]
     pub spatial_stride: i64,
-    /// Frames per training clip (1+4k).
+    /// Frames per training clip (1+4k). Train on clips as long as the ones the VAE will encode
+    /// and decode (`bwm prepare`'s 1 + H + K): a VAE reconstructs frames past its training clip
+    /// poorly, and `bwm prepare` warns when its clips are longer.
     #[arg(long, default_value_t = 5)]
     pub clip_frames: usize,
     #[arg(long, default_value_t = 800)]

@@ -844,6 +844,33 @@ impl WanVae {
 /// Metadata key of a VAE file written by `bwm train-vae`: the `VaeConfig` as JSON. Such a file
 /// also holds `latents_mean` and `latents_std` `[z]`, the statistics its latents are normalized with.
 pub const TRAINED_CONFIG_KEY: &str = "bwm.vae_config";
+/// Metadata key of a `bwm train-vae` file: the frames per clip it was trained on.
+pub const TRAINED_CLIP_FRAMES_KEY: &str = "bwm.clip_frames";
+
+/// The clip length a `bwm train-vae` file was trained on, when it records one (the published
+/// VAE and older files do not).
+pub fn trained_clip_frames(path: &std::path::Path) -> Result<Option<usize>> {
+    if path.extension().and_then(|e| e.to_str()) != Some("safetensors") {
+        return Ok(None);
+    }
+    let meta = crate::weights::safetensors_metadata(path)?;
+    meta.get(TRAINED_CLIP_FRAMES_KEY)
+        .map(|v| v.parse::<usize>().map_err(|e| anyhow::anyhow!("{}: metadata {TRAINED_CLIP_FRAMES_KEY} = {v:?}: {e}", path.display())))
+        .transpose()
+}
+
+/// A warning when a VAE trained on `trained`-frame clips is to encode or decode `used`-frame
+/// clips: its causal convolutions always saw the video's start during training, and the latents
+/// past its training clip come out poorly (docs/fidelity.md, run 10: 27.8 dB on training-length
+/// clips, 18.6 dB on whole episodes).
+pub fn clip_length_warning(trained: Option<usize>, used: usize) -> Option<String> {
+    let trained = trained?;
+    (used > trained).then(|| {
+        format!(
+            "this VAE was trained on {trained}-frame clips and these clips have {used} frames; a VAE reconstructs the frames past its training clip poorly: train it with `bwm train-vae --clip-frames {used}`"
+        )
+    })
+}
 
 impl WanVae {
     /// Replaces the latent normalization constants (a VAE other than the published one).

@@ -43,14 +43,15 @@ pub fn demo_data() -> PathBuf {
     shared().join("data/bwm-demo")
 }
 
-/// A small random VAE (width 16) written as `bwm train-vae` writes its output, so that
+/// A small random VAE (width 16) written as `bwm train-vae` writes its output (recorded as trained
+/// on 5-frame clips, the command's default), so that
 /// `WanVae::load_any` reads it back with its config and latent statistics.
 pub fn write_random_vae(path: &Path, seed: i64) {
     use bwm_model::vae::{VaeConfig, WanVae};
     use bwm_trainer::vae_train::{save_trained_vae, TrainedVae, VaeTrainReport};
     let (vae, store) = WanVae::random(&VaeConfig::with_width(16, 16), Kind::Float, Device::Cpu, seed).unwrap();
     let params = store.named_parameters();
-    let report = VaeTrainReport { train_psnr: 0.0, holdout_psnr: 0.0, seconds: 0.0, steps: 0 };
+    let report = VaeTrainReport { train_psnr: 0.0, holdout_psnr: 0.0, seconds: 0.0, steps: 0, clip_frames: 5 };
     save_trained_vae(&TrainedVae { vae, params, report }, path).unwrap();
 }
 

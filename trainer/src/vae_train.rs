@@ -8,7 +8,7 @@ use std::path::Path;
 use std::time::Instant;
 
 use anyhow::{ensure, Context, Result};
-use bwm_model::vae::{VaeConfig, WanVae, TRAINED_CONFIG_KEY};
+use bwm_model::vae::{VaeConfig, WanVae, TRAINED_CLIP_FRAMES_KEY, TRAINED_CONFIG_KEY};
 use tch::{Device, Kind, Tensor};
 
 use crate::config::OptimSection;
@@ -41,6 +41,8 @@ pub struct VaeTrainReport {
     pub holdout_psnr: f64,
     pub seconds: f64,
     pub steps: u64,
+    /// Frames per training clip.
+    pub clip_frames: usize,
 }
 
 /// Videos [3, F, H, W] in [-1, 1]: the training episodes and the held-out ones.
@@ -165,7 +167,7 @@ pub fn train_vae(data: &FrameSets, s: &VaeTrainSettings, on_log: &mut dyn FnMut(
     vae.set_latent_stats(&mean, &std)?;
     let train_psnr = reconstruction_psnr(&vae, &data.train, s.clip_frames, s.device)?;
     let holdout_psnr = reconstruction_psnr(&vae, &data.holdout, s.clip_frames, s.device)?;
-    let report = VaeTrainReport { train_psnr, holdout_psnr, seconds: start.elapsed().as_secs_f64(), steps: s.steps };
+    let report = VaeTrainReport { train_psnr, holdout_psnr, seconds: start.elapsed().as_secs_f64(), steps: s.steps, clip_frames: s.clip_frames };
     let params = store.named_parameters().into_iter().map(|(n, t)| (n, t.detach())).collect();
     Ok(TrainedVae { vae, params, report })
 }
@@ -195,6 +197,7 @@ pub fn save_trained_vae(trained: &TrainedVae, path: &Path) -> Result<()> {
         ("bwm.holdout_psnr_db".to_string(), format!("{:.3}", report.holdout_psnr)),
         ("bwm.train_psnr_db".to_string(), format!("{:.3}", report.train_psnr)),
         ("bwm.steps".to_string(), report.steps.to_string()),
+        (TRAINED_CLIP_FRAMES_KEY.to_string(), report.clip_frames.to_string()),
     ]);
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
@@ -253,6 +256,22 @@ mod tests {
         let trained = train_vae(&data, &s, &mut |l| lines.push(l.to_string())).unwrap();
         assert!(trained.report.holdout_psnr.is_finite() && trained.report.train_psnr.is_finite(), "{lines:?}");
         assert!(lines.iter().any(|l| l.contains("step     2/2")), "{lines:?}");
+    }
+
+    #[test]
+    fn the_saved_vae_records_its_clip_length_and_prepare_can_warn_of_longer_clips() {
+        let (vae, store) = WanVae::random(&VaeConfig::with_width(4, 4), Kind::Float, Device::Cpu, 0).unwrap();
+        let report = VaeTrainReport { train_psnr: 1.0, holdout_psnr: 1.0, seconds: 0.0, steps: 1, clip_frames: 9 };
+        let dir = bwm_testdir::TestDir::new("vae-clip-frames");
+        let path = dir.join("vae.safetensors");
+        save_trained_vae(&TrainedVae { vae, params: store.named_parameters(), report }, &path).unwrap();
+        let trained = bwm_model::vae::trained_clip_frames(&path).unwrap();
+        assert_eq!(trained, Some(9));
+        assert_eq!(bwm_model::vae::clip_length_warning(trained, 9), None);
+        assert_eq!(bwm_model::vae::clip_length_warning(trained, 5), None);
+        let w = bwm_model::vae::clip_length_warning(trained, 33).unwrap();
+        assert!(w.contains("trained on 9-frame clips") && w.contains("--clip-frames 33"), "{w}");
+        assert_eq!(bwm_model::vae::clip_length_warning(None, 33), None, "the published VAE records no clip length");
     }
 
     #[test]

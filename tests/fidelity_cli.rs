@@ -76,6 +76,27 @@ fn fidelity_report_scores_rollouts_and_baselines_per_frame_and_horizon() {
     let videos: Vec<_> = std::fs::read_dir(out.join("videos")).unwrap().collect();
     assert_eq!(videos.len(), 1, "one side-by-side video per task (--videos 1)");
 
+    // A run cut short (two episodes scored, the third line half written) resumes: the scored
+    // episodes are kept, the rest rolled out, and the report equals the uninterrupted one.
+    let text = std::fs::read_to_string(out.join("episodes.jsonl")).unwrap();
+    let kept: Vec<&str> = text.lines().take(2).collect();
+    std::fs::write(out.join("episodes.jsonl"), format!("{}\n{}", kept.join("\n"), &text.lines().nth(2).unwrap()[..40])).unwrap();
+    std::fs::remove_file(out.join("fidelity.json")).unwrap();
+    let resumed = fidelity(&["--vae", vae.to_str().unwrap(), "--data", data.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    assert!(resumed.status.success());
+    let said = String::from_utf8_lossy(&resumed.stdout).into_owned();
+    assert!(said.contains("resuming: 2 of 3 episodes already scored"), "{said}");
+    assert_eq!(said.matches("PSNR model").count(), 1, "only the third episode is rolled out again: {said}");
+    let again: Value = serde_json::from_str(&std::fs::read_to_string(out.join("fidelity.json")).unwrap()).unwrap();
+    assert_eq!(again["all"], report["all"], "the resumed report equals the uninterrupted one");
+    assert_eq!(again["tasks"], report["tasks"]);
+    assert_eq!(std::fs::read_to_string(out.join("episodes.jsonl")).unwrap().lines().count(), 3);
+    // Other settings into the same folder start over.
+    let other = fidelity(&["--vae", vae.to_str().unwrap(), "--data", data.to_str().unwrap(), "--out", out.to_str().unwrap(), "--seed", "7"]);
+    assert!(other.status.success());
+    let said = String::from_utf8_lossy(&other.stdout).into_owned();
+    assert!(said.contains("scored with other settings; starting over") && said.matches("PSNR model").count() == 3, "{said}");
+
     // One episode cannot be driven by another's actions: a clear error.
     let one = fidelity(&["--vae", vae.to_str().unwrap(), "--data", data.to_str().unwrap(), "--out", dir.join("one").to_str().unwrap(), "--episodes", "0"]);
     assert!(!one.status.success() && String::from_utf8_lossy(&one.stderr).contains("at least two episodes"));

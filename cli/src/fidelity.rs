@@ -27,7 +27,8 @@ pub struct FidelityArgs {
     /// Side-by-side videos per task (real | own actions | other actions | copy-last-frame).
     #[arg(long, default_value_t = 4)]
     videos: usize,
-    /// Output folder: fidelity.json, episodes.jsonl, psnr_<task>.svg, ssim_<task>.svg, videos/.
+    /// Output folder: fidelity.json, episodes.jsonl, psnr_<task>.svg, ssim_<task>.svg, videos/. A
+    /// run with the same settings into the same folder keeps the episodes already scored.
     #[arg(long)]
     out: PathBuf,
 }

@@ -43,7 +43,8 @@ pub struct FidelityOptions {
     pub horizons: Vec<usize>,
     /// Side-by-side videos per task (real | own actions | other actions | copy-last-frame).
     pub videos: usize,
-    /// Output folder: fidelity.json, episodes.jsonl, `psnr_<task>.svg`, `ssim_<task>.svg`, videos/.
+    /// Output folder: fidelity.json, episodes.jsonl (and episodes.key.json, the settings it was
+    /// scored with: a later run with the same ones resumes it), `psnr_<task>.svg`, `ssim_<task>.svg`, videos/.
     pub out: PathBuf,
 }
 
@@ -82,8 +83,37 @@ pub fn run(options: &WorldModelOptions, a: &FidelityOptions) -> Result<()> {
         wm.spec.steps
     );
     std::fs::create_dir_all(a.out.join("videos")).with_context(|| format!("creating {}", a.out.display()))?;
+    // Episodes scored by an earlier run of the same settings into the same folder (one cut short)
+    // are kept, not rolled out again.
+    let run_key = json!({
+        "data": a.data.display().to_string(),
+        "checkpoint": options.checkpoint,
+        "random_weights": options.random_weights,
+        "model_preset": options.model_preset,
+        "vae": options.vae,
+        "stats": options.stats,
+        "stats_group": options.stats_group,
+        "dtype": options.dtype,
+        "residual": format!("{:?}", options.residual),
+        "shift": options.shift,
+        "actions": a.actions,
+        "camera": a.camera,
+        "resolution": a.resolution,
+        "resize": format!("{:?}", a.resize),
+        "max_frames": a.max_frames,
+        "episodes": episodes,
+        "spec": { "history": wm.spec.history, "future": wm.spec.future, "steps": wm.spec.steps, "solver": wm.spec.solver.to_string(), "seed": wm.spec.seed, "history_sigma": wm.spec.history_sigma },
+    });
     let episodes_path = a.out.join("episodes.jsonl");
+    let mut done = earlier_episodes(&a.out, &run_key)?;
+    if !done.is_empty() {
+        println!("fidelity: resuming: {} of {} episodes already scored in {}", done.len(), episodes.len(), episodes_path.display());
+    }
+    bwm_data::latent_cache::write_atomically(&a.out, RUN_KEY_FILE, serde_json::to_string_pretty(&run_key)?.as_bytes())?;
     let mut episodes_file = std::fs::File::create(&episodes_path).with_context(|| format!("creating {}", episodes_path.display()))?;
+    for line in done.values() {
+        writeln!(episodes_file, "{line}").with_context(|| format!("writing {}", episodes_path.display()))?;
+    }
     let mut scored = Vec::new();
     let mut videos_per_task: BTreeMap<String, usize> = BTreeMap::new();
     let start = Instant::now();
@@ -91,6 +121,15 @@ pub fn run(options: &WorldModelOptions, a: &FidelityOptions) -> Result<()> {
         let t0 = Instant::now();
         let info = &infos[e];
         let other = other_episode(&episodes, i, |p| infos[p].task.as_str());
+        if let Some(line) = done.remove(&info.index) {
+            let record = scored_from_line(&line).with_context(|| format!("episode {} in {}", info.index, episodes_path.display()))?;
+            let video = a.out.join("videos").join(format!("{}_episode_{:06}.mp4", file_stem(&info.task), info.index));
+            if video.exists() || video.with_extension("png").exists() {
+                *videos_per_task.entry(info.task.clone()).or_default() += 1;
+            }
+            scored.push(record);
+            continue;
+        }
         let length = info.length.min(infos[other].length).min(a.max_frames.unwrap_or(usize::MAX)).max(1);
         ensure!(length >= 2, "episode {} has fewer than two frames to score", info.index);
         let what = |p: usize| format!("episode {} (position {p})", infos[p].index);
@@ -181,6 +220,43 @@ pub fn run(options: &WorldModelOptions, a: &FidelityOptions) -> Result<()> {
     println!("{}", render(&report, &a.horizons));
     println!("fidelity: {} ({:.1} s)", path.display(), start.elapsed().as_secs_f64());
     Ok(())
+}
+
+/// Where `run` records the settings its episodes.jsonl was scored with.
+const RUN_KEY_FILE: &str = "episodes.key.json";
+
+/// The scored lines of an earlier run into `out` with the same settings, by episode index; none
+/// when the settings differ or there was no such run. A line cut short by a kill is dropped.
+fn earlier_episodes(out: &std::path::Path, run_key: &Value) -> Result<BTreeMap<i64, Value>> {
+    let (key_path, lines_path) = (out.join(RUN_KEY_FILE), out.join("episodes.jsonl"));
+    let (Ok(key), Ok(lines)) = (std::fs::read_to_string(&key_path), std::fs::read_to_string(&lines_path)) else {
+        return Ok(BTreeMap::new());
+    };
+    if serde_json::from_str::<Value>(&key).ok().as_ref() != Some(run_key) {
+        println!("fidelity: {} was scored with other settings; starting over", lines_path.display());
+        return Ok(BTreeMap::new());
+    }
+    Ok(lines
+        .lines()
+        .filter_map(|l| serde_json::from_str::<Value>(l).ok())
+        .filter(|v| scored_from_line(v).is_ok())
+        .filter_map(|v| Some((v["episode_index"].as_i64()?, v)))
+        .collect())
+}
+
+/// The per-frame scores of one episodes.jsonl line.
+fn scored_from_line(line: &Value) -> Result<Scored> {
+    let task = line["task"].as_str().context("no task")?.to_string();
+    let mut out = Scored { task, psnr: BTreeMap::new(), ssim: BTreeMap::new() };
+    for p in PREDICTORS {
+        for (metric, map) in [("psnr", &mut out.psnr), ("ssim", &mut out.ssim)] {
+            let values = line[metric][p].as_array().with_context(|| format!("no {metric} of {p}"))?;
+            let values: Option<Vec<f64>> = values.iter().map(Value::as_f64).collect();
+            map.insert(p, values.with_context(|| format!("{metric} of {p} is not a list of numbers"))?);
+        }
+    }
+    ensure!(!out.psnr["model"].is_empty(), "no scored frame");
+    Ok(out)
 }
 
 /// The episode whose actions drive the counterfactual rollout of `episodes[i]`: the next listed

@@ -232,6 +232,23 @@ mod tests {
         assert!(random_windows(&clips, (16, 3), 7, 0).is_err());
     }
 
+    /// A width-4 VAE, one step of one clip of `clip_frames` on the CPU.
+    fn tiny_settings(clip_frames: usize) -> VaeTrainSettings {
+        VaeTrainSettings {
+            cfg: VaeConfig::with_width(4, 4),
+            clip_frames,
+            batch: 1,
+            steps: 1,
+            lr: 1e-3,
+            kl_weight: 1e-6,
+            seed: 0,
+            device: Device::Cpu,
+            eval_every: 0,
+            flip: false,
+            crop: None,
+        }
+    }
+
     #[test]
     fn trains_on_windows_and_measures_whole_frames() {
         let video = |seed: i64| {
@@ -239,19 +256,7 @@ mod tests {
             Tensor::rand([3, 9, 32, 48], (Kind::Float, Device::Cpu)) * 2.0 - 1.0
         };
         let data = FrameSets { train: vec![video(1)], holdout: vec![video(2)] };
-        let s = VaeTrainSettings {
-            cfg: VaeConfig::with_width(4, 4),
-            clip_frames: 5,
-            batch: 2,
-            steps: 2,
-            lr: 1e-3,
-            kl_weight: 1e-6,
-            seed: 0,
-            device: Device::Cpu,
-            eval_every: 0,
-            flip: true,
-            crop: Some((16, 16)),
-        };
+        let s = VaeTrainSettings { batch: 2, steps: 2, flip: true, crop: Some((16, 16)), ..tiny_settings(5) };
         let mut lines = Vec::new();
         let trained = train_vae(&data, &s, &mut |l| lines.push(l.to_string())).unwrap();
         assert!(trained.report.holdout_psnr.is_finite() && trained.report.train_psnr.is_finite(), "{lines:?}");
@@ -278,19 +283,7 @@ mod tests {
     fn held_out_videos_shorter_than_a_clip_are_refused_before_training() {
         let video = |frames: i64| Tensor::zeros([3, frames, 16, 16], (Kind::Float, Device::Cpu));
         let data = FrameSets { train: vec![video(33)], holdout: vec![video(12)] };
-        let s = VaeTrainSettings {
-            cfg: VaeConfig::with_width(4, 4),
-            clip_frames: 33,
-            batch: 1,
-            steps: 1,
-            lr: 1e-3,
-            kl_weight: 1e-6,
-            seed: 0,
-            device: Device::Cpu,
-            eval_every: 0,
-            flip: false,
-            crop: None,
-        };
+        let s = tiny_settings(33);
         let mut lines = Vec::new();
         let err = train_vae(&data, &s, &mut |l| lines.push(l.to_string())).err().expect("a 12-frame hold-out cannot hold a 33-frame clip");
         assert!(err.to_string().contains("at most 12 frames") && err.to_string().contains("--holdout-tail"), "{err}");

@@ -1,17 +1,20 @@
-//! Parity of the Wan2.2 VAE with `../shared/golden/vae_public*.{json,weights,case}`, computed by
-//! `shared/golden/make_golden.py` with DiffSynth-Studio 2.0.11's `VideoVAE38_` (the official
-//! `WanVAE_` of Wan2.2) in f32 on CPU. Widths, frame counts and sizes come from the files.
+//! Parity of the Wan2.2 VAE with DiffSynth-Studio 2.0.11's `VideoVAE38_` (the official `WanVAE_`
+//! of Wan2.2) in f32 on CPU: on `../shared/golden/vae_public*.{json,weights,case}` (computed by
+//! `shared/golden/make_golden.py`; 5 and 9 frames), and on a 33-frame video whose reference this
+//! test computes with the same code in the project's Python environment (the causal feature cache
+//! over more chunks than the golden files hold). Widths, frame counts and sizes come from the files.
 
 mod common;
 
+use std::path::{Path, PathBuf};
+
 use bwm_model::vae::{VaeConfig, WanVae, WAN22_LATENTS_MEAN, WAN22_LATENTS_STD};
 use bwm_model::weights;
-use common::{golden, rel_err};
+use common::{golden, rel_err, tmp_dir};
 use tch::{Device, Kind, Tensor};
 
-fn config(variant: &str) -> VaeConfig {
-    let json: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(golden(&format!("vae_{variant}.json"))).unwrap()).unwrap();
+fn config(json: &Path) -> VaeConfig {
+    let json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(json).unwrap()).unwrap();
     let v = &json["vae"];
     assert!(v["attn_scales"].as_array().unwrap().is_empty());
     VaeConfig {
@@ -24,10 +27,11 @@ fn config(variant: &str) -> VaeConfig {
     }
 }
 
-fn check(variant: &str) {
-    let cfg = config(variant);
-    let vae = WanVae::load(&golden(&format!("vae_{variant}.weights.safetensors")), &cfg, Kind::Float, Device::Cpu).unwrap();
-    let case = weights::read_all(golden(&format!("vae_{variant}.case.safetensors"))).unwrap();
+/// `vae_{variant}.{json,weights.safetensors,case.safetensors}` as `file(name)` finds them.
+fn check(variant: &str, file: impl Fn(&str) -> PathBuf) {
+    let cfg = config(&file(&format!("vae_{variant}.json")));
+    let vae = WanVae::load(&file(&format!("vae_{variant}.weights.safetensors")), &cfg, Kind::Float, Device::Cpu).unwrap();
+    let case = weights::read_all(file(&format!("vae_{variant}.case.safetensors"))).unwrap();
     let mean = Tensor::from_slice(&WAN22_LATENTS_MEAN).to_kind(Kind::Float);
     let std = Tensor::from_slice(&WAN22_LATENTS_STD).to_kind(Kind::Float);
     assert_eq!(rel_err(&mean, &case["latents_mean"]), 0.0, "published latent mean");
@@ -35,7 +39,7 @@ fn check(variant: &str) {
 
     let latents = tch::no_grad(|| vae.encode(&case["video"])).unwrap();
     let e = rel_err(&latents, &case["latents"]);
-    println!("{variant}: latents rel err {e:.2e}");
+    println!("{variant}: latents {:?}, rel err {e:.2e}", latents.size());
     assert!(e < 1e-4, "{variant}: latents rel err {e}");
 
     let decoded = tch::no_grad(|| vae.decode(&case["latents"])).unwrap();
@@ -46,10 +50,53 @@ fn check(variant: &str) {
 
 #[test]
 fn vae_public_matches_reference() {
-    check("public");
+    check("public", golden);
 }
 
 #[test]
 fn vae_public2_matches_reference() {
-    check("public2");
+    check("public2", golden);
+}
+
+/// The project's Python (BWM_VENV or VIRTUAL_ENV, as `scripts/env.sh` sets), which has diffsynth.
+fn python() -> String {
+    ["VIRTUAL_ENV", "BWM_VENV"]
+        .iter()
+        .filter_map(std::env::var_os)
+        .map(|v| Path::new(&v).join("bin/python"))
+        .find(|p| p.exists())
+        .map_or_else(|| "python3".to_string(), |p| p.display().to_string())
+}
+
+/// make_golden.py's VAE case (random parameters at scale 0.1, a random video in [-1, 1],
+/// normalized latents), at 33 frames of 32x48: nine latent frames, so the feature cache carries
+/// over eight chunk boundaries.
+const LONG_CASE: &str = r#"
+import json, sys, torch
+from safetensors.torch import save_file
+from diffsynth.models.wan_video_vae import VideoVAE38_, WanVideoVAE38
+out = sys.argv[1]
+torch.manual_seed(0)
+cfg = dict(dim=8, z_dim=48, dec_dim=8, dim_mult=[1, 2, 4, 4], num_res_blocks=2, attn_scales=[], temperal_downsample=[False, True, True])
+vae = VideoVAE38_(**cfg).eval()
+with torch.no_grad():
+    for p in vae.parameters():
+        p.copy_(torch.randn_like(p) * 0.1)
+ref = WanVideoVAE38(z_dim=48, dim=8)
+mean, std = ref.mean.clone(), ref.std.clone()
+video = torch.rand(1, 3, 33, 32, 48) * 2 - 1
+with torch.no_grad():
+    z = vae.encode(video, [mean, 1.0 / std])
+    rec = vae.decode(z, [mean, 1.0 / std])
+save_file({k: v.contiguous() for k, v in vae.state_dict().items()}, f"{out}/vae_long.weights.safetensors")
+save_file({"video": video, "latents": z.contiguous(), "decoded": rec.contiguous(), "latents_mean": mean, "latents_std": std}, f"{out}/vae_long.case.safetensors")
+json.dump({"vae": cfg}, open(f"{out}/vae_long.json", "w"))
+"#;
+
+#[test]
+fn vae_matches_reference_over_nine_latent_frames() {
+    let dir = tmp_dir("vae-long-parity");
+    let out = std::process::Command::new(python()).args(["-c", LONG_CASE]).arg(dir.path()).output().unwrap();
+    assert!(out.status.success(), "reference run failed: {}", String::from_utf8_lossy(&out.stderr));
+    check("long", |name| dir.join(name));
 }

@@ -610,6 +610,8 @@ pub struct WanVae {
     pub decoder: Decoder,
     mean: Tensor,
     inv_std: Tensor,
+    /// Frames per clip it was trained on, when its file records it (`bwm train-vae` outputs).
+    pub trained_clip_frames: Option<usize>,
 }
 
 impl WanVae {
@@ -630,6 +632,7 @@ impl WanVae {
             decoder: Decoder::new(&vb.pp("decoder"), cfg)?,
             mean: stat(&mean),
             inv_std: stat(&std).reciprocal(),
+            trained_clip_frames: None,
         })
     }
 
@@ -847,18 +850,6 @@ pub const TRAINED_CONFIG_KEY: &str = "bwm.vae_config";
 /// Metadata key of a `bwm train-vae` file: the frames per clip it was trained on.
 pub const TRAINED_CLIP_FRAMES_KEY: &str = "bwm.clip_frames";
 
-/// The clip length a `bwm train-vae` file was trained on, when it records one (the published
-/// VAE and older files do not).
-pub fn trained_clip_frames(path: &std::path::Path) -> Result<Option<usize>> {
-    if path.extension().and_then(|e| e.to_str()) != Some("safetensors") {
-        return Ok(None);
-    }
-    let meta = crate::weights::safetensors_metadata(path)?;
-    meta.get(TRAINED_CLIP_FRAMES_KEY)
-        .map(|v| v.parse::<usize>().map_err(|e| anyhow::anyhow!("{}: metadata {TRAINED_CLIP_FRAMES_KEY} = {v:?}: {e}", path.display())))
-        .transpose()
-}
-
 /// A warning when a VAE trained on `trained`-frame clips is to encode or decode `used`-frame
 /// clips: its causal convolutions always saw the video's start during training, and the latents
 /// past its training clip come out poorly (docs/fidelity.md, run 10: 27.8 dB on training-length
@@ -888,8 +879,8 @@ impl WanVae {
         (self.mean.flatten(0, -1), self.inv_std.reciprocal().flatten(0, -1))
     }
 
-    /// Loads any VAE file this project reads: a `bwm train-vae` output (config and latent
-    /// statistics inside), else the published Wan2.2 VAE as `.pth` or safetensors.
+    /// Loads any VAE file this project reads: a `bwm train-vae` output (config, latent statistics
+    /// and training clip length inside), else the published Wan2.2 VAE as `.pth` or safetensors.
     pub fn load_any(path: &std::path::Path, kind: Kind, device: tch::Device) -> Result<Self> {
         let is_safetensors = path.extension().and_then(|e| e.to_str()) == Some("safetensors");
         let meta = if is_safetensors { crate::weights::safetensors_metadata(path)? } else { Default::default() };
@@ -906,6 +897,10 @@ impl WanVae {
         let mut vae = Self::new(&store.root(), &cfg)?;
         store.check_all_consumed()?;
         vae.set_latent_stats(&mean, &std)?;
+        vae.trained_clip_frames = meta
+            .get(TRAINED_CLIP_FRAMES_KEY)
+            .map(|v| v.parse::<usize>().map_err(|e| anyhow::anyhow!("{}: metadata {TRAINED_CLIP_FRAMES_KEY} = {v:?}: {e}", path.display())))
+            .transpose()?;
         Ok(vae)
     }
 }

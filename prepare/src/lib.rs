@@ -329,15 +329,12 @@ pub fn run(a: &PrepareOptions) -> Result<()> {
         (Some(_), false) => Some(WanVae::load_any(&vae_path, kind, device).with_context(|| format!("--vae {}", vae_path.display()))?),
         (None, false) => None,
     };
-    if let (Some(_), false) = (&a.vae, a.random_vae || a.raw) {
-        let trained = bwm_model::vae::trained_clip_frames(&vae_path).with_context(|| format!("--vae {}", vae_path.display()))?;
-        if let Some(w) = bwm_model::vae::clip_length_warning(trained, clip.frames_per_clip()) {
-            println!("prepare: warning: {w}");
-        }
-    }
     let vae_cfg = vae.as_ref().map_or_else(bwm_model::vae::VaeConfig::wan22, |v| v.cfg.clone());
     // Raw clips are stored as they are; the VAE only gives the latent shape.
     let encoder_vae = if a.raw { None } else { vae.as_ref() };
+    if let Some(w) = encoder_vae.and_then(|v| bwm_model::vae::clip_length_warning(v.trained_clip_frames, clip.frames_per_clip())) {
+        println!("prepare: warning: {w}");
+    }
     let ts = vae_cfg.temporal_stride() as usize;
     ensure!((clip.frames_per_clip() - 1).is_multiple_of(ts), "clips of 1 + {} frames do not fit the VAE's temporal stride {ts}", a.history + a.future);
     let fps = source.fps(plan.episodes[0].episode).context("the frame rate of the first episode")?;

@@ -270,7 +270,7 @@ mod tests {
         let dir = bwm_testdir::TestDir::new("vae-clip-frames");
         let path = dir.join("vae.safetensors");
         save_trained_vae(&TrainedVae { vae, params: store.named_parameters(), report }, &path).unwrap();
-        let trained = bwm_model::vae::trained_clip_frames(&path).unwrap();
+        let trained = WanVae::load_any(&path, Kind::Float, Device::Cpu).unwrap().trained_clip_frames;
         assert_eq!(trained, Some(9));
         assert_eq!(bwm_model::vae::clip_length_warning(trained, 9), None);
         assert_eq!(bwm_model::vae::clip_length_warning(trained, 5), None);

@@ -111,7 +111,7 @@ pub fn run(options: &WorldModelOptions, a: &FidelityOptions) -> Result<()> {
     }
     bwm_data::latent_cache::write_atomically(&a.out, RUN_KEY_FILE, serde_json::to_string_pretty(&run_key)?.as_bytes())?;
     let mut episodes_file = std::fs::File::create(&episodes_path).with_context(|| format!("creating {}", episodes_path.display()))?;
-    for line in done.values() {
+    for (line, _) in done.values() {
         writeln!(episodes_file, "{line}").with_context(|| format!("writing {}", episodes_path.display()))?;
     }
     let mut scored = Vec::new();
@@ -121,9 +121,8 @@ pub fn run(options: &WorldModelOptions, a: &FidelityOptions) -> Result<()> {
         let t0 = Instant::now();
         let info = &infos[e];
         let other = other_episode(&episodes, i, |p| infos[p].task.as_str());
-        if let Some(line) = done.remove(&info.index) {
-            let record = scored_from_line(&line).with_context(|| format!("episode {} in {}", info.index, episodes_path.display()))?;
-            let video = a.out.join("videos").join(format!("{}_episode_{:06}.mp4", file_stem(&info.task), info.index));
+        if let Some((_, record)) = done.remove(&info.index) {
+            let video = video_path(a, &info.task, info.index);
             if video.exists() || video.with_extension("png").exists() {
                 *videos_per_task.entry(info.task.clone()).or_default() += 1;
             }
@@ -174,7 +173,7 @@ pub fn run(options: &WorldModelOptions, a: &FidelityOptions) -> Result<()> {
             let panels: Vec<RgbImage> = (0..length)
                 .map(|k| frame_strip(&[vec![truth[k].clone(), model[k].clone(), driven_by_other[k].clone(), copy_last[k].clone()]]))
                 .collect::<Result<_>>()?;
-            let path = a.out.join("videos").join(format!("{}_episode_{:06}.mp4", file_stem(&info.task), info.index));
+            let path = video_path(a, &info.task, info.index);
             bwm_data::video::write_mp4_or_sheet(&path, &panels, source.fps(e)?, 8)?;
         }
         scored.push(record);
@@ -225,9 +224,15 @@ pub fn run(options: &WorldModelOptions, a: &FidelityOptions) -> Result<()> {
 /// Where `run` records the settings its episodes.jsonl was scored with.
 const RUN_KEY_FILE: &str = "episodes.key.json";
 
-/// The scored lines of an earlier run into `out` with the same settings, by episode index; none
-/// when the settings differ or there was no such run. A line cut short by a kill is dropped.
-fn earlier_episodes(out: &std::path::Path, run_key: &Value) -> Result<BTreeMap<i64, Value>> {
+/// The side-by-side video of one episode (a PNG contact sheet beside it in builds without video).
+fn video_path(a: &FidelityOptions, task: &str, episode_index: i64) -> PathBuf {
+    a.out.join("videos").join(format!("{}_episode_{:06}.mp4", file_stem(task), episode_index))
+}
+
+/// The scored lines of an earlier run into `out` with the same settings and their scores, by
+/// episode index; none when the settings differ or there was no such run. A line cut short by a
+/// kill is dropped.
+fn earlier_episodes(out: &std::path::Path, run_key: &Value) -> Result<BTreeMap<i64, (Value, Scored)>> {
     let (key_path, lines_path) = (out.join(RUN_KEY_FILE), out.join("episodes.jsonl"));
     let (Ok(key), Ok(lines)) = (std::fs::read_to_string(&key_path), std::fs::read_to_string(&lines_path)) else {
         return Ok(BTreeMap::new());
@@ -239,8 +244,10 @@ fn earlier_episodes(out: &std::path::Path, run_key: &Value) -> Result<BTreeMap<i
     Ok(lines
         .lines()
         .filter_map(|l| serde_json::from_str::<Value>(l).ok())
-        .filter(|v| scored_from_line(v).is_ok())
-        .filter_map(|v| Some((v["episode_index"].as_i64()?, v)))
+        .filter_map(|v| {
+            let scored = scored_from_line(&v).ok()?;
+            Some((v["episode_index"].as_i64()?, (v, scored)))
+        })
         .collect())
 }
 

@@ -43,14 +43,6 @@ pub fn run(a: &BenchTrainOptions) -> Result<()> {
     let cache_dir = out_root.join("cache");
     let pixel_frames = 1 + a.history + a.future;
     let latent_shape = bwm_model::vae::VaeConfig::wan22().latent_shape(pixel_frames as i64, a.height, a.width);
-    let index = CacheIndex::new(latent_shape.clone(), 14, a.history, a.future, [a.width as u32, a.height as u32], 30.0, "synthetic (bench-train)");
-    let mut w = CacheWriter::create(&cache_dir, index)?;
-    for episode in 0..2 {
-        let latents = Tensor::randn(latent_shape.as_slice(), (Kind::Float, Device::Cpu));
-        let actions = Tensor::rand([pixel_frames as i64, 14], (Kind::Float, Device::Cpu)) * 2.0 - 1.0;
-        w.add(ClipEntry { file: String::new(), episode, frames: (0..pixel_frames).collect(), task: "bench".into() }, &latents, &actions, None)?;
-    }
-    w.finish()?;
     let mut overrides = vec![
         format!("data.latent_cache=\"{}\"", cache_dir.display()),
         "data.holdout_episodes=0".into(),
@@ -61,6 +53,16 @@ pub fn run(a: &BenchTrainOptions) -> Result<()> {
     ];
     overrides.extend(a.overrides.iter().cloned());
     let cfg = RunConfig::load(&a.config, &overrides)?;
+    // The synthetic actions have the config's action width, so any run config can be timed.
+    let action_dim = cfg.model.action.action_dim;
+    let index = CacheIndex::new(latent_shape.clone(), action_dim, a.history, a.future, [a.width as u32, a.height as u32], 30.0, "synthetic (bench-train)");
+    let mut w = CacheWriter::create(&cache_dir, index)?;
+    for episode in 0..2 {
+        let latents = Tensor::randn(latent_shape.as_slice(), (Kind::Float, Device::Cpu));
+        let actions = Tensor::rand([pixel_frames as i64, action_dim], (Kind::Float, Device::Cpu)) * 2.0 - 1.0;
+        w.add(ClipEntry { file: String::new(), episode, frames: (0..pixel_frames).collect(), task: "bench".into() }, &latents, &actions, None)?;
+    }
+    w.finish()?;
     let out = cfg.out_dir();
     if out.exists() {
         std::fs::remove_dir_all(&out)?;

@@ -43,7 +43,7 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
             .envs([("VAE_STEPS", "2"), ("VAE_EPISODES", "6"), ("VAE_BATCH", "2"), ("VAE_STRIDE", "8"), ("TRAIN_STEPS", "2"), ("SAMPLE_STEPS", "2")])
             .env(
                 "TRAIN_SETS",
-                "model.dit.dim=48 model.dit.ffn_dim=96 model.dit.num_layers=1 train.micro_batch=2 checkpoint.every=2 validation.every=2 validation.sample_steps=2",
+                "model.dit.dim=48 model.dit.ffn_dim=96 model.dit.num_heads=4 model.dit.num_layers=1 train.micro_batch=2 checkpoint.every=2 validation.every=2 validation.sample_steps=2",
             )
             .envs([("JUDGE_STEPS", "5"), ("STUDY_EPISODES", "1"), ("STUDY_JOBS", "2"), ("STUDY_HORIZON", "48"), ("STUDY_VARIANTS", "expert,wrong")])
             .env("PROBE_VARIANTS", "wrong-0cm,wrong-6cm"),

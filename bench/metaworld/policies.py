@@ -211,34 +211,37 @@ def make_policy(task: str, variant: str, seed: int) -> Policy:
 
 
 def run_episode(task: str, variant: str, seed: int, horizon: int = 120, chunk: int = 24, resolution: int = 64,
-                record: bool = False) -> tuple[bool, np.ndarray | None]:
+                record: bool = False) -> tuple[int | None, np.ndarray | None]:
     """One episode of the policy in the simulator as the world-model evaluator runs it (a frame
-    every `chunk` steps, `chunk` commands back). Returns whether the simulator's success flag was
-    raised within `horizon` steps and, with `record`, every frame from x0 on (uint8 [T, H, W, 3];
-    the episode then runs the whole horizon instead of stopping at success)."""
+    every `chunk` steps, `chunk` commands back). Returns the step (1-based) at which the
+    simulator's success flag was first raised, None when not within `horizon` steps, and, with
+    `record`, every frame from x0 on (uint8 [T, H, W, 3]; the episode then runs the whole horizon
+    instead of stopping at success)."""
     from mw import Sim
 
     policy = make_policy(task, variant, seed)
     with Sim(task, seed, resolution) as sim:
         image, state = sim.reset()
         frames = [image] if record else None
-        success, t = False, 0
-        while t < horizon and (record or not success):
+        first, t = None, 0
+        while t < horizon and (record or first is None):
             commands = policy.act(image, state, min(chunk, horizon - t))
             for i, command in enumerate(commands):
                 last = i == len(commands) - 1
                 image, state, done = sim.step(command, render=record or last)
                 t += 1
-                success |= done
+                if done and first is None:
+                    first = t
                 if record:
                     frames.append(image)
                 elif done:
                     break
-    return success, (np.stack(frames) if record else None)
+    return first, (np.stack(frames) if record else None)
 
 
-def measure_truth(task: str, variant: str, seeds, horizon: int = 120, chunk: int = 24, resolution: int = 64) -> list[bool]:
-    """Per seed: whether the episode succeeds in the simulator within `horizon` (run_episode)."""
+def measure_truth(task: str, variant: str, seeds, horizon: int = 120, chunk: int = 24, resolution: int = 64) -> list[int | None]:
+    """Per seed: the step at which the episode first succeeds in the simulator, None when it does
+    not within `horizon` (run_episode)."""
     return [run_episode(task, variant, seed, horizon, chunk, resolution)[0] for seed in seeds]
 
 
@@ -257,8 +260,8 @@ if __name__ == "__main__":
     rates = {}
     for task in args.tasks:
         for variant in VARIANTS[task]:
-            ok = measure_truth(task, variant, seeds, args.horizon, args.chunk)
-            rates.setdefault(task, {})[variant] = sum(ok) / len(ok)
+            first = measure_truth(task, variant, seeds, args.horizon, args.chunk)
+            rates.setdefault(task, {})[variant] = sum(f is not None for f in first) / len(first)
             print(f"{task:26s} {variant:10s} {100 * rates[task][variant]:5.1f}%", flush=True)
     if args.json:
         with open(args.json, "w") as f:

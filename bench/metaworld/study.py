@@ -9,7 +9,8 @@ generated frames) against its true success rate in the simulator on the same pla
 Episodes: the first --episodes episodes of each task in the held-out dataset; episode k of a task
 starts from that episode's frame 0 and pose, and the policy's per-episode randomness and the
 simulator's placement both follow that episode's seed (its `seed` in meta/episodes.jsonl).
-Truth: policies.measure_truth over the same seeds (cached in DIR/truth.json). The variants are
+Truth: policies.measure_truth over the same seeds (cached in DIR/truth.json: the step of each
+episode's first success, null for a failure). The variants are
 split over --jobs `bwm evaluate` processes that share the servers (a variant's episodes stay in
 one process, in order, so that the policy server hands out seeds in the dataset's order).
 
@@ -74,14 +75,16 @@ def _truth_job(job):
 
 
 def measure_truth(episodes, variants, horizon, chunk, resolution, workers) -> dict:
-    """{task: {variant: [success per episode]}} in the simulator, episodes in parallel by variant."""
+    """{task: {variant: [first success step or None per episode]}} in the simulator, episodes in
+    parallel by variant."""
     jobs = [(t, v, [s for _, s in eps], horizon, chunk, resolution) for t, eps in episodes.items() for v in variants]
     truth: dict = {}
     start = time.time()
     with multiprocessing.get_context("spawn").Pool(workers) as pool:
         for n, (task, variant, outcome) in enumerate(pool.imap_unordered(_truth_job, jobs), 1):
             truth.setdefault(task, {})[variant] = outcome
-            print(f"study: truth {n}/{len(jobs)}: {task} {variant} {100 * np.mean(outcome):.0f}% ({time.time() - start:.0f} s)", flush=True)
+            rate = np.mean([f is not None for f in outcome])
+            print(f"study: truth {n}/{len(jobs)}: {task} {variant} {100 * rate:.0f}% ({time.time() - start:.0f} s)", flush=True)
     return truth
 
 
@@ -200,22 +203,39 @@ def episode_agreement(true: list[bool], estimated: list[bool]) -> dict:
             "both_success": int((t & e).sum()), "missed": int((t & ~e).sum()), "invented": int((~t & e).sum()), "both_fail": int((~t & ~e).sum())}
 
 
-def summarize(truth: dict, estimates: dict, judged: dict, tasks: list[str], variants: list[str]) -> dict:
-    """Agreement of the world model's estimates with the truth; `judged` (the judge on the
-    simulator's frames) adds that column and its own agreement, the judge's share of the error."""
-    rows, pooled_true, pooled_est = [], [], []
+def by_success_chunk(first: list, drawn: list[bool], chunk: int) -> dict:
+    """The simulator's successes by the chunk (0-based, of `chunk` steps) in which they came, with
+    how many of each the world model drew, and the failures it drew as successes: where in an
+    episode the world model's misses are. {"chunk K": {"true": n, "drawn": m}, "failures": ...}."""
+    out: dict = {}
+    for f, d in zip(first, drawn):
+        name = "failures" if f is None else f"chunk {(f - 1) // chunk}"
+        cell = out.setdefault(name, {"true": 0, "drawn": 0})
+        cell["true"] += 1
+        cell["drawn"] += int(d)
+    return dict(sorted(out.items(), key=lambda kv: (kv[0] == "failures", len(kv[0]), kv[0])))
+
+
+def summarize(truth: dict, estimates: dict, judged: dict, tasks: list[str], variants: list[str], chunk: int) -> dict:
+    """Agreement of the world model's estimates with the truth (each episode's first success step
+    or None); `judged` (the judge on the simulator's frames) adds that column and its own
+    agreement, the judge's share of the error."""
+    rows, pooled_true, pooled_est, pooled_first = [], [], [], []
     for t in tasks:
         for v in variants:
             est = estimates[t][v]
+            first = truth[t][v]
             # Episode k of a task is the k-th held-out placement and policy seed in both.
             by_episode = {e["episode"]: bool(e["success"]) for e in est}
-            paired = [(bool(ok), by_episode[k]) for k, ok in enumerate(truth[t][v]) if k in by_episode]
-            pooled_true += [p[0] for p in paired]
+            paired = [(f, by_episode[k]) for k, f in enumerate(first) if k in by_episode]
+            pooled_first += [p[0] for p in paired]
+            pooled_true += [p[0] is not None for p in paired]
             pooled_est += [p[1] for p in paired]
-            rows.append({"task": t, "variant": v, "episodes": len(truth[t][v]), "true": float(np.mean(truth[t][v])),
+            rows.append({"task": t, "variant": v, "episodes": len(first), "true": float(np.mean([f is not None for f in first])),
                          "estimated": float(np.mean([e["success"] for e in est])), "errors": sum(e["error"] is not None for e in est),
                          "judged_simulator": float(np.mean([p >= THRESHOLD for p in judged[t][v]])),
-                         "per_episode": episode_agreement([p[0] for p in paired], [p[1] for p in paired])})
+                         "per_episode": episode_agreement([p[0] is not None for p in paired], [p[1] for p in paired]),
+                         "by_success_chunk": by_success_chunk([p[0] for p in paired], [p[1] for p in paired], chunk)})
     per_task = {}
     for t in tasks:
         mine = [r for r in rows if r["task"] == t]
@@ -225,7 +245,8 @@ def summarize(truth: dict, estimates: dict, judged: dict, tasks: list[str], vari
     by_variant = agreement(variants, [mean(v, "estimated") for v in variants], [mean(v, "true") for v in variants])
     judge_alone = agreement([f"{r['variant']}/{r['task']}" for r in rows], [r["judged_simulator"] for r in rows], [r["true"] for r in rows])
     return {"rates": rows, "per_task": per_task, "all": overall, "variants_mean_over_tasks": by_variant,
-            "judge_on_simulator_frames": judge_alone, "per_episode": episode_agreement(pooled_true, pooled_est)}
+            "judge_on_simulator_frames": judge_alone, "per_episode": episode_agreement(pooled_true, pooled_est),
+            "by_success_chunk": by_success_chunk(pooled_first, pooled_est, chunk)}
 
 
 def fmt(v) -> str:
@@ -407,7 +428,7 @@ def main(argv=None) -> None:
     episodes = episodes_by_task(a.data, tasks, a.episodes)
 
     key = {"episodes": {t: [s for _, s in e] for t, e in episodes.items()}, "horizon": a.horizon, "chunk": a.chunk,
-           "resolution": a.resolution, "variants": variants}
+           "resolution": a.resolution, "variants": variants, "outcome": "first success step"}
     truth_path = os.path.join(a.out, "truth.json")
     truth = cached(truth_path, "truth", key, lambda: measure_truth(episodes, variants, a.horizon, a.chunk, a.resolution, a.workers))
     if a.truth_only:
@@ -450,7 +471,7 @@ def main(argv=None) -> None:
             except subprocess.TimeoutExpired:
                 proc.kill()
 
-    summary = summarize(truth, estimates, judged, tasks, variants)
+    summary = summarize(truth, estimates, judged, tasks, variants, a.chunk)
     summary["episodes_per_rate"] = a.episodes
     summary["horizon"] = a.horizon
     summary["world_model_flags"] = wm
@@ -476,6 +497,8 @@ def main(argv=None) -> None:
     e = summary["per_episode"]
     print(f"per episode, pooled: the world model draws the simulator's outcome in {e['agreement']:.3f} of {e['n']} episodes "
           f"(chance {e['chance']:.3f}, kappa {fmt(e['kappa'])}; missed {e['missed']} successes, invented {e['invented']})")
+    cells = ", ".join(f"{name} {c['drawn']}/{c['true']}" for name, c in summary["by_success_chunk"].items())
+    print(f"drawn as successes, by the chunk of {a.chunk} steps in which the simulator succeeds (pooled): {cells}")
     print(f"study: wrote {os.path.join(a.out, 'study.json')}, study.csv, study.svg")
 
 

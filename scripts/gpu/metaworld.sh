@@ -11,9 +11,9 @@
 #   bash scripts/gpu/detached.sh start mw bash scripts/gpu/metaworld.sh; bash scripts/gpu/detached.sh wait mw 570 runs/metaworld/study runs/metaworld/probe
 # and the same `wait` in the calls that follow, back to back (a machine idle between calls goes
 # back, and one held 30 minutes goes back when the call in flight ends). With the recipe's defaults
-# (128x128) data to trained model takes about 14 minutes on an H100, the study 4-5 more, the
-# fidelity stage about 4 and the probe about 4: three or four calls, the last started before
-# minute 30 (run 11 of docs/fidelity.md). SKIP_FIDELITY=1 leaves out
+# (128x128, a DiT of width 768) data to trained model takes about 17 minutes on an H200, the study
+# 5-6 more, the fidelity stage about 20 (beside the studies) and the probe about 4: four calls,
+# the last started before minute 30 (run 12 of docs/fidelity.md). SKIP_FIDELITY=1 leaves out
 # the fidelity stage (which otherwise runs beside the study and slows it); SKIP_PROBE=1 the probe
 # (graded `wrong` variants, after the study). COMPARE_SOLVER=dpm++2m studies the same model a
 # second time with that sampler (runs/metaworld/study-dpm++2m).

@@ -20,16 +20,27 @@ def test_episode_agreement_counts_and_kappa():
 
 
 def test_summarize_pairs_episodes_by_index():
-    truth = {"t": {"a": [True, False, True, False], "b": [False, False, False, False]}}
+    # The truth is each episode's first success step (None: a failure).
+    truth = {"t": {"a": [30, None, 100, None], "b": [None, None, None, None]}}
     record = lambda k, ok: {"episode": k, "success": ok, "error": None}
     estimates = {"t": {"a": [record(2, True), record(0, True), record(3, True), record(1, False)],
                        "b": [record(k, False) for k in range(4)]}}
     judged = {"t": {"a": [0.9, 0.1, 0.9, 0.1], "b": [0.1] * 4}}
-    s = study.summarize(truth, estimates, judged, ["t"], ["a", "b"])
+    s = study.summarize(truth, estimates, judged, ["t"], ["a", "b"], chunk=24)
     a = s["rates"][0]["per_episode"]
     assert (a["both_success"], a["missed"], a["invented"], a["both_fail"]) == (2, 0, 1, 1), a
     assert s["rates"][0]["estimated"] == 0.75 and s["rates"][0]["true"] == 0.5
     assert s["per_episode"]["n"] == 8 and s["per_episode"]["agreement"] == 7 / 8, s["per_episode"]
+    # Successes at steps 30 (chunk 1) and 100 (chunk 4) both drawn; one of six failures invented.
+    assert s["by_success_chunk"] == {"chunk 1": {"true": 1, "drawn": 1}, "chunk 4": {"true": 1, "drawn": 1},
+                                     "failures": {"true": 6, "drawn": 1}}, s["by_success_chunk"]
+    assert list(s["rates"][0]["by_success_chunk"]) == ["chunk 1", "chunk 4", "failures"]
+
+
+def test_success_chunks_sort_numerically():
+    b = study.by_success_chunk([250, 30, None, 24, 25], [False, True, True, True, False], chunk=24)
+    assert list(b) == ["chunk 0", "chunk 1", "chunk 10", "failures"], b
+    assert b["chunk 1"] == {"true": 2, "drawn": 1} and b["chunk 0"] == {"true": 1, "drawn": 1}, b
 
 
 if __name__ == "__main__":

@@ -23,17 +23,6 @@ TASKS = ("drawer-open-v3", "button-press-topdown-v3")
 # Meta-World's frame_skip 5 x timestep 2.5 ms: one env step is 12.5 ms.
 FPS = 80
 CAMERA = "corner4"
-# What the world model sees of CAMERA's frame: the square of VIEW_SIZE of its width whose upper-left
-# corner lies at VIEW_ORIGIN (fractions of the upright frame). It holds every object placement and
-# the experts' paths; the table's near half and the robot's base, which no task moves, are left
-# out, so a frame of N pixels spends 1/VIEW_SIZE more of them on each centimetre of the work.
-VIEW_ORIGIN = (0.33, 0.12)
-VIEW_SIZE = 0.6
-
-
-def render_size(resolution: int) -> int:
-    """The size CAMERA renders at so that its VIEW is `resolution` pixels wide."""
-    return round(resolution / VIEW_SIZE)
 ACTION_SCALE = np.float32(0.01)
 # hand_low / hand_high of both tasks' envs (the mocap bounds); checked against the env in Sim.
 MOCAP_LOW = np.array([-0.5, 0.40, 0.05], np.float32)
@@ -101,10 +90,9 @@ def _build(task: str, resolution: int):
     model = env.model
     model.vis.quality.offsamples = 0
     model.vis.quality.shadowsize = 0
-    size = render_size(resolution)
-    model.vis.global_.offwidth = max(model.vis.global_.offwidth, size)
-    model.vis.global_.offheight = max(model.vis.global_.offheight, size)
-    renderer = mujoco.Renderer(model, size, size)
+    model.vis.global_.offwidth = max(model.vis.global_.offwidth, resolution)
+    model.vis.global_.offheight = max(model.vis.global_.offheight, resolution)
+    renderer = mujoco.Renderer(model, resolution, resolution)
     for flag in (mujoco.mjtRndFlag.mjRND_SHADOW, mujoco.mjtRndFlag.mjRND_REFLECTION, mujoco.mjtRndFlag.mjRND_SKYBOX):
         renderer.scene.flags[flag] = 0
     if not _built:
@@ -132,8 +120,8 @@ def _close_all() -> None:
 
 
 class Sim:
-    """One Meta-World task with object/goal placement fixed by `seed`, rendered from `CAMERA`
-    without shadows, reflections, skybox or MSAA, its VIEW at `resolution` x `resolution`. Environments are
+    """One Meta-World task with object/goal placement fixed by `seed`, rendered from `CAMERA` at
+    `resolution` x `resolution` without shadows, reflections, skybox or MSAA. Environments are
     pooled per process (building one takes 0.4 s): close() hands it back."""
 
     def __init__(self, task: str, seed: int, resolution: int = 64):
@@ -161,10 +149,7 @@ class Sim:
     def render(self) -> np.ndarray:
         self.renderer.update_scene(self.env.data, camera=CAMERA)
         # corner4 is rolled 180 degrees: rotate (a vertical flip alone would mirror the scene).
-        frame = self.renderer.render()[::-1, ::-1]
-        n, r = frame.shape[0], self.resolution
-        x0, y0 = (min(round(f * n), n - r) for f in VIEW_ORIGIN)
-        return np.ascontiguousarray(frame[y0:y0 + r, x0:x0 + r])
+        return np.ascontiguousarray(self.renderer.render()[::-1, ::-1])
 
     def reset(self):
         self.env.reset()

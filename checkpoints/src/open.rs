@@ -357,6 +357,13 @@ pub fn load_model(path_or_repo_id: &str, cfg: Option<&ModelConfig>, kind: Kind, 
 
 /// [`load_model`] from weights already opened.
 pub fn build_model(opened: OpenedWeights, cfg: Option<&ModelConfig>, kind: Kind, device: Device) -> Result<BwmModel> {
+    let (store, cfg, what) = weight_store(opened, cfg, kind, device)?;
+    BwmModel::build(&store, &cfg).with_context(|| format!("building the model from {what}"))
+}
+
+/// The parameter store [`build_model`] builds from (to add LoRA adapters before the build), the
+/// model config that applies and the weights' location for messages.
+pub fn weight_store(opened: OpenedWeights, cfg: Option<&ModelConfig>, kind: Kind, device: Device) -> Result<(Rc<ParamStore>, ModelConfig, String)> {
     let cfg = match (cfg, &opened.config) {
         (Some(given), Some(stored)) if opened.repo_config.is_some() && given != stored => bail!(
             "{}: the weights were exported for model config {:?}, not the requested {:?}",
@@ -371,5 +378,5 @@ pub fn build_model(opened: OpenedWeights, cfg: Option<&ModelConfig>, kind: Kind,
     let what = opened.location.display().to_string();
     check_fits(opened.source.as_ref(), &cfg, &what)?;
     let store: Rc<ParamStore> = ParamStore::from_weights(opened.into_source(), bwm_model::bwm::ACTION_MODE_OPTIONAL, kind, device);
-    BwmModel::build(&store, &cfg).with_context(|| format!("building the model from {what}"))
+    Ok((store, cfg, what))
 }

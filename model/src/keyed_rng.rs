@@ -17,6 +17,7 @@ pub enum Purpose {
     Augment = 6,
     RolloutNoise = 7,
     RolloutHistoryNoise = 8,
+    LoraInit = 9,
 }
 
 pub fn rng(seed: u64, index: u64, purpose: Purpose) -> ChaCha12Rng {
@@ -32,6 +33,14 @@ pub fn normal(shape: &[i64], seed: u64, index: u64, purpose: Purpose) -> Tensor 
     let n: i64 = shape.iter().product();
     let mut r = rng(seed, index, purpose);
     let values: Vec<f32> = (0..n).map(|_| r.sample(StandardNormal)).collect();
+    Tensor::from_slice(&values).view(shape)
+}
+
+/// Uniform f32 tensor in [-bound, bound) of `shape` on the CPU.
+pub fn uniform_tensor(shape: &[i64], bound: f64, seed: u64, index: u64, purpose: Purpose) -> Tensor {
+    let n: i64 = shape.iter().product();
+    let mut r = rng(seed, index, purpose);
+    let values: Vec<f32> = (0..n).map(|_| ((r.gen::<f64>() * 2.0 - 1.0) * bound) as f32).collect();
     Tensor::from_slice(&values).view(shape)
 }
 

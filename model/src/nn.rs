@@ -3,32 +3,45 @@
 
 use tch::{Kind, Tensor};
 
+use crate::lora::LoraAdapter;
 use crate::vb::{Init, Vb};
 use crate::weights::WeightsError;
 
-/// `nn.Linear(in, out)`; weight [out, in].
+/// `nn.Linear(in, out)`; weight [out, in]; with a LoRA adapter where the model's LoRA config
+/// targets the layer.
 pub struct Linear {
     pub weight: Tensor,
     pub bias: Tensor,
+    pub lora: Option<LoraAdapter>,
 }
 
 impl Linear {
     pub fn new(vb: &Vb, in_dim: i64, out_dim: i64) -> Result<Self, WeightsError> {
         let bound = 1.0 / (in_dim as f64).sqrt();
-        Ok(Self {
-            weight: vb.get(&[out_dim, in_dim], "weight", Init::Uniform { bound })?,
-            bias: vb.get(&[out_dim], "bias", Init::Uniform { bound })?,
-        })
+        let weight = vb.get(&[out_dim, in_dim], "weight", Init::Uniform { bound })?;
+        let bias = vb.get(&[out_dim], "bias", Init::Uniform { bound })?;
+        let lora = vb.lora_target().map(|state| LoraAdapter::new(vb, state, in_dim, out_dim)).transpose()?;
+        Ok(Self { weight, bias, lora })
     }
 
     /// In the parameters' dtype; `x` is cast to it.
     pub fn forward(&self, x: &Tensor) -> Tensor {
-        x.to_kind(self.weight.kind()).linear(&self.weight, Some(&self.bias))
+        let x = x.to_kind(self.weight.kind());
+        let y = x.linear(&self.weight, Some(&self.bias));
+        match &self.lora {
+            Some(adapter) => y + adapter.forward(&x),
+            None => y,
+        }
     }
 
     /// In fp32 whatever the parameters' dtype (time embedding, as the reference keeps it in fp32).
     pub fn forward_f32(&self, x: &Tensor) -> Tensor {
-        x.to_kind(Kind::Float).linear(&self.weight.to_kind(Kind::Float), Some(&self.bias.to_kind(Kind::Float)))
+        let x = x.to_kind(Kind::Float);
+        let y = x.linear(&self.weight.to_kind(Kind::Float), Some(&self.bias.to_kind(Kind::Float)));
+        match &self.lora {
+            Some(adapter) => y + adapter.forward(&x.to_kind(adapter.a.kind())).to_kind(Kind::Float),
+            None => y,
+        }
     }
 }
 

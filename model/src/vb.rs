@@ -9,6 +9,8 @@ use std::rc::Rc;
 
 use tch::{Device, Kind, Tensor};
 
+use crate::keyed_rng::{self, Purpose};
+use crate::lora::{is_adapter_key, LoraConfig, LoraState};
 use crate::weights::{WeightSource, WeightsError};
 
 /// How a parameter is initialized when it is not read from a weight file.
@@ -20,6 +22,10 @@ pub enum Init {
     Randn { std: f64 },
     /// Uniform(-bound, bound), PyTorch's default for Linear weights and biases (bound = 1/sqrt(fan_in)).
     Uniform { bound: f64 },
+    /// Uniform(-bound, bound) from its own stream keyed by (seed, index), not libtorch's
+    /// generator: parameters added to a model (LoRA adapters) leave the draws of the others as
+    /// they were.
+    KeyedUniform { bound: f64, seed: u64, index: u64 },
 }
 
 enum Source {
@@ -38,6 +44,8 @@ pub struct ParamStore {
     source: Source,
     kind: Kind,
     device: Device,
+    /// LoRA adapters on the linear layers their config targets (`enable_lora`).
+    lora: RefCell<Option<Rc<LoraState>>>,
 }
 
 /// Runs `f` with libtorch's global generator seeded with `seed`, holding a process-wide lock so
@@ -98,7 +106,23 @@ impl ParamStore {
             source,
             kind,
             device,
+            lora: RefCell::new(None),
         })
+    }
+
+    /// Linear layers built after this carry a LoRA adapter where `cfg.targets` names them; its
+    /// tensors are read from the weight file when it holds them and drawn fresh otherwise (A from
+    /// a stream keyed by `seed` and the layer, so the other parameters' draws do not move).
+    pub fn enable_lora(&self, cfg: LoraConfig, seed: u64) -> anyhow::Result<Rc<LoraState>> {
+        anyhow::ensure!(self.params.borrow().is_empty(), "LoRA must be enabled before the model is built");
+        let state = LoraState::new(cfg, seed)?;
+        *self.lora.borrow_mut() = Some(state.clone());
+        Ok(state)
+    }
+
+    /// The adapters' shared state, when LoRA is enabled.
+    pub fn lora(&self) -> Option<Rc<LoraState>> {
+        self.lora.borrow().clone()
     }
 
     pub fn root(self: &Rc<Self>) -> Vb {
@@ -170,6 +194,11 @@ impl Vb {
         self.store.device
     }
 
+    /// The LoRA state when the linear layer at this path gets an adapter.
+    pub fn lora_target(&self) -> Option<Rc<LoraState>> {
+        self.store.lora().filter(|s| s.cfg.targets(&self.prefix))
+    }
+
     /// Whether a module under this path should be built: always for random or shape-only trees;
     /// for a weight file, when the file holds `name` or the path is not declared optional.
     pub fn provides(&self, name: &str) -> bool {
@@ -199,12 +228,16 @@ impl Vb {
             Init::Uniform { bound } => {
                 Tensor::empty(shape, (Kind::Float, Device::Cpu)).uniform_(-bound, bound).to_kind(store.kind).to_device(store.device)
             }
+            Init::KeyedUniform { bound, seed, index } => {
+                keyed_rng::uniform_tensor(shape, bound, seed, index, Purpose::LoraInit).to_kind(store.kind).to_device(store.device)
+            }
         };
+        let adapter = store.lora.borrow().is_some() && is_adapter_key(&path);
         let tensor = match &store.source {
             Source::Random => random(init),
             Source::ShapesOnly => Tensor::zeros([1], options).expand(shape, false),
             Source::Weights { source, fresh_prefixes, .. }
-                if source.shape(&path).is_none() && fresh_prefixes.iter().any(|p| path.starts_with(p.as_str())) =>
+                if source.shape(&path).is_none() && (adapter || fresh_prefixes.iter().any(|p| path.starts_with(p.as_str()))) =>
             {
                 random(init)
             }

@@ -4,6 +4,7 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, ensure, Context, Result};
+use bwm_model::lora::LoraConfig;
 use bwm_model::{ActionConfig, DitConfig, ModelConfig};
 use serde::{Deserialize, Serialize};
 
@@ -90,6 +91,10 @@ pub struct ModelSection {
     pub residual: Residual,
     #[serde(default = "default_init")]
     pub init: InitSource,
+    /// LoRA adapters on the linear layers it targets; the base stays frozen in `dtype` and, with
+    /// `train.trainable` left at its default, only the adapters train.
+    #[serde(default)]
+    pub lora: Option<LoraConfig>,
 }
 
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -287,7 +292,9 @@ pub struct TrainSection {
     /// communication with the rest of the walk; otherwise all are reduced after it.
     #[serde(default = "yes")]
     pub overlap_grad_reduce: bool,
-    /// Parameter-name patterns (`*` matches anything) of the trained set.
+    /// Parameter-name patterns (`*` matches anything) of the trained set. The default, `["*"]`,
+    /// means every parameter, or with `[model.lora]` every adapter (`*.lora_A.weight`,
+    /// `*.lora_B.weight`).
     #[serde(default = "default_trainable")]
     pub trainable: Vec<String>,
     #[serde(default = "default_frozen")]
@@ -418,6 +425,16 @@ impl RunConfig {
 
     pub fn validate(&self) -> Result<()> {
         self.model.model_config()?;
+        if let Some(lora) = &self.model.lora {
+            lora.validate()?;
+            // Recomputation runs each block's forward twice; the second pass would draw other
+            // dropout masks than the first.
+            ensure!(
+                lora.dropout == 0.0 || !self.train.recompute,
+                "model.lora.dropout = {} with train.recompute = true: recomputation would draw different dropout masks; turn one of them off",
+                lora.dropout
+            );
+        }
         ensure!(self.train.steps > 0, "train.steps must be at least 1");
         ensure!(self.train.micro_batch > 0, "train.micro_batch must be at least 1");
         ensure!(self.train.grad_accum > 0, "train.grad_accum must be at least 1");
@@ -448,6 +465,15 @@ impl RunConfig {
 
     pub fn out_dir(&self) -> PathBuf {
         self.run.out_dir.clone().unwrap_or_else(|| PathBuf::from("runs").join(&self.run.name))
+    }
+
+    /// The trained set's patterns: `train.trainable`, where a LoRA run's default means the adapters.
+    pub fn trainable_patterns(&self) -> Vec<String> {
+        if self.model.lora.is_some() && self.train.trainable == default_trainable() {
+            bwm_model::lora::ADAPTER_PATTERNS.iter().map(|p| p.to_string()).collect()
+        } else {
+            self.train.trainable.clone()
+        }
     }
 
     /// Samples per optimizer step on one rank.

@@ -4,6 +4,7 @@
 use std::collections::BTreeMap;
 use std::io::Write;
 use std::path::{Path, PathBuf};
+use std::rc::Rc;
 use std::time::Instant;
 
 use anyhow::{bail, ensure, Context, Result};
@@ -98,12 +99,26 @@ pub struct Trainer {
 
 fn build_model(cfg: &RunConfig, model_cfg: &ModelConfig, device: Device) -> Result<BwmModel> {
     let kind = cfg.model.dtype.kind();
+    // The adapters are added to the store before the model is built from it.
+    let with_lora = |store: &Rc<ParamStore>| -> Result<()> {
+        if let Some(lora) = &cfg.model.lora {
+            store.enable_lora(lora.clone(), cfg.run.seed)?;
+        }
+        Ok(())
+    };
     match &cfg.model.init {
-        InitSource::Random => BwmModel::random(model_cfg, kind, device, cfg.run.seed as i64),
+        InitSource::Random => bwm_model::vb::with_seed(cfg.run.seed as i64, || {
+            let store = ParamStore::random(kind, device);
+            with_lora(&store)?;
+            BwmModel::build(&store, model_cfg)
+        }),
         // Any layout (Wan-native, diffusers, BWM release, an export of this trainer), local or a
         // Hub repo id, presented under Wan-native names.
         InitSource::BwmCheckpoint { path } => {
-            bwm_checkpoints::open::load_model(&path.to_string_lossy(), Some(model_cfg), kind, device)
+            let opened = bwm_checkpoints::open::open_any(&path.to_string_lossy())?;
+            let (store, model_cfg, what) = bwm_checkpoints::open::weight_store(opened, Some(model_cfg), kind, device)?;
+            with_lora(&store)?;
+            BwmModel::build(&store, &model_cfg).with_context(|| format!("building the model from {what}"))
         }
         InitSource::WanPretrained { path } => {
             // The DiT from the official shards; the action encoder is new, its output layers zero,
@@ -117,6 +132,7 @@ fn build_model(cfg: &RunConfig, model_cfg: &ModelConfig, device: Device) -> Resu
                     kind,
                     device,
                 );
+                with_lora(&store)?;
                 BwmModel::build(&store, model_cfg)
             })?;
             tch::no_grad(|| {
@@ -195,7 +211,7 @@ impl Trainer {
         model.dit.residual = cfg.model.residual.kind(cfg.model.dtype.kind());
         let named = model.store.named_parameters();
         let sharding = Sharding { rank: comm.rank(), world: comm.world_size(), sharded: cfg.train.shard_optimizer };
-        let mut opt = AdamW::new(&named, &cfg.train.trainable, &cfg.train.frozen, &cfg.optim, cfg.train.steps, sharding)?;
+        let mut opt = AdamW::new(&named, &cfg.trainable_patterns(), &cfg.train.frozen, &cfg.optim, cfg.train.steps, sharding)?;
         let block_params: Vec<Vec<usize>> = (0..model.dit.blocks.len())
             .map(|b| {
                 let prefix = format!("blocks.{b}.");
@@ -296,6 +312,23 @@ impl Trainer {
 
     /// One optimizer step over `grad_accum` micro-batches.
     pub fn train_step(&mut self) -> Result<StepMetrics> {
+        let lora = self.model.store.lora();
+        if let Some(l) = &lora {
+            // Dropout masks come from libtorch's generator, seeded per step so that a resumed
+            // run draws the masks an uninterrupted one would.
+            if l.cfg.dropout > 0.0 {
+                tch::manual_seed((self.cfg.run.seed as i64) ^ ((self.state.step as i64 + 1) << 20));
+            }
+            l.set_training(true);
+        }
+        let result = self.train_step_inner();
+        if let Some(l) = &lora {
+            l.set_training(false);
+        }
+        result
+    }
+
+    fn train_step_inner(&mut self) -> Result<StepMetrics> {
         let start = Instant::now();
         let cfg = &self.cfg;
         let (mb, accum) = (cfg.train.micro_batch, cfg.train.grad_accum);

@@ -3,7 +3,6 @@
 
 mod common;
 
-use bwm_trainer::objective::Objective;
 use bwm_trainer::recompute::{forward_backward, BlockGradSink, GradsInParams, Recompute};
 use bwm_trainer::{validation, Resume, Trainer};
 use common::*;
@@ -19,20 +18,6 @@ fn assert_same(a: &[(String, Tensor)], b: &[(String, Tensor)], tol: f64, what: &
         let d = max_abs_diff(x, y);
         assert!(d <= tol, "{what}: {n} differs by {d}");
     }
-}
-
-/// Mean loss over fixed draws (sample indices 10_000..10_008) of clip 0, without gradients.
-fn eval_loss(t: &Trainer) -> f64 {
-    let clip = t.cache.load(0, tch::Device::Cpu).unwrap();
-    let obj: &Objective = &t.objective;
-    let mut sum = 0.0;
-    for g in 10_000..10_008u64 {
-        let d = obj.draw(g, &t.cache.index.latent_shape);
-        let p = obj.prepare(&clip.latents.unsqueeze(0), &d.noise.unsqueeze(0), &d.history_noise.unsqueeze(0), &[d.timestep_index]).unwrap();
-        let pred = tch::no_grad(|| t.model.forward(&p.input, &p.frame_timesteps, &clip.actions.unsqueeze(0))).unwrap();
-        sum += obj.loss(&pred, &p).double_value(&[]);
-    }
-    sum / 8.0
 }
 
 #[test]

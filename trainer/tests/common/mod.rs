@@ -17,6 +17,11 @@ pub fn tmp_dir(name: &str) -> bwm_testdir::TestDir {
 /// Latents are smooth functions of the actions so that there is something to learn.
 pub fn write_cache(dir: &Path, clips: usize, seed: i64) -> PathBuf {
     let _guard = rng_lock();
+    write_cache_unlocked(dir, clips, seed)
+}
+
+/// `write_cache` for a caller that already holds `rng_lock`.
+pub fn write_cache_unlocked(dir: &Path, clips: usize, seed: i64) -> PathBuf {
     tch::manual_seed(seed);
     let index = CacheIndex::new(vec![48, 4, 4, 4], 14, 8, 4, [64, 64], 25.0, "synthetic");
     let mut w = CacheWriter::create(dir, index).unwrap();
@@ -34,6 +39,11 @@ pub fn write_cache(dir: &Path, clips: usize, seed: i64) -> PathBuf {
 
 /// A 1-layer model of the tiny family on the CPU, f32, no TensorBoard, no progress bar.
 pub fn config(cache: &Path, out: &Path, extra: &str) -> RunConfig {
+    try_config(cache, out, extra).unwrap()
+}
+
+/// `config`, with the parse error of an invalid `extra`.
+pub fn try_config(cache: &Path, out: &Path, extra: &str) -> anyhow::Result<RunConfig> {
     let text = format!(
         r#"
 [run]
@@ -70,7 +80,7 @@ progress = false
 }
 
 /// Merges `extra` (which may repeat a section, e.g. `[train]`) into the base text.
-fn parse_with_sections(text: &str) -> RunConfig {
+fn parse_with_sections(text: &str) -> anyhow::Result<RunConfig> {
     let mut root = toml::Table::new();
     let mut chunks: Vec<(String, String)> = Vec::new();
     for line in text.lines() {
@@ -89,7 +99,7 @@ fn parse_with_sections(text: &str) -> RunConfig {
             entry.as_table_mut().unwrap().insert(k, v);
         }
     }
-    RunConfig::parse(&toml::to_string(&root).unwrap(), &[]).unwrap()
+    RunConfig::parse(&toml::to_string(&root).unwrap(), &[])
 }
 
 /// Random initialization draws from libtorch's global generator: tests that build models hold
@@ -103,6 +113,20 @@ pub fn rng_lock() -> std::sync::MutexGuard<'static, ()> {
 pub fn trainer(cfg: RunConfig, resume: bwm_trainer::Resume) -> anyhow::Result<bwm_trainer::Trainer> {
     let _guard = rng_lock();
     bwm_trainer::Trainer::new(cfg, resume)
+}
+
+/// Mean loss over fixed draws (sample indices 10_000..10_008) of clip 0, without gradients.
+pub fn eval_loss(t: &bwm_trainer::Trainer) -> f64 {
+    let clip = t.cache.load(0, tch::Device::Cpu).unwrap();
+    let obj = &t.objective;
+    let mut sum = 0.0;
+    for g in 10_000..10_008u64 {
+        let d = obj.draw(g, &t.cache.index.latent_shape);
+        let p = obj.prepare(&clip.latents.unsqueeze(0), &d.noise.unsqueeze(0), &d.history_noise.unsqueeze(0), &[d.timestep_index]).unwrap();
+        let pred = tch::no_grad(|| t.model.forward(&p.input, &p.frame_timesteps, &clip.actions.unsqueeze(0))).unwrap();
+        sum += obj.loss(&pred, &p).double_value(&[]);
+    }
+    sum / 8.0
 }
 
 pub fn max_abs_diff(a: &Tensor, b: &Tensor) -> f64 {

@@ -39,3 +39,27 @@ fn the_validation_solver_is_named_as_on_the_command_line() {
     let err = format!("{:#}", RunConfig::load(&path, &["validation.solver=unipc".to_string()]).unwrap_err());
     assert!(err.contains("unipc") && err.contains("dpm++2m"), "{err}");
 }
+
+#[test]
+fn the_readme_lora_override_of_the_5b_recipe() {
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../configs/bwm-wan22-ti2v-5b.toml");
+    let overrides = [
+        r#"model.lora={rank=64, targets=["blocks.*.self_attn.*", "blocks.*.cross_attn.*", "blocks.*.ffn.*"]}"#.to_string(),
+        r#"train.trainable=["*.lora_A.weight", "*.lora_B.weight", "action_encoder.*"]"#.to_string(),
+    ];
+    let c = RunConfig::load(&path, &overrides).unwrap();
+    let lora = c.model.lora.clone().unwrap();
+    assert_eq!((lora.rank, lora.scale()), (64, 1.0));
+    // The module tree without storage: every attention and FFN linear of the 30 blocks carries
+    // an adapter (8 of 3072 x 3072, 2 between 3072 and 14336).
+    let store = bwm_model::ParamStore::shapes_only(tch::Kind::BFloat16);
+    store.enable_lora(lora, 0).unwrap();
+    bwm_model::BwmModel::build(&store, &c.model.model_config().unwrap()).unwrap();
+    let named = store.named_parameters();
+    let adapters: Vec<_> = named.iter().filter(|(n, _)| bwm_model::lora::is_adapter_key(n)).collect();
+    assert_eq!(adapters.len(), 30 * 10 * 2);
+    let adapter_params: i64 = adapters.iter().map(|(_, t)| t.size().iter().product::<i64>()).sum();
+    assert_eq!(adapter_params, 30 * (8 * 64 * (3072 + 3072) + 2 * 64 * (3072 + 14336)));
+    let trained = bwm_trainer::optim::select_trainable(&named, &c.trainable_patterns(), &c.train.frozen).unwrap();
+    assert_eq!(trained.len(), adapters.len() + named.iter().filter(|(n, _)| n.starts_with("action_encoder.")).count());
+}

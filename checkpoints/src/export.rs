@@ -69,6 +69,9 @@ pub struct ExportOptions {
     pub dtype: ExportDtype,
     /// The EMA weights (`ema.<name>` of the checkpoint's `optimizer.safetensors`).
     pub ema: bool,
+    /// A LoRA run's checkpoint: write its adapters merged into the base weights (`base`, else the
+    /// run's `model.init`), full weights in the chosen layout.
+    pub merge_lora: bool,
     /// Largest shard in bytes (default 5 GB).
     pub shard_size: u64,
     /// Replace a non-empty output folder.
@@ -102,6 +105,7 @@ impl Default for ExportOptions {
             layout: DitLayout::WanNative,
             dtype: ExportDtype::Bf16,
             ema: false,
+            merge_lora: false,
             shard_size: DEFAULT_SHARD_SIZE,
             overwrite: false,
             action_stats: None,
@@ -181,6 +185,14 @@ pub fn prepare(input: &str, opts: &ExportOptions) -> Result<Prepared> {
                 Box::new(ema_weights(path, &model_file).with_context(|| format!("{input}: --ema"))?)
             } else {
                 Box::new(SafetensorsSource::open(&model_file)?)
+            };
+            let source = match (&state.run.lora, opts.merge_lora) {
+                (Some(_), true) => crate::open::merge_lora_checkpoint(source, &state.run, opts.base.as_deref(), input)?,
+                (Some(_), false) => bail!(
+                    "{input} is a LoRA checkpoint (model.lora): pass --merge-lora to export its adapters merged into the base weights (an adapter-only export in the PEFT layout is not implemented yet)"
+                ),
+                (None, true) => bail!("--merge-lora: {input} is not a LoRA checkpoint (its run config has no model.lora)"),
+                (None, false) => source,
             };
             let run = state.run.clone();
             (source, stored, Some(state), Some(run))

@@ -14,7 +14,8 @@ use tch::{Device, Kind};
 
 use crate::keymap::{self, DitLayout, ACTION_PREFIX, TEXT_EMBEDDING_PREFIX};
 use crate::repo::{self, RepoConfig, ACTION_ENCODER_DIR, CONFIG_FILE, TRANSFORMER_DIR};
-use crate::sources::{MappedSource, UnionSource};
+use crate::run_info::{InitInfo, RunInfo};
+use crate::sources::{LoraMergedSource, MappedSource, TensorSource, UnionSource};
 
 /// Weights opened by [`open_any`].
 pub struct OpenedWeights {
@@ -223,15 +224,51 @@ fn open_dir(dir: &Path) -> Result<OpenedWeights> {
 }
 
 /// A training checkpoint folder: its `model.safetensors` (the trained tensors), under the model
-/// config of the run that wrote it.
+/// config of the run that wrote it; a LoRA run's adapters merged into the base weights it
+/// started from.
 fn open_training_checkpoint(dir: &Path) -> Result<OpenedWeights> {
     let state = crate::run_info::CheckpointState::read(dir)?;
     let model_file = dir.join("model.safetensors");
     ensure!(model_file.is_file(), "{}: no model.safetensors; not a complete training checkpoint", dir.display());
+    if state.run.lora.is_some() {
+        let what = dir.display().to_string();
+        let source = merge_lora_checkpoint(Box::new(SafetensorsSource::open(&model_file)?), &state.run, None, &what)?;
+        let kind = if state.run.dtype.as_deref() == Some("bf16") { Kind::BFloat16 } else { Kind::Float };
+        let kinds = source.names().into_iter().map(|n| (n, kind)).collect();
+        return Ok(OpenedWeights {
+            source,
+            layout: DitLayout::WanNative,
+            config: Some(state.run.model),
+            repo_config: None,
+            declared_missing: Vec::new(),
+            kinds,
+            location: dir.to_path_buf(),
+        });
+    }
     let mut opened = open_local(&model_file)?;
     opened.config = Some(state.run.model);
     opened.location = dir.to_path_buf();
     Ok(opened)
+}
+
+/// A LoRA run's trained tensors (Wan-native names: its adapters and whatever else it trained)
+/// over the base weights it started from, the adapters merged in. The base is `base` (any weights
+/// `open_any` reads), else the run's `model.init`; a run from random weights gets them drawn
+/// again from its seed, as the trainer drew them.
+pub fn merge_lora_checkpoint(trained: Box<dyn WeightSource>, run: &RunInfo, base: Option<&str>, what: &str) -> Result<Box<dyn WeightSource>> {
+    let Some(lora) = &run.lora else { bail!("{what}: not a LoRA run (no model.lora in its config)") };
+    let base_source: Box<dyn WeightSource> = match (base, &run.init) {
+        (Some(spec), _) => open_any(spec).with_context(|| format!("{what}: the base weights {spec}"))?.into_source(),
+        (None, InitInfo::WanPretrained(p) | InitInfo::BwmCheckpoint(p)) => open_any(&p.to_string_lossy())
+            .with_context(|| format!("{what}: the base weights its run started from ({})", p.display()))?
+            .into_source(),
+        (None, InitInfo::Random) => {
+            let model = BwmModel::random(&run.model, Kind::Float, Device::Cpu, run.seed as i64)
+                .with_context(|| format!("{what}: drawing the random base weights of its run again"))?;
+            Box::new(TensorSource::new(model.store.named_parameters(), format!("the random base weights of run {} (seed {})", run.name, run.seed)))
+        }
+    };
+    Ok(Box::new(LoraMergedSource::new(Box::new(UnionSource::overlay(trained, base_source)), lora.scale())?))
 }
 
 fn open_diffusers_component(dir: &Path) -> Result<OpenedWeights> {

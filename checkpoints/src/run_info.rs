@@ -5,6 +5,7 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
+use bwm_model::lora::LoraConfig;
 use bwm_model::{ActionConfig, DitConfig, ModelConfig};
 use serde::Deserialize;
 
@@ -37,6 +38,8 @@ struct ModelPart {
     residual: Option<String>,
     #[serde(default)]
     init: Option<toml::Value>,
+    #[serde(default)]
+    lora: Option<LoraConfig>,
 }
 
 #[derive(Debug, Clone, Default, Deserialize)]
@@ -102,6 +105,8 @@ pub struct RunInfo {
     /// `f32` or `model`: the DiT's residual stream in training (`model.residual`; absent = f32).
     pub residual: Option<String>,
     pub init: InitInfo,
+    /// The run's LoRA adapters (`model.lora`): its checkpoints hold adapters, not whole weights.
+    pub lora: Option<LoraConfig>,
     pub latent_cache: Option<PathBuf>,
     pub holdout_clips: usize,
     pub shift: Option<f64>,
@@ -147,6 +152,7 @@ impl RunInfo {
             dtype: raw.model.dtype,
             residual: raw.model.residual,
             init,
+            lora: raw.model.lora,
             latent_cache: raw.data.latent_cache,
             holdout_clips: raw.data.holdout_clips,
             shift: raw.objective.shift,

@@ -1,8 +1,9 @@
 //! Weight sources built from other sources: a union of files (a diffusers transformer plus its
 //! action-encoder component), an overlay (trained tensors over the base weights they started
-//! from), a renaming that refuses collisions, and in-memory tensors.
+//! from), a renaming that refuses collisions, in-memory tensors, and LoRA adapters merged into
+//! the weights they adapt.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 
 use anyhow::{bail, Result};
 use bwm_model::weights::{WeightSource, WeightsError};
@@ -121,5 +122,74 @@ impl WeightSource for TensorSource {
     fn load(&self, name: &str, kind: Kind, device: Device) -> Result<Tensor, WeightsError> {
         let t = self.tensors.get(name).ok_or_else(|| WeightsError::missing(self.describe(), name))?;
         Ok(t.to_device(device).to_kind(kind))
+    }
+}
+
+/// Weights with LoRA adapters merged in: each `<m>.weight` that has `<m>.lora_A.weight` and
+/// `<m>.lora_B.weight` beside it is presented as `W + scale B A` (computed in fp32, then cast to
+/// the dtype asked for); the adapter tensors themselves are not presented.
+pub struct LoraMergedSource {
+    inner: Box<dyn WeightSource>,
+    scale: f64,
+    /// Module paths `<m>` with an adapter.
+    adapted: BTreeSet<String>,
+}
+
+impl LoraMergedSource {
+    /// An error names the adapter whose other half or base weight is missing, or whose shapes do
+    /// not fit the weight.
+    pub fn new(inner: Box<dyn WeightSource>, scale: f64) -> Result<Self> {
+        let mut adapted = BTreeSet::new();
+        for name in inner.names() {
+            let Some(module) = name.strip_suffix(".lora_A.weight") else { continue };
+            let (a, b, w) = (name.clone(), format!("{module}.lora_B.weight"), format!("{module}.weight"));
+            let (Some(sa), Some(sb)) = (inner.shape(&a), inner.shape(&b)) else {
+                bail!("{}: '{a}' has no '{b}' beside it", inner.describe());
+            };
+            let Some(sw) = inner.shape(&w) else {
+                bail!("{}: the adapter '{a}' adapts '{w}', which neither the checkpoint nor its base weights hold", inner.describe());
+            };
+            if sa.len() != 2 || sb.len() != 2 || sw != [sb[0], sa[1]] || sa[0] != sb[1] {
+                bail!("{}: the adapter of '{w}' {sw:?} has A {sa:?} and B {sb:?}, which do not make its shape", inner.describe());
+            }
+            adapted.insert(module.to_string());
+        }
+        if let Some(b) = inner.names().iter().find(|n| n.strip_suffix(".lora_B.weight").is_some_and(|m| !adapted.contains(m))) {
+            bail!("{}: '{b}' has no lora_A beside it", inner.describe());
+        }
+        Ok(Self { inner, scale, adapted })
+    }
+
+    fn is_adapter(name: &str) -> bool {
+        bwm_model::lora::is_adapter_key(name)
+    }
+}
+
+impl WeightSource for LoraMergedSource {
+    fn describe(&self) -> String {
+        format!("{} (LoRA merged)", self.inner.describe())
+    }
+    fn names(&self) -> Vec<String> {
+        self.inner.names().into_iter().filter(|n| !Self::is_adapter(n)).collect()
+    }
+    fn shape(&self, name: &str) -> Option<Vec<i64>> {
+        if Self::is_adapter(name) {
+            return None;
+        }
+        self.inner.shape(name)
+    }
+    fn load(&self, name: &str, kind: Kind, device: Device) -> Result<Tensor, WeightsError> {
+        if Self::is_adapter(name) {
+            return Err(WeightsError::missing(self.describe(), name));
+        }
+        match name.strip_suffix(".weight").filter(|m| self.adapted.contains(*m)) {
+            Some(module) => {
+                let w = self.inner.load(name, Kind::Float, device)?;
+                let a = self.inner.load(&format!("{module}.lora_A.weight"), Kind::Float, device)?;
+                let b = self.inner.load(&format!("{module}.lora_B.weight"), Kind::Float, device)?;
+                Ok((w + b.matmul(&a) * self.scale).to_kind(kind))
+            }
+            None => self.inner.load(name, kind, device),
+        }
     }
 }

@@ -26,6 +26,10 @@ pub struct ExportArgs {
     /// Export the EMA weights kept in the checkpoint's optimizer.safetensors.
     #[arg(long)]
     ema: bool,
+    /// A LoRA checkpoint: merge its adapters into the base weights (--base, else the run's
+    /// model.init) and write full weights.
+    #[arg(long)]
+    merge_lora: bool,
     /// Stored dtype: bf16 or fp32.
     #[arg(long, default_value = "bf16")]
     dtype: ExportDtype,
@@ -74,6 +78,7 @@ pub fn run(args: ExportArgs) -> Result<()> {
         layout: args.layout,
         dtype: args.dtype,
         ema: args.ema,
+        merge_lora: args.merge_lora,
         shard_size: parse_size(&args.shard_size).context("--shard-size")?,
         overwrite: args.overwrite,
         action_stats: args.action_stats,

@@ -123,3 +123,57 @@ fn adapters_start_fresh_on_a_base_checkpoint() {
     }
     assert_eq!(eval_loss(&t), eval_loss(&base), "fresh adapters change the base model's output");
 }
+
+#[test]
+fn a_lora_checkpoint_loads_merged_and_exports_merged() {
+    let dir = tmp_dir("lora-merge");
+    let cache = write_cache(&dir.join("cache"), 1, 15);
+    let extra = format!("[model]\n{LORA}\n[train]\nsteps = 20\n[optim]\nlr = 1e-2");
+    let mut t = trainer(config(&cache, &dir.join("run"), &extra), Resume::No).unwrap();
+    t.run().unwrap();
+    let trained_loss = eval_loss(&t);
+    let ckpt = t.checkpoints.latest().unwrap().unwrap().path;
+    let x = |m: &bwm_model::BwmModel| {
+        let clip = t.cache.load(0, tch::Device::Cpu).unwrap();
+        let d = t.objective.draw(10_000, &t.cache.index.latent_shape);
+        let p = t.objective.prepare(&clip.latents.unsqueeze(0), &d.noise.unsqueeze(0), &d.history_noise.unsqueeze(0), &[d.timestep_index]).unwrap();
+        tch::no_grad(|| m.forward(&p.input, &p.frame_timesteps, &clip.actions.unsqueeze(0))).unwrap()
+    };
+    let reference = x(&t.model);
+
+    // The checkpoint holds the adapters only; opened (as rollout, evaluate and serve open it),
+    // they are merged into the run's random base weights, drawn again from its seed.
+    // Drawing the base again uses libtorch's generator: under the tests' lock (the dropout test
+    // draws from it too).
+    let merged = {
+        let _guard = rng_lock();
+        bwm_checkpoints::open::load_model(ckpt.to_str().unwrap(), None, Kind::Float, tch::Device::Cpu).unwrap()
+    };
+    assert!(merged.store.named_parameters().iter().all(|(n, _)| !bwm_model::lora::is_adapter_key(n)));
+    let d = max_abs_diff(&x(&merged), &reference);
+    assert!(d < 1e-4, "merged model differs from base + adapters by {d}");
+    assert_ne!(trained_loss, 0.0);
+
+    // `bwm export --merge-lora` writes the same merged weights; without it the export refuses.
+    let out = dir.join("export");
+    let opts = bwm_checkpoints::export::ExportOptions { dtype: bwm_checkpoints::export::ExportDtype::F32, ..Default::default() };
+    let e = format!("{:#}", bwm_checkpoints::export::export(ckpt.to_str().unwrap(), &out, &opts, &mut |_| {}).unwrap_err());
+    assert!(e.contains("--merge-lora"), "{e}");
+    let opts = bwm_checkpoints::export::ExportOptions { merge_lora: true, ..opts };
+    {
+        let _guard = rng_lock();
+        bwm_checkpoints::export::export(ckpt.to_str().unwrap(), &out, &opts, &mut |_| {}).unwrap();
+    }
+    let exported = bwm_checkpoints::open::load_model(out.to_str().unwrap(), None, Kind::Float, tch::Device::Cpu).unwrap();
+    let merged_params: BTreeMap<String, Tensor> = merged.store.named_parameters().into_iter().collect();
+    for (n, w) in exported.store.named_parameters() {
+        assert!(w.equal(&merged_params[&n]), "{n}: the export differs from the merged checkpoint");
+    }
+
+    // A checkpoint of a run without adapters is no LoRA checkpoint.
+    let mut full = trainer(config(&cache, &dir.join("full"), "[train]\nsteps = 1"), Resume::No).unwrap();
+    full.run().unwrap();
+    let full_ckpt = full.checkpoints.latest().unwrap().unwrap().path;
+    let e = format!("{:#}", bwm_checkpoints::export::export(full_ckpt.to_str().unwrap(), &dir.join("export2"), &opts, &mut |_| {}).unwrap_err());
+    assert!(e.contains("not a LoRA checkpoint"), "{e}");
+}

@@ -27,7 +27,8 @@ pub struct ExportArgs {
     #[arg(long)]
     ema: bool,
     /// A LoRA checkpoint: merge its adapters into the base weights (--base, else the run's
-    /// model.init) and write full weights.
+    /// model.init) and write full weights. Without it a LoRA checkpoint's adapters are written
+    /// alone, in the diffusers/PEFT layout (pytorch_lora_weights.safetensors) whatever --layout.
     #[arg(long)]
     merge_lora: bool,
     /// Stored dtype: bf16 or fp32.
@@ -91,6 +92,24 @@ pub fn run(args: ExportArgs) -> Result<()> {
         base_model_id: args.base_model,
         fail_after_shards: None,
     };
+    if !args.merge_lora && bwm_checkpoints::export::is_lora_checkpoint(&args.checkpoint)? {
+        anyhow::ensure!(args.push.is_none(), "--push of a LoRA checkpoint's adapters is not supported; push the --merge-lora export, or upload the adapter folder");
+        let a = bwm_checkpoints::export::export_lora_adapters(&args.checkpoint, &args.out, args.dtype, args.overwrite)?;
+        println!(
+            "exported the LoRA adapters of {} layers ({} parameters, diffusers/PEFT layout) to {}",
+            a.layers,
+            a.parameters,
+            a.out.join(bwm_checkpoints::export::LORA_WEIGHTS_FILE).display()
+        );
+        if !a.left_out.is_empty() {
+            println!(
+                "left out: {} trained tensors besides the adapters (e.g. {}); an adapter file cannot hold them, --merge-lora writes them with the merged weights",
+                a.left_out.len(),
+                a.left_out[0]
+            );
+        }
+        return Ok(());
+    }
     let report = export(&args.checkpoint, &args.out, &opts, &mut |line| eprintln!("{line}"))?;
     let bytes: u64 = report.files.iter().map(|f| f.bytes).sum();
     println!(

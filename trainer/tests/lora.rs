@@ -177,3 +177,48 @@ fn a_lora_checkpoint_loads_merged_and_exports_merged() {
     let e = format!("{:#}", bwm_checkpoints::export::export(full_ckpt.to_str().unwrap(), &dir.join("export2"), &opts, &mut |_| {}).unwrap_err());
     assert!(e.contains("not a LoRA checkpoint"), "{e}");
 }
+
+fn venv_python() -> Option<std::path::PathBuf> {
+    ["VIRTUAL_ENV", "BWM_VENV"].iter().filter_map(std::env::var_os).map(|v| std::path::Path::new(&v).join("bin/python")).find(|p| p.exists())
+}
+
+#[test]
+fn diffusers_loads_the_exported_adapters_onto_the_base() {
+    let Some(py) = venv_python().filter(|p| std::process::Command::new(p).args(["-c", "import diffusers, peft"]).output().is_ok_and(|o| o.status.success())) else {
+        assert!(std::env::var("BWM_REQUIRE_PY_INTEROP").map_or(true, |v| v != "1"), "diffusers/peft missing");
+        eprintln!("SKIPPED: no virtualenv python with diffusers and peft (source scripts/env.sh)");
+        return;
+    };
+    use bwm_checkpoints::export::{export, export_lora_adapters, ExportDtype, ExportOptions};
+    let dir = tmp_dir("lora-diffusers");
+    let cache = write_cache(&dir.join("cache"), 1, 16);
+    // The base: the weights of a run without adapters, written as a file the LoRA run starts from.
+    let base = trainer(config(&cache, &dir.join("base"), ""), Resume::No).unwrap();
+    let base_file = dir.join("base.safetensors");
+    Tensor::write_safetensors(&base.model.store.named_parameters(), &base_file).unwrap();
+    let extra = format!("[model]\n{LORA}\ninit = {{ from = \"bwm-checkpoint\", path = \"{}\" }}\n[train]\nsteps = 10\n[optim]\nlr = 1e-2", base_file.display());
+    let mut t = trainer(config(&cache, &dir.join("lora"), &extra), Resume::No).unwrap();
+    t.run().unwrap();
+    let ckpt = t.checkpoints.latest().unwrap().unwrap().path;
+
+    let diffusers = |out: &str, input: &str, opts: ExportOptions| {
+        let path = dir.join(out);
+        export(input, &path, &ExportOptions { layout: bwm_checkpoints::DitLayout::Diffusers, dtype: ExportDtype::F32, ..opts }, &mut |_| {}).unwrap();
+        path
+    };
+    let base_out = diffusers("base-diffusers", base_file.to_str().unwrap(), ExportOptions { config: Some(dir.join("base/config.toml")), ..Default::default() });
+    let merged_out = diffusers("merged-diffusers", ckpt.to_str().unwrap(), ExportOptions { merge_lora: true, ..Default::default() });
+    let adapters = export_lora_adapters(ckpt.to_str().unwrap(), &dir.join("adapters"), ExportDtype::F32, false).unwrap();
+    assert_eq!((adapters.layers, adapters.left_out.len()), (12, 0));
+
+    let script = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/lora_interop.py");
+    let out = std::process::Command::new(py)
+        .arg(script)
+        .args([&base_out, &adapters.out, &merged_out])
+        .arg(adapters.layers.to_string())
+        .output()
+        .unwrap();
+    let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "lora_interop.py failed:\n{text}");
+    assert!(text.contains("adapted layers 12"), "{text}");
+}

@@ -280,3 +280,40 @@ fn bench_train_breakdown_accounts_for_the_step() {
     assert!(parts[..2].iter().all(|&s| s >= 0.0), "{stdout}");
     assert!((parts.iter().sum::<f64>() - step).abs() <= 0.0025 + 1e-9, "{parts:?} vs {step}: {stdout}");
 }
+
+#[test]
+fn a_lora_run_exports_its_adapters_and_its_merged_weights() {
+    let dir = temp_dir("lora-cli");
+    write_cache(&dir.join("cache"));
+    let config = write_config(&dir, "run.toml", &dir.join("run"), 2, 1);
+    let trained = Command::new(bwm())
+        .args(["train", "--config"])
+        .arg(&config)
+        .args(["--set", r#"model.lora={rank=2, alpha=4.0, targets=["blocks.*.ffn.*"]}"#])
+        .output()
+        .unwrap();
+    assert!(trained.status.success(), "{}", String::from_utf8_lossy(&trained.stderr));
+    let ckpt = dir.join("run/checkpoints").join(std::fs::read_to_string(dir.join("run/checkpoints/latest")).unwrap().trim());
+
+    let export = |args: &[&str]| {
+        let out = Command::new(bwm()).args(["export", "--checkpoint"]).arg(&ckpt).args(args).output().unwrap();
+        (out.status.success(), format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr)))
+    };
+    let adapters = dir.join("adapters");
+    let (ok, text) = export(&["--out", adapters.to_str().unwrap()]);
+    assert!(ok && text.contains("exported the LoRA adapters of"), "{text}");
+    let tensors = tch::Tensor::read_safetensors(adapters.join("pytorch_lora_weights.safetensors")).unwrap();
+    assert!(!tensors.is_empty() && tensors.len() % 2 == 0, "{} adapter tensors", tensors.len());
+    assert!(tensors.iter().all(|(n, _)| n.starts_with("transformer.blocks.") && n.contains(".ffn.net.") && n.contains(".lora_")), "{:?}", tensors.iter().map(|(n, _)| n).collect::<Vec<_>>());
+    let config: serde_json::Value = serde_json::from_slice(&std::fs::read(adapters.join("adapter_config.json")).unwrap()).unwrap();
+    assert_eq!((config["r"].as_i64(), config["peft_type"].as_str()), (Some(2), Some("LORA")), "{config}");
+    // The action encoder trained beside the adapters cannot go into an adapter file: said so.
+    assert!(!text.contains("left out") || text.contains("--merge-lora"), "{text}");
+
+    let merged = dir.join("merged");
+    let (ok, text) = export(&["--merge-lora", "--layout", "diffusers", "--out", merged.to_str().unwrap()]);
+    assert!(ok, "{text}");
+    assert!(merged.join("transformer").is_dir() && merged.join("config.json").is_file(), "{text}");
+    let (ok, text) = export(&["--merge-lora", "--push", "someone/model", "--out", dir.join("x").to_str().unwrap()]);
+    assert!(!ok, "{text}");
+}

@@ -1,0 +1,25 @@
+#!/usr/bin/env bash
+# On one GPU machine (device tool; the LoRA issue asks for kind nvidia-h100-x1), from the repo
+# root, with the bwm binary carried as scripts/gpu/carry.sh packs it (.carry/bwm.xz). Times the
+# 5B training step with LoRA rank 64 on every attention and FFN linear (the README's override:
+# adapters and the action encoder trained, the base frozen in bf16), and with FULL=1 full
+# fine-tuning beside it, at 640x480, 1+8+72 frames, batch 1, random weights, while sampling GPU memory.
+#   run(carry=[".carry"], kind="nvidia-h100-x1", command="bash scripts/gpu/lora.sh")
+# RECOMPUTE=false times LoRA without recomputation too; STEPS (default 5) steps each.
+#   run(carry=[".carry"], kind="nvidia-h200", command="FULL=1 bash scripts/gpu/lora.sh")
+set -uo pipefail
+source "$(dirname "${BASH_SOURCE[0]}")/common.sh"
+mkdir -p dist && xz -dc .carry/bwm.xz > dist/bwm && chmod +x dist/bwm || exit 1
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee "$OUT/gpu.txt"
+LORA=(--set 'model.lora={rank=64, targets=["blocks.*.self_attn.*", "blocks.*.cross_attn.*", "blocks.*.ffn.*"]}'
+      --set 'train.trainable=["*.lora_A.weight", "*.lora_B.weight", "action_encoder.*"]')
+common=(--config configs/bwm-wan22-ti2v-5b.toml --set run.device=\"cuda\" --set train.grad_accum=1 --steps "${STEPS:-5}")
+mem lora64_recompute dist/bwm bench-train "${common[@]}" "${LORA[@]}" --out /tmp/bench-lora
+if [ "${RECOMPUTE:-true}" = false ]; then
+  mem lora64 dist/bwm bench-train "${common[@]}" "${LORA[@]}" --set train.recompute=false --out /tmp/bench-lora2
+fi
+# Full fine-tuning needs about 98 GB with every block recomputed (docs/performance.md): FULL=1 on an
+# H200 call.
+if [ "${FULL:-0}" = 1 ]; then
+  mem full_recompute dist/bwm bench-train "${common[@]}" --out /tmp/bench-full
+fi

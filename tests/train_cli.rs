@@ -282,17 +282,27 @@ fn bench_train_breakdown_accounts_for_the_step() {
 }
 
 #[test]
-fn a_lora_run_exports_its_adapters_and_its_merged_weights() {
+fn a_lora_run_exports_and_rolls_out_through_the_cli() {
     let dir = temp_dir("lora-cli");
     write_cache(&dir.join("cache"));
+    let train = |config: &std::path::Path, sets: &[&str]| {
+        let mut cmd = Command::new(bwm());
+        cmd.args(["train", "--config"]).arg(config);
+        for s in sets {
+            cmd.args(["--set", s]);
+        }
+        let out = cmd.output().unwrap();
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    };
+    // The base: one step of full training, exported as a user would download a base model.
+    train(&write_config(&dir, "base.toml", &dir.join("base-run"), 1, 1), &[]);
+    let base = dir.join("base-export");
+    let base_ckpt = dir.join("base-run/checkpoints/step-00000001");
+    let out = Command::new(bwm()).args(["export", "--checkpoint"]).arg(&base_ckpt).arg("--out").arg(&base).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let config = write_config(&dir, "run.toml", &dir.join("run"), 2, 1);
-    let trained = Command::new(bwm())
-        .args(["train", "--config"])
-        .arg(&config)
-        .args(["--set", r#"model.lora={rank=2, alpha=4.0, targets=["blocks.*.ffn.*"]}"#])
-        .output()
-        .unwrap();
-    assert!(trained.status.success(), "{}", String::from_utf8_lossy(&trained.stderr));
+    let init = format!(r#"model.init={{from="bwm-checkpoint", path="{}"}}"#, base.display());
+    train(&config, &[r#"model.lora={rank=2, alpha=4.0, targets=["blocks.*.ffn.*"]}"#, &init]);
     let ckpt = dir.join("run/checkpoints").join(std::fs::read_to_string(dir.join("run/checkpoints/latest")).unwrap().trim());
 
     let export = |args: &[&str]| {
@@ -316,4 +326,21 @@ fn a_lora_run_exports_its_adapters_and_its_merged_weights() {
     assert!(merged.join("transformer").is_dir() && merged.join("config.json").is_file(), "{text}");
     let (ok, text) = export(&["--merge-lora", "--push", "someone/model", "--out", dir.join("x").to_str().unwrap()]);
     assert!(!ok, "{text}");
+
+    // The world-model commands take the LoRA checkpoint folder, or the base plus the adapters.
+    let roll = |args: &[&str]| {
+        let out = Command::new(bwm())
+            .arg("bench-rollout")
+            .args(args)
+            .args(["--random-vae", "--device", "cpu", "--history", "4", "--future", "4", "--sample-steps", "1", "--height", "32", "--width", "64", "--chunks", "1"])
+            .output()
+            .unwrap();
+        (out.status.success(), format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr)))
+    };
+    let (ok, text) = roll(&["--checkpoint", ckpt.to_str().unwrap()]);
+    assert!(ok, "{text}");
+    let (ok, text) = roll(&["--checkpoint", base.to_str().unwrap(), "--lora", adapters.to_str().unwrap()]);
+    assert!(ok, "{text}");
+    let (ok, text) = roll(&["--checkpoint", base.to_str().unwrap(), "--lora", dir.join("nope").to_str().unwrap()]);
+    assert!(!ok && text.contains("--lora"), "{text}");
 }

@@ -271,6 +271,49 @@ pub fn merge_lora_checkpoint(trained: Box<dyn WeightSource>, run: &RunInfo, base
     Ok(Box::new(LoraMergedSource::new(Box::new(UnionSource::overlay(trained, base_source)), lora.scale())?))
 }
 
+/// LoRA adapters as diffusers and PEFT store them for `WanTransformer3DModel` (what `bwm export`
+/// writes for a LoRA checkpoint): a folder holding `pytorch_lora_weights.safetensors` (and
+/// optionally PEFT's `adapter_config.json`), or the file itself. Returns the adapters under
+/// Wan-native names (`blocks.0.self_attn.q.lora_A.weight`) and their scale (`lora_alpha / r` of
+/// the config, 1 without one).
+pub fn open_lora_adapters(path: &Path) -> Result<(Box<dyn WeightSource>, f64)> {
+    let (file, config) = if path.is_dir() {
+        (path.join(crate::export::LORA_WEIGHTS_FILE), path.join("adapter_config.json"))
+    } else {
+        (path.to_path_buf(), path.with_file_name("adapter_config.json"))
+    };
+    ensure!(file.is_file(), "{}: no LoRA weights ({} expected)", path.display(), crate::export::LORA_WEIGHTS_FILE);
+    let source = SafetensorsSource::open(&file)?;
+    let mut pairs = Vec::new();
+    for name in source.names() {
+        let stripped = name.strip_prefix("transformer.").unwrap_or(&name);
+        let Some((module, part)) = ["lora_A", "lora_B"].iter().find_map(|p| stripped.strip_suffix(&format!(".{p}.weight")).map(|m| (m, *p))) else {
+            bail!("{}: '{name}' is not a LoRA tensor (<module>.lora_A.weight / .lora_B.weight)", file.display());
+        };
+        let wan = keymap::from_layout(DitLayout::Diffusers, &format!("{module}.weight"))
+            .with_context(|| format!("{}: the adapter '{name}'", file.display()))?;
+        let wan_module = wan.strip_suffix(".weight").unwrap_or(&wan);
+        pairs.push((format!("{wan_module}.{part}.weight"), name));
+    }
+    ensure!(!pairs.is_empty(), "{}: holds no tensors", file.display());
+    let scale = match read_json(&config)? {
+        Some(c) => {
+            let r = c.get("r").and_then(|v| v.as_f64()).with_context(|| format!("{}: no r", config.display()))?;
+            c.get("lora_alpha").and_then(|v| v.as_f64()).unwrap_or(r) / r
+        }
+        None => 1.0,
+    };
+    Ok((Box::new(MappedSource::new(Box::new(source), pairs)?), scale))
+}
+
+/// `opened` with the adapters at `adapters` ([`open_lora_adapters`]) merged into its weights.
+pub fn with_lora_adapters(mut opened: OpenedWeights, adapters: &Path) -> Result<OpenedWeights> {
+    let (source, scale) = open_lora_adapters(adapters)?;
+    let base = std::mem::replace(&mut opened.source, Box::new(TensorSource::new([], "")));
+    opened.source = Box::new(LoraMergedSource::new(Box::new(UnionSource::overlay(source, base)), scale)?);
+    Ok(opened)
+}
+
 fn open_diffusers_component(dir: &Path) -> Result<OpenedWeights> {
     let cfg = read_json(&dir.join(CONFIG_FILE))?
         .as_ref()

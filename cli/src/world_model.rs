@@ -17,6 +17,10 @@ pub struct WorldModelArgs {
     /// any layout `bwm convert` knows.
     #[arg(long, required_unless_present = "random_weights")]
     pub checkpoint: Option<String>,
+    /// LoRA adapters merged into --checkpoint's weights at load: a `bwm export` of a LoRA
+    /// checkpoint, or a diffusers/PEFT LoRA folder or .safetensors for WanTransformer3DModel.
+    #[arg(long, requires = "checkpoint")]
+    pub lora: Option<PathBuf>,
     /// Random weights of a model preset instead of a checkpoint (timing and smoke tests only).
     #[arg(long, conflicts_with = "checkpoint", value_name = "PRESET")]
     pub random_weights: Option<String>,
@@ -71,6 +75,7 @@ impl WorldModelArgs {
     pub fn options(&self) -> WorldModelOptions {
         WorldModelOptions {
             checkpoint: self.checkpoint.clone(),
+            lora: self.lora.clone(),
             random_weights: self.random_weights.clone(),
             model_preset: self.model_preset.clone(),
             vae: if self.random_vae { None } else { self.vae.clone() },

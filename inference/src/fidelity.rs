@@ -89,6 +89,7 @@ pub fn run(options: &WorldModelOptions, a: &FidelityOptions) -> Result<()> {
         "data": a.data.display().to_string(),
         "checkpoint": options.checkpoint,
         "random_weights": options.random_weights,
+        "lora": options.lora,
         "model_preset": options.model_preset,
         "vae": options.vae,
         "stats": options.stats,

@@ -4,7 +4,7 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, ensure, Context, Result};
-use bwm_checkpoints::open::{build_model, open_any, trained_residual};
+use bwm_checkpoints::open::{build_model, open_any, trained_residual, with_lora_adapters};
 use bwm_data::ActionStats;
 use bwm_model::rollout::{default_history_sigma, Rollout, RolloutSpec};
 use bwm_model::schedule::Solver;
@@ -21,6 +21,9 @@ pub struct WorldModelOptions {
     /// Trained BWM weights: a checkpoint folder or file, or an exported repo (local or Hub id), in
     /// any layout `bwm convert` knows.
     pub checkpoint: Option<String>,
+    /// LoRA adapters (a `bwm export` of a LoRA checkpoint, or a diffusers/PEFT LoRA folder or file
+    /// for `WanTransformer3DModel`) merged into `checkpoint`'s weights at load.
+    pub lora: Option<PathBuf>,
     /// Random weights of a model preset instead of a checkpoint (timing and smoke tests only).
     pub random_weights: Option<String>,
     /// Model preset when the checkpoint carries no config (tiny, wan22_ti2v_5b).
@@ -56,6 +59,7 @@ impl Default for WorldModelOptions {
     fn default() -> Self {
         Self {
             checkpoint: None,
+            lora: None,
             random_weights: None,
             model_preset: None,
             vae: None,
@@ -121,11 +125,15 @@ impl WorldModelOptions {
             s => parse_kind(s)?,
         };
         let preset = self.model_preset.as_deref().map(ModelConfig::preset).transpose()?;
+        ensure!(self.lora.is_none() || self.checkpoint.is_some(), "--lora needs --checkpoint: the base weights its adapters go onto");
         // The residual stream the weights were trained with, unless --residual says otherwise.
         let (mut model, trained) = match (&self.checkpoint, &self.random_weights) {
             (Some(ckpt), _) => {
-                let opened = open_any(ckpt).with_context(|| format!("--checkpoint {ckpt}"))?;
+                let mut opened = open_any(ckpt).with_context(|| format!("--checkpoint {ckpt}"))?;
                 let trained = trained_residual(&opened).with_context(|| format!("--checkpoint {ckpt}"))?;
+                if let Some(adapters) = &self.lora {
+                    opened = with_lora_adapters(opened, adapters).with_context(|| format!("--lora {}", adapters.display()))?;
+                }
                 let trained = trained.map(|r| r.parse::<Residual>().map_err(|e| anyhow::anyhow!("--checkpoint {ckpt}: model.residual {e}"))).transpose()?;
                 (build_model(opened, preset.as_ref(), kind, device).with_context(|| format!("--checkpoint {ckpt}"))?, trained)
             }

@@ -183,12 +183,7 @@ fn venv_python() -> Option<std::path::PathBuf> {
 }
 
 #[test]
-fn diffusers_loads_the_exported_adapters_onto_the_base() {
-    let Some(py) = venv_python().filter(|p| std::process::Command::new(p).args(["-c", "import diffusers, peft"]).output().is_ok_and(|o| o.status.success())) else {
-        assert!(std::env::var("BWM_REQUIRE_PY_INTEROP").map_or(true, |v| v != "1"), "diffusers/peft missing");
-        eprintln!("SKIPPED: no virtualenv python with diffusers and peft (source scripts/env.sh)");
-        return;
-    };
+fn exported_adapters_load_onto_the_base_here_and_in_diffusers() {
     use bwm_checkpoints::export::{export, export_lora_adapters, ExportDtype, ExportOptions};
     let dir = tmp_dir("lora-diffusers");
     let cache = write_cache(&dir.join("cache"), 1, 16);
@@ -211,6 +206,22 @@ fn diffusers_loads_the_exported_adapters_onto_the_base() {
     let adapters = export_lora_adapters(ckpt.to_str().unwrap(), &dir.join("adapters"), ExportDtype::F32, false).unwrap();
     assert_eq!((adapters.layers, adapters.left_out.len()), (12, 0));
 
+    // Base + adapter folder (`--checkpoint BASE --lora ADAPTERS`) is the merged checkpoint.
+    let opened = bwm_checkpoints::open::open_any(base_file.to_str().unwrap()).unwrap();
+    let with_adapters = bwm_checkpoints::open::with_lora_adapters(opened, &adapters.out).unwrap();
+    let from_adapters = bwm_checkpoints::open::build_model(with_adapters, Some(&t.model.cfg), Kind::Float, tch::Device::Cpu).unwrap();
+    let merged = bwm_checkpoints::open::load_model(ckpt.to_str().unwrap(), None, Kind::Float, tch::Device::Cpu).unwrap();
+    let merged_params: BTreeMap<String, Tensor> = merged.store.named_parameters().into_iter().collect();
+    for (n, w) in from_adapters.store.named_parameters() {
+        let d = max_abs_diff(&w, &merged_params[&n]);
+        assert!(d < 1e-6, "{n}: base + exported adapters differ from the merged checkpoint by {d}");
+    }
+
+    let Some(py) = venv_python().filter(|p| std::process::Command::new(p).args(["-c", "import diffusers, peft"]).output().is_ok_and(|o| o.status.success())) else {
+        assert!(std::env::var("BWM_REQUIRE_PY_INTEROP").map_or(true, |v| v != "1"), "diffusers/peft missing");
+        eprintln!("SKIPPED (the diffusers half): no virtualenv python with diffusers and peft (source scripts/env.sh)");
+        return;
+    };
     let script = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/lora_interop.py");
     let out = std::process::Command::new(py)
         .arg(script)

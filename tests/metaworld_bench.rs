@@ -153,3 +153,42 @@ fn the_study_scores_rates_and_episodes() {
 fn the_policy_server_speaks_openpi() {
     run(Command::new(python()).arg(Path::new(ROOT).join("bench/metaworld/tests/test_policy_server.py")), "test_policy_server.py");
 }
+
+/// bench/metaworld/transfer.sh at toy sizes: a base on one task, post-trained onto the other in
+/// full, with LoRA and from scratch, each scored by `bwm fidelity`.
+#[test]
+fn the_transfer_study_runs_its_three_arms_on_cpu() {
+    let dir = temp_dir("transfer");
+    let runs = dir.join("run");
+    let log = run(
+        Command::new("bash")
+            .arg(Path::new(ROOT).join("bench/metaworld/transfer.sh"))
+            .env("RUN", &runs)
+            .env("BWM", bwm())
+            .env("PYTHON", python())
+            .env("DEVICE", "cpu")
+            .envs([("TRAIN_EPISODES", "3"), ("TARGET_EPISODES", "3"), ("VAL_EPISODES", "2"), ("VAE_TASK_EPISODES", "2"), ("FRAMES", "100"), ("RESOLUTION", "64")])
+            .envs([("WORKERS", "2"), ("VAE_STEPS", "2"), ("VAE_BATCH", "2"), ("VAE_STRIDE", "8"), ("TRAIN_STEPS", "2"), ("POST_STEPS", "2"), ("SAMPLE_STEPS", "2"), ("LORA_RANK", "2")])
+            .env(
+                "TRAIN_SETS",
+                "model.dit.dim=48 model.dit.ffn_dim=96 model.dit.num_heads=4 model.dit.num_layers=1 train.micro_batch=2 checkpoint.every=2 validation.every=2 validation.sample_steps=2",
+            ),
+        "transfer.sh",
+    );
+    // The LoRA arm trains its adapters and the action encoder only; the others every tensor.
+    let trained: Vec<&str> = log.lines().filter(|l| l.starts_with("run metaworld:")).collect();
+    assert_eq!(trained.len(), 4, "{log}");
+    let fraction = |l: &str| {
+        let words: Vec<&str> = l.split_whitespace().collect();
+        let k = words.iter().position(|w| *w == "of").unwrap();
+        words[k - 1].parse::<f64>().unwrap() / words[k + 1].parse::<f64>().unwrap()
+    };
+    assert!(fraction(trained[2]) < 0.5 && fraction(trained[1]) > 0.9 && fraction(trained[3]) > 0.9, "{trained:?}");
+    let report = json(&runs.join("transfer.json"));
+    for arm in ["full", "lora", "scratch"] {
+        for h in ["8", "32", "full"] {
+            let psnr = report[arm][h]["model"]["psnr"].as_f64();
+            assert!(psnr.is_some_and(f64::is_finite), "{arm} h={h}: {report}");
+        }
+    }
+}

@@ -28,23 +28,31 @@ fn json(path: &Path) -> Value {
     serde_json::from_str(&std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))).unwrap()
 }
 
+/// `bash SCRIPT` (a bench/metaworld script) on CPU at toy sizes into `runs`: 3 training episodes
+/// of 100 frames at 64x64, a 2-step VAE, a one-block DiT of width 48 trained 2 steps.
+fn toy(script: &str, runs: &Path) -> Command {
+    let mut cmd = Command::new("bash");
+    cmd.arg(Path::new(ROOT).join("bench/metaworld").join(script))
+        .env("RUN", runs)
+        .env("BWM", bwm())
+        .env("PYTHON", python())
+        .env("DEVICE", "cpu")
+        .envs([("TRAIN_EPISODES", "3"), ("FRAMES", "100"), ("RESOLUTION", "64"), ("WORKERS", "2")])
+        .envs([("VAE_STEPS", "2"), ("VAE_BATCH", "2"), ("VAE_STRIDE", "8"), ("TRAIN_STEPS", "2"), ("SAMPLE_STEPS", "2")])
+        .env(
+            "TRAIN_SETS",
+            "model.dit.dim=48 model.dit.ffn_dim=96 model.dit.num_heads=4 model.dit.num_layers=1 train.micro_batch=2 checkpoint.every=2 validation.every=2 validation.sample_steps=2",
+        );
+    cmd
+}
+
 #[test]
 fn the_metaworld_recipe_runs_every_stage_on_cpu() {
     let dir = temp_dir("metaworld");
     let runs = dir.join("run");
     let log = run(
-        Command::new("bash")
-            .arg(Path::new(ROOT).join("bench/metaworld/recipe.sh"))
-            .env("RUN", &runs)
-            .env("BWM", bwm())
-            .env("PYTHON", python())
-            .env("DEVICE", "cpu")
-            .envs([("TRAIN_EPISODES", "3"), ("VAL_EPISODES", "1"), ("FRAMES", "100"), ("RESOLUTION", "64"), ("WORKERS", "2")])
-            .envs([("VAE_STEPS", "2"), ("VAE_EPISODES", "6"), ("VAE_BATCH", "2"), ("VAE_STRIDE", "8"), ("TRAIN_STEPS", "2"), ("SAMPLE_STEPS", "2")])
-            .env(
-                "TRAIN_SETS",
-                "model.dit.dim=48 model.dit.ffn_dim=96 model.dit.num_heads=4 model.dit.num_layers=1 train.micro_batch=2 checkpoint.every=2 validation.every=2 validation.sample_steps=2",
-            )
+        toy("recipe.sh", &runs)
+            .envs([("VAL_EPISODES", "1"), ("VAE_EPISODES", "6")])
             .envs([("JUDGE_STEPS", "5"), ("STUDY_EPISODES", "1"), ("STUDY_JOBS", "2"), ("STUDY_HORIZON", "48"), ("STUDY_VARIANTS", "expert,wrong")])
             .env("PROBE_VARIANTS", "wrong-0cm,wrong-6cm"),
         "recipe.sh",
@@ -161,18 +169,7 @@ fn the_transfer_study_runs_its_three_arms_on_cpu() {
     let dir = temp_dir("transfer");
     let runs = dir.join("run");
     let log = run(
-        Command::new("bash")
-            .arg(Path::new(ROOT).join("bench/metaworld/transfer.sh"))
-            .env("RUN", &runs)
-            .env("BWM", bwm())
-            .env("PYTHON", python())
-            .env("DEVICE", "cpu")
-            .envs([("TRAIN_EPISODES", "3"), ("TARGET_EPISODES", "3"), ("VAL_EPISODES", "2"), ("VAE_TASK_EPISODES", "2"), ("FRAMES", "100"), ("RESOLUTION", "64")])
-            .envs([("WORKERS", "2"), ("VAE_STEPS", "2"), ("VAE_BATCH", "2"), ("VAE_STRIDE", "8"), ("TRAIN_STEPS", "2"), ("POST_STEPS", "2"), ("SAMPLE_STEPS", "2"), ("LORA_RANK", "2")])
-            .env(
-                "TRAIN_SETS",
-                "model.dit.dim=48 model.dit.ffn_dim=96 model.dit.num_heads=4 model.dit.num_layers=1 train.micro_batch=2 checkpoint.every=2 validation.every=2 validation.sample_steps=2",
-            ),
+        toy("transfer.sh", &runs).envs([("TARGET_EPISODES", "3"), ("VAL_EPISODES", "2"), ("VAE_TASK_EPISODES", "2"), ("POST_STEPS", "2"), ("LORA_RANK", "2")]),
         "transfer.sh",
     );
     // The LoRA arm trains its adapters and the action encoder only; the others every tensor.

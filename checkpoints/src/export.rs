@@ -851,7 +851,7 @@ pub fn export_lora_adapters(input: &str, out: &Path, dtype: ExportDtype, overwri
     let mut left_out = Vec::new();
     let mut parameters = 0i64;
     for name in source.names() {
-        let Some((module, part)) = name.strip_suffix(".lora_A.weight").map(|m| (m, "lora_A")).or_else(|| name.strip_suffix(".lora_B.weight").map(|m| (m, "lora_B"))) else {
+        let Some((module, part)) = bwm_model::lora::split_adapter_key(&name) else {
             left_out.push(name);
             continue;
         };

@@ -268,7 +268,7 @@ pub fn merge_lora_checkpoint(trained: Box<dyn WeightSource>, run: &RunInfo, base
             Box::new(TensorSource::new(model.store.named_parameters(), format!("the random base weights of run {} (seed {})", run.name, run.seed)))
         }
     };
-    Ok(Box::new(LoraMergedSource::new(Box::new(UnionSource::overlay(trained, base_source)), lora.scale())?))
+    Ok(Box::new(LoraMergedSource::over(trained, base_source, lora.scale())?))
 }
 
 /// LoRA adapters as diffusers and PEFT store them for `WanTransformer3DModel` (what `bwm export`
@@ -287,7 +287,7 @@ pub fn open_lora_adapters(path: &Path) -> Result<(Box<dyn WeightSource>, f64)> {
     let mut pairs = Vec::new();
     for name in source.names() {
         let stripped = name.strip_prefix("transformer.").unwrap_or(&name);
-        let Some((module, part)) = ["lora_A", "lora_B"].iter().find_map(|p| stripped.strip_suffix(&format!(".{p}.weight")).map(|m| (m, *p))) else {
+        let Some((module, part)) = bwm_model::lora::split_adapter_key(stripped) else {
             bail!("{}: '{name}' is not a LoRA tensor (<module>.lora_A.weight / .lora_B.weight)", file.display());
         };
         let wan = keymap::from_layout(DitLayout::Diffusers, &format!("{module}.weight"))
@@ -310,7 +310,7 @@ pub fn open_lora_adapters(path: &Path) -> Result<(Box<dyn WeightSource>, f64)> {
 pub fn with_lora_adapters(mut opened: OpenedWeights, adapters: &Path) -> Result<OpenedWeights> {
     let (source, scale) = open_lora_adapters(adapters)?;
     let base = std::mem::replace(&mut opened.source, Box::new(TensorSource::new([], "")));
-    opened.source = Box::new(LoraMergedSource::new(Box::new(UnionSource::overlay(source, base)), scale)?);
+    opened.source = Box::new(LoraMergedSource::over(source, base, scale)?);
     Ok(opened)
 }
 

@@ -6,6 +6,7 @@
 use std::collections::{BTreeMap, BTreeSet};
 
 use anyhow::{bail, Result};
+use bwm_model::lora::{is_adapter_key, split_adapter_key};
 use bwm_model::weights::{WeightSource, WeightsError};
 use tch::{Device, Kind, Tensor};
 
@@ -136,12 +137,17 @@ pub struct LoraMergedSource {
 }
 
 impl LoraMergedSource {
+    /// `adapters` over `base`, merged: the adapted weights of `base` with `adapters`' updates.
+    pub fn over(adapters: Box<dyn WeightSource>, base: Box<dyn WeightSource>, scale: f64) -> Result<Self> {
+        Self::new(Box::new(UnionSource::overlay(adapters, base)), scale)
+    }
+
     /// An error names the adapter whose other half or base weight is missing, or whose shapes do
     /// not fit the weight.
     pub fn new(inner: Box<dyn WeightSource>, scale: f64) -> Result<Self> {
         let mut adapted = BTreeSet::new();
         for name in inner.names() {
-            let Some(module) = name.strip_suffix(".lora_A.weight") else { continue };
+            let Some((module, "lora_A")) = split_adapter_key(&name) else { continue };
             let (a, b, w) = (name.clone(), format!("{module}.lora_B.weight"), format!("{module}.weight"));
             let (Some(sa), Some(sb)) = (inner.shape(&a), inner.shape(&b)) else {
                 bail!("{}: '{a}' has no '{b}' beside it", inner.describe());
@@ -154,14 +160,10 @@ impl LoraMergedSource {
             }
             adapted.insert(module.to_string());
         }
-        if let Some(b) = inner.names().iter().find(|n| n.strip_suffix(".lora_B.weight").is_some_and(|m| !adapted.contains(m))) {
+        if let Some(b) = inner.names().iter().find(|n| matches!(split_adapter_key(n), Some((m, "lora_B")) if !adapted.contains(m))) {
             bail!("{}: '{b}' has no lora_A beside it", inner.describe());
         }
         Ok(Self { inner, scale, adapted })
-    }
-
-    fn is_adapter(name: &str) -> bool {
-        bwm_model::lora::is_adapter_key(name)
     }
 }
 
@@ -170,16 +172,16 @@ impl WeightSource for LoraMergedSource {
         format!("{} (LoRA merged)", self.inner.describe())
     }
     fn names(&self) -> Vec<String> {
-        self.inner.names().into_iter().filter(|n| !Self::is_adapter(n)).collect()
+        self.inner.names().into_iter().filter(|n| !is_adapter_key(n)).collect()
     }
     fn shape(&self, name: &str) -> Option<Vec<i64>> {
-        if Self::is_adapter(name) {
+        if is_adapter_key(name) {
             return None;
         }
         self.inner.shape(name)
     }
     fn load(&self, name: &str, kind: Kind, device: Device) -> Result<Tensor, WeightsError> {
-        if Self::is_adapter(name) {
+        if is_adapter_key(name) {
             return Err(WeightsError::missing(self.describe(), name));
         }
         match name.strip_suffix(".weight").filter(|m| self.adapted.contains(*m)) {

@@ -32,9 +32,15 @@ pub struct LoraConfig {
 /// Parameter-name patterns of every adapter tensor (the trainable set of a LoRA run).
 pub const ADAPTER_PATTERNS: [&str; 2] = ["*.lora_A.weight", "*.lora_B.weight"];
 
+/// An adapter tensor's name split into its layer's module path and `lora_A` or `lora_B`; None
+/// for any other name.
+pub fn split_adapter_key(name: &str) -> Option<(&str, &'static str)> {
+    ["lora_A", "lora_B"].into_iter().find_map(|part| name.strip_suffix(".weight")?.strip_suffix(part)?.strip_suffix('.').map(|m| (m, part)))
+}
+
 /// Whether `name` is an adapter tensor's.
 pub fn is_adapter_key(name: &str) -> bool {
-    name.ends_with(".lora_A.weight") || name.ends_with(".lora_B.weight")
+    split_adapter_key(name).is_some()
 }
 
 impl LoraConfig {
@@ -128,6 +134,15 @@ mod tests {
 
     fn cfg(dropout: f64) -> LoraConfig {
         LoraConfig { rank: 2, alpha: Some(4.0), dropout, targets: vec!["blocks.*.q".into()] }
+    }
+
+    #[test]
+    fn adapter_keys_split_into_module_and_part() {
+        assert_eq!(split_adapter_key("blocks.0.ffn.2.lora_B.weight"), Some(("blocks.0.ffn.2", "lora_B")));
+        assert_eq!(split_adapter_key("transformer.blocks.0.attn1.to_q.lora_A.weight"), Some(("transformer.blocks.0.attn1.to_q", "lora_A")));
+        assert_eq!(split_adapter_key("blocks.0.ffn.2.weight"), None);
+        assert_eq!(split_adapter_key("blocks.0.xlora_A.weight"), None);
+        assert!(is_adapter_key("a.lora_A.weight") && !is_adapter_key("a.lora_A.bias"));
     }
 
     #[test]

@@ -5,7 +5,10 @@
 # adapters and the action encoder trained, the base frozen in bf16), and with FULL=1 full
 # fine-tuning beside it, at 640x480, 1+8+72 frames, batch 1, random weights, while sampling GPU memory.
 #   run(carry=[".carry"], kind="nvidia-h100-x1", command="bash scripts/gpu/lora.sh")
-# RECOMPUTE=false times LoRA without recomputation too; STEPS (default 5) steps each.
+# RECOMPUTE=false times LoRA without recomputation too; STEPS (default 5) steps each. With the
+# reference wheels carried (tests/reference/fetch_wheels.sh), DiffSynth's LoRA training of the same
+# model and shapes runs after it in the same call (tests/reference/run_gpu.sh lora-plain lora):
+#   run(carry=[".carry", "tests/reference/wheels"], kind="nvidia-h100-x1", command="bash scripts/gpu/lora.sh")
 #   run(carry=[".carry"], kind="nvidia-h200", command="FULL=1 bash scripts/gpu/lora.sh")
 set -uo pipefail
 source "$(dirname "${BASH_SOURCE[0]}")/common.sh"
@@ -23,3 +26,8 @@ fi
 if [ "${FULL:-0}" = 1 ]; then
   mem full_recompute dist/bwm bench-train "${common[@]}" --out /tmp/bench-full
 fi
+if ls tests/reference/wheels/*.whl >/dev/null 2>&1; then
+  LORA_RANK=64 bash tests/reference/run_gpu.sh lora-plain lora
+fi
+echo "== summary"
+grep -h -e "peak GPU memory" -e "^reference [a-z -]*: [0-9]" -e "nvidia-smi peak" "$OUT"/*.log 2>/dev/null

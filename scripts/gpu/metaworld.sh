@@ -17,6 +17,8 @@
 # the fidelity stage (which otherwise runs beside the study and slows it); SKIP_PROBE=1 the probe
 # (graded `wrong` variants, after the study). COMPARE_SOLVER=dpm++2m studies the same model a
 # second time with that sampler (runs/metaworld/study-dpm++2m).
+# `bash scripts/gpu/metaworld.sh transfer` runs bench/metaworld/transfer.sh (the base-versus-scratch
+# study of the LoRA issue; its variables apply) instead, its small outputs in $OUT/run.tar.gz.
 set -uo pipefail
 source "$(dirname "$0")/common.sh"
 for f in .gl/*.deb; do dpkg -x "$f" /; done
@@ -42,7 +44,12 @@ if missing:
     raise SystemExit("missing on this machine: " + ", ".join(missing))
 PY
 recipe() { bash bench/metaworld/recipe.sh "$@"; }
-if [ $# -gt 0 ]; then
+R=runs/metaworld
+if [ "${1:-}" = transfer ]; then
+  R=${RUN:-runs/transfer}
+  bash bench/metaworld/transfer.sh 2>&1 | tee -a "$OUT/transfer.log"
+  status=${PIPESTATUS[0]}
+elif [ $# -gt 0 ]; then
   recipe "$@" 2>&1 | tee -a "$OUT/recipe.log"
   status=${PIPESTATUS[0]}
 else
@@ -75,7 +82,6 @@ else
 fi
 # What the run measured comes back as one archive (small files only; the datasets, latents,
 # weights and videos stay on the machine).
-R=runs/metaworld
 (cd $R && find . -maxdepth 3 -type f \( -name '*.json' -o -name '*.jsonl' -o -name '*.csv' -o -name '*.svg' -o -name '*.log' \
   -o -name '*.toml' -o -name '*.png' -o -name '*.tsv' \) -not -path '*/videos/*' -not -path './data/*' -not -path './latents/*' -size -3M -print0 |
   tar -czf "$OUT/run.tar.gz" --null -T -)

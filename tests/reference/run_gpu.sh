@@ -6,13 +6,15 @@
 # venv, /opt/torch/.venv, and --system-site-packages exposes the base interpreter's packages, not
 # the venv's) and runs the reference benchmarks, logs in $OUT/reference-<name>.log.
 #
-#   bash tests/reference/run_gpu.sh [vae] [rollout] [train] [train-plain]   (default: all four)
+#   bash tests/reference/run_gpu.sh [vae] [rollout] [train] [train-plain] [lora] [lora-plain]
+#   (default: the first four)
 #
 # Environment: PYTHON (default python3), REF_SITE (install folder, default /tmp/bwm-reference-site),
 # REF_ARGS (extra arguments for every script, e.g. "--tiny" for a smoke test),
 # TRAIN_ARGS / ROLLOUT_ARGS / VAE_ARGS (extra arguments for one script).
 # "train" is the Rust recipe (fp32 masters + AdamW): about 100 GB, so an H200; "train-plain" (AdamW
-# on the bf16 weights) fits an 80 GB H100.
+# on the bf16 weights) fits an 80 GB H100. "lora" / "lora-plain" are the same two with LoRA rank
+# ${LORA_RANK:-64} on every attention and FFN linear (DiffSynth's LoRA training; peft from the image).
 set -uo pipefail
 HERE=$(cd "$(dirname "$0")" && pwd)
 OUT="${OUT:-/tmp/out}"; mkdir -p "$OUT"
@@ -63,7 +65,9 @@ for w in "${WHAT[@]}"; do
     rollout)     run rollout "$PY" "$HERE/rollout.py" $REF_ARGS ${ROLLOUT_ARGS:-} ;;
     train)       run train "$PY" "$HERE/train_step.py" --mode master $REF_ARGS ${TRAIN_ARGS:-} ;;
     train-plain) run train-plain "$PY" "$HERE/train_step.py" --mode plain $REF_ARGS ${TRAIN_ARGS:-} ;;
-    *) echo "unknown workload $w (vae, rollout, train, train-plain)" >&2; exit 2 ;;
+    lora)        run lora "$PY" "$HERE/train_step.py" --mode master --lora-rank "${LORA_RANK:-64}" $REF_ARGS ${TRAIN_ARGS:-} ;;
+    lora-plain)  run lora-plain "$PY" "$HERE/train_step.py" --mode plain --lora-rank "${LORA_RANK:-64}" $REF_ARGS ${TRAIN_ARGS:-} ;;
+    *) echo "unknown workload $w (vae, rollout, train, train-plain, lora, lora-plain)" >&2; exit 2 ;;
   esac
 done
 echo "== summary"

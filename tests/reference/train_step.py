@@ -9,6 +9,11 @@ gradients are added into fp32 accumulators; the accumulated gradient is clipped 
 back into the bf16 weights. --mode plain is what DiffSynth's own trainer does (accelerate bf16,
 AdamW directly on the bf16 parameters, no clipping).
 
+--lora-rank R is DiffSynth's LoRA training (`DiffusionTrainingModule.add_lora_to_model`): PEFT's
+`inject_adapter_in_model` with `LoraConfig(r=R, lora_alpha=R, target_modules=--lora-targets)` on the
+frozen bf16 DiT, the adapters cast to bf16 as DiffSynth does (`upcast_dtype=pipe.torch_dtype`);
+only the adapters (and the action encoder) train. Needs `peft` (the GPU image has it).
+
 Prints per step `train step i: ...` and one summary line:
   reference train: X s/step, Y samples/s, Z tokens/s, W TFLOP/s, peak A MiB allocated, B MiB reserved (...)
 """
@@ -43,6 +48,9 @@ def parse():
     p.add_argument("--grad-clip", type=float, default=None,
                    help="global-norm clip; default 1.0 in master mode (the Rust config), 0 = off in plain mode (DiffSynth)")
     p.add_argument("--history-sigma", type=float, default=0.2083)
+    p.add_argument("--lora-rank", type=int, default=0, help="LoRA rank on --lora-targets (0 = full fine-tuning)")
+    p.add_argument("--lora-targets", default="q,k,v,o,ffn.0,ffn.2",
+                   help="DiffSynth's --lora_target_modules default: every attention and FFN linear of the blocks")
     a = p.parse_args()
     if a.tiny:
         a.height, a.width, a.history, a.future = 64, 64, 8, 8
@@ -60,6 +68,15 @@ def main():
     common.header("reference train", a, f", attention {attention}")
 
     dit = common.build_dit(dit_mod, cfg, device, dtype, a.seed)
+    if a.lora_rank > 0:
+        from peft import LoraConfig, inject_adapter_in_model
+
+        dit.requires_grad_(False)
+        dit = inject_adapter_in_model(
+            LoraConfig(r=a.lora_rank, lora_alpha=a.lora_rank, target_modules=a.lora_targets.split(",")), dit)
+        for p in dit.parameters():
+            if p.requires_grad:
+                p.data = p.to(dtype)
     dit.train()
     params = [p for p in dit.parameters()]
     pixel_frames = 1 + a.history + a.future
@@ -111,7 +128,7 @@ def main():
     step_flops = 3 * common.forward_flops(cfg, tokens // a.batch, n_ctx) * a.batch * a.grad_accum
     print(f"reference train: WanModel {n_all:,} parameters ({n_trained:,} trained), latents {shape} "
           f"({tokens} tokens), {p_lat} condition latents at t=0, context {n_ctx} tokens ({a.conditioning}), "
-          f"mode {a.mode}, AdamW {impl}, grad clip {a.grad_clip}, checkpointing {'on' if a.checkpointing else 'off'}, "
+          f"mode {a.mode}, LoRA rank {a.lora_rank or 'off'}, AdamW {impl}, grad clip {a.grad_clip}, checkpointing {'on' if a.checkpointing else 'off'}, "
           f"accumulation {a.grad_accum}", flush=True)
 
     def micro_step():
@@ -174,7 +191,7 @@ def main():
     s = common.mean(times)
     print(f"reference train: {s:.3f} s/step (min {min(times):.3f}), {a.batch * a.grad_accum / s:.3f} samples/s, "
           f"{tokens * a.grad_accum / s:.0f} tokens/s, {step_flops / s / 1e12:.1f} TFLOP/s, {common.peak_text(device)} "
-          f"(mode {a.mode}, checkpointing {'on' if a.checkpointing else 'off'}, accumulation {a.grad_accum}, "
+          f"(mode {a.mode}, LoRA rank {a.lora_rank or 'off'}, checkpointing {'on' if a.checkpointing else 'off'}, accumulation {a.grad_accum}, "
           f"{a.steps} steps after {a.warmup} warm-up)", flush=True)
 
 

@@ -62,13 +62,34 @@ fn bench_rollout_times_each_chunk() {
         "bench-rollout", "--random-weights", "tiny", "--vae", vae.to_str().unwrap(), "--device", "cpu", "--height", "32", "--width", "32", "--history", "4", "--future", "4",
         "--sample-steps", "2", "--chunks", "2",
     ]);
-    assert!(line(&out, "bench-rollout:").contains("x0 + 4 history frames, 4 frames per chunk, 2 Euler steps"), "{out}");
+    assert!(line(&out, "bench-rollout:").contains("x0 + 4 history frames, 4 frames per chunk, 2 euler steps, attention backend auto"), "{out}");
     for i in 0..2 {
         let l = line(&out, &format!("chunk {i}:"));
         assert!(l.contains("; 4 frames;"), "{l}");
         let parts = ["encode", "DiT", "decode"].map(|p| number_after(l, &format!("{p} ")));
         assert!(number_after(l, &format!("chunk {i}:")) + 0.02 + 1e-9 >= parts.iter().sum::<f64>(), "the parts exceed the chunk: {l}");
     }
+}
+
+#[test]
+fn bench_rollout_runs_on_the_attention_backend_asked_for() {
+    let dir = temp_dir("bench-rollout-sdp");
+    let vae = dir.path().join("vae.safetensors");
+    write_random_vae(&vae, 3);
+    let args = |backend: &'static str| {
+        vec![
+            "--sdp-backend", backend, "bench-rollout", "--random-weights", "tiny", "--vae", vae.to_str().unwrap(), "--device", "cpu", "--height", "32", "--width", "32",
+            "--history", "4", "--future", "4", "--sample-steps", "1", "--chunks", "1",
+        ]
+    };
+    let out = run(&args("math"));
+    assert!(line(&out, "bench-rollout:").contains("attention backend math (math)"), "{out}");
+    // cuDNN has no CPU kernel: the math path takes the attentions, and the header says so.
+    let out = run(&args("cudnn"));
+    assert!(line(&out, "bench-rollout:").contains("attention backend cudnn (math)"), "{out}");
+    let out = Command::new(bwm()).args(args("flash3")).output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("unknown attention backend 'flash3'"), "{err}");
 }
 
 #[test]

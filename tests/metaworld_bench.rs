@@ -169,7 +169,11 @@ fn the_transfer_study_runs_its_three_arms_on_cpu() {
     let dir = temp_dir("transfer");
     let runs = dir.join("run");
     let log = run(
-        toy("transfer.sh", &runs).envs([("TARGET_EPISODES", "3"), ("VAL_EPISODES", "2"), ("VAE_TASK_EPISODES", "2"), ("POST_STEPS", "2"), ("LORA_RANK", "2")]),
+        // 72-frame episodes (the VAE needs 33 training frames beside its 33 held out): the three
+        // arms' whole-episode rollouts are most of this test's time.
+        toy("transfer.sh", &runs)
+            .envs([("TARGET_EPISODES", "3"), ("VAL_EPISODES", "2"), ("VAE_TASK_EPISODES", "2"), ("POST_STEPS", "2"), ("LORA_RANK", "2")])
+            .env("FRAMES", "72"),
         "transfer.sh",
     );
     // The LoRA arm trains its adapters and the action encoder only; the others every tensor.

@@ -27,6 +27,12 @@ use clap::{Parser, Subcommand};
     about = "Boundless World Model: post-train Wan2.2-TI2V-5B into an action-conditioned robot simulator"
 )]
 struct Cli {
+    /// Attention kernels for every scaled-dot-product attention of this run: libtorch's own choice
+    /// (auto; cuDNN on Hopper with bf16) or one family forced (flash, efficient, cudnn, math), with
+    /// the math path for the attentions a forced family cannot take. The bench commands print the
+    /// kernel the DiT's attention gets.
+    #[arg(long, global = true, default_value = "auto", env = "BWM_SDP_BACKEND")]
+    sdp_backend: bwm_sdp::SdpBackend,
     #[command(subcommand)]
     command: Command,
 }
@@ -82,6 +88,7 @@ enum Command {
 
 fn main() {
     let cli = Cli::parse();
+    bwm_sdp::set_backend(cli.sdp_backend);
     let result: Result<()> = match cli.command {
         Command::Demo(a) => demo::run(a),
         Command::Stats(a) => stats::run(a),

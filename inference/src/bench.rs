@@ -181,15 +181,19 @@ pub fn rollout(wm: &WorldModel, height: i64, width: i64, chunks: usize) -> Resul
     let a0 = Tensor::zeros([d], (Kind::Float, Device::Cpu));
     let mut rollout = wm.rollout(&x0, &a0)?;
     let spec = rollout.spec().clone();
+    let dit = &wm.model.cfg.dit;
+    let kernel = bwm_sdp::kernel_for_shape(dit.num_heads, dit.dim / dit.num_heads, 1024, wm.model.store.kind(), wm.device)?;
     println!(
-        "bench-rollout: {:?} {:?}, {}x{}, x0 + {} history frames, {} frames per chunk, {} Euler steps",
+        "bench-rollout: {:?} {:?}, {}x{}, x0 + {} history frames, {} frames per chunk, {} {} steps, attention backend {} ({kernel})",
         wm.device,
         wm.model.store.kind(),
         width,
         height,
         spec.history,
         spec.future,
-        spec.steps
+        spec.steps,
+        spec.solver,
+        bwm_sdp::backend()
     );
     for i in 0..chunks {
         let actions = Tensor::rand([spec.future as i64, d], (Kind::Float, Device::Cpu)) * 2.0 - 1.0;

@@ -68,8 +68,10 @@ pub fn run(a: &BenchTrainOptions) -> Result<()> {
         std::fs::remove_dir_all(&out)?;
     }
     let mut t = Trainer::new(cfg, Resume::No)?;
+    let dit = &t.model.cfg.dit;
+    let kernel = bwm_sdp::kernel_for_shape(dit.num_heads, dit.dim / dit.num_heads, 1024, t.model.store.kind(), t.device)?;
     println!(
-        "bench-train: {} ({} parameters, {} trained) on {:?}, {:?}, clip {}x{} with {} frames -> latents {:?}, micro-batch {} x accumulation {}, recompute {}",
+        "bench-train: {} ({} parameters, {} trained) on {:?}, {:?}, clip {}x{} with {} frames -> latents {:?}, micro-batch {} x accumulation {}, recompute {}, attention backend {} ({kernel})",
         t.cfg.model.preset,
         t.model.store.num_parameters(),
         t.opt.num_trainable(),
@@ -81,7 +83,8 @@ pub fn run(a: &BenchTrainOptions) -> Result<()> {
         latent_shape,
         t.cfg.train.micro_batch,
         t.cfg.train.grad_accum,
-        t.cfg.train.recompute
+        t.cfg.train.recompute,
+        bwm_sdp::backend()
     );
     let mut timed = Vec::new();
     for _ in 0..a.steps {

@@ -158,6 +158,11 @@ fn the_study_scores_rates_and_episodes() {
 }
 
 #[test]
+fn the_sampler_sweep_picks_the_fewest_steps_within_bounds() {
+    run(Command::new(python()).arg(Path::new(ROOT).join("bench/metaworld/tests/test_sweep.py")), "test_sweep.py");
+}
+
+#[test]
 fn the_policy_server_speaks_openpi() {
     run(Command::new(python()).arg(Path::new(ROOT).join("bench/metaworld/tests/test_policy_server.py")), "test_policy_server.py");
 }

@@ -4,7 +4,7 @@
 #   vae      bwm train-vae: a small Wan2.2-architecture VAE on the training frames
 #   latents  bwm prepare: the latent cache (x0 + 8 history + 24 future frames, stride 4)
 #   train    bwm train --config configs/metaworld.toml
-#   fidelity bwm fidelity on the held-out episodes: $RUN/fidelity/ (JSON, curves, videos)
+#   fidelity bwm fidelity on the held-out episodes (FIDELITY_EPISODES: some): $FIDELITY_DIR, default $RUN/fidelity/ (JSON, curves, videos)
 #   truth    bench/metaworld/study.py --truth-only: each policy variant's true success rate in the
 #            simulator on the held-out placements (CPU; $RUN/study/truth.json)
 #   judge    bench/metaworld/judge.py: a success classifier on real frames (accuracy on held-out ones)
@@ -56,6 +56,8 @@ STUDY_JOBS="${STUDY_JOBS:-8}"             # bwm evaluate processes at once
 STUDY_HORIZON="${STUDY_HORIZON:-$FRAMES}" # frames after x0, in the simulator and the world model
 STUDY_VARIANTS="${STUDY_VARIANTS:-}"      # comma-separated (default: all)
 STUDY_DIR="${STUDY_DIR:-$RUN/study}"      # where the study writes (another, to compare sampler settings)
+FIDELITY_DIR="${FIDELITY_DIR:-$RUN/fidelity}"  # where the fidelity report goes
+FIDELITY_EPISODES="${FIDELITY_EPISODES:-}" # comma-separated positions in data/val (default: all)
 PROBE_VARIANTS="${PROBE_VARIANTS:-wrong-0cm,wrong-1cm,wrong-2cm,wrong-3cm,wrong-4cm,wrong-5cm,wrong-6cm}"
 STAGES=()
 for arg in "$@"; do
@@ -126,7 +128,7 @@ world_model() {
 if wants fidelity; then
   world_model
   timed fidelity "$BWM" fidelity "${WM[@]}" --data "$RUN/data/val" --actions observation.state:0-3 --resolution "${RESOLUTION}x$RESOLUTION" \
-    --horizons 8,16,32,64 --videos 4 --out "$RUN/fidelity"
+    --horizons 8,16,32,64 --videos 4 ${FIDELITY_EPISODES:+--episodes "$FIDELITY_EPISODES"} --out "$FIDELITY_DIR"
 fi
 
 COMMON_STUDY_ARGS=(--data "$RUN/data/val" --episodes "$STUDY_EPISODES" --horizon "$STUDY_HORIZON" --resolution "$RESOLUTION" --workers "$WORKERS")

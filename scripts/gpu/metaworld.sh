@@ -18,7 +18,9 @@
 # (graded `wrong` variants, after the study). COMPARE_SOLVER=dpm++2m studies the same model a
 # second time with that sampler (runs/metaworld/study-dpm++2m).
 # `bash scripts/gpu/metaworld.sh transfer` runs bench/metaworld/transfer.sh (the base-versus-scratch
-# study of the LoRA issue; its variables apply) instead, its small outputs in $OUT/run.tar.gz.
+# study of the LoRA issue; its variables apply) instead, its small outputs in $OUT/run.tar.gz;
+# `bash scripts/gpu/metaworld.sh sweep` runs bench/metaworld/sweep.sh (the real-time issue's sampler
+# sweep) over the run the recipe trained on this machine.
 set -uo pipefail
 source "$(dirname "$0")/common.sh"
 for f in .gl/*.deb; do dpkg -x "$f" /; done
@@ -48,6 +50,9 @@ R=runs/metaworld
 if [ "${1:-}" = transfer ]; then
   R=${RUN:-runs/transfer}
   bash bench/metaworld/transfer.sh 2>&1 | tee -a "$OUT/transfer.log"
+  status=${PIPESTATUS[0]}
+elif [ "${1:-}" = sweep ]; then
+  bash bench/metaworld/sweep.sh 2>&1 | tee -a "$OUT/sweep.log"
   status=${PIPESTATUS[0]}
 elif [ $# -gt 0 ]; then
   recipe "$@" 2>&1 | tee -a "$OUT/recipe.log"

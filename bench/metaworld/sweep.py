@@ -1,0 +1,95 @@
+#!/usr/bin/env python3
+"""The sampler sweep's report (bench/metaworld/sweep.sh): for each (solver, steps) setting, the
+open-loop fidelity (`bwm fidelity`'s PSNR/SSIM at each horizon, per task and over all) and the
+closed-loop study's success estimates, against a baseline setting (50 Euler steps); and the
+default the real-time issue asks for: the fewest steps whose PSNR at the chosen horizon stays
+within --max-psnr-drop dB of the baseline's for every task and whose success estimates all stay
+within --max-rate-change of the baseline's.
+
+usage: sweep.py ROOT [--baseline euler-50] [--horizon 32] [--max-psnr-drop 0.5] [--max-rate-change 0.02]
+ROOT holds one folder per setting, named SOLVER-STEPS, each with fidelity/fidelity.json and
+study/study.json; writes ROOT/sweep.json and prints a table.
+"""
+
+import argparse
+import json
+import os
+import re
+
+
+def load_setting(folder: str) -> dict | None:
+    """The measurements of one setting folder; None when either is missing."""
+    fid, study = os.path.join(folder, "fidelity", "fidelity.json"), os.path.join(folder, "study", "study.json")
+    if not (os.path.isfile(fid) and os.path.isfile(study)):
+        return None
+    with open(fid) as f:
+        fidelity = json.load(f)
+    with open(study) as f:
+        s = json.load(f)
+    rates = {f"{r['variant']}/{r['task']}": r["estimated"] for r in s["rates"]}
+    return {"fidelity": fidelity, "rates": rates, "pearson_r": s["all"]["pearson_r"],
+            "best_ranked_first": s["all"]["best_ranked_first"]}
+
+
+def horizon_psnr(fidelity: dict, horizon: str) -> dict:
+    """PSNR at `horizon` per task and over all tasks ("all")."""
+    out = {task: v["horizons"][horizon]["model"]["psnr"] for task, v in fidelity.get("tasks", {}).items()}
+    out["all"] = fidelity["all"]["horizons"][horizon]["model"]["psnr"]
+    return out
+
+
+def compare(settings: dict, baseline: str, horizon: str, max_psnr_drop: float, max_rate_change: float) -> dict:
+    """Each setting against the baseline, and the default: the fewest steps that stay within both
+    bounds (ties: the smaller PSNR drop)."""
+    if baseline not in settings:
+        raise SystemExit(f"sweep: the baseline {baseline} was not measured (settings: {', '.join(sorted(settings)) or 'none'})")
+    base = settings[baseline]
+    base_psnr = horizon_psnr(base["fidelity"], horizon)
+    rows = []
+    for name, s in settings.items():
+        m = re.fullmatch(r"(.+)-(\d+)", name)
+        if not m:
+            raise SystemExit(f"sweep: setting folder '{name}' is not SOLVER-STEPS")
+        psnr = horizon_psnr(s["fidelity"], horizon)
+        drop = max(base_psnr[t] - psnr[t] for t in base_psnr)
+        shared = sorted(set(base["rates"]) & set(s["rates"]))
+        if not shared:
+            raise SystemExit(f"sweep: {name} and {baseline} share no studied variant")
+        change = max(abs(s["rates"][k] - base["rates"][k]) for k in shared)
+        rows.append({"setting": name, "solver": m.group(1), "steps": int(m.group(2)), "psnr": psnr,
+                     "psnr_drop": drop, "max_rate_change": change, "pearson_r": s["pearson_r"],
+                     "best_ranked_first": s["best_ranked_first"],
+                     "within": drop <= max_psnr_drop + 1e-9 and change <= max_rate_change + 1e-9})
+    rows.sort(key=lambda r: (r["steps"], r["solver"]))
+    # The baseline is always within, so there is always a default.
+    default = min((r for r in rows if r["within"]), key=lambda r: (r["steps"], r["psnr_drop"]))["setting"]
+    return {"baseline": baseline, "horizon": int(horizon), "max_psnr_drop": max_psnr_drop,
+            "max_rate_change": max_rate_change, "settings": rows, "default": default}
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("root")
+    p.add_argument("--baseline", default="euler-50")
+    p.add_argument("--horizon", default="32")
+    p.add_argument("--max-psnr-drop", type=float, default=0.5)
+    p.add_argument("--max-rate-change", type=float, default=0.02)
+    a = p.parse_args(argv)
+    settings = {}
+    for name in sorted(os.listdir(a.root)):
+        s = load_setting(os.path.join(a.root, name))
+        if s is not None:
+            settings[name] = s
+    report = compare(settings, a.baseline, a.horizon, a.max_psnr_drop, a.max_rate_change)
+    with open(os.path.join(a.root, "sweep.json"), "w") as f:
+        json.dump(report, f, indent=1)
+    print(f"| setting | PSNR h={a.horizon} (all) | drop vs {a.baseline} (worst task) | largest success change | Pearson r | best first |")
+    print("|---|---|---|---|---|---|")
+    for r in report["settings"]:
+        print(f"| {r['setting']} | {r['psnr']['all']:.2f} | {r['psnr_drop']:+.2f} dB | {r['max_rate_change']:.2f} | "
+              f"{'n/a' if r['pearson_r'] is None else format(r['pearson_r'], '.3f')} | {'yes' if r['best_ranked_first'] else 'no'} |")
+    print(f"sweep: default {report['default']} ({os.path.join(a.root, 'sweep.json')})")
+
+
+if __name__ == "__main__":
+    main()

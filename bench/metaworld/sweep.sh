@@ -1,0 +1,34 @@
+#!/usr/bin/env bash
+# The sampler sweep of the real-time issue on a trained recipe run ($RUN, default runs/metaworld):
+# for each solver in SOLVERS and step count in STEPS, `bwm fidelity` on the first
+# SWEEP_EPISODES held-out episodes of each task and the closed-loop study (recipe.sh's fidelity
+# and study stages with SOLVER / SAMPLE_STEPS), into $RUN/sweep/SOLVER-STEPS/{fidelity,study};
+# then sweep.py: a table and the default setting, the fewest steps whose PSNR at h = 32 stays
+# within 0.5 dB (every task) and whose success estimates stay within 2 points of 50 Euler steps.
+# Settings already measured are skipped, so the sweep can run over several device calls.
+# Usage (repository root, after recipe.sh's stages up to judge): bash bench/metaworld/sweep.sh;
+# the recipe's variables apply (STUDY_EPISODES, STUDY_VARIANTS, DEVICE, BWM, PYTHON, ...).
+set -euo pipefail
+cd "$(dirname "${BASH_SOURCE[0]}")/../.."
+RUN="${RUN:-runs/metaworld}"
+SOLVERS="${SOLVERS:-euler dpm++2m}"
+STEPS="${STEPS:-4 8 12 16 20 30 50}"
+SWEEP_EPISODES="${SWEEP_EPISODES:-20}"
+PYTHON="${PYTHON:-python3}"
+# data/val interleaves the tasks (episode e is task e mod T): the first 2 x N positions cover N
+# episodes of each of the two benchmark tasks; a dataset of other tasks sets FIDELITY_EPISODES.
+n_tasks=$("$PYTHON" -c 'import json, sys; print(json.load(open(sys.argv[1]))["total_tasks"])' "$RUN/data/val/meta/info.json")
+episodes="${FIDELITY_EPISODES:-$(seq -s, 0 $((n_tasks * SWEEP_EPISODES - 1)))}"
+mkdir -p "$RUN/sweep"
+for solver in $SOLVERS; do
+  for steps in $STEPS; do
+    dir="$RUN/sweep/$solver-$steps"
+    if [ -f "$dir/fidelity/fidelity.json" ] && [ -f "$dir/study/study.json" ]; then
+      echo "sweep: $solver-$steps measured"; continue
+    fi
+    echo "sweep: $solver, $steps steps ($(date +%H:%M:%S))"
+    RUN="$RUN" SOLVER="$solver" SAMPLE_STEPS="$steps" FIDELITY_DIR="$dir/fidelity" FIDELITY_EPISODES="$episodes" \
+      STUDY_DIR="$dir/study" bash bench/metaworld/recipe.sh fidelity study
+  done
+done
+"$PYTHON" bench/metaworld/sweep.py "$RUN/sweep" --baseline "${SWEEP_BASELINE:-euler-50}"

@@ -1,0 +1,60 @@
+"""sweep.py's choice of the default sampler setting on hand-made fidelity and study outputs."""
+
+import json
+import os
+import sys
+import tempfile
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+import sweep  # noqa: E402
+
+
+def write_setting(root, name, psnr, rates, pearson_r=0.9):
+    """One setting folder: PSNR at h=32 per task, success estimates per variant of task t."""
+    os.makedirs(os.path.join(root, name, "fidelity"))
+    os.makedirs(os.path.join(root, name, "study"))
+    h = lambda v: {"horizons": {"32": {"model": {"psnr": v, "ssim": 0.9}}}}
+    fidelity = {"all": h(sum(psnr.values()) / len(psnr)), "tasks": {t: h(v) for t, v in psnr.items()}}
+    study = {"rates": [{"task": "t", "variant": v, "estimated": r} for v, r in rates.items()],
+             "all": {"pearson_r": pearson_r, "best_ranked_first": True}}  # None: rates without spread
+    json.dump(fidelity, open(os.path.join(root, name, "fidelity", "fidelity.json"), "w"))
+    json.dump(study, open(os.path.join(root, name, "study", "study.json"), "w"))
+
+
+def test_the_default_is_the_fewest_steps_within_both_bounds():
+    with tempfile.TemporaryDirectory() as root:
+        write_setting(root, "euler-50", {"a": 30.0, "b": 28.0}, {"x": 0.50, "y": 0.90})
+        # 4 steps: PSNR fine but one success estimate 6 points off.
+        write_setting(root, "dpm++2m-4", {"a": 29.9, "b": 27.9}, {"x": 0.56, "y": 0.90})
+        # 8 Euler steps: task b drops 0.7 dB (the mean over tasks only 0.35).
+        write_setting(root, "euler-8", {"a": 30.0, "b": 27.3}, {"x": 0.50, "y": 0.90})
+        # 8 DPM steps: within both bounds.
+        write_setting(root, "dpm++2m-8", {"a": 29.8, "b": 27.7}, {"x": 0.52, "y": 0.89})
+        write_setting(root, "euler-20", {"a": 30.0, "b": 28.0}, {"x": 0.50, "y": 0.90}, pearson_r=None)
+        os.makedirs(os.path.join(root, "euler-30"))  # not measured yet: left out
+        sweep.main([root])
+        report = json.load(open(os.path.join(root, "sweep.json")))
+        assert report["default"] == "dpm++2m-8", report["default"]
+        by = {r["setting"]: r for r in report["settings"]}
+        assert set(by) == {"euler-50", "dpm++2m-4", "euler-8", "dpm++2m-8", "euler-20"}, set(by)
+        assert not by["dpm++2m-4"]["within"] and abs(by["dpm++2m-4"]["max_rate_change"] - 0.06) < 1e-9
+        assert not by["euler-8"]["within"] and abs(by["euler-8"]["psnr_drop"] - 0.7) < 1e-9
+        assert [r["steps"] for r in report["settings"]] == [4, 8, 8, 20, 50]
+
+
+def test_without_the_baseline_the_sweep_stops_with_a_message():
+    with tempfile.TemporaryDirectory() as root:
+        write_setting(root, "euler-8", {"a": 30.0}, {"x": 0.5})
+        try:
+            sweep.main([root])
+        except SystemExit as e:
+            assert "baseline euler-50 was not measured" in str(e), e
+        else:
+            raise AssertionError("no error without the baseline")
+
+
+if __name__ == "__main__":
+    for name, fn in list(globals().items()):
+        if name.startswith("test_"):
+            fn()
+            print(f"{name}: ok")

@@ -182,7 +182,7 @@ pub fn rollout(wm: &WorldModel, height: i64, width: i64, chunks: usize) -> Resul
     let mut rollout = wm.rollout(&x0, &a0)?;
     let spec = rollout.spec().clone();
     let dit = &wm.model.cfg.dit;
-    let kernel = bwm_sdp::kernel_for_shape(dit.num_heads, dit.dim / dit.num_heads, 1024, wm.model.store.kind(), wm.device)?;
+    let kernel = bwm_sdp::kernel_for_shape(dit.num_heads, dit.head_dim(), 1024, wm.model.store.kind(), wm.device)?;
     println!(
         "bench-rollout: {:?} {:?}, {}x{}, x0 + {} history frames, {} frames per chunk, {} {} steps, attention backend {} ({kernel})",
         wm.device,

@@ -69,7 +69,7 @@ pub fn run(a: &BenchTrainOptions) -> Result<()> {
     }
     let mut t = Trainer::new(cfg, Resume::No)?;
     let dit = &t.model.cfg.dit;
-    let kernel = bwm_sdp::kernel_for_shape(dit.num_heads, dit.dim / dit.num_heads, 1024, t.model.store.kind(), t.device)?;
+    let kernel = bwm_sdp::kernel_for_shape(dit.num_heads, dit.head_dim(), 1024, t.model.store.kind(), t.device)?;
     println!(
         "bench-train: {} ({} parameters, {} trained) on {:?}, {:?}, clip {}x{} with {} frames -> latents {:?}, micro-batch {} x accumulation {}, recompute {}, attention backend {} ({kernel})",
         t.cfg.model.preset,

@@ -15,8 +15,8 @@ SOLVERS="${SOLVERS:-euler dpm++2m}"
 STEPS="${STEPS:-4 8 12 16 20 30 50}"
 SWEEP_EPISODES="${SWEEP_EPISODES:-20}"
 PYTHON="${PYTHON:-python3}"
-# data/val interleaves the tasks (episode e is task e mod T): the first 2 x N positions cover N
-# episodes of each of the two benchmark tasks; a dataset of other tasks sets FIDELITY_EPISODES.
+# data/val interleaves the tasks (episode e is task e mod T): the first T x N positions cover N
+# episodes of each task; FIDELITY_EPISODES names other positions.
 n_tasks=$("$PYTHON" -c 'import json, sys; print(json.load(open(sys.argv[1]))["total_tasks"])' "$RUN/data/val/meta/info.json")
 episodes="${FIDELITY_EPISODES:-$(seq -s, 0 $((n_tasks * SWEEP_EPISODES - 1)))}"
 mkdir -p "$RUN/sweep"

@@ -81,7 +81,18 @@ fn pearson(x: &[f64], y: &[f64]) -> f64 {
 
 #[test]
 fn policies_are_evaluated_in_closed_loop_and_failed_episodes_are_reported() {
-    let dir = temp_dir("evaluate");
+    closed_loop_scenario(1);
+}
+
+/// The same evaluation with four episodes in flight: batches that mix policies, tasks and
+/// episodes that fail mid-way give every episode what it gets alone, recorded in the config's order.
+#[test]
+fn episodes_in_flight_together_give_what_each_gets_alone() {
+    closed_loop_scenario(4);
+}
+
+fn closed_loop_scenario(in_flight: usize) {
+    let dir = temp_dir(&format!("evaluate-{in_flight}"));
     let vae = dir.join("vae.safetensors");
     write_random_vae(&vae, 4);
     tch::manual_seed(1);
@@ -197,6 +208,7 @@ prompt = "stack the cube (drop)"
     let out = dir.join("out");
     let mut cmd = Command::new(bwm());
     cmd.arg("evaluate").arg("--config").arg(dir.join("eval.toml")).arg("--out").arg(&out);
+    cmd.arg("--episodes-in-flight").arg(in_flight.to_string());
     world_model_flags(&mut cmd, &vae);
     let t0 = Instant::now();
     let (ok, stdout, stderr) = run_limited(cmd, &dir, "evaluate", Duration::from_secs(240));
@@ -210,9 +222,17 @@ prompt = "stack the cube (drop)"
     }
     assert_eq!(stdout.matches("FAILED").count(), 6, "{stdout}");
     assert!(stdout.contains("server metadata"), "{stdout}");
+    assert!(stdout.contains(&format!("{in_flight} episode(s) in flight")), "{stdout}");
 
     let records = read_jsonl(&out.join("episodes.jsonl"));
     assert_eq!(records.len(), 15);
+    let order: Vec<(&str, &str, u64)> =
+        records.iter().map(|r| (r["policy"].as_str().unwrap(), r["task"].as_str().unwrap(), r["episode"].as_u64().unwrap())).collect();
+    let config_order: Vec<(&str, &str, u64)> = ["alpha", "beta", "gamma"]
+        .iter()
+        .flat_map(|&p| [("bottle", 0), ("bottle", 1), ("cube", 0), ("cube", 1), ("cube", 2)].map(|(t, e)| (p, t, e)))
+        .collect();
+    assert_eq!(order, config_order, "records in the config's order");
     let rec = |p: &str, t: &str, e: u64| -> &Value {
         records.iter().find(|r| r["policy"] == p && r["task"] == t && r["episode"] == e).unwrap_or_else(|| panic!("no record {p}/{t}/{e}"))
     };

@@ -76,6 +76,22 @@ fn fidelity_report_scores_rollouts_and_baselines_per_frame_and_horizon() {
     let videos: Vec<_> = std::fs::read_dir(out.join("videos")).unwrap().collect();
     assert_eq!(videos.len(), 1, "one side-by-side video per task (--videos 1)");
 
+    // Episodes rolled out two at a time (four rollouts per batch, then two) score what they score alone.
+    let together = fidelity(&["--vae", vae.to_str().unwrap(), "--data", data.to_str().unwrap(), "--out", dir.join("together").to_str().unwrap(), "--episodes-in-flight", "2"]);
+    assert!(together.status.success());
+    assert!(String::from_utf8_lossy(&together.stdout).contains("for 2 episodes together"));
+    let together: Vec<Value> =
+        std::fs::read_to_string(dir.join("together/episodes.jsonl")).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    assert_eq!(together.len(), 3);
+    for (a, b) in lines.iter().zip(&together) {
+        assert_eq!(a["episode_index"], b["episode_index"]);
+        for predictor in ["model", "other_actions"] {
+            for (x, y) in a["psnr"][predictor].as_array().unwrap().iter().zip(b["psnr"][predictor].as_array().unwrap()) {
+                assert!((x.as_f64().unwrap() - y.as_f64().unwrap()).abs() < 1e-3, "episode {} {predictor}: {x} alone, {y} together", a["episode_index"]);
+            }
+        }
+    }
+
     // A run cut short (two episodes scored, the third line half written) resumes: the scored
     // episodes are kept, the rest rolled out, and the report equals the uninterrupted one.
     let text = std::fs::read_to_string(out.join("episodes.jsonl")).unwrap();

@@ -10,8 +10,9 @@ close code 1011, as openpi does on an exception; the server itself keeps running
 One connection is one episode (bwm evaluate reconnects for each). Its task is the served task
 named in the prompt (the only one when one is served), and its seed is the task's next episode
 seed: --episode-seeds FILE ({task: [seed, ...]}, e.g. the validation episodes' placement seeds
-that study.py config writes) or --seed + k for the task's k-th episode. bwm evaluate runs a
-policy's episodes one after another in the config's order, so a rerun gets the same seeds.
+that study.py config writes) or --seed + k for the task's k-th episode, counted by first
+observation. bwm evaluate starts a policy's episodes in the config's order and, with several
+episodes in flight, sends their first observations in that order too, so a rerun gets the same seeds.
 
 Usage: policy_server.py --variants expert,noisy --tasks drawer-open-v3 --base-port 8100 \
            --chunk 24 --ready ready.json       (--base-port 0: free ports, see the ready file)

@@ -53,11 +53,13 @@ SOLVER="${SOLVER:-euler}"                 # euler or dpm++2m (bwm --solver)
 JUDGE_STEPS="${JUDGE_STEPS:-600}"
 STUDY_EPISODES="${STUDY_EPISODES:-50}"    # per task and variant, the first held-out episodes
 STUDY_JOBS="${STUDY_JOBS:-8}"             # bwm evaluate processes at once
+STUDY_IN_FLIGHT="${STUDY_IN_FLIGHT:-16}"  # episodes each of them runs at once (one batch per chunk)
 STUDY_HORIZON="${STUDY_HORIZON:-$FRAMES}" # frames after x0, in the simulator and the world model
 STUDY_VARIANTS="${STUDY_VARIANTS:-}"      # comma-separated (default: all)
 STUDY_DIR="${STUDY_DIR:-$RUN/study}"      # where the study writes (another, to compare sampler settings)
 FIDELITY_DIR="${FIDELITY_DIR:-$RUN/fidelity}"  # where the fidelity report goes
 FIDELITY_EPISODES="${FIDELITY_EPISODES:-}" # comma-separated positions in data/val (default: all)
+FIDELITY_IN_FLIGHT="${FIDELITY_IN_FLIGHT:-8}" # episodes rolled out at once (one batch per chunk)
 PROBE_VARIANTS="${PROBE_VARIANTS:-wrong-0cm,wrong-1cm,wrong-2cm,wrong-3cm,wrong-4cm,wrong-5cm,wrong-6cm}"
 STAGES=()
 for arg in "$@"; do
@@ -128,7 +130,7 @@ world_model() {
 if wants fidelity; then
   world_model
   timed fidelity "$BWM" fidelity "${WM[@]}" --data "$RUN/data/val" --actions observation.state:0-3 --resolution "${RESOLUTION}x$RESOLUTION" \
-    --horizons 8,16,32,64 --videos 4 ${FIDELITY_EPISODES:+--episodes "$FIDELITY_EPISODES"} --out "$FIDELITY_DIR"
+    --horizons 8,16,32,64 --videos 4 ${FIDELITY_EPISODES:+--episodes "$FIDELITY_EPISODES"} --episodes-in-flight "$FIDELITY_IN_FLIGHT" --out "$FIDELITY_DIR"
 fi
 
 COMMON_STUDY_ARGS=(--data "$RUN/data/val" --episodes "$STUDY_EPISODES" --horizon "$STUDY_HORIZON" --resolution "$RESOLUTION" --workers "$WORKERS")
@@ -157,12 +159,12 @@ fi
 if wants study; then
   world_model
   timed study "$PYTHON" bench/metaworld/study.py "${STUDY_ARGS[@]}" --judge "$RUN/judge.pt" --bwm "$BWM" \
-    --jobs "$STUDY_JOBS" -- "${WM[@]}"
+    --jobs "$STUDY_JOBS" --episodes-in-flight "$STUDY_IN_FLIGHT" -- "${WM[@]}"
 fi
 
 if wants probe; then
   world_model
   timed probe "$PYTHON" bench/metaworld/study.py "${COMMON_STUDY_ARGS[@]}" --variants "$PROBE_VARIANTS" --out "$RUN/probe" \
-    --judge "$RUN/judge.pt" --bwm "$BWM" --jobs "$STUDY_JOBS" -- "${WM[@]}"
+    --judge "$RUN/judge.pt" --bwm "$BWM" --jobs "$STUDY_JOBS" --episodes-in-flight "$STUDY_IN_FLIGHT" -- "${WM[@]}"
 fi
 echo "recipe: done; stage times in $RUN/timings.tsv"

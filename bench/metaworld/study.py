@@ -344,7 +344,7 @@ def run_evaluations(groups, a, ports, judge_url, episodes) -> dict:
         os.makedirs(out, exist_ok=True)
         config = os.path.join(out, "evaluate.toml")
         write_config(config, variants, ports, judge_url, a.data, episodes, a)
-        cmd = [a.bwm, "evaluate", "--config", config, "--out", out, *a.wm]
+        cmd = [a.bwm, "evaluate", "--config", config, "--out", out, "--episodes-in-flight", str(a.episodes_in_flight), *a.wm]
         log = open(os.path.join(out, "evaluate.log"), "w")
         print(f"study: evaluate {g}: {', '.join(variants)}: {shlex.join(cmd)}", flush=True)
         # Each process gets its share of the cores for libtorch's CPU threads: by default every
@@ -400,6 +400,8 @@ def main(argv=None) -> None:
     ap.add_argument("--chunk", type=int, default=24, help="actions per policy reply (the world model's K)")
     ap.add_argument("--resolution", type=int, default=64)
     ap.add_argument("--jobs", type=int, default=4, help="bwm evaluate processes at once (variants split among them)")
+    ap.add_argument("--episodes-in-flight", type=int, default=1,
+                    help="episodes each bwm evaluate process runs at once, its chunks generated as one batch")
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="processes measuring the truth")
     ap.add_argument("--truth-only", action="store_true", help="measure (or find cached) the true rates in DIR/truth.json and stop")
     ap.add_argument("--bwm", default=os.path.join(os.environ.get("CARGO_TARGET_DIR", "target"), "release", "bwm"))
@@ -475,6 +477,7 @@ def main(argv=None) -> None:
     summary["episodes_per_rate"] = a.episodes
     summary["horizon"] = a.horizon
     summary["world_model_flags"] = wm
+    summary["episodes_in_flight"] = a.episodes_in_flight
     with open(os.path.join(a.out, "study.json"), "w") as f:
         json.dump(summary, f, indent=1)
     with open(os.path.join(a.out, "study.csv"), "w") as f:

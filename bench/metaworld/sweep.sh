@@ -19,16 +19,24 @@ PYTHON="${PYTHON:-python3}"
 # episodes of each task; FIDELITY_EPISODES names other positions.
 n_tasks=$("$PYTHON" -c 'import json, sys; print(json.load(open(sys.argv[1]))["total_tasks"])' "$RUN/data/val/meta/info.json")
 episodes="${FIDELITY_EPISODES:-$(seq -s, 0 $((n_tasks * SWEEP_EPISODES - 1)))}"
+baseline="${SWEEP_BASELINE:-euler-50}"
 mkdir -p "$RUN/sweep"
-for solver in $SOLVERS; do
-  for steps in $STEPS; do
-    dir="$RUN/sweep/$solver-$steps"
-    if [ -f "$dir/fidelity/fidelity.json" ] && [ -f "$dir/study/study.json" ]; then
-      echo "sweep: $solver-$steps measured"; continue
-    fi
-    echo "sweep: $solver, $steps steps ($(date +%H:%M:%S))"
-    RUN="$RUN" SOLVER="$solver" SAMPLE_STEPS="$steps" FIDELITY_DIR="$dir/fidelity" FIDELITY_EPISODES="$episodes" \
-      STUDY_DIR="$dir/study" bash bench/metaworld/recipe.sh fidelity study
+# The baseline first (every other setting is judged against it), then by step count, each
+# solver in turn: a sweep cut short by the device's time still yields comparisons.
+settings=("$baseline")
+for steps in $STEPS; do
+  for solver in $SOLVERS; do
+    [ "$solver-$steps" = "$baseline" ] || settings+=("$solver-$steps")
   done
 done
-"$PYTHON" bench/metaworld/sweep.py "$RUN/sweep" --baseline "${SWEEP_BASELINE:-euler-50}"
+for setting in "${settings[@]}"; do
+  solver=${setting%-*} steps=${setting##*-}
+  dir="$RUN/sweep/$setting"
+  if [ -f "$dir/fidelity/fidelity.json" ] && [ -f "$dir/study/study.json" ]; then
+    echo "sweep: $setting measured"; continue
+  fi
+  echo "sweep: $solver, $steps steps ($(date +%H:%M:%S))"
+  RUN="$RUN" SOLVER="$solver" SAMPLE_STEPS="$steps" FIDELITY_DIR="$dir/fidelity" FIDELITY_EPISODES="$episodes" \
+    STUDY_DIR="$dir/study" bash bench/metaworld/recipe.sh fidelity study
+done
+"$PYTHON" bench/metaworld/sweep.py "$RUN/sweep" --baseline "$baseline"

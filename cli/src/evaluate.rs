@@ -18,8 +18,12 @@ pub struct EvaluateArgs {
     /// Output folder: videos/, episodes.jsonl, success_rates.csv, policies.csv, summary.json.
     #[arg(long, default_value = "runs/evaluate")]
     out: PathBuf,
+    /// Episodes run at once, their chunks generated as one batch (more keep the GPU busier; each
+    /// episode's frames are what it gets alone).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..))]
+    episodes_in_flight: u64,
 }
 
 pub fn run(a: EvaluateArgs) -> Result<()> {
-    bwm_inference::evaluate::run(&a.wm.options(), &a.config, &a.out)
+    bwm_inference::evaluate::run(&a.wm.options(), &a.config, &a.out, a.episodes_in_flight as usize)
 }

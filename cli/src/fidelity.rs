@@ -27,6 +27,10 @@ pub struct FidelityArgs {
     /// Side-by-side videos per task (real | own actions | other actions | copy-last-frame).
     #[arg(long, default_value_t = 4)]
     videos: usize,
+    /// Episodes rolled out at once, their chunks generated as one batch (more keep the GPU
+    /// busier; the scores are what each episode gets alone).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..))]
+    episodes_in_flight: u64,
     /// Output folder: fidelity.json, episodes.jsonl, psnr_<task>.svg, ssim_<task>.svg, videos/. A
     /// run with the same settings into the same folder keeps the episodes already scored.
     #[arg(long)]
@@ -44,6 +48,7 @@ pub fn run(a: FidelityArgs) -> Result<()> {
         max_frames: a.episode.max_frames,
         horizons: a.horizons,
         videos: a.videos,
+        in_flight: a.episodes_in_flight as usize,
         out: a.out,
     };
     bwm_inference::fidelity::run(&a.wm.options(), &options)

@@ -15,8 +15,9 @@ use bwm_data::{ActionSpec, ResizeMode};
 use bwm_trainer::image_metrics::{psnr, ssim};
 use image::RgbImage;
 use serde_json::{json, Value};
+use tch::Tensor;
 
-use crate::rollout::generate_frames;
+use crate::rollout::generate_frames_together;
 use bwm_data::frames::parse_resolution;
 use crate::world_model::WorldModelOptions;
 
@@ -43,6 +44,9 @@ pub struct FidelityOptions {
     pub horizons: Vec<usize>,
     /// Side-by-side videos per task (real | own actions | other actions | copy-last-frame).
     pub videos: usize,
+    /// Episodes rolled out at once (both of each one's rollouts), their chunks generated as one
+    /// batch; the scores are what each episode gets alone.
+    pub in_flight: usize,
     /// Output folder: fidelity.json, episodes.jsonl (and episodes.key.json, the settings it was
     /// scored with: a later run with the same ones resumes it), `psnr_<task>.svg`, `ssim_<task>.svg`, videos/.
     pub out: PathBuf,
@@ -63,6 +67,7 @@ struct Scored {
 pub fn run(options: &WorldModelOptions, a: &FidelityOptions) -> Result<()> {
     let size = parse_resolution(&a.resolution, 16)?;
     ensure!(a.horizons.iter().all(|&h| h > 0), "--horizons must be positive frame counts");
+    ensure!(a.in_flight >= 1, "episodes in flight must be at least 1");
     let options = options.with_stats_beside(Some(&a.data), "fidelity");
     let source = open_dataset(&a.data)?;
     let spec = ActionSpec::parse(&a.actions).context("--actions")?;
@@ -75,12 +80,13 @@ pub fn run(options: &WorldModelOptions, a: &FidelityOptions) -> Result<()> {
     }
     let wm = options.load()?;
     println!(
-        "fidelity: {} episodes of {}; chunks of {} frames, {} history frames, {} sampler steps",
+        "fidelity: {} episodes of {}; chunks of {} frames, {} history frames, {} sampler steps, {} episode(s) in flight",
         episodes.len(),
         source.describe(),
         wm.spec.future,
         wm.spec.history,
-        wm.spec.steps
+        wm.spec.steps,
+        a.in_flight
     );
     std::fs::create_dir_all(a.out.join("videos")).with_context(|| format!("creating {}", a.out.display()))?;
     // Episodes scored by an earlier run of the same settings into the same folder (one cut short)
@@ -118,66 +124,83 @@ pub fn run(options: &WorldModelOptions, a: &FidelityOptions) -> Result<()> {
     let mut scored = Vec::new();
     let mut videos_per_task: BTreeMap<String, usize> = BTreeMap::new();
     let start = Instant::now();
+    // Episodes still to score, in order, rolled out `a.in_flight` at a time.
+    let mut todo = Vec::new();
     for (i, &e) in episodes.iter().enumerate() {
-        let t0 = Instant::now();
         let info = &infos[e];
-        let other = other_episode(&episodes, i, |p| infos[p].task.as_str());
         if let Some((_, record)) = done.remove(&info.index) {
             let video = video_path(a, &info.task, info.index);
             if video.exists() || video.with_extension("png").exists() {
                 *videos_per_task.entry(info.task.clone()).or_default() += 1;
             }
             scored.push(record);
-            continue;
+        } else {
+            todo.push((i, e));
         }
-        let length = info.length.min(infos[other].length).min(a.max_frames.unwrap_or(usize::MAX)).max(1);
-        ensure!(length >= 2, "episode {} has fewer than two frames to score", info.index);
-        let what = |p: usize| format!("episode {} (position {p})", infos[p].index);
-        let own = source.vectors(e, &spec).with_context(|| what(e))?[..length].to_vec();
-        let others = source.vectors(other, &spec).with_context(|| what(other))?[..length].to_vec();
-        let truth: Vec<RgbImage> =
-            source.frames(e, 0..length, &cameras).with_context(|| what(e))?.iter().map(|f| fit(f, size.0, size.1, a.resize)).collect();
-        let progress = |label: &'static str| {
-            move |chunk: usize, total: usize, made: usize| {
-                print!("\r  episode {} ({label}): chunk {chunk} ({made}/{total} frames)   ", info.index);
-                let _ = std::io::stdout().flush();
+    }
+    for group in todo.chunks(a.in_flight) {
+        let t0 = Instant::now();
+        let mut inputs = Vec::with_capacity(group.len());
+        for &(i, e) in group {
+            let info = &infos[e];
+            let other = other_episode(&episodes, i, |p| infos[p].task.as_str());
+            let length = info.length.min(infos[other].length).min(a.max_frames.unwrap_or(usize::MAX)).max(1);
+            ensure!(length >= 2, "episode {} has fewer than two frames to score", info.index);
+            let what = |p: usize| format!("episode {} (position {p})", infos[p].index);
+            let own = source.vectors(e, &spec).with_context(|| what(e))?[..length].to_vec();
+            let others = source.vectors(other, &spec).with_context(|| what(other))?[..length].to_vec();
+            let truth: Vec<RgbImage> =
+                source.frames(e, 0..length, &cameras).with_context(|| what(e))?.iter().map(|f| fit(f, size.0, size.1, a.resize)).collect();
+            inputs.push((e, other, length, truth, wm.normalize(&own)?, wm.normalize(&others)?));
+        }
+        let jobs: Vec<(&RgbImage, Tensor)> = inputs
+            .iter()
+            .flat_map(|(_, _, _, truth, own, others)| [(&truth[0], own.shallow_clone()), (&truth[0], others.shallow_clone())])
+            .collect();
+        let names: Vec<String> = group.iter().map(|&(_, e)| infos[e].index.to_string()).collect();
+        let mut generated = generate_frames_together(&wm, &jobs, &mut |chunk: usize, total: usize, made: usize| {
+            print!("\r  episode(s) {}: chunk {chunk} ({made}/{total} frames, own and other actions)   ", names.join(", "));
+            let _ = std::io::stdout().flush();
+        })?
+        .into_iter();
+        for (e, other, length, truth, _, _) in inputs {
+            let info = &infos[e];
+            let (model, driven_by_other) = (generated.next().context("a rollout is missing")?, generated.next().context("a rollout is missing")?);
+            let copy_last = vec![truth[0].clone(); length];
+            let record = score(&info.task, &truth, [&model, &driven_by_other, &copy_last])?;
+            let mean = |m: &BTreeMap<&str, Vec<f64>>, k: &str| m[k].iter().sum::<f64>() / m[k].len() as f64;
+            println!(
+                "\r  episode {} ({}; other actions from episode {}): {} frames, PSNR model {:.2} / other actions {:.2} / copy-last {:.2} dB ({:.1} s{})",
+                info.index,
+                display_task(&info.task),
+                infos[other].index,
+                length,
+                mean(&record.psnr, "model"),
+                mean(&record.psnr, "other_actions"),
+                mean(&record.psnr, "copy_last_frame"),
+                t0.elapsed().as_secs_f64(),
+                if group.len() > 1 { format!(" for {} episodes together", group.len()) } else { String::new() }
+            );
+            let line = json!({
+                "episode_index": info.index,
+                "task": info.task,
+                "other_episode_index": infos[other].index,
+                "frames": length,
+                "psnr": record.psnr,
+                "ssim": record.ssim,
+            });
+            writeln!(episodes_file, "{line}").with_context(|| format!("writing {}", episodes_path.display()))?;
+            let shown = videos_per_task.entry(info.task.clone()).or_default();
+            if *shown < a.videos {
+                *shown += 1;
+                let panels: Vec<RgbImage> = (0..length)
+                    .map(|k| frame_strip(&[vec![truth[k].clone(), model[k].clone(), driven_by_other[k].clone(), copy_last[k].clone()]]))
+                    .collect::<Result<_>>()?;
+                let path = video_path(a, &info.task, info.index);
+                bwm_data::video::write_mp4_or_sheet(&path, &panels, source.fps(e)?, 8)?;
             }
-        };
-        let model = generate_frames(&wm, &truth[0], &wm.normalize(&own)?, &mut progress("own actions"))?;
-        let driven_by_other = generate_frames(&wm, &truth[0], &wm.normalize(&others)?, &mut progress("other actions"))?;
-        let copy_last = vec![truth[0].clone(); length];
-        let record = score(&info.task, &truth, [&model, &driven_by_other, &copy_last])?;
-        let mean = |m: &BTreeMap<&str, Vec<f64>>, k: &str| m[k].iter().sum::<f64>() / m[k].len() as f64;
-        println!(
-            "\r  episode {} ({}; other actions from episode {}): {} frames, PSNR model {:.2} / other actions {:.2} / copy-last {:.2} dB ({:.1} s)",
-            info.index,
-            display_task(&info.task),
-            infos[other].index,
-            length,
-            mean(&record.psnr, "model"),
-            mean(&record.psnr, "other_actions"),
-            mean(&record.psnr, "copy_last_frame"),
-            t0.elapsed().as_secs_f64()
-        );
-        let line = json!({
-            "episode_index": info.index,
-            "task": info.task,
-            "other_episode_index": infos[other].index,
-            "frames": length,
-            "psnr": record.psnr,
-            "ssim": record.ssim,
-        });
-        writeln!(episodes_file, "{line}").with_context(|| format!("writing {}", episodes_path.display()))?;
-        let shown = videos_per_task.entry(info.task.clone()).or_default();
-        if *shown < a.videos {
-            *shown += 1;
-            let panels: Vec<RgbImage> = (0..length)
-                .map(|k| frame_strip(&[vec![truth[k].clone(), model[k].clone(), driven_by_other[k].clone(), copy_last[k].clone()]]))
-                .collect::<Result<_>>()?;
-            let path = video_path(a, &info.task, info.index);
-            bwm_data::video::write_mp4_or_sheet(&path, &panels, source.fps(e)?, 8)?;
+            scored.push(record);
         }
-        scored.push(record);
     }
     let mut by_task: BTreeMap<String, Vec<&Scored>> = BTreeMap::new();
     for s in &scored {

@@ -13,6 +13,7 @@ use bwm_data::lerobot_writer::{DatasetFeatures, LeRobotWriter};
 use bwm_data::{open_dataset, CameraSelection};
 use bwm_data::{ActionSpec, ResizeMode};
 use bwm_model::keyed_rng::{self, Purpose};
+use bwm_model::rollout::Rollout;
 use bwm_trainer::image_metrics::{psnr, ssim};
 use image::RgbImage;
 use serde::Deserialize;
@@ -191,16 +192,48 @@ fn generate(wm: &WorldModel, job: &Job, progress: &mut dyn FnMut(usize, usize, u
 /// An episode generated from `x0` driven by `normalized` actions [T, d_a] (row 0 belongs to x0):
 /// x0, then one frame per action after the first. `progress(chunk, T, frames so far)`.
 pub fn generate_frames(wm: &WorldModel, x0: &RgbImage, normalized: &Tensor, progress: &mut dyn FnMut(usize, usize, usize)) -> Result<Vec<RgbImage>> {
-    let total = normalized.size()[0] as usize;
-    let x0_t = frames_to_tensor(std::slice::from_ref(x0))?.squeeze_dim(1);
-    let mut rollout = wm.rollout(&x0_t, &normalized.get(0))?;
-    let mut frames = vec![x0.clone()];
-    if total > 1 {
-        rollout.run(&normalized.narrow(0, 1, total as i64 - 1), &mut |chunk| {
-            frames.extend(tensor_to_frames(&chunk.frames)?);
-            progress(chunk.index, total, frames.len());
-            Ok(())
-        })?;
+    Ok(generate_frames_together(wm, &[(x0, normalized.shallow_clone())], progress)?.remove(0))
+}
+
+/// `generate_frames` for several episodes at once, advanced chunk by chunk as one batch (those
+/// with actions left); each gets what it would alone. `progress(chunk, frames asked in all,
+/// frames made in all)`.
+pub fn generate_frames_together(
+    wm: &WorldModel,
+    episodes: &[(&RgbImage, Tensor)],
+    progress: &mut dyn FnMut(usize, usize, usize),
+) -> Result<Vec<Vec<RgbImage>>> {
+    let mut rollouts = Vec::with_capacity(episodes.len());
+    let mut frames = Vec::with_capacity(episodes.len());
+    for (x0, normalized) in episodes {
+        ensure!(normalized.size().first().is_some_and(|&t| t >= 1), "an episode needs at least x0's action");
+        let x0_t = frames_to_tensor(std::slice::from_ref(*x0))?.squeeze_dim(1);
+        rollouts.push(wm.rollout(&x0_t, &normalized.get(0))?);
+        frames.push(vec![(*x0).clone()]);
+    }
+    let total: usize = episodes.iter().map(|(_, a)| a.size()[0] as usize).sum();
+    let k = wm.spec.future;
+    let mut chunk = 0;
+    loop {
+        let mut windows = Vec::new();
+        let mut advancing = Vec::new();
+        for (i, ((_, actions), r)) in episodes.iter().zip(rollouts.iter_mut()).enumerate() {
+            let (done, rows) = (frames[i].len(), actions.size()[0] as usize);
+            if done < rows {
+                windows.push(actions.narrow(0, done as i64, k.min(rows - done) as i64));
+                advancing.push((i, r));
+            }
+        }
+        if advancing.is_empty() {
+            break;
+        }
+        let indices: Vec<usize> = advancing.iter().map(|(i, _)| *i).collect();
+        let mut batch: Vec<&mut Rollout> = advancing.into_iter().map(|(_, r)| r).collect();
+        for (i, c) in indices.into_iter().zip(Rollout::next_chunks(&mut batch, &windows)?) {
+            frames[i].extend(tensor_to_frames(&c.frames)?);
+        }
+        progress(chunk, total, frames.iter().map(Vec::len).sum());
+        chunk += 1;
     }
     Ok(frames)
 }

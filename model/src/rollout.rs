@@ -175,55 +175,92 @@ impl<'m> Rollout<'m> {
 
     /// As `next_chunk`, showing each sampler step's model input and velocity to `on_step`.
     pub fn next_chunk_traced(&mut self, actions: &Tensor, on_step: &mut dyn FnMut(usize, &Tensor, &Tensor)) -> Result<Chunk> {
-        let (k, d) = (self.spec.future as i64, self.a0.size()[0]);
-        let s = actions.size();
-        ensure!(
-            s.len() == 2 && s[1] == d && s[0] >= 1 && s[0] <= k,
-            "chunk actions must be [n, {d}] with 1 <= n <= {k}, got {s:?}"
-        );
-        let actions = actions.to_device(Device::Cpu).to_kind(Kind::Float);
-        ensure!(bool::try_from(actions.isfinite().all())?, "chunk actions hold NaN or infinite values");
-        let n = s[0];
-        let future_actions = if n < k {
-            Tensor::cat(&[actions.shallow_clone(), actions.get(n - 1).unsqueeze(0).expand([k - n, d], false)], 0)
-        } else {
-            actions.shallow_clone()
-        };
-        let (cond_frames, cond_actions) = self.condition();
-        let device = self.model.store.device();
-        let kind = self.model.store.kind();
-        let chunk = self.chunks as u64;
+        let mut chunks = Self::next_chunks_traced(&mut [self], std::slice::from_ref(actions), on_step)?;
+        Ok(chunks.remove(0))
+    }
+
+    /// The next chunk of several rollouts at once, `actions[i]` driving `rollouts[i]`: one batched
+    /// encode, sampler and decode instead of one of each per rollout. Each rollout draws its own
+    /// keyed noise, so it generates what `next_chunk` alone would (up to the rounding of batched
+    /// kernels). The rollouts must share the model, the VAE, the frame size and every setting but
+    /// the seed; each chunk reports the batch's seconds.
+    pub fn next_chunks(rollouts: &mut [&mut Rollout<'m>], actions: &[Tensor]) -> Result<Vec<Chunk>> {
+        Self::next_chunks_traced(rollouts, actions, &mut |_, _, _| {})
+    }
+
+    fn next_chunks_traced(rollouts: &mut [&mut Rollout<'m>], actions: &[Tensor], on_step: &mut dyn FnMut(usize, &Tensor, &Tensor)) -> Result<Vec<Chunk>> {
+        ensure!(!rollouts.is_empty(), "no rollouts to advance");
+        ensure!(rollouts.len() == actions.len(), "{} rollouts but {} action windows", rollouts.len(), actions.len());
+        let first = &rollouts[0];
+        let (model, vae) = (first.model, first.vae);
+        for (i, r) in rollouts.iter().enumerate().skip(1) {
+            ensure!(
+                std::ptr::eq(r.model, model) && std::ptr::eq(r.vae, vae),
+                "rollout {i} runs another model or VAE than rollout 0; a batch shares both"
+            );
+            ensure!(
+                RolloutSpec { seed: first.spec.seed, ..r.spec.clone() } == first.spec,
+                "rollout {i}'s settings ({:?}) differ from rollout 0's ({:?}) in more than the seed",
+                r.spec,
+                first.spec
+            );
+            ensure!(r.x0.size() == first.x0.size(), "rollout {i}'s frames are {:?}, rollout 0's {:?}", r.x0.size(), first.x0.size());
+        }
+        let (k, d) = (first.spec.future as i64, first.a0.size()[0]);
+        let p = first.spec.condition_latents() as i64;
+        let history_sigma = first.spec.history_sigma;
+        let mut applied = Vec::with_capacity(actions.len());
+        let mut future_actions = Vec::with_capacity(actions.len());
+        for (i, a) in actions.iter().enumerate() {
+            let s = a.size();
+            let at = if actions.len() > 1 { format!(" (rollout {i})") } else { String::new() };
+            ensure!(
+                s.len() == 2 && s[1] == d && s[0] >= 1 && s[0] <= k,
+                "chunk actions{at} must be [n, {d}] with 1 <= n <= {k}, got {s:?}"
+            );
+            let a = a.to_device(Device::Cpu).to_kind(Kind::Float);
+            ensure!(bool::try_from(a.isfinite().all())?, "chunk actions{at} hold NaN or infinite values");
+            let n = s[0];
+            future_actions.push(if n < k { Tensor::cat(&[a.shallow_clone(), a.get(n - 1).unsqueeze(0).expand([k - n, d], false)], 0) } else { a.shallow_clone() });
+            applied.push(a);
+        }
+        let conditions: Vec<(Tensor, Tensor)> = rollouts.iter().map(|r| r.condition()).collect();
+        let device = model.store.device();
+        let kind = model.store.kind();
+        let sync = &first.sync;
 
         let start = Instant::now();
-        let clean = tch::no_grad(|| self.vae.encode(&cond_frames.unsqueeze(0).to_device(device)))
+        let cond_frames = Tensor::stack(&conditions.iter().map(|c| c.0.shallow_clone()).collect::<Vec<_>>(), 0);
+        let clean = tch::no_grad(|| vae.encode(&cond_frames.to_device(device)))
             .context("encoding the condition clip [x0, history]")?
             .to_kind(Kind::Float);
-        (self.sync)();
+        sync();
         let encode_seconds = start.elapsed().as_secs_f64();
 
-        let p = self.spec.condition_latents() as i64;
         let cs = clean.size();
-        let prefix = match self.spec.history_sigma {
+        let one = |r: &Rollout, purpose: Purpose, frames: i64| keyed_rng::normal(&[1, cs[1], frames, cs[3], cs[4]], r.spec.seed, r.chunks as u64, purpose);
+        let prefix = match history_sigma {
             Some(sh) if p > 1 => {
-                let eps = keyed_rng::normal(&[cs[0], cs[1], p - 1, cs[3], cs[4]], self.spec.seed, chunk, Purpose::RolloutHistoryNoise).to_device(device);
+                let eps = Tensor::cat(&rollouts.iter().map(|r| one(r, Purpose::RolloutHistoryNoise, p - 1)).collect::<Vec<_>>(), 0).to_device(device);
                 Tensor::cat(&[clean.narrow(2, 0, 1), FlowSchedule::add_noise(&clean.narrow(2, 1, p - 1), &eps, sh)], 2)
             }
             _ => clean,
         };
-        let noise_shape = [cs[0], cs[1], p + k / 4, cs[3], cs[4]];
-        let noise = keyed_rng::normal(&noise_shape, self.spec.seed, chunk, Purpose::RolloutNoise).to_device(device);
-        let all_actions = Tensor::cat(&[cond_actions, future_actions], 0).unsqueeze(0).to_device(device);
+        let noise = Tensor::cat(&rollouts.iter().map(|r| one(r, Purpose::RolloutNoise, p + k / 4)).collect::<Vec<_>>(), 0).to_device(device);
+        let all_actions = Tensor::stack(
+            &conditions.iter().zip(&future_actions).map(|(c, f)| Tensor::cat(&[c.1.shallow_clone(), f.shallow_clone()], 0)).collect::<Vec<_>>(),
+            0,
+        )
+        .to_device(device);
         let start = Instant::now();
-        let latents = tch::no_grad(|| {
-            sample_chunk(self.model, &prefix.to_kind(kind), &noise.to_kind(kind), &all_actions, &self.schedule, on_step)
-        })?;
-        (self.sync)();
+        let latents = tch::no_grad(|| sample_chunk(model, &prefix.to_kind(kind), &noise.to_kind(kind), &all_actions, &first.schedule, on_step))?;
+        sync();
         let dit_seconds = start.elapsed().as_secs_f64();
 
         // The causal decoder runs through the prefix latents for its cache; their pixels are dropped.
         let start = Instant::now();
         let frames = tch::no_grad(|| -> Result<Tensor> {
-            let mut stream = self.vae.decoder_stream();
+            let mut stream = vae.decoder_stream();
             let mut future = Vec::new();
             for i in 0..latents.size()[2] {
                 let px = stream.next(&latents.narrow(2, i, 1))?;
@@ -231,17 +268,23 @@ impl<'m> Rollout<'m> {
                     future.push(px.to_device(Device::Cpu).to_kind(Kind::Float));
                 }
             }
-            Ok(Tensor::cat(&future, 2).squeeze_dim(0).clamp(-1.0, 1.0).narrow(1, 0, n))
+            Ok(Tensor::cat(&future, 2).clamp(-1.0, 1.0))
         })
         .context("decoding the generated chunk")?;
-        (self.sync)();
+        sync();
         let decode_seconds = start.elapsed().as_secs_f64();
 
-        for t in 0..n {
-            self.push(frames.select(1, t), actions.get(t));
+        let mut chunks = Vec::with_capacity(rollouts.len());
+        for (b, (r, actions)) in rollouts.iter_mut().zip(applied).enumerate() {
+            let n = actions.size()[0];
+            let frames = frames.get(b as i64).narrow(1, 0, n);
+            for t in 0..n {
+                r.push(frames.select(1, t), actions.get(t));
+            }
+            r.chunks += 1;
+            chunks.push(Chunk { index: r.chunks - 1, frames, actions, encode_seconds, dit_seconds, decode_seconds });
         }
-        self.chunks += 1;
-        Ok(Chunk { index: self.chunks - 1, frames, actions, encode_seconds, dit_seconds, decode_seconds })
+        Ok(chunks)
     }
 
     /// Rolls out a whole action sequence [T, d_a] in chunks of K (the last one shorter), handing

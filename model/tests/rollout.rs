@@ -129,6 +129,44 @@ fn a_short_last_window_is_padded_with_its_last_action_and_trimmed() {
 }
 
 #[test]
+fn rollouts_advanced_together_generate_what_each_generates_alone() {
+    let (model, vae) = parts(Kind::Float);
+    let d = model.cfg.action.action_dim;
+    let (x0, a0, actions) = inputs(d, 8);
+    let draw = |shape: &[i64], key: u64| keyed_rng::normal(shape, 13, key, Purpose::Augment).tanh();
+    let (x1, a1) = (draw(&[3, SIDE, SIDE], 0), draw(&[d], 1));
+    // Different seeds, first frames and window lengths (the second rollout's windows are short).
+    let windows = [[actions.narrow(0, 0, 4), actions.narrow(0, 4, 4)], [actions.narrow(0, 1, 3), actions.narrow(0, 5, 2)]];
+    let alone: Vec<Vec<Tensor>> = [(&x0, &a0, 5), (&x1, &a1, 6)]
+        .iter()
+        .zip(&windows)
+        .map(|(&(x, a, seed), w)| {
+            let mut r = Rollout::new(&model, &vae, spec(4, 4, seed), x, a).unwrap();
+            w.iter().map(|w| r.next_chunk(w).unwrap().frames).collect()
+        })
+        .collect();
+    let mut r0 = Rollout::new(&model, &vae, spec(4, 4, 5), &x0, &a0).unwrap();
+    let mut r1 = Rollout::new(&model, &vae, spec(4, 4, 6), &x1, &a1).unwrap();
+    for c in 0..2 {
+        let chunks = Rollout::next_chunks(&mut [&mut r0, &mut r1], &[windows[0][c].shallow_clone(), windows[1][c].shallow_clone()]).unwrap();
+        for (b, chunk) in chunks.iter().enumerate() {
+            assert_eq!(chunk.index, c);
+            assert!(chunk.actions.equal(&windows[b][c]));
+            assert_eq!(chunk.frames.size(), alone[b][c].size());
+            let diff = (&chunk.frames - &alone[b][c]).abs().max().double_value(&[]);
+            assert!(diff < 1e-4, "rollout {b}, chunk {c}: batched and alone differ by {diff}");
+        }
+    }
+    assert!(!alone[0][0].narrow(1, 0, 3).allclose(&alone[1][0], 1e-3, 1e-3, false), "the two rollouts differ, so the batch kept them apart");
+
+    // A batch holds one setting: another step count is refused, another seed is not.
+    let mut other = Rollout::new(&model, &vae, RolloutSpec { steps: 2, ..spec(4, 4, 5) }, &x0, &a0).unwrap();
+    let e = Rollout::next_chunks(&mut [&mut r0, &mut other], &[actions.narrow(0, 0, 4), actions.narrow(0, 0, 4)]).err().expect("mixed settings are refused");
+    assert!(e.to_string().contains("differ from rollout 0"), "{e}");
+    assert!(Rollout::next_chunks(&mut [&mut r0], &[]).is_err(), "one window per rollout");
+}
+
+#[test]
 fn bad_inputs_are_errors() {
     let (model, vae) = parts(Kind::Float);
     let d = model.cfg.action.action_dim;

@@ -22,6 +22,9 @@ use anyhow::{ensure, Context, Result};
 use bwm_data::frames::{frames_to_tensor, tensor_to_frames};
 use image::RgbImage;
 
+use bwm_model::rollout::{Chunk, Rollout};
+use tch::Tensor;
+
 use crate::world_model::{WorldModel, WorldModelOptions};
 use adapter::{Adapter, Fk};
 use config::{AdapterKind, ChunkMode, EvalConfig, PolicyConfig};
@@ -33,7 +36,11 @@ use tasks::{Start, Task};
 /// Runs the evaluation that `config` (TOML: policies, tasks, observation layout, adapters, judge;
 /// `configs/evaluate-example.toml`) describes with the world model `options` opens, and writes
 /// videos/, episodes.jsonl, success_rates.csv, policies.csv and summary.json into `out`.
-pub fn run(options: &WorldModelOptions, config: &Path, out: &Path) -> Result<()> {
+/// `in_flight` episodes run at once, their chunks generated as one batch (a new episode starts
+/// as one ends); each episode's frames are what it would get alone, and the records keep the
+/// config's order.
+pub fn run(options: &WorldModelOptions, config: &Path, out: &Path, in_flight: usize) -> Result<()> {
+    ensure!(in_flight >= 1, "episodes in flight must be at least 1");
     let cfg = EvalConfig::read(config)?;
     ensure!(
         options.stats.is_some(),
@@ -94,63 +101,76 @@ pub fn run(options: &WorldModelOptions, config: &Path, out: &Path) -> Result<()>
     let per_policy: usize = tasks.iter().map(|t| t.starts.len()).sum();
     let total = per_policy * cfg.policies.len();
     println!(
-        "evaluate: {} policies x {} tasks ({per_policy} episodes per policy), horizon {} frames, chunks of K = {} frames, {}",
+        "evaluate: {} policies x {} tasks ({per_policy} episodes per policy), horizon {} frames, chunks of K = {} frames, {} episode(s) in flight, {}",
         cfg.policies.len(),
         tasks.len(),
         cfg.horizon,
         wm.spec.future,
+        in_flight,
         judge.describe()
     );
+    let jobs: Vec<(&PolicyConfig, &Task, usize)> = cfg
+        .policies
+        .iter()
+        .flat_map(|p| tasks.iter().flat_map(move |t| (0..t.starts.len()).map(move |i| (p, t, i))))
+        .collect();
     let mut records = Vec::new();
-    for policy in &cfg.policies {
-        let mut metadata_shown = false;
-        for task in &tasks {
-            for (i, start) in task.starts.iter().enumerate() {
-                let t0 = Instant::now();
-                let run = run_episode(&cfg, &wm, &judge, fk.as_mut(), policy, task, i, start);
-                if let (Some(m), false) = (&run.metadata, metadata_shown) {
-                    println!(
-                        "policy '{}' ({}): server metadata {m}",
-                        policy.name, policy.url
-                    );
-                    metadata_shown = true;
-                }
-                let video = if run.frames.is_empty() {
-                    None
-                } else {
-                    let rel = Path::new("videos")
-                        .join(&policy.name)
-                        .join(&task.cfg.name)
-                        .join(format!("episode_{i:03}.mp4"));
-                    let path = out.join(&rel);
-                    std::fs::create_dir_all(path.parent().unwrap_or(out))?;
-                    let written = bwm_data::video::write_mp4_or_sheet(&path, &run.frames, start.fps, 24)
-                        .with_context(|| format!("writing {}", path.display()))?;
-                    Some(rel.with_file_name(written.file_name().unwrap_or_default()).display().to_string())
-                };
-                let success =
-                    run.error.is_none() && run.verdict.as_ref().is_some_and(|v| v.success);
-                let record = EpisodeRecord {
-                    policy: policy.name.clone(),
-                    task: task.cfg.name.clone(),
-                    episode: i,
-                    source: start.source.clone(),
-                    success,
-                    frames: run.frames.len(),
-                    chunks: run.chunks,
-                    policy_requests: run.requests,
-                    success_probability: run.verdict.as_ref().and_then(|v| v.probability),
-                    judge: run.verdict.as_ref().map(|v| v.detail.clone()),
-                    error: run.error.as_ref().map(|e| format!("{e:#}")),
-                    video,
-                    seconds: t0.elapsed().as_secs_f64(),
-                };
-                println!("[{}/{total}] {}", records.len() + 1, progress_line(&record));
-                writeln!(episodes_file, "{}", serde_json::to_string(&record)?)
-                    .and_then(|_| episodes_file.flush())
-                    .with_context(|| format!("writing {}", episodes_path.display()))?;
-                records.push(record);
+    let mut metadata_shown = vec![false; cfg.policies.len()];
+    // Episodes in flight in the order they started; finished ones wait in `finished` until every
+    // earlier one is recorded.
+    let mut live: Vec<Episode> = Vec::new();
+    let mut finished: std::collections::BTreeMap<usize, Episode> = std::collections::BTreeMap::new();
+    let mut next_job = 0;
+    while records.len() < jobs.len() {
+        while live.len() < in_flight && next_job < jobs.len() {
+            let (policy, task, i) = jobs[next_job];
+            live.push(Episode::start(next_job, &cfg, &wm, fk.as_mut(), policy, task, i));
+            next_job += 1;
+        }
+        step(&cfg, &wm, &judge, fk.as_mut(), &jobs, &mut live);
+        for e in live.extract_if(.., |e| e.driving.is_none()) {
+            finished.insert(e.job, e);
+        }
+        while let Some(e) = finished.remove(&records.len()) {
+            let (policy, task, i) = jobs[e.job];
+            let start = &task.starts[i];
+            let run = e.run;
+            let policy_index = cfg.policies.iter().position(|p| std::ptr::eq(p, policy)).unwrap_or(0);
+            if let (Some(m), false) = (&run.metadata, metadata_shown[policy_index]) {
+                println!("policy '{}' ({}): server metadata {m}", policy.name, policy.url);
+                metadata_shown[policy_index] = true;
             }
+            let video = if run.frames.is_empty() {
+                None
+            } else {
+                let rel = Path::new("videos").join(&policy.name).join(&task.cfg.name).join(format!("episode_{i:03}.mp4"));
+                let path = out.join(&rel);
+                std::fs::create_dir_all(path.parent().unwrap_or(out))?;
+                let written = bwm_data::video::write_mp4_or_sheet(&path, &run.frames, start.fps, 24)
+                    .with_context(|| format!("writing {}", path.display()))?;
+                Some(rel.with_file_name(written.file_name().unwrap_or_default()).display().to_string())
+            };
+            let success = run.error.is_none() && run.verdict.as_ref().is_some_and(|v| v.success);
+            let record = EpisodeRecord {
+                policy: policy.name.clone(),
+                task: task.cfg.name.clone(),
+                episode: i,
+                source: start.source.clone(),
+                success,
+                frames: run.frames.len(),
+                chunks: run.chunks,
+                policy_requests: run.requests,
+                success_probability: run.verdict.as_ref().and_then(|v| v.probability),
+                judge: run.verdict.as_ref().map(|v| v.detail.clone()),
+                error: run.error.as_ref().map(|e| format!("{e:#}")),
+                video,
+                seconds: e.seconds.unwrap_or_default(),
+            };
+            println!("[{}/{total}] {}", records.len() + 1, progress_line(&record));
+            writeln!(episodes_file, "{}", serde_json::to_string(&record)?)
+                .and_then(|_| episodes_file.flush())
+                .with_context(|| format!("writing {}", episodes_path.display()))?;
+            records.push(record);
         }
     }
     let policies: Vec<String> = cfg.policies.iter().map(|p| p.name.clone()).collect();
@@ -204,106 +224,142 @@ struct EpisodeRun {
     error: Option<anyhow::Error>,
 }
 
-#[allow(clippy::too_many_arguments)]
-fn run_episode(
-    cfg: &EvalConfig,
-    wm: &WorldModel,
-    judge: &Judge,
-    fk: Option<&mut Fk>,
-    policy: &PolicyConfig,
-    task: &Task,
-    episode: usize,
-    start: &Start,
-) -> EpisodeRun {
-    let mut run = EpisodeRun::default();
-    if let Err(e) = drive(cfg, wm, judge, fk, policy, task, episode, start, &mut run) {
-        run.error = Some(e);
-    }
-    run
+/// An episode in flight: its record so far and, until it ends, what drives it.
+struct Episode<'w> {
+    /// Position in the evaluation's list of (policy, task, episode).
+    job: usize,
+    t0: Instant,
+    run: EpisodeRun,
+    driving: Option<Driving<'w>>,
+    /// Seconds from start to end, once ended.
+    seconds: Option<f64>,
 }
 
-#[allow(clippy::too_many_arguments)]
-fn drive(
-    cfg: &EvalConfig,
-    wm: &WorldModel,
-    judge: &Judge,
-    mut fk: Option<&mut Fk>,
-    policy: &PolicyConfig,
-    task: &Task,
-    episode: usize,
-    start: &Start,
-    run: &mut EpisodeRun,
-) -> Result<()> {
-    let obs_cfg = cfg.observation_of(policy);
-    let mut adapter = Adapter::new(
-        &policy.adapter,
-        wm.action_dim(),
-        start.pose.as_deref(),
-        start.joints.as_deref(),
-        fk.as_deref_mut(),
-    )?;
-    let x0 = frames_to_tensor(std::slice::from_ref(&start.x0))?.squeeze_dim(1);
-    let a0 = wm.normalize(&[adapter.pose().to_vec()])?.get(0);
-    let mut rollout = wm.rollout(&x0, &a0)?;
-    let timeout = Duration::from_secs_f64(cfg.timeout_s);
-    let mut client = PolicyClient::connect(&policy.url, timeout)
-        .with_context(|| format!("policy '{}'", policy.name))?;
-    run.metadata = Some(client.metadata.to_string());
-    let k = wm.spec.future;
-    let subject = Subject {
-        policy: &policy.name,
-        task: &task.cfg.name,
-        prompt: &start.prompt,
-        episode,
-        rules: &task.cfg.rules,
+struct Driving<'w> {
+    adapter: Adapter,
+    rollout: Rollout<'w>,
+    client: PolicyClient,
+}
+
+impl<'w> Episode<'w> {
+    /// Connects to the policy and starts the rollout at the start's first frame; a failure ends
+    /// the episode at once (recorded as a failure with its error).
+    fn start(job: usize, cfg: &EvalConfig, wm: &'w WorldModel, fk: Option<&mut Fk>, policy: &PolicyConfig, task: &Task, i: usize) -> Self {
+        let mut e = Episode { job, t0: Instant::now(), run: EpisodeRun::default(), driving: None, seconds: None };
+        let start = &task.starts[i];
+        let driving = (|| -> Result<Driving<'w>> {
+            let adapter = Adapter::new(&policy.adapter, wm.action_dim(), start.pose.as_deref(), start.joints.as_deref(), fk)?;
+            let x0 = frames_to_tensor(std::slice::from_ref(&start.x0))?.squeeze_dim(1);
+            let a0 = wm.normalize(&[adapter.pose().to_vec()])?.get(0);
+            let rollout = wm.rollout(&x0, &a0)?;
+            let timeout = Duration::from_secs_f64(cfg.timeout_s);
+            let client = PolicyClient::connect(&policy.url, timeout).with_context(|| format!("policy '{}'", policy.name))?;
+            Ok(Driving { adapter, rollout, client })
+        })();
+        match driving {
+            Ok(d) => {
+                e.run.metadata = Some(d.client.metadata.to_string());
+                e.driving = Some(d);
+            }
+            Err(err) => e.end(Some(err)),
+        }
+        e
+    }
+
+    fn end(&mut self, error: Option<anyhow::Error>) {
+        if error.is_some() {
+            self.run.error = error;
+        }
+        self.driving = None;
+        self.seconds = Some(self.t0.elapsed().as_secs_f64());
+    }
+}
+
+/// One chunk of every episode in `live`: the policies' actions for each, one batched world-model
+/// chunk for all, then the judge. Episodes that end (success, horizon, error) lose `driving`.
+fn step(cfg: &EvalConfig, wm: &WorldModel, judge: &Judge, mut fk: Option<&mut Fk>, jobs: &[(&PolicyConfig, &Task, usize)], live: &mut [Episode]) {
+    let mut windows = Vec::new();
+    for e in live.iter_mut().filter(|e| e.driving.is_some()) {
+        let (policy, task, i) = jobs[e.job];
+        match next_poses(cfg, wm, fk.as_deref_mut(), policy, &task.starts[i], e) {
+            Ok(poses) => windows.push(poses),
+            Err(err) => e.end(Some(err)),
+        }
+    }
+    let mut driven: Vec<&mut Episode> = live.iter_mut().filter(|e| e.driving.is_some()).collect();
+    if driven.is_empty() {
+        return;
+    }
+    let mut rollouts: Vec<&mut Rollout> = driven.iter_mut().filter_map(|e| e.driving.as_mut().map(|d| &mut d.rollout)).collect();
+    let chunks: Result<Vec<Chunk>> = Rollout::next_chunks(&mut rollouts, &windows);
+    drop(rollouts);
+    let chunks = match chunks {
+        Ok(c) => c,
+        Err(err) => {
+            let text = format!("world model: {err:#}");
+            for e in driven {
+                e.end(Some(anyhow::anyhow!("{text}")));
+            }
+            return;
+        }
     };
-    while run.frames.len() < cfg.horizon {
-        let want = k.min(cfg.horizon - run.frames.len());
-        let latest = run.frames.last().unwrap_or(&start.x0).clone();
-        let mut poses: Vec<Vec<f32>> = Vec::with_capacity(want);
-        while poses.len() < want {
-            let obs = observation::observation(&latest, adapter.state(), &start.prompt, obs_cfg)?;
-            run.requests += 1;
-            let reply = client.infer(&obs)?;
-            let rows = observation::action_rows(&reply, &obs_cfg.actions_key)?;
-            ensure!(
-                !rows.is_empty(),
-                "the policy returned an empty action chunk"
-            );
-            let need = want - poses.len();
-            let take = match policy.chunk {
-                ChunkMode::Rerequest => rows.len().min(need),
-                ChunkMode::Cut if rows.len() >= need => need,
-                ChunkMode::Cut => {
-                    let cut = rows.len() / 4 * 4;
-                    ensure!(
-                        cut > 0,
-                        "the policy returned {} action(s); chunk = \"cut\" keeps whole groups of 4 (use chunk = \"rerequest\")",
-                        rows.len()
-                    );
-                    cut
-                }
-            };
-            poses.extend(adapter.apply(&rows[..take], fk.as_deref_mut())?);
-            if policy.chunk == ChunkMode::Cut {
-                break;
+    for (e, chunk) in driven.into_iter().zip(chunks) {
+        let (policy, task, i) = jobs[e.job];
+        let start = &task.starts[i];
+        let subject = Subject { policy: &policy.name, task: &task.cfg.name, prompt: &start.prompt, episode: i, rules: &task.cfg.rules };
+        let judged = (|| -> Result<bool> {
+            e.run.frames.extend(tensor_to_frames(&chunk.frames)?);
+            e.run.chunks += 1;
+            let at_horizon = e.run.frames.len() >= cfg.horizon;
+            if cfg.stop_on_success || at_horizon {
+                let verdict = judge.judge(&e.run.frames, &subject).context("judge")?;
+                let success = verdict.success;
+                e.run.verdict = Some(verdict);
+                return Ok(at_horizon || (cfg.stop_on_success && success));
             }
-        }
-        let actions = wm.normalize(&poses)?;
-        let chunk = rollout.next_chunk(&actions).context("world model")?;
-        run.frames.extend(tensor_to_frames(&chunk.frames)?);
-        run.chunks += 1;
-        if cfg.stop_on_success {
-            let verdict = judge.judge(&run.frames, &subject).context("judge")?;
-            let done = verdict.success;
-            run.verdict = Some(verdict);
-            if done {
-                return Ok(());
-            }
+            Ok(false)
+        })();
+        match judged {
+            Ok(true) => e.end(None),
+            Ok(false) => {}
+            Err(err) => e.end(Some(err)),
         }
     }
-    if !cfg.stop_on_success {
-        run.verdict = Some(judge.judge(&run.frames, &subject).context("judge")?);
+}
+
+/// The policy's next actions of episode `e` as the model's normalized [n, d_a] window: requests
+/// the latest frame's observation until a chunk of K poses (or the horizon's rest) is filled.
+fn next_poses(cfg: &EvalConfig, wm: &WorldModel, mut fk: Option<&mut Fk>, policy: &PolicyConfig, start: &Start, e: &mut Episode) -> Result<Tensor> {
+    let obs_cfg = cfg.observation_of(policy);
+    let Episode { run, driving, .. } = e;
+    let d = driving.as_mut().context("the episode has ended")?;
+    let want = wm.spec.future.min(cfg.horizon - run.frames.len());
+    let latest = run.frames.last().unwrap_or(&start.x0).clone();
+    let mut poses: Vec<Vec<f32>> = Vec::with_capacity(want);
+    while poses.len() < want {
+        let obs = observation::observation(&latest, d.adapter.state(), &start.prompt, obs_cfg)?;
+        run.requests += 1;
+        let reply = d.client.infer(&obs)?;
+        let rows = observation::action_rows(&reply, &obs_cfg.actions_key)?;
+        ensure!(!rows.is_empty(), "the policy returned an empty action chunk");
+        let need = want - poses.len();
+        let take = match policy.chunk {
+            ChunkMode::Rerequest => rows.len().min(need),
+            ChunkMode::Cut if rows.len() >= need => need,
+            ChunkMode::Cut => {
+                let cut = rows.len() / 4 * 4;
+                ensure!(
+                    cut > 0,
+                    "the policy returned {} action(s); chunk = \"cut\" keeps whole groups of 4 (use chunk = \"rerequest\")",
+                    rows.len()
+                );
+                cut
+            }
+        };
+        poses.extend(d.adapter.apply(&rows[..take], fk.as_deref_mut())?);
+        if policy.chunk == ChunkMode::Cut {
+            break;
+        }
     }
-    Ok(())
+    wm.normalize(&poses)
 }

@@ -72,6 +72,25 @@ fn bench_rollout_times_each_chunk() {
 }
 
 #[test]
+fn bench_rollout_runs_the_block_linears_in_fp8_when_asked() {
+    let dir = temp_dir("bench-rollout-fp8");
+    let vae = dir.path().join("vae.safetensors");
+    write_random_vae(&vae, 3);
+    let args = |fp8: &'static str| {
+        vec![
+            "bench-rollout", "--random-weights", "tiny", "--vae", vae.to_str().unwrap(), "--device", "cpu", "--height", "32", "--width", "32", "--history", "4",
+            "--future", "4", "--sample-steps", "2", "--chunks", "1", "--fp8", fp8,
+        ]
+    };
+    let out = run(&args("tensor"));
+    assert!(line(&out, "bench-rollout:").ends_with("block linears in FP8 (tensor scaling)"), "{out}");
+    assert!(line(&out, "chunk 0:").contains("; 4 frames;"), "{out}");
+    let failed = Command::new(bwm()).args(args("row")).output().unwrap();
+    let err = String::from_utf8_lossy(&failed.stderr);
+    assert!(!failed.status.success() && err.contains("--fp8") && err.contains("needs a CUDA device"), "{err}");
+}
+
+#[test]
 fn bench_rollout_runs_on_the_attention_backend_asked_for() {
     let dir = temp_dir("bench-rollout-sdp");
     let vae = dir.path().join("vae.safetensors");

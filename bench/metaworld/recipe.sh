@@ -50,6 +50,7 @@ TRAIN_STEPS="${TRAIN_STEPS:-}"            # default: configs/metaworld.toml's
 TRAIN_SETS="${TRAIN_SETS:-}"              # more `--set KEY=VALUE` for bwm train, space-separated
 SAMPLE_STEPS="${SAMPLE_STEPS:-20}"        # sampler steps per generated chunk
 SOLVER="${SOLVER:-euler}"                 # euler or dpm++2m (bwm --solver)
+FP8="${FP8:-}"                            # tensor or row: the DiT blocks' linears in FP8 (bwm --fp8); default off
 JUDGE_STEPS="${JUDGE_STEPS:-600}"
 STUDY_EPISODES="${STUDY_EPISODES:-50}"    # per task and variant, the first held-out episodes
 STUDY_JOBS="${STUDY_JOBS:-8}"             # bwm evaluate processes at once
@@ -124,7 +125,7 @@ fi
 world_model() {
   local ckpt="$RUN/checkpoints/$(cat "$RUN/checkpoints/latest")"
   WM=(--checkpoint "$ckpt" --vae "$RUN/vae.safetensors" --stats "$RUN/latents/stat.json" --stats-group observation.state
-      --history 8 --future 24 --sample-steps "$SAMPLE_STEPS" --solver "$SOLVER" --device "$DEVICE")
+      --history 8 --future 24 --sample-steps "$SAMPLE_STEPS" --solver "$SOLVER" ${FP8:+--fp8 "$FP8"} --device "$DEVICE")
 }
 
 if wants fidelity; then

@@ -5,7 +5,9 @@
 # and study stages with SOLVER / SAMPLE_STEPS), into $RUN/sweep/SOLVER-STEPS/{fidelity,study};
 # then sweep.py: a table and the default setting, the fewest steps whose PSNR at h = 32 stays
 # within 0.5 dB (every task) and whose success estimates stay within 2 points of 50 Euler steps.
-# Settings already measured are skipped, so the sweep can run over several device calls.
+# EXTRA_SETTINGS names more, e.g. "dpm++2m-8-fp8row" (the DiT's linears in FP8 with row scaling),
+# measured after the rest. Settings already measured are skipped, so the sweep can run over
+# several device calls.
 # Usage (repository root, after recipe.sh's stages up to judge): bash bench/metaworld/sweep.sh;
 # the recipe's variables apply (STUDY_EPISODES, STUDY_VARIANTS, DEVICE, BWM, PYTHON, ...).
 set -euo pipefail
@@ -29,14 +31,18 @@ for steps in $STEPS; do
     [ "$solver-$steps" = "$baseline" ] || settings+=("$solver-$steps")
   done
 done
+settings+=(${EXTRA_SETTINGS:-})
 for setting in "${settings[@]}"; do
-  solver=${setting%-*} steps=${setting##*-}
+  fp8=
+  case "$setting" in *-fp8*) fp8=${setting##*-fp8} ;; esac
+  base=${setting%-fp8*}
+  solver=${base%-*} steps=${base##*-}
   dir="$RUN/sweep/$setting"
   if [ -f "$dir/fidelity/fidelity.json" ] && [ -f "$dir/study/study.json" ]; then
     echo "sweep: $setting measured"; continue
   fi
-  echo "sweep: $solver, $steps steps ($(date +%H:%M:%S))"
-  RUN="$RUN" SOLVER="$solver" SAMPLE_STEPS="$steps" FIDELITY_DIR="$dir/fidelity" FIDELITY_EPISODES="$episodes" \
+  echo "sweep: $solver, $steps steps${fp8:+, FP8 ($fp8 scaling)} ($(date +%H:%M:%S))"
+  RUN="$RUN" SOLVER="$solver" SAMPLE_STEPS="$steps" FP8="$fp8" FIDELITY_DIR="$dir/fidelity" FIDELITY_EPISODES="$episodes" \
     STUDY_DIR="$dir/study" bash bench/metaworld/recipe.sh fidelity study
 done
 "$PYTHON" bench/metaworld/sweep.py "$RUN/sweep" --baseline "$baseline"

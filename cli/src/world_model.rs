@@ -69,6 +69,10 @@ pub struct WorldModelArgs {
     pub history_sigma: Option<f64>,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// The DiT blocks' linear layers in FP8 (e4m3, activations scaled on each call): tensor (one
+    /// scale per tensor) or row (per token and output channel, CUDA only). Default: off.
+    #[arg(long)]
+    pub fp8: Option<bwm_model::fp8::Fp8Scaling>,
 }
 
 impl WorldModelArgs {
@@ -91,6 +95,7 @@ impl WorldModelArgs {
             solver: self.solver,
             history_sigma: self.history_sigma,
             seed: self.seed,
+            fp8: self.fp8,
         }
     }
 

@@ -184,7 +184,7 @@ pub fn rollout(wm: &WorldModel, height: i64, width: i64, chunks: usize) -> Resul
     let dit = &wm.model.cfg.dit;
     let kernel = bwm_sdp::kernel_for_shape(dit.num_heads, dit.head_dim(), 1024, wm.model.store.kind(), wm.device)?;
     println!(
-        "bench-rollout: {:?} {:?}, {}x{}, x0 + {} history frames, {} frames per chunk, {} {} steps, attention backend {} ({kernel})",
+        "bench-rollout: {:?} {:?}, {}x{}, x0 + {} history frames, {} frames per chunk, {} {} steps, attention backend {} ({kernel}), {}",
         wm.device,
         wm.model.store.kind(),
         width,
@@ -193,7 +193,8 @@ pub fn rollout(wm: &WorldModel, height: i64, width: i64, chunks: usize) -> Resul
         spec.future,
         spec.steps,
         spec.solver,
-        bwm_sdp::backend()
+        bwm_sdp::backend(),
+        wm.fp8.map_or("block linears in the weights' dtype".to_string(), |s| format!("block linears in FP8 ({s} scaling)"))
     );
     for i in 0..chunks {
         let actions = Tensor::rand([spec.future as i64, d], (Kind::Float, Device::Cpu)) * 2.0 - 1.0;

@@ -6,6 +6,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, ensure, Context, Result};
 use bwm_checkpoints::open::{build_model, open_any, trained_residual, with_lora_adapters};
 use bwm_data::ActionStats;
+use bwm_model::fp8::{quantize_dit_blocks, Fp8Scaling};
 use bwm_model::rollout::{default_history_sigma, Rollout, RolloutSpec};
 use bwm_model::schedule::Solver;
 use bwm_model::vae::{VaeConfig, WanVae};
@@ -53,6 +54,8 @@ pub struct WorldModelOptions {
     /// Noise level of the history latents (None: the training level, 0.2083); 0 turns it off.
     pub history_sigma: Option<f64>,
     pub seed: u64,
+    /// The DiT blocks' linear layers in FP8 with this scaling (None: the weights' dtype).
+    pub fp8: Option<Fp8Scaling>,
 }
 
 impl Default for WorldModelOptions {
@@ -75,6 +78,7 @@ impl Default for WorldModelOptions {
             solver: Solver::Euler,
             history_sigma: None,
             seed: 0,
+            fp8: None,
         }
     }
 }
@@ -85,6 +89,8 @@ pub struct WorldModel {
     pub stats: Option<ActionStats>,
     pub spec: RolloutSpec,
     pub device: Device,
+    /// How the DiT blocks' linear layers run in FP8, if they do.
+    pub fp8: Option<Fp8Scaling>,
 }
 
 impl WorldModelOptions {
@@ -141,6 +147,9 @@ impl WorldModelOptions {
             (None, None) => bail!("pass --checkpoint (trained weights) or --random-weights PRESET"),
         };
         model.dit.residual = self.residual.or(trained).unwrap_or_default().kind(kind);
+        if let Some(scaling) = self.fp8 {
+            quantize_dit_blocks(&mut model.dit, scaling).context("--fp8")?;
+        }
         let vae = match &self.vae {
             Some(path) => WanVae::load_any(path, kind, device).with_context(|| format!("--vae {}", path.display()))?,
             None => WanVae::random(&VaeConfig::wan22(), kind, device, self.seed as i64)?.0,
@@ -166,7 +175,7 @@ impl WorldModelOptions {
             }
             None => None,
         };
-        Ok(WorldModel { model, vae, stats, spec, device })
+        Ok(WorldModel { model, vae, stats, spec, device, fp8: self.fp8 })
     }
 }
 

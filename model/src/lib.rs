@@ -5,6 +5,7 @@ pub mod action;
 pub mod bwm;
 pub mod config;
 pub mod dit;
+pub mod fp8;
 pub mod keyed_rng;
 pub mod lora;
 pub mod nn;

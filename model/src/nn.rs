@@ -3,6 +3,7 @@
 
 use tch::{Kind, Tensor};
 
+use crate::fp8::Fp8Weight;
 use crate::lora::LoraAdapter;
 use crate::vb::{Init, Vb};
 use crate::weights::WeightsError;
@@ -13,6 +14,9 @@ pub struct Linear {
     pub weight: Tensor,
     pub bias: Tensor,
     pub lora: Option<LoraAdapter>,
+    /// The weight in FP8, used by `forward` instead of `weight` once set (inference only: no
+    /// gradient flows through it).
+    pub fp8: Option<Fp8Weight>,
 }
 
 impl Linear {
@@ -21,13 +25,16 @@ impl Linear {
         let weight = vb.get(&[out_dim, in_dim], "weight", Init::Uniform { bound })?;
         let bias = vb.get(&[out_dim], "bias", Init::Uniform { bound })?;
         let lora = vb.lora_target().map(|state| LoraAdapter::new(vb, state, in_dim, out_dim)).transpose()?;
-        Ok(Self { weight, bias, lora })
+        Ok(Self { weight, bias, lora, fp8: None })
     }
 
     /// In the parameters' dtype; `x` is cast to it.
     pub fn forward(&self, x: &Tensor) -> Tensor {
         let x = x.to_kind(self.weight.kind());
-        let y = x.linear(&self.weight, Some(&self.bias));
+        let y = match &self.fp8 {
+            Some(w) => w.linear(&x, &self.bias, self.weight.kind()),
+            None => x.linear(&self.weight, Some(&self.bias)),
+        };
         match &self.lora {
             Some(adapter) => y + adapter.forward(&x),
             None => y,

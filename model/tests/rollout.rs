@@ -184,6 +184,20 @@ fn bad_inputs_are_errors() {
 }
 
 #[test]
+fn fp8_block_linears_roll_out_frames_close_to_the_exact_model() {
+    let (exact, vae) = parts(Kind::Float);
+    let (mut fp8, _) = parts(Kind::Float);
+    let n = bwm_model::fp8::quantize_dit_blocks(&mut fp8.dit, bwm_model::fp8::Fp8Scaling::Tensor).unwrap();
+    assert_eq!(n, 10 * exact.dit.blocks.len(), "q, k, v, o of both attentions and the two FFN layers per block");
+    let d = exact.cfg.action.action_dim;
+    let (_, _, actions) = inputs(d, 4);
+    let a = roll(&exact, &vae, spec(4, 4, 1), &actions);
+    let b = roll(&fp8, &vae, spec(4, 4, 1), &actions);
+    let diff = (&a[0].0 - &b[0].0).abs().mean(Kind::Float).double_value(&[]);
+    assert!(diff > 0.0 && diff < 0.05, "FP8 vs exact mean abs pixel difference {diff}");
+}
+
+#[test]
 fn bf16_model_rolls_out_finite_frames_close_to_f32() {
     let (m32, vae) = parts(Kind::Float);
     let (m16, _) = parts(Kind::BFloat16);

@@ -20,7 +20,8 @@
 # `bash scripts/gpu/metaworld.sh transfer` runs bench/metaworld/transfer.sh (the base-versus-scratch
 # study of the LoRA issue; its variables apply) instead, its small outputs in $OUT/run.tar.gz;
 # `bash scripts/gpu/metaworld.sh sweep` runs bench/metaworld/sweep.sh (the real-time issue's sampler
-# sweep) over the run the recipe trained on this machine.
+# sweep; its variables apply) over the run the recipe trained on this machine, training it first
+# (stages up to train, truth and judge) where it has not; run it detached as the recipe.
 set -uo pipefail
 source "$(dirname "$0")/common.sh"
 for f in .gl/*.deb; do dpkg -x "$f" /; done
@@ -47,19 +48,9 @@ if missing:
 PY
 recipe() { bash bench/metaworld/recipe.sh "$@"; }
 R=runs/metaworld
-if [ "${1:-}" = transfer ]; then
-  R=${RUN:-runs/transfer}
-  bash bench/metaworld/transfer.sh 2>&1 | tee -a "$OUT/transfer.log"
-  status=${PIPESTATUS[0]}
-elif [ "${1:-}" = sweep ]; then
-  bash bench/metaworld/sweep.sh 2>&1 | tee -a "$OUT/sweep.log"
-  status=${PIPESTATUS[0]}
-elif [ $# -gt 0 ]; then
-  recipe "$@" 2>&1 | tee -a "$OUT/recipe.log"
-  status=${PIPESTATUS[0]}
-else
-  # Every stage, the independent ones side by side: truth (MuJoCo, CPU) and the judge (a small
-  # CNN) beside the VAE, latents and DiT; fidelity and the judge's ceiling beside the study.
+# The stages up to a trained model, the independent ones side by side: truth (MuJoCo, CPU) and
+# the judge (a small CNN) beside the VAE, latents and DiT. Stages already done are skipped.
+train_stages() {
   status=0
   recipe data 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
   if [ $status = 0 ]; then
@@ -69,6 +60,24 @@ else
     wait $truth || { echo "metaworld: truth failed ($OUT/truth.log)"; status=1; }
     wait $judge || { echo "metaworld: judge failed ($OUT/judge.log)"; status=1; }
   fi
+}
+if [ "${1:-}" = transfer ]; then
+  R=${RUN:-runs/transfer}
+  bash bench/metaworld/transfer.sh 2>&1 | tee -a "$OUT/transfer.log"
+  status=${PIPESTATUS[0]}
+elif [ "${1:-}" = sweep ]; then
+  # On a bare machine the model is trained first (the datasets and weights do not outlive it).
+  train_stages
+  if [ $status = 0 ]; then
+    bash bench/metaworld/sweep.sh 2>&1 | tee -a "$OUT/sweep.log"
+    status=${PIPESTATUS[0]}
+  fi
+elif [ $# -gt 0 ]; then
+  recipe "$@" 2>&1 | tee -a "$OUT/recipe.log"
+  status=${PIPESTATUS[0]}
+else
+  # Every stage: fidelity and the judge's ceiling beside the study.
+  train_stages
   if [ $status = 0 ]; then
     fidelity=
     [ "${SKIP_FIDELITY:-0}" = 1 ] || { recipe fidelity > "$OUT/fidelity.log" 2>&1 & fidelity=$!; }

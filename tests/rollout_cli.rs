@@ -91,6 +91,26 @@ print(json.dumps(t["action"]))
     assert_eq!(open_dataset(&out).unwrap().episodes().len(), 2);
     assert_eq!(before, std::fs::read(out.join("data/chunk-000/episode_000000.parquet")).unwrap());
 
+    // Episodes 0 and 1 generated together (one batch per chunk): each scores what it scores alone.
+    let together = dir.join("together");
+    let t = rollout(&["--vae", vae.to_str().unwrap(), "--data", data.to_str().unwrap(), "--out", together.to_str().unwrap(), "--episodes", "0,1", "--episodes-in-flight", "2"]);
+    assert!(t.status.success());
+    assert!(String::from_utf8_lossy(&t.stdout).contains("2 episode(s) in flight"));
+    let scores = |root: &std::path::Path| -> Vec<(String, f64)> {
+        std::fs::read_to_string(root.join("compare/metrics.jsonl"))
+            .unwrap()
+            .lines()
+            .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+            .map(|m| (m["source"].as_str().unwrap().to_string(), m["psnr"].as_f64().unwrap()))
+            .collect()
+    };
+    let (alone, batched) = (scores(&out), scores(&together));
+    assert_eq!(alone.len(), 2);
+    assert_eq!(alone.iter().map(|s| &s.0).collect::<Vec<_>>(), batched.iter().map(|s| &s.0).collect::<Vec<_>>(), "written in order");
+    for (a, b) in alone.iter().zip(&batched) {
+        assert!((a.1 - b.1).abs() < 1e-3, "{}: PSNR {} alone, {} together", a.0, a.1, b.1);
+    }
+
     // Perturbed actions stay within the recorded range's normalization and differ from it.
     let perturbed = dir.join("perturbed");
     let p = rollout(&["--vae", vae.to_str().unwrap(), "--data", data.to_str().unwrap(), "--out", perturbed.to_str().unwrap(), "--episodes", "0", "--drive", "perturbed", "--perturb-std", "0.1"]);

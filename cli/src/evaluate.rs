@@ -5,7 +5,7 @@ use std::path::PathBuf;
 use anyhow::Result;
 use clap::Args;
 
-use crate::world_model::WorldModelArgs;
+use crate::world_model::{InFlightArgs, WorldModelArgs};
 
 #[derive(Args)]
 pub struct EvaluateArgs {
@@ -18,12 +18,10 @@ pub struct EvaluateArgs {
     /// Output folder: videos/, episodes.jsonl, success_rates.csv, policies.csv, summary.json.
     #[arg(long, default_value = "runs/evaluate")]
     out: PathBuf,
-    /// Episodes run at once, their chunks generated as one batch (more keep the GPU busier; each
-    /// episode's frames are what it gets alone).
-    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..))]
-    episodes_in_flight: u64,
+    #[command(flatten)]
+    in_flight: InFlightArgs,
 }
 
 pub fn run(a: EvaluateArgs) -> Result<()> {
-    bwm_inference::evaluate::run(&a.wm.options(), &a.config, &a.out, a.episodes_in_flight as usize)
+    bwm_inference::evaluate::run(&a.wm.options(), &a.config, &a.out, a.in_flight.get())
 }

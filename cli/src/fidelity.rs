@@ -6,7 +6,7 @@ use anyhow::Result;
 use bwm_inference::fidelity::FidelityOptions;
 use clap::Args;
 
-use crate::world_model::{EpisodeArgs, WorldModelArgs};
+use crate::world_model::{EpisodeArgs, InFlightArgs, WorldModelArgs};
 
 #[derive(Args)]
 pub struct FidelityArgs {
@@ -27,10 +27,8 @@ pub struct FidelityArgs {
     /// Side-by-side videos per task (real | own actions | other actions | copy-last-frame).
     #[arg(long, default_value_t = 4)]
     videos: usize,
-    /// Episodes rolled out at once, their chunks generated as one batch (more keep the GPU
-    /// busier; the scores are what each episode gets alone).
-    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..))]
-    episodes_in_flight: u64,
+    #[command(flatten)]
+    in_flight: InFlightArgs,
     /// Output folder: fidelity.json, episodes.jsonl, psnr_<task>.svg, ssim_<task>.svg, videos/. A
     /// run with the same settings into the same folder keeps the episodes already scored.
     #[arg(long)]
@@ -48,7 +46,7 @@ pub fn run(a: FidelityArgs) -> Result<()> {
         max_frames: a.episode.max_frames,
         horizons: a.horizons,
         videos: a.videos,
-        in_flight: a.episodes_in_flight as usize,
+        in_flight: a.in_flight.get(),
         out: a.out,
     };
     bwm_inference::fidelity::run(&a.wm.options(), &options)

@@ -6,7 +6,7 @@ use anyhow::Result;
 use bwm_inference::rollout::{Drive, RolloutOptions};
 use clap::Args;
 
-use crate::world_model::{EpisodeArgs, WorldModelArgs};
+use crate::world_model::{EpisodeArgs, InFlightArgs, WorldModelArgs};
 
 #[derive(Args)]
 pub struct RolloutArgs {
@@ -45,6 +45,8 @@ pub struct RolloutArgs {
     /// Continue an interrupted run into --out (finished episodes are kept).
     #[arg(long)]
     resume: bool,
+    #[command(flatten)]
+    in_flight: InFlightArgs,
 }
 
 pub fn run(a: RolloutArgs) -> Result<()> {
@@ -64,6 +66,7 @@ pub fn run(a: RolloutArgs) -> Result<()> {
         fps: a.fps,
         out: a.out,
         resume: a.resume,
+        in_flight: a.in_flight.get(),
     };
     bwm_inference::rollout::run(&a.wm.options(), &options)
 }

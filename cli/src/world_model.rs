@@ -104,6 +104,21 @@ impl WorldModelArgs {
     }
 }
 
+/// How many episodes `bwm rollout`, `fidelity` and `evaluate` advance together.
+#[derive(Args, Clone, Debug)]
+pub struct InFlightArgs {
+    /// Episodes run at once, each chunk of all of them one batch through the VAE and the DiT
+    /// (more keep the GPU busier; every episode gets what it gets alone, in the usual order).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..))]
+    pub episodes_in_flight: u64,
+}
+
+impl InFlightArgs {
+    pub fn get(&self) -> usize {
+        self.episodes_in_flight as usize
+    }
+}
+
 /// How `bwm rollout` and `bwm fidelity` read a dataset's episodes.
 #[derive(Args, Clone, Debug)]
 pub struct EpisodeArgs {

@@ -78,6 +78,9 @@ pub struct RolloutOptions {
     pub fps: f64,
     /// Output LeRobot v2.1 dataset folder.
     pub out: PathBuf,
+    /// Episodes generated at once, their chunks one batch (each gets what it gets alone); they are
+    /// written in order once the group is done.
+    pub in_flight: usize,
     /// Continue an interrupted run into --out (finished episodes are kept).
     pub resume: bool,
 }
@@ -116,14 +119,16 @@ pub fn run(options: &WorldModelOptions, a: &RolloutOptions) -> Result<()> {
         _ => {}
     }
     ensure!(a.perturb_std >= 0.0 && a.perturb_std.is_finite(), "--perturb-std must be a non-negative number");
+    ensure!(a.in_flight >= 1, "episodes in flight must be at least 1");
     let wm = options.load()?;
     println!(
-        "rollout: {} on {:?}; chunks of {} frames, {} history frames, {} sampler steps",
+        "rollout: {} on {:?}; chunks of {} frames, {} history frames, {} sampler steps, {} episode(s) in flight",
         if options.checkpoint.is_some() { "trained model" } else { "random weights" },
         wm.device,
         wm.spec.future,
         wm.spec.history,
-        wm.spec.steps
+        wm.spec.steps,
+        a.in_flight
     );
     let jobs = plan(a, options.seed, &wm, size)?;
     ensure!(!jobs.is_empty(), "nothing to roll out");
@@ -144,27 +149,31 @@ pub fn run(options: &WorldModelOptions, a: &RolloutOptions) -> Result<()> {
     let compare_dir = a.out.join("compare");
     let start = Instant::now();
     let mut metrics = Vec::new();
-    for job in jobs.iter().skip(done) {
+    for group in jobs[done.min(jobs.len())..].chunks(a.in_flight) {
         let t0 = Instant::now();
-        let frames = generate(&wm, job, &mut |chunk, total, made| {
-            print!("\r  {}: chunk {chunk} ({made}/{total} frames, {:.1} s)   ", job.name, t0.elapsed().as_secs_f64());
+        let names: Vec<&str> = group.iter().map(|j| j.name.as_str()).collect();
+        let inputs: Vec<(&RgbImage, Tensor)> = group.iter().map(|j| (&j.x0, j.normalized.shallow_clone())).collect();
+        let generated = generate_frames_together(&wm, &inputs, &mut |chunk, total, made| {
+            print!("\r  {}: chunk {chunk} ({made}/{total} frames, {:.1} s)   ", names.join(", "), t0.elapsed().as_secs_f64());
             let _ = std::io::stdout().flush();
         })?;
         println!();
-        let raw = match &job.raw {
-            Some(r) => r.clone(),
-            None => wm.denormalize(&job.normalized)?,
-        };
-        let episode = writer.add_episode(&frames, &raw, &raw, &job.task)?;
-        if let Some(truth) = &job.truth {
-            std::fs::create_dir_all(&compare_dir)?;
-            let (p, s) = compare(&frames, truth)?;
-            let side: Vec<RgbImage> = truth.iter().zip(&frames).map(|(t, g)| side_by_side(t, g)).collect();
-            bwm_data::video::write_mp4_or_sheet(&compare_dir.join(format!("episode_{episode:06}.mp4")), &side, job.fps, 16)?;
-            metrics.push(serde_json::json!({ "episode_index": episode, "source": job.name, "frames": frames.len(), "psnr": p, "ssim": s }));
-            println!("  {}: episode {episode}, {} frames, PSNR {p:.2} dB, SSIM {s:.4} ({:.1} s)", job.name, frames.len(), t0.elapsed().as_secs_f64());
-        } else {
-            println!("  {}: episode {episode}, {} frames ({:.1} s)", job.name, frames.len(), t0.elapsed().as_secs_f64());
+        for (job, frames) in group.iter().zip(generated) {
+            let raw = match &job.raw {
+                Some(r) => r.clone(),
+                None => wm.denormalize(&job.normalized)?,
+            };
+            let episode = writer.add_episode(&frames, &raw, &raw, &job.task)?;
+            if let Some(truth) = &job.truth {
+                std::fs::create_dir_all(&compare_dir)?;
+                let (p, s) = compare(&frames, truth)?;
+                let side: Vec<RgbImage> = truth.iter().zip(&frames).map(|(t, g)| side_by_side(t, g)).collect();
+                bwm_data::video::write_mp4_or_sheet(&compare_dir.join(format!("episode_{episode:06}.mp4")), &side, job.fps, 16)?;
+                metrics.push(serde_json::json!({ "episode_index": episode, "source": job.name, "frames": frames.len(), "psnr": p, "ssim": s }));
+                println!("  {}: episode {episode}, {} frames, PSNR {p:.2} dB, SSIM {s:.4} ({:.1} s)", job.name, frames.len(), t0.elapsed().as_secs_f64());
+            } else {
+                println!("  {}: episode {episode}, {} frames ({:.1} s)", job.name, frames.len(), t0.elapsed().as_secs_f64());
+            }
         }
     }
     if !metrics.is_empty() {
@@ -185,19 +194,10 @@ pub fn run(options: &WorldModelOptions, a: &RolloutOptions) -> Result<()> {
     Ok(())
 }
 
-fn generate(wm: &WorldModel, job: &Job, progress: &mut dyn FnMut(usize, usize, usize)) -> Result<Vec<RgbImage>> {
-    generate_frames(wm, &job.x0, &job.normalized, progress)
-}
-
-/// An episode generated from `x0` driven by `normalized` actions [T, d_a] (row 0 belongs to x0):
-/// x0, then one frame per action after the first. `progress(chunk, T, frames so far)`.
-pub fn generate_frames(wm: &WorldModel, x0: &RgbImage, normalized: &Tensor, progress: &mut dyn FnMut(usize, usize, usize)) -> Result<Vec<RgbImage>> {
-    Ok(generate_frames_together(wm, &[(x0, normalized.shallow_clone())], progress)?.remove(0))
-}
-
-/// `generate_frames` for several episodes at once, advanced chunk by chunk as one batch (those
-/// with actions left); each gets what it would alone. `progress(chunk, frames asked in all,
-/// frames made in all)`.
+/// Episodes generated from their `x0` driven by `normalized` actions [T, d_a] each (row 0 belongs
+/// to x0): x0, then one frame per action after the first. All are advanced chunk by chunk as one
+/// batch (those with actions left); each gets what it would alone. `progress(chunk, frames asked
+/// in all, frames made in all)`.
 pub fn generate_frames_together(
     wm: &WorldModel,
     episodes: &[(&RgbImage, Tensor)],

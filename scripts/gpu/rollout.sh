@@ -2,9 +2,10 @@
 # On one GPU (device tool), from the repo root, with dist/bwm built without FFmpeg/HDF5: one rollout
 # chunk of the 5B world model at 640x480 (x0 + 8 history frames, 72 generated frames, 50 Euler
 # steps, bf16) on random weights and a random full-width Wan2.2 VAE (RESIDUAL=model: the DiT's
-# residual stream in bf16; LOG names the log); the first chunk includes
-# start-up costs, so two are timed.
+# residual stream in bf16; SAMPLE_STEPS and SOLVER the sampler; FP8=tensor|row the DiT blocks'
+# linears in FP8; LOG names the log); the first chunk includes start-up costs, so two are timed.
 set -uo pipefail
 source "$(dirname "$0")/common.sh"
 mem ${LOG:-rollout} dist/bwm bench-rollout --random-weights wan22_ti2v_5b --random-vae --device cuda --dtype bf16 \
-  --history 8 --future 72 --sample-steps ${SAMPLE_STEPS:-50} --chunks ${CHUNKS:-2} --residual ${RESIDUAL:-f32}
+  --history 8 --future 72 --sample-steps ${SAMPLE_STEPS:-50} --solver ${SOLVER:-euler} ${FP8:+--fp8 $FP8} \
+  --chunks ${CHUNKS:-2} --residual ${RESIDUAL:-f32}

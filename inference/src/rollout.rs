@@ -204,37 +204,23 @@ pub fn generate_frames_together(
     progress: &mut dyn FnMut(usize, usize, usize),
 ) -> Result<Vec<Vec<RgbImage>>> {
     let mut rollouts = Vec::with_capacity(episodes.len());
-    let mut frames = Vec::with_capacity(episodes.len());
+    let mut after_x0 = Vec::with_capacity(episodes.len());
     for (x0, normalized) in episodes {
-        ensure!(normalized.size().first().is_some_and(|&t| t >= 1), "an episode needs at least x0's action");
+        let rows = normalized.size().first().copied().unwrap_or(0);
+        ensure!(rows >= 1, "an episode needs at least x0's action");
         let x0_t = frames_to_tensor(std::slice::from_ref(*x0))?.squeeze_dim(1);
         rollouts.push(wm.rollout(&x0_t, &normalized.get(0))?);
-        frames.push(vec![(*x0).clone()]);
+        after_x0.push(normalized.narrow(0, 1, rows - 1));
     }
+    let mut frames: Vec<Vec<RgbImage>> = episodes.iter().map(|(x0, _)| vec![(*x0).clone()]).collect();
     let total: usize = episodes.iter().map(|(_, a)| a.size()[0] as usize).sum();
-    let k = wm.spec.future;
-    let mut chunk = 0;
-    loop {
-        let mut windows = Vec::new();
-        let mut advancing = Vec::new();
-        for (i, ((_, actions), r)) in episodes.iter().zip(rollouts.iter_mut()).enumerate() {
-            let (done, rows) = (frames[i].len(), actions.size()[0] as usize);
-            if done < rows {
-                windows.push(actions.narrow(0, done as i64, k.min(rows - done) as i64));
-                advancing.push((i, r));
-            }
-        }
-        if advancing.is_empty() {
-            break;
-        }
-        let indices: Vec<usize> = advancing.iter().map(|(i, _)| *i).collect();
-        let mut batch: Vec<&mut Rollout> = advancing.into_iter().map(|(_, r)| r).collect();
-        for (i, c) in indices.into_iter().zip(Rollout::next_chunks(&mut batch, &windows)?) {
-            frames[i].extend(tensor_to_frames(&c.frames)?);
-        }
-        progress(chunk, total, frames.iter().map(Vec::len).sum());
-        chunk += 1;
-    }
+    let mut made = frames.len();
+    Rollout::run_together(&mut rollouts.iter_mut().collect::<Vec<_>>(), &after_x0, &mut |i, chunk| {
+        frames[i].extend(tensor_to_frames(&chunk.frames)?);
+        made += chunk.actions.size()[0] as usize;
+        progress(chunk.index, total, made);
+        Ok(())
+    })?;
     Ok(frames)
 }
 

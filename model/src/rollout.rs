@@ -290,15 +290,32 @@ impl<'m> Rollout<'m> {
     /// Rolls out a whole action sequence [T, d_a] in chunks of K (the last one shorter), handing
     /// each chunk to `on_chunk` as soon as it exists so callers can stream it out.
     pub fn run(&mut self, actions: &Tensor, on_chunk: &mut dyn FnMut(Chunk) -> Result<()>) -> Result<()> {
-        let total = actions.size()[0];
-        let k = self.spec.future as i64;
-        let mut start = 0;
-        while start < total {
-            let n = k.min(total - start);
-            let chunk = self.next_chunk(&actions.narrow(0, start, n))?;
-            on_chunk(chunk)?;
-            start += n;
+        Self::run_together(&mut [self], std::slice::from_ref(actions), &mut |_, chunk| on_chunk(chunk))
+    }
+
+    /// `run` for several rollouts, `actions[i]` driving `rollouts[i]`: each round advances those
+    /// with actions left by one chunk as one batch (`next_chunks`) and hands the chunks over as
+    /// `on_chunk(i, chunk)`.
+    pub fn run_together(rollouts: &mut [&mut Rollout<'m>], actions: &[Tensor], on_chunk: &mut dyn FnMut(usize, Chunk) -> Result<()>) -> Result<()> {
+        ensure!(rollouts.len() == actions.len(), "{} rollouts but {} action sequences", rollouts.len(), actions.len());
+        let mut applied = vec![0i64; actions.len()];
+        loop {
+            let (mut batch, mut windows, mut indices) = (Vec::new(), Vec::new(), Vec::new());
+            for (i, (r, a)) in rollouts.iter_mut().zip(actions).enumerate() {
+                let left = a.size()[0] - applied[i];
+                if left > 0 {
+                    windows.push(a.narrow(0, applied[i], left.min(r.spec.future as i64)));
+                    indices.push(i);
+                    batch.push(&mut **r);
+                }
+            }
+            if batch.is_empty() {
+                return Ok(());
+            }
+            for (i, chunk) in indices.into_iter().zip(Self::next_chunks(&mut batch, &windows)?) {
+                applied[i] += chunk.actions.size()[0];
+                on_chunk(i, chunk)?;
+            }
         }
-        Ok(())
     }
 }

@@ -159,6 +159,32 @@ fn rollouts_advanced_together_generate_what_each_generates_alone() {
     }
     assert!(!alone[0][0].narrow(1, 0, 3).allclose(&alone[1][0], 1e-3, 1e-3, false), "the two rollouts differ, so the batch kept them apart");
 
+    // Whole sequences of different lengths in lock step: the longer one goes on alone.
+    let sequences = [actions.shallow_clone(), actions.narrow(0, 0, 5)];
+    let mut s0 = Rollout::new(&model, &vae, spec(4, 4, 5), &x0, &a0).unwrap();
+    let mut s1 = Rollout::new(&model, &vae, spec(4, 4, 6), &x1, &a1).unwrap();
+    let mut together: Vec<Vec<Tensor>> = vec![Vec::new(), Vec::new()];
+    Rollout::run_together(&mut [&mut s0, &mut s1], &sequences, &mut |i, c| {
+        together[i].push(c.frames);
+        Ok(())
+    })
+    .unwrap();
+    for (b, (x, a, seed)) in [(&x0, &a0, 5), (&x1, &a1, 6)].into_iter().enumerate() {
+        let mut r = Rollout::new(&model, &vae, spec(4, 4, seed), x, a).unwrap();
+        let mut alone = Vec::new();
+        r.run(&sequences[b], &mut |c| {
+            alone.push(c.frames);
+            Ok(())
+        })
+        .unwrap();
+        assert_eq!(together[b].len(), alone.len(), "rollout {b}: chunks");
+        for (t, a) in together[b].iter().zip(&alone) {
+            assert_eq!(t.size(), a.size());
+            assert!((t - a).abs().max().double_value(&[]) < 1e-4, "rollout {b}: run_together and run differ");
+        }
+    }
+    assert_eq!(together.iter().map(Vec::len).collect::<Vec<_>>(), [2, 2], "8 actions and 5 in chunks of 4");
+
     // A batch holds one setting: another step count is refused, another seed is not.
     let mut other = Rollout::new(&model, &vae, RolloutSpec { steps: 2, ..spec(4, 4, 5) }, &x0, &a0).unwrap();
     let e = Rollout::next_chunks(&mut [&mut r0, &mut other], &[actions.narrow(0, 0, 4), actions.narrow(0, 0, 4)]).err().expect("mixed settings are refused");

@@ -112,6 +112,25 @@ fn bench_rollout_runs_on_the_attention_backend_asked_for() {
 }
 
 #[test]
+fn bench_rollout_samples_with_the_default_steps_and_takes_cudnn_autotuning() {
+    let dir = temp_dir("bench-rollout-defaults");
+    let vae = dir.path().join("vae.safetensors");
+    write_random_vae(&vae, 3);
+    let out = Command::new(bwm())
+        .args([
+            "--cudnn-benchmark", "bench-rollout", "--random-weights", "tiny", "--vae", vae.to_str().unwrap(), "--device", "cpu", "--height", "32", "--width", "32",
+            "--history", "4", "--future", "4", "--chunks", "1",
+        ])
+        .output()
+        .unwrap();
+    let (stdout, stderr) = (String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "{stdout}\n{stderr}");
+    let steps = bwm_model::schedule::DEFAULT_SAMPLE_STEPS;
+    assert!(line(&stdout, "bench-rollout:").contains(&format!("4 frames per chunk, {steps} euler steps")), "{stdout}");
+    assert!(stderr.contains("cuDNN convolution autotuning on"), "{stderr}");
+}
+
+#[test]
 fn demo_samples_the_clip_and_keeps_the_condition() {
     let data = demo_data();
     let out = run(&["demo", "--data", data.to_str().unwrap(), "--steps", "3"]);

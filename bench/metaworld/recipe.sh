@@ -48,7 +48,7 @@ VAE_STRIDE="${VAE_STRIDE:-16}"           # pixels per latent cell: 16 or 8
 KEEP_FRAMES="${KEEP_FRAMES:-0}"          # 1: the latent cache also keeps pixel frames (training's validation scores against them; 23 GB at 128x128)
 TRAIN_STEPS="${TRAIN_STEPS:-}"            # default: configs/metaworld.toml's
 TRAIN_SETS="${TRAIN_SETS:-}"              # more `--set KEY=VALUE` for bwm train, space-separated
-SAMPLE_STEPS="${SAMPLE_STEPS:-20}"        # sampler steps per generated chunk
+SAMPLE_STEPS="${SAMPLE_STEPS:-4}"         # sampler steps per generated chunk (the sweep's pick, docs/fidelity.md run 15)
 SOLVER="${SOLVER:-euler}"                 # euler or dpm++2m (bwm --solver)
 FP8="${FP8:-}"                            # tensor or row: the DiT blocks' linears in FP8 (bwm --fp8); default off
 JUDGE_STEPS="${JUDGE_STEPS:-600}"

@@ -33,6 +33,11 @@ struct Cli {
     /// kernel the DiT's attention gets.
     #[arg(long, global = true, default_value = "auto", env = "BWM_SDP_BACKEND")]
     sdp_backend: bwm_sdp::SdpBackend,
+    /// Let cuDNN time its convolution algorithms for each new shape and keep the fastest (the VAE's
+    /// 3D convolutions; fixed shapes, as rollouts have, pay the timing once). The kernels chosen
+    /// may differ between runs, so bit-exact repeats and resumes need it off.
+    #[arg(long, global = true, env = "BWM_CUDNN_BENCHMARK")]
+    cudnn_benchmark: bool,
     #[command(subcommand)]
     command: Command,
 }
@@ -89,6 +94,10 @@ enum Command {
 fn main() {
     let cli = Cli::parse();
     bwm_sdp::set_backend(cli.sdp_backend);
+    tch::Cuda::cudnn_set_benchmark(cli.cudnn_benchmark);
+    if cli.cudnn_benchmark {
+        eprintln!("bwm: cuDNN convolution autotuning on (--cudnn-benchmark)");
+    }
     let result: Result<()> = match cli.command {
         Command::Demo(a) => demo::run(a),
         Command::Stats(a) => stats::run(a),

@@ -55,8 +55,9 @@ pub struct WorldModelArgs {
     /// Frames K generated per chunk (the training clips' K).
     #[arg(long, default_value_t = 72)]
     pub future: usize,
-    /// Sampler steps per chunk.
-    #[arg(long, default_value_t = 50)]
+    /// Sampler steps per chunk (the reference samples with 50; 4 held the Meta-World model's
+    /// fidelity, docs/fidelity.md).
+    #[arg(long, default_value_t = bwm_model::schedule::DEFAULT_SAMPLE_STEPS)]
     pub sample_steps: usize,
     #[arg(long, default_value_t = bwm_model::schedule::DEFAULT_SHIFT)]
     pub shift: f64,

@@ -73,7 +73,7 @@ impl Default for WorldModelOptions {
             residual: None,
             history: 8,
             future: 72,
-            sample_steps: 50,
+            sample_steps: bwm_model::schedule::DEFAULT_SAMPLE_STEPS,
             shift: bwm_model::schedule::DEFAULT_SHIFT,
             solver: Solver::Euler,
             history_sigma: None,

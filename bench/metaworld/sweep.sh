@@ -42,6 +42,13 @@ for setting in "${settings[@]}"; do
     echo "sweep: $setting measured"; continue
   fi
   echo "sweep: $solver, $steps steps${fp8:+, FP8 ($fp8 scaling)} ($(date +%H:%M:%S))"
+  # The simulator's outcomes and the judge's verdicts on its frames do not depend on the sampler:
+  # the baseline's are reused (study.py keys them by seeds, variants and judge, and measures
+  # afresh where the key differs).
+  mkdir -p "$dir/study"
+  for f in truth.json judged.json; do
+    if [ ! -f "$dir/study/$f" ] && [ -f "$RUN/sweep/$baseline/study/$f" ]; then cp "$RUN/sweep/$baseline/study/$f" "$dir/study/$f"; fi
+  done
   RUN="$RUN" SOLVER="$solver" SAMPLE_STEPS="$steps" FP8="$fp8" FIDELITY_DIR="$dir/fidelity" FIDELITY_EPISODES="$episodes" \
     STUDY_DIR="$dir/study" bash bench/metaworld/recipe.sh fidelity study
 done

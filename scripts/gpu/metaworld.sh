@@ -47,7 +47,7 @@ if missing:
     raise SystemExit("missing on this machine: " + ", ".join(missing))
 PY
 recipe() { bash bench/metaworld/recipe.sh "$@"; }
-R=runs/metaworld
+R=${RUN:-runs/metaworld}
 # The stages up to a trained model, the independent ones side by side: truth (MuJoCo, CPU) and
 # the judge (a small CNN) beside the VAE, latents and DiT. Stages already done are skipped.
 train_stages() {

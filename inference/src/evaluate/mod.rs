@@ -135,7 +135,8 @@ pub fn run(options: &WorldModelOptions, config: &Path, out: &Path, in_flight: us
             let (policy, task, i) = jobs[e.job];
             let start = &task.starts[i];
             let run = e.run;
-            let policy_index = cfg.policies.iter().position(|p| std::ptr::eq(p, policy)).unwrap_or(0);
+            // `jobs` runs policy by policy, `per_policy` episodes each.
+            let policy_index = e.job / per_policy;
             if let (Some(m), false) = (&run.metadata, metadata_shown[policy_index]) {
                 println!("policy '{}' ({}): server metadata {m}", policy.name, policy.url);
                 metadata_shown[policy_index] = true;

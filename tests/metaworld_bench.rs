@@ -153,6 +153,11 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
 }
 
 #[test]
+fn the_generator_spreads_its_experts_as_asked() {
+    run(Command::new(python()).arg(Path::new(ROOT).join("bench/metaworld/tests/test_generate.py")), "test_generate.py");
+}
+
+#[test]
 fn the_study_scores_rates_and_episodes() {
     run(Command::new(python()).arg(Path::new(ROOT).join("bench/metaworld/tests/test_study.py")), "test_study.py");
 }

@@ -4,7 +4,7 @@ parquet files, no video). README.md describes the layout and the seed convention
     python generate.py --tasks drawer-open-v3,button-press-topdown-v3 --episodes 200 \\
         --seed-start 0 --frames 120 --resolution 64 --out DIR --workers 2
 
-Each episode is a pure function of (task, seed, --frames, --resolution, --degraded-fraction):
+Each episode is a pure function of (task, seed, --frames, --resolution, --degraded-fraction, --spread):
 the same arguments give the same bytes whatever --workers is.
 """
 
@@ -30,10 +30,10 @@ CHUNKS_SIZE = 1000
 EXPLORE_LOW = np.array([-0.35, 0.40, 0.05])
 EXPLORE_HIGH = np.array([0.35, 0.95, 0.40])
 # Degraded modes and their weights among degraded episodes. "miss" (the expert steering on an
-# object estimate off by 2-12 cm) is weighted up: its hand goes through the expert's motions close
-# to the object, succeeding or not depending on the distance and direction, and a world model (and
-# a judge) that saw few such episodes shows the drawer opening or the button pressed whenever the
-# hand passes near them.
+# object estimate off by 2-12 cm, 2-15 with --spread wide) is weighted up: its hand goes through
+# the expert's motions close to the object, succeeding or not depending on the distance and
+# direction, and a world model (and a judge) that saw few such episodes shows the drawer opening
+# or the button pressed whenever the hand passes near them.
 DEGRADED_MODES = {"pause": 1, "wrong": 1, "miss": 3, "burst": 1, "stop": 1, "explore": 1, "late": 1}
 
 
@@ -41,11 +41,17 @@ class Behaviour:
     """The scripted expert on the true object position with action noise, randomly interrupted
     by exploration (random waypoints and gripper commands), or degraded in one `mode`."""
 
-    def __init__(self, task: str, rng: np.random.Generator, frames: int, degraded_fraction: float):
+    def __init__(self, task: str, rng: np.random.Generator, frames: int, degraded_fraction: float, spread: str = "narrow"):
         import policies
 
         self.policies, self.task, self.rng = policies, task, rng
-        self.noise = rng.uniform(0.05, 0.4)
+        if spread == "wide":
+            # The experts' action noise log-uniform from near-clean to a jitter that sometimes
+            # fails, and in 30% of episodes a cap on their speed (docs/fidelity.md, run 16).
+            self.noise = float(np.exp(rng.uniform(np.log(0.05), np.log(1.2))))
+            self.speed = float(rng.uniform(0.3, 1.0)) if rng.random() < 0.3 else 1.0
+        else:
+            self.noise, self.speed = rng.uniform(0.05, 0.4), 1.0
         modes, weights = list(DEGRADED_MODES), np.array(list(DEGRADED_MODES.values()), float)
         self.mode = str(rng.choice(modes, p=weights / weights.sum())) if rng.random() < degraded_fraction else "expert"
         self.explore = np.zeros(frames, bool)  # frames spent on random waypoints
@@ -67,7 +73,7 @@ class Behaviour:
             if rng.random() < 0.4:
                 self.explore[: rng.integers(5, 25)] = True
         elif self.mode == "miss":
-            self.offset = perception_error(0.02, 0.12)
+            self.offset = perception_error(0.02, 0.15 if spread == "wide" else 0.12)
         elif self.mode == "pause":
             for _ in range(rng.integers(2, 5)):
                 self.hold[span(8, 25)] = True
@@ -97,8 +103,9 @@ class Behaviour:
             to, gain, grip = self.waypoint, self.gain, self.grip
         else:
             to, gain, _ = self.policies.expert_target(self.task, obj + self.offset, state)
+        speed = 1.0 if self.explore[t] else self.speed
         noise = rng.uniform(1.0, 2.0) if self.burst[t] else self.noise
-        a = np.clip(np.clip(gain * (to - state[:3]), -1, 1) + noise * rng.standard_normal(3), -1, 1)
+        a = np.clip(np.clip(gain * (to - state[:3]), -1, 1) * speed + noise * rng.standard_normal(3), -1, 1)
         return np.append(state[:3] + a * ACTION_SCALE, grip).astype(np.float32)
 
 
@@ -131,8 +138,8 @@ def run_episode(job: tuple) -> dict:
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    root, episode_index, first_index, task_index, task, seed, frames, resolution, degraded = job
-    behaviour = Behaviour(task, episode_rng(task, seed), frames, degraded)
+    root, episode_index, first_index, task_index, task, seed, frames, resolution, degraded, spread = job
+    behaviour = Behaviour(task, episode_rng(task, seed), frames, degraded, spread)
     images, states, commands, deltas, success = [], [], [], [], []
     with Sim(task, seed, resolution) as sim:
         image, state = sim.reset()
@@ -216,6 +223,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--frames", type=int, default=120, help="frames per episode (all episodes have this length)")
     parser.add_argument("--resolution", type=int, default=64)
     parser.add_argument("--degraded-fraction", type=float, default=0.4, help="share of episodes degraded so that they fail or succeed late")
+    parser.add_argument("--spread", choices=["narrow", "wide"], default="narrow",
+                        help="the experts' action noise and speed: narrow (noise 0.05-0.4, full speed; misses 2-12 cm) or wide "
+                             "(noise log-uniform 0.05-1.2, 30%% of episodes at a speed cap of 0.3-1; misses 2-15 cm)")
     parser.add_argument("--out", required=True, help="dataset folder (must not exist unless --force)")
     parser.add_argument("--workers", type=int, default=min(4, os.cpu_count() or 1))
     parser.add_argument("--force", action="store_true", help="replace --out if it exists")
@@ -252,7 +262,7 @@ def main(argv=None) -> None:
     for i in range(args.episodes):
         for task_index, task in enumerate(args.tasks):
             e = len(jobs)
-            jobs.append((tmp, e, e * args.frames, task_index, task, args.seed_start + i, args.frames, args.resolution, args.degraded_fraction))
+            jobs.append((tmp, e, e * args.frames, task_index, task, args.seed_start + i, args.frames, args.resolution, args.degraded_fraction, args.spread))
     start = time.time()
     try:
         results = []

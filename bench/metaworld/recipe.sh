@@ -31,6 +31,7 @@ DEVICE="${DEVICE:-cuda}"
 TASKS="${TASKS:-drawer-open-v3,button-press-topdown-v3}"
 TRAIN_EPISODES="${TRAIN_EPISODES:-400}"   # per task, seeds 0..
 VAL_EPISODES="${VAL_EPISODES:-50}"        # per task, seeds 100000.. (never trained on)
+SPREAD="${SPREAD:-narrow}"                # the experts' noise and speed in the data: narrow or wide (generate.py --spread)
 FRAMES="${FRAMES:-120}"
 RESOLUTION="${RESOLUTION:-128}"          # frames are RESOLUTION x RESOLUTION pixels (8x8 latent cells at 128)
 WORKERS="${WORKERS:-$(nproc)}"
@@ -86,7 +87,7 @@ if wants data; then
     if [ -f "$RUN/data/$split/meta/info.json" ]; then echo "recipe: $RUN/data/$split exists"; continue; fi
     if [ $split = train ]; then n=$TRAIN_EPISODES; s=0; else n=$VAL_EPISODES; s=100000; fi
     timed "data-$split" "$PYTHON" bench/metaworld/generate.py --tasks "$TASKS" --episodes "$n" --seed-start "$s" \
-      --frames "$FRAMES" --resolution "$RESOLUTION" --workers "$WORKERS" --out "$RUN/data/$split"
+      --frames "$FRAMES" --resolution "$RESOLUTION" --spread "$SPREAD" --workers "$WORKERS" --out "$RUN/data/$split"
   done
 fi
 

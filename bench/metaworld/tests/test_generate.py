@@ -1,0 +1,54 @@
+"""generate.py's expert behaviour per --spread, on its per-episode draws (no simulator)."""
+
+import os
+import sys
+
+import numpy as np
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+import generate  # noqa: E402
+from mw import ACTION_SCALE  # noqa: E402
+
+TASK = "drawer-open-v3"
+
+
+def behaviours(spread, n=300):
+    return [generate.Behaviour(TASK, generate.episode_rng(TASK, seed), 120, 0.4, spread) for seed in range(n)]
+
+
+def test_narrow_experts_are_quiet_and_at_full_speed():
+    bs = behaviours("narrow")
+    assert all(0.05 <= b.noise <= 0.4 and b.speed == 1.0 for b in bs)
+    misses = [np.linalg.norm(b.offset) for b in bs if b.mode == "miss"]
+    assert misses and max(misses) <= 0.12 + 1e-9
+
+
+def test_wide_experts_spread_noise_and_speed():
+    bs = behaviours("wide")
+    noise = np.array([b.noise for b in bs])
+    assert noise.min() >= 0.05 and noise.max() <= 1.2
+    assert (noise > 0.6).mean() > 0.1, "log-uniform up to 1.2 puts about a fifth above 0.6"
+    capped = [b.speed for b in bs if b.speed < 1.0]
+    assert 0.2 < len(capped) / len(bs) < 0.4 and min(capped) >= 0.3
+    misses = [np.linalg.norm(b.offset) for b in bs if b.mode == "miss"]
+    assert max(misses) > 0.12 and max(misses) <= 0.15 + 1e-9
+
+
+def test_a_speed_cap_bounds_the_experts_steps():
+    b = next(b for b in behaviours("wide") if b.speed < 0.6 and b.mode == "expert")
+    b.noise, b.explore[:] = 0.0, False
+    # Far from the handle: the expert's gain saturates the action, so the cap is what limits a step.
+    state, obj = np.array([-0.3, 0.4, 0.05, -1.0], np.float32), np.array([0.05, 0.73, 0.09])
+    steps = []
+    for t in range(30):
+        command = b.command(t, state, obj)
+        steps.append(np.abs(command[:3] - state[:3]).max())
+        state = command
+    assert max(steps) <= b.speed * ACTION_SCALE + 1e-6 and max(steps) > 0.9 * b.speed * ACTION_SCALE, (b.speed, max(steps))
+
+
+if __name__ == "__main__":
+    for name, fn in list(globals().items()):
+        if name.startswith("test_"):
+            fn()
+            print(f"{name}: ok")

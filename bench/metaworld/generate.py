@@ -44,6 +44,8 @@ class Behaviour:
     def __init__(self, task: str, rng: np.random.Generator, frames: int, degraded_fraction: float, spread: str = "narrow"):
         import policies
 
+        if spread not in ("narrow", "wide"):
+            raise ValueError(f"unknown spread {spread!r} (narrow or wide)")
         self.policies, self.task, self.rng = policies, task, rng
         if spread == "wide":
             # The experts' action noise log-uniform from near-clean to a jitter that sometimes

@@ -34,6 +34,15 @@ def test_wide_experts_spread_noise_and_speed():
     assert max(misses) > 0.12 and max(misses) <= 0.15 + 1e-9
 
 
+def test_an_unknown_spread_is_refused():
+    try:
+        generate.Behaviour(TASK, generate.episode_rng(TASK, 0), 120, 0.4, "Wide")
+    except ValueError as e:
+        assert "Wide" in str(e)
+    else:
+        raise AssertionError("an unknown spread was accepted")
+
+
 def test_a_speed_cap_bounds_the_experts_steps():
     b = next(b for b in behaviours("wide") if b.speed < 0.6 and b.mode == "expert")
     b.noise, b.explore[:] = 0.0, False

@@ -7,7 +7,7 @@ use anyhow::{Context, Result};
 use bwm_data::frames::{parse_resize, parse_resolution};
 use bwm_data::{open_dataset, CameraSelection, ResizeMode};
 use bwm_model::vae::VaeConfig;
-use bwm_trainer::devices::parse_device;
+use bwm_trainer::devices::{parse_device, parse_kind};
 use bwm_trainer::vae_frames::FrameSelection;
 use bwm_trainer::vae_train::{save_trained_vae, train_vae, FrameSets, VaeTrainSettings};
 use clap::Args;
@@ -72,6 +72,10 @@ pub struct TrainVaeArgs {
     pub seed: u64,
     #[arg(long, default_value = "auto")]
     pub device: String,
+    /// Weights and activations in f32, or bf16 with fp32 master weights in the optimizer (losses
+    /// in f32 either way; the file holds f32 weights).
+    #[arg(long, default_value = "f32")]
+    pub dtype: String,
     /// Held-out PSNR every N steps (0: only at the end).
     #[arg(long, default_value_t = 0)]
     pub eval_every: u64,
@@ -88,6 +92,7 @@ pub fn run(a: TrainVaeArgs) -> Result<()> {
     let cfg = VaeConfig::with_width(a.dim, a.dec_dim).with_spatial_stride(a.spatial_stride).context("--spatial-stride")?;
     let size = parse_resolution(&a.resolution, cfg.spatial_stride() as u32)?;
     let device = parse_device(&a.device)?;
+    let dtype = parse_kind(&a.dtype).context("--dtype")?;
     let data = match &a.frames {
         Some(path) => {
             let data = FrameSets::read(path)?;
@@ -101,7 +106,7 @@ pub fn run(a: TrainVaeArgs) -> Result<()> {
         println!("train-vae: wrote the frames to {}", path.display());
         return Ok(());
     }
-    train(&a, cfg, data, device)
+    train(&a, cfg, data, device, dtype)
 }
 
 fn decode_frame_sets(a: &TrainVaeArgs, size: (u32, u32)) -> Result<FrameSets> {
@@ -111,12 +116,12 @@ fn decode_frame_sets(a: &TrainVaeArgs, size: (u32, u32)) -> Result<FrameSets> {
     FrameSets::from_dataset(source.as_ref(), &selection)
 }
 
-fn train(a: &TrainVaeArgs, cfg: VaeConfig, data: FrameSets, device: tch::Device) -> Result<()> {
+fn train(a: &TrainVaeArgs, cfg: VaeConfig, data: FrameSets, device: tch::Device, dtype: tch::Kind) -> Result<()> {
     let frames: i64 = data.train.iter().map(|t| t.size()[1]).sum();
     let stride = cfg.spatial_stride();
     println!(
-        "train-vae: {frames} training frames; VAE dim {} / dec_dim {} (z {}, spatial stride {stride}), {} steps of {} clips x {} frames on {:?}",
-        cfg.dim, cfg.dec_dim, cfg.z_dim, a.steps, a.batch, a.clip_frames, device
+        "train-vae: {frames} training frames; VAE dim {} / dec_dim {} (z {}, spatial stride {stride}), {} steps of {} clips x {} frames on {:?} in {}",
+        cfg.dim, cfg.dec_dim, cfg.z_dim, a.steps, a.batch, a.clip_frames, device, a.dtype
     );
     let settings = VaeTrainSettings {
         cfg,
@@ -130,6 +135,7 @@ fn train(a: &TrainVaeArgs, cfg: VaeConfig, data: FrameSets, device: tch::Device)
         eval_every: a.eval_every,
         flip: !a.no_flip,
         crop: a.crop.as_deref().map(|c| parse_resolution(c, stride as u32).map(|(w, h)| (w as i64, h as i64))).transpose().context("--crop")?,
+        dtype,
     };
     let trained = train_vae(&data, &settings, &mut |line| println!("  {line}"))?;
     save_trained_vae(&trained, &a.out)?;

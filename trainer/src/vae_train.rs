@@ -34,6 +34,9 @@ pub struct VaeTrainSettings {
     /// Train on a random (width, height) window of each clip (multiples of the spatial stride): the network
     /// cannot tie what it reconstructs to a position in the frame. Evaluation uses whole frames.
     pub crop: Option<(i64, i64)>,
+    /// The weights' and activations' dtype: f32, or bf16 with fp32 masters in the optimizer (the
+    /// DiT's recipe). Losses are computed in f32 either way; the file holds f32 weights.
+    pub dtype: Kind,
 }
 
 pub struct VaeTrainReport {
@@ -88,7 +91,7 @@ pub fn reconstruction_psnr(vae: &WanVae, videos: &[Tensor], frames: usize, devic
     let mut sum = 0.0;
     for chunk in starts.chunks(4) {
         let x = stack_clips(videos, chunk, frames, device);
-        let recon = tch::no_grad(|| -> Result<Tensor> { vae.decode(&vae.encode(&x)?) })?;
+        let recon = tch::no_grad(|| -> Result<Tensor> { vae.decode(&vae.encode(&x)?) })?.to_kind(Kind::Float);
         sum += psnr(&recon.clamp(-1.0, 1.0), &x) * chunk.len() as f64;
     }
     Ok(sum / starts.len() as f64)
@@ -112,7 +115,8 @@ pub fn train_vae(data: &FrameSets, s: &VaeTrainSettings, on_log: &mut dyn FnMut(
         "the held-out videos have at most {longest_holdout} frames, fewer than one {}-frame clip to measure PSNR on: raise --holdout-tail, hold out whole episodes (--holdout), or lower --clip-frames",
         s.clip_frames
     );
-    let (mut vae, store) = WanVae::random(&s.cfg, Kind::Float, s.device, s.seed as i64)?;
+    ensure!(matches!(s.dtype, Kind::Float | Kind::BFloat16), "the VAE trains in f32 or bf16, not {:?}", s.dtype);
+    let (mut vae, store) = WanVae::random(&s.cfg, s.dtype, s.device, s.seed as i64)?;
     let z = s.cfg.z_dim;
     let identity = (Tensor::zeros([z], (Kind::Float, s.device)), Tensor::ones([z], (Kind::Float, s.device)));
     vae.set_latent_stats(&identity.0, &identity.1)?;
@@ -134,11 +138,11 @@ pub fn train_vae(data: &FrameSets, s: &VaeTrainSettings, on_log: &mut dyn FnMut(
         if s.flip && keyed_rng::uniform(s.seed, step, Purpose::Augment) < 0.5 {
             x = x.flip([-1]);
         }
-        let moments = vae.encode_moments(&x)?;
+        let moments = vae.encode_moments(&x)?.to_kind(Kind::Float);
         let (mu, logvar) = (moments.narrow(1, 0, z), moments.narrow(1, z, z).clamp(-30.0, 20.0));
         let eps = keyed_rng::normal(&mu.size(), s.seed, step, Purpose::Noise).to_device(s.device);
         let sample = &mu + (&logvar * 0.5).exp() * eps;
-        let recon = vae.decode(&sample)?;
+        let recon = vae.decode(&sample)?.to_kind(Kind::Float);
         let mse = (&recon - &x).square().mean(Kind::Float);
         let kl = ((mu.square() + logvar.exp() - 1.0 - &logvar) * 0.5).mean(Kind::Float);
         let loss = &mse + &kl * s.kl_weight;
@@ -168,7 +172,7 @@ pub fn train_vae(data: &FrameSets, s: &VaeTrainSettings, on_log: &mut dyn FnMut(
     let train_psnr = reconstruction_psnr(&vae, &data.train, s.clip_frames, s.device)?;
     let holdout_psnr = reconstruction_psnr(&vae, &data.holdout, s.clip_frames, s.device)?;
     let report = VaeTrainReport { train_psnr, holdout_psnr, seconds: start.elapsed().as_secs_f64(), steps: s.steps, clip_frames: s.clip_frames };
-    let params = store.named_parameters().into_iter().map(|(n, t)| (n, t.detach())).collect();
+    let params = store.named_parameters().into_iter().map(|(n, t)| (n, t.detach().to_kind(Kind::Float))).collect();
     Ok(TrainedVae { vae, params, report })
 }
 
@@ -178,7 +182,7 @@ fn latent_statistics(vae: &WanVae, videos: &[Tensor], frames: usize, device: Dev
     let mut all = Vec::new();
     for chunk in clip_starts(videos, frames, frames).chunks(4) {
         let x = stack_clips(videos, chunk, frames, device);
-        let mu = tch::no_grad(|| vae.encode_moments(&x))?.narrow(1, 0, z);
+        let mu = tch::no_grad(|| vae.encode_moments(&x))?.narrow(1, 0, z).to_kind(Kind::Float);
         all.push(mu.transpose(0, 1).reshape([z, -1]));
     }
     let mu = Tensor::cat(&all, 1);
@@ -246,6 +250,7 @@ mod tests {
             eval_every: 0,
             flip: false,
             crop: None,
+            dtype: Kind::Float,
         }
     }
 
@@ -261,6 +266,31 @@ mod tests {
         let trained = train_vae(&data, &s, &mut |l| lines.push(l.to_string())).unwrap();
         assert!(trained.report.holdout_psnr.is_finite() && trained.report.train_psnr.is_finite(), "{lines:?}");
         assert!(lines.iter().any(|l| l.contains("step     2/2")), "{lines:?}");
+    }
+
+    #[test]
+    fn trains_in_bf16_against_fp32_masters_and_saves_f32_weights() {
+        tch::manual_seed(3);
+        let video = Tensor::rand([3, 5, 16, 16], (Kind::Float, Device::Cpu)) * 2.0 - 1.0;
+        let data = FrameSets { train: vec![video.shallow_clone()], holdout: vec![video] };
+        let s = VaeTrainSettings { steps: 3, lr: 1e-2, dtype: Kind::BFloat16, ..tiny_settings(5) };
+        let (initial, _) = WanVae::random(&s.cfg, Kind::BFloat16, Device::Cpu, s.seed as i64).unwrap();
+        let trained = train_vae(&data, &s, &mut |_| {}).unwrap();
+        assert!(trained.report.holdout_psnr.is_finite(), "{}", trained.report.holdout_psnr);
+        assert!(trained.params.iter().all(|(_, t)| t.kind() == Kind::Float), "the file holds f32 weights");
+        // The weights moved: the updates reached the bf16 weights from the fp32 masters.
+        let before = initial.encode_moments(&data.train[0].unsqueeze(0)).unwrap();
+        let after = trained.vae.encode_moments(&data.train[0].unsqueeze(0)).unwrap();
+        assert_eq!(after.kind(), Kind::BFloat16);
+        assert!(!before.equal(&after), "three steps changed the encoder");
+        let dir = bwm_testdir::TestDir::new("vae-bf16");
+        let path = dir.join("vae.safetensors");
+        save_trained_vae(&trained, &path).unwrap();
+        // The f32 file holds the bf16 weights exactly: loaded back in bf16 it computes the same.
+        let loaded = WanVae::load_any(&path, Kind::BFloat16, Device::Cpu).unwrap();
+        let x = data.holdout[0].unsqueeze(0);
+        assert!(loaded.encode_moments(&x).unwrap().equal(&trained.vae.encode_moments(&x).unwrap()));
+        assert!(train_vae(&data, &VaeTrainSettings { dtype: Kind::Half, ..tiny_settings(5) }, &mut |_| {}).is_err());
     }
 
     #[test]

@@ -31,7 +31,9 @@ if [ ! -d /tmp/site/metaworld ]; then
   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
 fi
 export PYTHONPATH=/tmp/site
-mkdir -p dist && xz -dc .carry/bwm.xz > dist/bwm && chmod +x dist/bwm || exit 1
+# Unpacked beside and renamed: a second instance started while one runs would otherwise fail
+# writing the binary the first is executing ("Text file busy").
+mkdir -p dist && xz -dc .carry/bwm.xz > dist/bwm.$$ && chmod +x dist/bwm.$$ && mv -f dist/bwm.$$ dist/bwm || exit 1
 export BWM="$PWD/dist/bwm" PYTHON=python3
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$OUT/gpu.txt"
 python3 - <<'PY' || exit 1

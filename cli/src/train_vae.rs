@@ -9,7 +9,7 @@ use bwm_data::{open_dataset, CameraSelection, ResizeMode};
 use bwm_model::vae::VaeConfig;
 use bwm_trainer::devices::{parse_device, parse_kind};
 use bwm_trainer::vae_frames::FrameSelection;
-use bwm_trainer::vae_train::{save_trained_vae, train_vae, FrameSets, VaeTrainSettings};
+use bwm_trainer::vae_train::{save_trained_vae, train_vae, FrameSets, ReconLoss, VaeTrainSettings};
 use clap::Args;
 
 #[derive(Args)]
@@ -76,6 +76,10 @@ pub struct TrainVaeArgs {
     /// in f32 either way; the file holds f32 weights).
     #[arg(long, default_value = "f32")]
     pub dtype: String,
+    /// Reconstruction loss: mse (what PSNR measures) or l1 (as Wan's VAE trains; errs less
+    /// towards blurring a small object into its surroundings).
+    #[arg(long, default_value = "mse")]
+    pub recon_loss: ReconLoss,
     /// Held-out PSNR every N steps (0: only at the end).
     #[arg(long, default_value_t = 0)]
     pub eval_every: u64,
@@ -120,8 +124,8 @@ fn train(a: &TrainVaeArgs, cfg: VaeConfig, data: FrameSets, device: tch::Device,
     let frames: i64 = data.train.iter().map(|t| t.size()[1]).sum();
     let stride = cfg.spatial_stride();
     println!(
-        "train-vae: {frames} training frames; VAE dim {} / dec_dim {} (z {}, spatial stride {stride}), {} steps of {} clips x {} frames on {:?} in {}",
-        cfg.dim, cfg.dec_dim, cfg.z_dim, a.steps, a.batch, a.clip_frames, device, a.dtype
+        "train-vae: {frames} training frames; VAE dim {} / dec_dim {} (z {}, spatial stride {stride}), {} steps of {} clips x {} frames on {:?} in {}, {} loss",
+        cfg.dim, cfg.dec_dim, cfg.z_dim, a.steps, a.batch, a.clip_frames, device, a.dtype, a.recon_loss
     );
     let settings = VaeTrainSettings {
         cfg,
@@ -136,6 +140,7 @@ fn train(a: &TrainVaeArgs, cfg: VaeConfig, data: FrameSets, device: tch::Device,
         flip: !a.no_flip,
         crop: a.crop.as_deref().map(|c| parse_resolution(c, stride as u32).map(|(w, h)| (w as i64, h as i64))).transpose().context("--crop")?,
         dtype,
+        recon_loss: a.recon_loss,
     };
     let trained = train_vae(&data, &settings, &mut |line| println!("  {line}"))?;
     save_trained_vae(&trained, &a.out)?;

@@ -1,5 +1,5 @@
 //! `bwm train-vae`: fits a Wan2.2-architecture VAE at a small width to a dataset's frames
-//! (reconstruction MSE + KL to N(0, I)), then measures reconstruction PSNR on held-out frames and
+//! (reconstruction MSE or L1 + KL to N(0, I)), then measures reconstruction PSNR on held-out frames and
 //! records the latent statistics its encoder produces, so that normalized latents have zero mean
 //! and unit variance per channel as the Wan2.2 constants give the published VAE.
 
@@ -37,6 +37,36 @@ pub struct VaeTrainSettings {
     /// The weights' and activations' dtype: f32, or bf16 with fp32 masters in the optimizer (the
     /// DiT's recipe). Losses are computed in f32 either way; the file holds f32 weights.
     pub dtype: Kind,
+    pub recon_loss: ReconLoss,
+}
+
+/// The reconstruction term of the loss. MSE is what PSNR measures; L1 (Wan's VAE training uses
+/// it) penalizes small errors as much as large ones, so it does not trade a small object's edges
+/// and colour for the frame's broad areas as readily.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ReconLoss {
+    Mse,
+    L1,
+}
+
+impl std::fmt::Display for ReconLoss {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::Mse => "mse",
+            Self::L1 => "l1",
+        })
+    }
+}
+
+impl std::str::FromStr for ReconLoss {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s {
+            "mse" => Ok(Self::Mse),
+            "l1" => Ok(Self::L1),
+            other => Err(format!("unknown reconstruction loss {other:?} (known: mse, l1)")),
+        }
+    }
 }
 
 pub struct VaeTrainReport {
@@ -143,9 +173,14 @@ pub fn train_vae(data: &FrameSets, s: &VaeTrainSettings, on_log: &mut dyn FnMut(
         let eps = keyed_rng::normal(&mu.size(), s.seed, step, Purpose::Noise).to_device(s.device);
         let sample = &mu + (&logvar * 0.5).exp() * eps;
         let recon = vae.decode(&sample)?.to_kind(Kind::Float);
-        let mse = (&recon - &x).square().mean(Kind::Float);
+        let error = &recon - &x;
+        let mse = error.square().mean(Kind::Float);
         let kl = ((mu.square() + logvar.exp() - 1.0 - &logvar) * 0.5).mean(Kind::Float);
-        let loss = &mse + &kl * s.kl_weight;
+        let reconstruction = match s.recon_loss {
+            ReconLoss::Mse => mse.shallow_clone(),
+            ReconLoss::L1 => error.abs().mean(Kind::Float),
+        };
+        let loss = reconstruction + &kl * s.kl_weight;
         loss.f_backward()?;
         opt.collect_grads();
         let report = opt.step(1.0, &mut LocalCollective::new())?;
@@ -251,6 +286,7 @@ mod tests {
             flip: false,
             crop: None,
             dtype: Kind::Float,
+            recon_loss: ReconLoss::Mse,
         }
     }
 
@@ -291,6 +327,26 @@ mod tests {
         let x = data.holdout[0].unsqueeze(0);
         assert!(loaded.encode_moments(&x).unwrap().equal(&trained.vae.encode_moments(&x).unwrap()));
         assert!(train_vae(&data, &VaeTrainSettings { dtype: Kind::Half, ..tiny_settings(5) }, &mut |_| {}).is_err());
+    }
+
+    #[test]
+    fn the_l1_loss_drives_the_updates_and_lowers_the_l1_error() {
+        tch::manual_seed(5);
+        let video = Tensor::rand([3, 5, 16, 16], (Kind::Float, Device::Cpu)) * 2.0 - 1.0;
+        let x = video.unsqueeze(0);
+        let data = FrameSets { train: vec![video.shallow_clone()], holdout: vec![video] };
+        let settings = |steps, recon_loss| VaeTrainSettings { steps, lr: 1e-2, recon_loss, ..tiny_settings(5) };
+        let l1_error = |vae: &WanVae| (vae.decode(&vae.encode(&x).unwrap()).unwrap() - &x).abs().mean(Kind::Float).double_value(&[]);
+        let mse_1 = train_vae(&data, &settings(1, ReconLoss::Mse), &mut |_| {}).unwrap();
+        let l1_1 = train_vae(&data, &settings(1, ReconLoss::L1), &mut |_| {}).unwrap();
+        let moments = |t: &TrainedVae| t.vae.encode_moments(&x).unwrap();
+        assert!(!moments(&mse_1).equal(&moments(&l1_1)), "the same first step under both losses");
+        let l1_30 = train_vae(&data, &settings(30, ReconLoss::L1), &mut |_| {}).unwrap();
+        let (before, after) = (l1_error(&l1_1.vae), l1_error(&l1_30.vae));
+        assert!(after < 0.9 * before, "30 L1 steps: mean absolute error {before:.4} -> {after:.4}");
+        assert_eq!("l1".parse::<ReconLoss>(), Ok(ReconLoss::L1));
+        assert_eq!("mse".parse::<ReconLoss>(), Ok(ReconLoss::Mse));
+        assert!("lpips".parse::<ReconLoss>().unwrap_err().contains("known: mse, l1"));
     }
 
     #[test]

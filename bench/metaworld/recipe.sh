@@ -50,6 +50,9 @@ VAE_CLIP_FRAMES="${VAE_CLIP_FRAMES:-33}"  # frames per VAE training clip (1+4k)
 # Share of each VAE episode held out for its PSNR; default: enough frames for one clip.
 VAE_HOLDOUT_TAIL="${VAE_HOLDOUT_TAIL:-$(awk -v c="$VAE_CLIP_FRAMES" -v f="$FRAMES" 'BEGIN { t = int(100 * (c + 2) / f + 0.999) / 100; print (t < 0.1 ? 0.1 : t) }')}"
 VAE_STRIDE="${VAE_STRIDE:-16}"           # pixels per latent cell: 16 or 8
+VAE_DIM="${VAE_DIM:-32}"                 # bwm train-vae --dim: the encoder's base width
+VAE_DEC_DIM="${VAE_DEC_DIM:-32}"         # bwm train-vae --dec-dim: the decoder's base width
+VAE_SEED="${VAE_SEED:-0}"                # bwm train-vae --seed: initial weights and clip order
 KEEP_FRAMES="${KEEP_FRAMES:-0}"          # 1: the latent cache also keeps pixel frames (training's validation scores against them; 23 GB at 128x128)
 TRAIN_STEPS="${TRAIN_STEPS:-}"            # default: configs/metaworld.toml's
 TRAIN_SETS="${TRAIN_SETS:-}"              # more `--set KEY=VALUE` for bwm train, space-separated
@@ -98,8 +101,8 @@ fi
 if wants vae; then
   if [ -f "$RUN/vae.safetensors" ]; then echo "recipe: $RUN/vae.safetensors exists"; else
     timed vae "$BWM" train-vae --data "$VAE_DATA" --max-episodes "$VAE_EPISODES" --holdout-tail "$VAE_HOLDOUT_TAIL" \
-      --resolution "${RESOLUTION}x$RESOLUTION" --dim 32 --dec-dim 32 --spatial-stride "$VAE_STRIDE" --clip-frames "$VAE_CLIP_FRAMES" --batch "$VAE_BATCH" --steps "$VAE_STEPS" --lr "$VAE_LR" \
-      --no-flip --eval-every "$VAE_EVAL_EVERY" --dtype "$VAE_DTYPE" --recon-loss "$VAE_LOSS" --device "$DEVICE" --out "$RUN/vae.safetensors"
+      --resolution "${RESOLUTION}x$RESOLUTION" --dim "$VAE_DIM" --dec-dim "$VAE_DEC_DIM" --spatial-stride "$VAE_STRIDE" --clip-frames "$VAE_CLIP_FRAMES" --batch "$VAE_BATCH" --steps "$VAE_STEPS" --lr "$VAE_LR" \
+      --no-flip --eval-every "$VAE_EVAL_EVERY" --dtype "$VAE_DTYPE" --recon-loss "$VAE_LOSS" --seed "$VAE_SEED" --device "$DEVICE" --out "$RUN/vae.safetensors"
   fi
 fi
 

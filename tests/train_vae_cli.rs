@@ -1,6 +1,6 @@
 //! `bwm train-vae` end to end on the bundled demo episodes in bf16 (fp32 masters) with the L1
-//! loss: an f32 file that `bwm reconstruct` reads, and a dtype it cannot train in or a loss it
-//! does not know refused before any decoding.
+//! loss and 8 latent channels: an f32 file that `bwm reconstruct` reads, and a dtype it cannot
+//! train in, a loss it does not know or no latent channel refused before any decoding.
 
 mod common;
 
@@ -13,20 +13,22 @@ use tch::Kind;
 fn train_vae_trains_in_bf16_and_writes_an_f32_vae() {
     let dir = temp_dir("train-vae-bf16");
     let out = dir.join("vae.safetensors");
-    let run = |dtype: &str, loss: &str, out: &std::path::Path| {
+    let run = |dtype: &str, loss: &str, z_dim: &str, out: &std::path::Path| {
         Command::new(bwm())
             .args(["train-vae", "--data", demo_data().to_str().unwrap(), "--max-episodes", "1", "--resolution", "32x32"])
             .args(["--dim", "4", "--dec-dim", "4", "--clip-frames", "5", "--steps", "2", "--batch", "1", "--device", "cpu"])
-            .args(["--dtype", dtype, "--recon-loss", loss, "--out", out.to_str().unwrap()])
+            .args(["--dtype", dtype, "--recon-loss", loss, "--z-dim", z_dim, "--out", out.to_str().unwrap()])
             .output()
             .unwrap()
     };
-    let o = run("bf16", "l1", &out);
+    let o = run("bf16", "l1", "8", &out);
     let stdout = String::from_utf8_lossy(&o.stdout);
     assert!(o.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&o.stderr));
     assert!(stdout.contains("in bf16, l1 loss") && stdout.contains("reconstruction PSNR"), "{stdout}");
     let weights = tch::Tensor::read_safetensors(&out).unwrap();
     assert!(!weights.is_empty() && weights.iter().all(|(_, t)| t.kind() == Kind::Float), "the file holds f32 weights");
+    let stats = weights.iter().find(|(n, _)| n == "latents_mean").map(|(_, t)| t.size());
+    assert_eq!(stats, Some(vec![8]), "one latent statistic per channel");
     let rec = dir.join("rec.safetensors");
     let o = Command::new(bwm())
         .args(["reconstruct", "--data", demo_data().to_str().unwrap(), "--vae", out.to_str().unwrap(), "--max-episodes", "1"])
@@ -36,12 +38,16 @@ fn train_vae_trains_in_bf16_and_writes_an_f32_vae() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
 
     let bad = dir.join("bad.safetensors");
-    let o = run("f16", "mse", &bad);
+    let o = run("f16", "mse", "48", &bad);
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && stderr.contains("--dtype") && stderr.contains("f16"), "{stderr}");
     assert!(!stderr.contains("panicked") && !bad.exists(), "{stderr}");
-    let o = run("f32", "lpips", &bad);
+    let o = run("f32", "lpips", "48", &bad);
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && stderr.contains("--recon-loss") && stderr.contains("known: mse, l1"), "{stderr}");
+    assert!(!stderr.contains("panicked") && !bad.exists(), "{stderr}");
+    let o = run("f32", "mse", "0", &bad);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && stderr.contains("--z-dim") && stderr.contains("must be positive"), "{stderr}");
     assert!(!stderr.contains("panicked") && !bad.exists(), "{stderr}");
 }

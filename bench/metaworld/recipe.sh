@@ -53,6 +53,7 @@ VAE_STRIDE="${VAE_STRIDE:-16}"           # pixels per latent cell: 16 or 8
 VAE_DIM="${VAE_DIM:-32}"                 # bwm train-vae --dim: the encoder's base width
 VAE_DEC_DIM="${VAE_DEC_DIM:-32}"         # bwm train-vae --dec-dim: the decoder's base width
 VAE_SEED="${VAE_SEED:-0}"                # bwm train-vae --seed: initial weights and clip order
+VAE_Z_DIM="${VAE_Z_DIM:-48}"             # bwm train-vae --z-dim: latent channels (the DiT's in_dim and out_dim follow)
 KEEP_FRAMES="${KEEP_FRAMES:-0}"          # 1: the latent cache also keeps pixel frames (training's validation scores against them; 23 GB at 128x128)
 TRAIN_STEPS="${TRAIN_STEPS:-}"            # default: configs/metaworld.toml's
 TRAIN_SETS="${TRAIN_SETS:-}"              # more `--set KEY=VALUE` for bwm train, space-separated
@@ -102,7 +103,7 @@ if wants vae; then
   if [ -f "$RUN/vae.safetensors" ]; then echo "recipe: $RUN/vae.safetensors exists"; else
     timed vae "$BWM" train-vae --data "$VAE_DATA" --max-episodes "$VAE_EPISODES" --holdout-tail "$VAE_HOLDOUT_TAIL" \
       --resolution "${RESOLUTION}x$RESOLUTION" --dim "$VAE_DIM" --dec-dim "$VAE_DEC_DIM" --spatial-stride "$VAE_STRIDE" --clip-frames "$VAE_CLIP_FRAMES" --batch "$VAE_BATCH" --steps "$VAE_STEPS" --lr "$VAE_LR" \
-      --no-flip --eval-every "$VAE_EVAL_EVERY" --dtype "$VAE_DTYPE" --recon-loss "$VAE_LOSS" --seed "$VAE_SEED" --device "$DEVICE" --out "$RUN/vae.safetensors"
+      --no-flip --eval-every "$VAE_EVAL_EVERY" --dtype "$VAE_DTYPE" --recon-loss "$VAE_LOSS" --seed "$VAE_SEED" --z-dim "$VAE_Z_DIM" --device "$DEVICE" --out "$RUN/vae.safetensors"
   fi
 fi
 
@@ -124,7 +125,8 @@ print(int(plan.get("holdout_episodes", 0)))
 PY
 )
   sets=(--set "run.out_dir=\"$RUN\"" --set "run.device=\"$DEVICE\"" --set "data.latent_cache=\"$RUN/latents\""
-        --set "data.holdout_episodes=$holdout" --set "validation.vae=\"$RUN/vae.safetensors\"")
+        --set "data.holdout_episodes=$holdout" --set "validation.vae=\"$RUN/vae.safetensors\""
+        --set "model.dit.in_dim=$VAE_Z_DIM" --set "model.dit.out_dim=$VAE_Z_DIM")
   [ -n "$TRAIN_STEPS" ] && sets+=(--set "train.steps=$TRAIN_STEPS")
   for kv in $TRAIN_SETS; do sets+=(--set "$kv"); done
   timed train "$BWM" train --config configs/metaworld.toml "${sets[@]}" --resume auto

@@ -41,6 +41,10 @@ pub struct TrainVaeArgs {
     /// latent grid, for small frames).
     #[arg(long, default_value_t = 16)]
     pub spatial_stride: i64,
+    /// Latent channels: 48 (Wan2.2), or fewer for a finer grid (Wan2.1's VAE: 16 at stride 8).
+    /// The DiT's `model.dit.in_dim` and `out_dim` must match.
+    #[arg(long, default_value_t = 48)]
+    pub z_dim: i64,
     /// Frames per training clip (1+4k). Train on clips as long as the ones the VAE will encode
     /// and decode (`bwm prepare`'s 1 + H + K): a VAE reconstructs frames past its training clip
     /// poorly, and `bwm prepare` warns when its clips are longer.
@@ -93,7 +97,9 @@ pub struct TrainVaeArgs {
 }
 
 pub fn run(a: TrainVaeArgs) -> Result<()> {
-    let cfg = VaeConfig::with_width(a.dim, a.dec_dim).with_spatial_stride(a.spatial_stride).context("--spatial-stride")?;
+    let cfg = VaeConfig { z_dim: a.z_dim, ..VaeConfig::with_width(a.dim, a.dec_dim) };
+    let cfg = cfg.with_spatial_stride(a.spatial_stride).context("--spatial-stride")?;
+    cfg.validate().context("--dim, --dec-dim, --z-dim")?;
     let size = parse_resolution(&a.resolution, cfg.spatial_stride() as u32)?;
     let device = parse_device(&a.device)?;
     let dtype = parse_kind(&a.dtype).context("--dtype")?;

@@ -199,6 +199,13 @@ impl Trainer {
             "cached clips have {latent_frames} latent frames; objective.condition_latents = {} leaves no future latent",
             cfg.objective.condition_latents
         );
+        let channels = cache.index.latent_shape[0];
+        ensure!(
+            channels == model_cfg.dit.in_dim && channels == model_cfg.dit.out_dim,
+            "cached latents have {channels} channels (the VAE's z_dim); model.dit.in_dim and out_dim are {} and {}",
+            model_cfg.dit.in_dim,
+            model_cfg.dit.out_dim
+        );
         ensure!(
             cache.index.action_dim == model_cfg.action.action_dim,
             "cached actions have {} dimensions; model.action.action_dim is {}",

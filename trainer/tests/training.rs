@@ -195,6 +195,19 @@ fn non_finite_losses_skip_updates_and_abort_after_the_limit() {
 }
 
 #[test]
+fn a_model_whose_latent_channels_differ_from_the_cache_is_refused() {
+    let dir = tmp_dir("channels");
+    let cache = write_cache(&dir.join("cache"), 1, 5);
+    let text = config(&cache, &dir.join("run"), "").to_toml().unwrap();
+    for sets in [["model.dit.in_dim=16", "model.dit.out_dim=16"], ["model.dit.in_dim=48", "model.dit.out_dim=16"]] {
+        let cfg = bwm_trainer::RunConfig::parse(&text, &sets.map(String::from)).unwrap();
+        let e = trainer(cfg, Resume::No).err().expect("a 48-channel cache trains no other width").to_string();
+        assert!(e.contains("48 channels") && e.contains("model.dit.in_dim"), "{e}");
+    }
+    assert!(!dir.join("run").exists(), "nothing written");
+}
+
+#[test]
 fn config_errors_name_the_key() {
     let dir = tmp_dir("cfg");
     let cache = write_cache(&dir.join("cache"), 1, 5);

@@ -29,7 +29,8 @@ fn json(path: &Path) -> Value {
 }
 
 /// `bash SCRIPT` (a bench/metaworld script) on CPU at toy sizes into `runs`: 3 training episodes
-/// of 100 frames at 64x64, a 2-step VAE, a one-block DiT of width 48 trained 2 steps.
+/// of 100 frames at 64x64, a 2-step VAE of stride 8 with 16 latent channels, a one-block DiT of
+/// width 48 with a 1x2x2 patch trained 2 steps.
 fn toy(script: &str, runs: &Path) -> Command {
     let mut cmd = Command::new("bash");
     cmd.arg(Path::new(ROOT).join("bench/metaworld").join(script))
@@ -38,10 +39,10 @@ fn toy(script: &str, runs: &Path) -> Command {
         .env("PYTHON", python())
         .env("DEVICE", "cpu")
         .envs([("TRAIN_EPISODES", "3"), ("FRAMES", "100"), ("RESOLUTION", "64"), ("WORKERS", "2")])
-        .envs([("VAE_STEPS", "2"), ("VAE_BATCH", "2"), ("VAE_STRIDE", "8"), ("TRAIN_STEPS", "2"), ("SAMPLE_STEPS", "2")])
+        .envs([("VAE_STEPS", "2"), ("VAE_BATCH", "2"), ("VAE_STRIDE", "8"), ("VAE_Z_DIM", "16"), ("TRAIN_STEPS", "2"), ("SAMPLE_STEPS", "2")])
         .env(
             "TRAIN_SETS",
-            "model.dit.dim=48 model.dit.ffn_dim=96 model.dit.num_heads=4 model.dit.num_layers=1 train.micro_batch=2 checkpoint.every=2 validation.every=2 validation.sample_steps=2",
+            "model.dit.dim=48 model.dit.patch_size=[1,2,2] model.dit.ffn_dim=96 model.dit.num_heads=4 model.dit.num_layers=1 train.micro_batch=2 checkpoint.every=2 validation.every=2 validation.sample_steps=2",
         );
     cmd
 }
@@ -91,9 +92,10 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
         assert!(std::fs::read(val.join(&file)).unwrap() == std::fs::read(again.join(&file)).unwrap(), "{file} differs between worker counts");
     }
 
-    // The VAE of stride 8 (an 8x8 latent grid at 64x64) carried through to the latent cache.
+    // The VAE of stride 8 with 16 channels (an 8x8x16 latent at 64x64) carried through to the
+    // latent cache, and the DiT the recipe trained on it widened to match.
     let index = json(&runs.join("latents/index.json"));
-    assert_eq!(index["latent_shape"], serde_json::json!([48, 9, 8, 8]), "{index}");
+    assert_eq!(index["latent_shape"], serde_json::json!([16, 9, 8, 8]), "{index}");
 
     let fidelity = json(&runs.join("fidelity/fidelity.json"));
     assert_eq!(fidelity["episodes"], 2, "{fidelity}");

@@ -128,7 +128,9 @@ PY
         --set "data.holdout_episodes=$holdout" --set "validation.vae=\"$RUN/vae.safetensors\""
         --set "model.dit.in_dim=$VAE_Z_DIM" --set "model.dit.out_dim=$VAE_Z_DIM")
   [ -n "$TRAIN_STEPS" ] && sets+=(--set "train.steps=$TRAIN_STEPS")
+  set -f  # the settings may hold glob characters (patch_size=[1,2,2])
   for kv in $TRAIN_SETS; do sets+=(--set "$kv"); done
+  set +f
   timed train "$BWM" train --config configs/metaworld.toml "${sets[@]}" --resume auto
 fi
 # The world-model flags every later command shares: the newest checkpoint, its VAE and statistics.

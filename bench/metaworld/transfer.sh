@@ -49,7 +49,8 @@ for arm in $ARMS; do
   ln -sfn ../base/vae.safetensors "$dir/vae.safetensors"
   sets=(--set "run.out_dir=\"$dir\"" --set "run.device=\"$DEVICE\"" --set "data.latent_cache=\"$dir/latents\""
         --set "data.holdout_episodes=$holdout" --set "validation.vae=\"$dir/vae.safetensors\"" --set "train.steps=$POST_STEPS"
-        --set "optim.warmup_steps=100" --set "checkpoint.every=$POST_STEPS")
+        --set "optim.warmup_steps=100" --set "checkpoint.every=$POST_STEPS"
+        --set "model.dit.in_dim=${VAE_Z_DIM:-48}" --set "model.dit.out_dim=${VAE_Z_DIM:-48}")
   case "$arm" in
     full) sets+=(--set "model.init={from=\"bwm-checkpoint\", path=\"$base_ckpt\"}") ;;
     lora) sets+=(--set "model.init={from=\"bwm-checkpoint\", path=\"$base_ckpt\"}"

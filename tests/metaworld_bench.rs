@@ -39,13 +39,13 @@ fn toy(script: &str, runs: &Path) -> Command {
         .env("PYTHON", python())
         .env("DEVICE", "cpu")
         .envs([("TRAIN_EPISODES", "3"), ("FRAMES", "100"), ("RESOLUTION", "64"), ("WORKERS", "2")])
-        .envs([("VAE_STEPS", "2"), ("VAE_BATCH", "2"), ("VAE_STRIDE", "8"), ("VAE_Z_DIM", "16"), ("TRAIN_STEPS", "2"), ("SAMPLE_STEPS", "2")])
-        .env(
-            "TRAIN_SETS",
-            "model.dit.dim=48 model.dit.patch_size=[1,2,2] model.dit.ffn_dim=96 model.dit.num_heads=4 model.dit.num_layers=1 train.micro_batch=2 checkpoint.every=2 validation.every=2 validation.sample_steps=2",
-        );
+        .envs([("VAE_STEPS", "2"), ("VAE_BATCH", "2"), ("VAE_STRIDE", "8"), ("VAE_Z_DIM", "16"), ("VAE_DIM", "16"), ("VAE_DEC_DIM", "16")])
+        .envs([("TRAIN_STEPS", "2"), ("SAMPLE_STEPS", "2")])
+        .env("TRAIN_SETS", TOY_DIT);
     cmd
 }
+
+const TOY_DIT: &str = "model.dit.dim=48 model.dit.patch_size=[1,2,2] model.dit.ffn_dim=96 model.dit.num_heads=4 model.dit.num_layers=1 train.micro_batch=2 checkpoint.every=2 validation.every=2 validation.sample_steps=2";
 
 #[test]
 fn the_metaworld_recipe_runs_every_stage_on_cpu() {
@@ -55,7 +55,10 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
         toy("recipe.sh", &runs)
             .envs([("VAL_EPISODES", "1"), ("VAE_EPISODES", "6")])
             .envs([("JUDGE_STEPS", "5"), ("STUDY_EPISODES", "1"), ("STUDY_JOBS", "2"), ("STUDY_HORIZON", "48"), ("STUDY_VARIANTS", "expert,wrong")])
-            .env("PROBE_VARIANTS", "wrong-0cm,wrong-6cm"),
+            .env("PROBE_VARIANTS", "wrong-0cm,wrong-6cm")
+            // The DiT trained with action dropout, every world-model stage guided by the actions.
+            .env("TRAIN_SETS", format!("{TOY_DIT} objective.action_dropout=0.5"))
+            .env("GUIDANCE", "1.5"),
         "recipe.sh",
     );
 
@@ -99,6 +102,9 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
 
     let fidelity = json(&runs.join("fidelity/fidelity.json"));
     assert_eq!(fidelity["episodes"], 2, "{fidelity}");
+    assert_eq!(fidelity["guidance"], 1.5, "{fidelity}");
+    let config = std::fs::read_to_string(runs.join("config.toml")).unwrap();
+    assert!(config.contains("action_dropout = 0.5"), "{config}");
 
     let judge = json(&runs.join("judge.json"));
     for task in ["drawer-open-v3", "button-press-topdown-v3"] {
@@ -133,6 +139,8 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
         assert!(r["judged_simulator"].as_f64().is_some_and(|v| (0.0..=1.0).contains(&v)), "{r}");
     }
     assert_eq!(study["all"]["n"], 4, "{study}");
+    let flags: Vec<&str> = study["world_model_flags"].as_array().unwrap().iter().filter_map(Value::as_str).collect();
+    assert!(flags.windows(2).any(|w| w == ["--guidance", "1.5"]), "{flags:?}");
     assert_eq!(study["per_episode"]["n"], 4, "one episode per rate, each paired with its truth: {study}");
     for r in rates {
         let e = &r["per_episode"];

@@ -60,6 +60,8 @@ TRAIN_SETS="${TRAIN_SETS:-}"              # more `--set KEY=VALUE` for bwm train
 SAMPLE_STEPS="${SAMPLE_STEPS:-4}"         # sampler steps per generated chunk (the sweep's pick, docs/fidelity.md run 15)
 SOLVER="${SOLVER:-euler}"                 # euler or dpm++2m (bwm --solver)
 FP8="${FP8:-}"                            # tensor or row: the DiT blocks' linears in FP8 (bwm --fp8); default off
+GUIDANCE="${GUIDANCE:-1}"                 # bwm --guidance: classifier-free guidance by the actions (1 = off; other
+                                          # values need TRAIN_SETS=objective.action_dropout=P with P > 0)
 JUDGE_STEPS="${JUDGE_STEPS:-600}"
 STUDY_EPISODES="${STUDY_EPISODES:-50}"    # per task and variant, the first held-out episodes
 STUDY_JOBS="${STUDY_JOBS:-8}"             # bwm evaluate processes at once
@@ -137,7 +139,7 @@ fi
 world_model() {
   local ckpt="$RUN/checkpoints/$(cat "$RUN/checkpoints/latest")"
   WM=(--checkpoint "$ckpt" --vae "$RUN/vae.safetensors" --stats "$RUN/latents/stat.json" --stats-group observation.state
-      --history 8 --future 24 --sample-steps "$SAMPLE_STEPS" --solver "$SOLVER" ${FP8:+--fp8 "$FP8"} --device "$DEVICE")
+      --history 8 --future 24 --sample-steps "$SAMPLE_STEPS" --solver "$SOLVER" --guidance "$GUIDANCE" ${FP8:+--fp8 "$FP8"} --device "$DEVICE")
 }
 
 if wants fidelity; then

@@ -68,6 +68,11 @@ pub struct WorldModelArgs {
     /// Noise level of the history latents (default: the training level, 0.2083); 0 turns it off.
     #[arg(long)]
     pub history_sigma: Option<f64>,
+    /// Classifier-free guidance by the actions: each step's velocity is v_null + w (v_actions -
+    /// v_null), at two model evaluations per step. 1 (default) is off; other values need a model
+    /// trained with `objective.action_dropout` > 0.
+    #[arg(long, default_value_t = 1.0)]
+    pub guidance: f64,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// The DiT blocks' linear layers in FP8 (e4m3, activations scaled on each call): tensor (one
@@ -95,6 +100,7 @@ impl WorldModelArgs {
             shift: self.shift,
             solver: self.solver,
             history_sigma: self.history_sigma,
+            guidance: self.guidance,
             seed: self.seed,
             fp8: self.fp8,
         }

@@ -79,7 +79,7 @@ pub fn run(args: &DemoOptions) -> Result<()> {
     let schedule = FlowSchedule::inference(args.steps, 5.0);
     println!("sampling {} latent frames ({cond} condition + {fut} future) with {} Euler steps:", cond + fut, args.steps);
     let out = tch::no_grad(|| {
-        sample_chunk(&model, &prefix, &noise, &actions, &schedule, &mut |i, _, v| {
+        sample_chunk(&model, &prefix, &noise, &actions, &schedule, 1.0, &mut |i, _, v| {
             let future_v = v.narrow(2, cond, fut);
             println!(
                 "  step {:>2}: t = {:7.2}  sigma = {:.4}  |v_future| rms = {:.4}",

@@ -110,7 +110,7 @@ pub fn run(options: &WorldModelOptions, a: &FidelityOptions) -> Result<()> {
         "resize": format!("{:?}", a.resize),
         "max_frames": a.max_frames,
         "episodes": episodes,
-        "spec": { "history": wm.spec.history, "future": wm.spec.future, "steps": wm.spec.steps, "solver": wm.spec.solver.to_string(), "seed": wm.spec.seed, "history_sigma": wm.spec.history_sigma },
+        "spec": { "history": wm.spec.history, "future": wm.spec.future, "steps": wm.spec.steps, "solver": wm.spec.solver.to_string(), "guidance": wm.spec.guidance, "seed": wm.spec.seed, "history_sigma": wm.spec.history_sigma },
     });
     let episodes_path = a.out.join("episodes.jsonl");
     let mut done = earlier_episodes(&a.out, &run_key)?;
@@ -234,6 +234,7 @@ pub fn run(options: &WorldModelOptions, a: &FidelityOptions) -> Result<()> {
         "future": wm.spec.future,
         "sample_steps": wm.spec.steps,
         "solver": wm.spec.solver.to_string(),
+        "guidance": wm.spec.guidance,
         "seed": wm.spec.seed,
         "fp8": wm.fp8.map(|s| s.to_string()),
         "tasks": tasks,

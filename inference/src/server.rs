@@ -102,6 +102,7 @@ struct ModelInfo {
     future: usize,
     sample_steps: usize,
     solver: String,
+    guidance: f64,
     stats: bool,
 }
 
@@ -168,6 +169,7 @@ pub fn serve(wm: &WorldModelOptions, a: &ServeOptions) -> Result<()> {
                 future: wm.spec.future,
                 sample_steps: wm.spec.steps,
                 solver: wm.spec.solver.to_string(),
+                guidance: wm.spec.guidance,
                 stats: wm.stats.is_some(),
             };
             if ready_tx.send(Ok(info)).is_err() {
@@ -402,6 +404,7 @@ fn health(shared: &Shared) -> String {
         "future": i.future,
         "sample_steps": i.sample_steps,
         "solver": i.solver,
+        "guidance": i.guidance,
         "stats": i.stats,
         "queue_depth": c.pending.load(Ordering::SeqCst).saturating_sub(usize::from(c.busy.load(Ordering::SeqCst))),
         "queue_capacity": shared.queue_capacity,
@@ -672,6 +675,7 @@ mod tests {
             future: 4,
             sample_steps: 1,
             solver: "euler".into(),
+            guidance: 1.0,
             stats: false,
         }
     }

@@ -53,6 +53,8 @@ pub struct WorldModelOptions {
     pub solver: Solver,
     /// Noise level of the history latents (None: the training level, 0.2083); 0 turns it off.
     pub history_sigma: Option<f64>,
+    /// Classifier-free guidance by the actions (1: off; see `sample_chunk`).
+    pub guidance: f64,
     pub seed: u64,
     /// The DiT blocks' linear layers in FP8 with this scaling (None: the weights' dtype).
     pub fp8: Option<Fp8Scaling>,
@@ -77,6 +79,7 @@ impl Default for WorldModelOptions {
             shift: bwm_model::schedule::DEFAULT_SHIFT,
             solver: Solver::Euler,
             history_sigma: None,
+            guidance: 1.0,
             seed: 0,
             fp8: None,
         }
@@ -116,9 +119,10 @@ impl WorldModelOptions {
             shift: self.shift,
             solver: self.solver,
             history_sigma: (sigma > 0.0).then_some(sigma),
+            guidance: self.guidance,
             seed: self.seed,
         };
-        spec.validate().context("rollout settings (--history/--future/--sample-steps/--shift/--history-sigma)")?;
+        spec.validate().context("rollout settings (--history/--future/--sample-steps/--shift/--history-sigma/--guidance)")?;
         Ok(spec)
     }
 

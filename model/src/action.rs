@@ -25,6 +25,19 @@ pub struct ActionEmbedding {
     pub frame: Tensor,
 }
 
+impl ActionEmbedding {
+    /// The embedding with every sample whose `keep` [B] entry is 0 given the null condition: no
+    /// action tokens to attend to (zero context) and no per-frame action term. Training on it for a
+    /// share of samples (`train.action_dropout`) teaches the model the action-free prediction that
+    /// classifier-free guidance contrasts with.
+    pub fn keep(&self, keep: &Tensor) -> Result<ActionEmbedding> {
+        let b = self.context.size()[0];
+        ensure!(keep.size() == [b], "the action keep mask must be [{b}], got {:?}", keep.size());
+        let mask = |t: &Tensor| t * keep.to_device(t.device()).to_kind(t.kind()).view([b, 1, 1]);
+        Ok(ActionEmbedding { context: mask(&self.context), frame: mask(&self.frame) })
+    }
+}
+
 impl ActionEncoder {
     pub fn new(vb: &Vb, cfg: &ActionConfig, dim: i64) -> Result<Self> {
         cfg.validate()?;

@@ -6,7 +6,7 @@ use std::rc::Rc;
 use anyhow::{ensure, Result};
 use tch::{Device, Kind, Tensor};
 
-use crate::action::ActionEncoder;
+use crate::action::{ActionEmbedding, ActionEncoder};
 use crate::config::ModelConfig;
 use crate::dit::WanDit;
 use crate::vb::ParamStore;
@@ -67,6 +67,30 @@ impl BwmModel {
         self.forward_traced(latents, frame_timesteps, actions, &mut |_, _| {})
     }
 
+    /// As `forward`, the samples whose `keep` [B] entry is 0 given the null action condition
+    /// (`ActionEmbedding::keep`); `keep` None conditions every sample.
+    pub fn forward_keeping(&self, latents: &Tensor, frame_timesteps: &Tensor, actions: &Tensor, keep: Option<&Tensor>) -> Result<Tensor> {
+        let emb = self.embed_actions(latents, actions, keep)?;
+        self.dit.forward_traced(latents, frame_timesteps, Some(&emb.frame), &emb.context, &mut |_, _| {})
+    }
+
+    /// The action embedding of `actions` for `latents`, checked to cover its latent frames, with
+    /// the null condition where `keep` is 0.
+    pub fn embed_actions(&self, latents: &Tensor, actions: &Tensor, keep: Option<&Tensor>) -> Result<ActionEmbedding> {
+        let emb = self.action_encoder.forward(actions)?;
+        let action_frames = emb.frame.size()[1];
+        let (latent_frames, _, _) = self.dit.token_grid(latents)?;
+        ensure!(
+            action_frames == latent_frames,
+            "actions for {} pixel frames cover {action_frames} latent frames, but the latents have {latent_frames}",
+            actions.size()[1]
+        );
+        match keep {
+            Some(k) => emb.keep(k),
+            None => Ok(emb),
+        }
+    }
+
     /// As `forward`, showing intermediates to `trace` (`action_context`, `action_mod`, then the
     /// DiT's).
     pub fn forward_traced(
@@ -76,14 +100,7 @@ impl BwmModel {
         actions: &Tensor,
         trace: &mut dyn FnMut(&str, &Tensor),
     ) -> Result<Tensor> {
-        let emb = self.action_encoder.forward(actions)?;
-        let action_frames = emb.frame.size()[1];
-        let (latent_frames, _, _) = self.dit.token_grid(latents)?;
-        ensure!(
-            action_frames == latent_frames,
-            "actions for {} pixel frames cover {action_frames} latent frames, but the latents have {latent_frames}",
-            actions.size()[1]
-        );
+        let emb = self.embed_actions(latents, actions, None)?;
         trace("action_context", &emb.context);
         trace("action_mod", &emb.frame);
         self.dit.forward_traced(latents, frame_timesteps, Some(&emb.frame), &emb.context, trace)

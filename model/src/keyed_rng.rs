@@ -18,6 +18,7 @@ pub enum Purpose {
     RolloutNoise = 7,
     RolloutHistoryNoise = 8,
     LoraInit = 9,
+    ActionDropout = 10,
 }
 
 pub fn rng(seed: u64, index: u64, purpose: Purpose) -> ChaCha12Rng {

@@ -35,13 +35,15 @@ pub struct RolloutSpec {
     pub solver: Solver,
     /// Noise level of the history latents in the prefix (drawn once per chunk); None: clean.
     pub history_sigma: Option<f64>,
+    /// Classifier-free guidance by the actions (`sample_chunk`); 1: off.
+    pub guidance: f64,
     pub seed: u64,
 }
 
 impl RolloutSpec {
     /// BWM defaults: 50 steps, shift 5, history noise 0.2083.
     pub fn new(history: usize, future: usize) -> Self {
-        Self { history, future, steps: 50, shift: DEFAULT_SHIFT, solver: Solver::Euler, history_sigma: Some(default_history_sigma()), seed: 0 }
+        Self { history, future, steps: 50, shift: DEFAULT_SHIFT, solver: Solver::Euler, history_sigma: Some(default_history_sigma()), guidance: 1.0, seed: 0 }
     }
 
     pub fn validate(&self) -> Result<()> {
@@ -49,6 +51,7 @@ impl RolloutSpec {
         ensure!(self.history % 4 == 0, "rollout history {} must be a multiple of 4", self.history);
         ensure!(self.steps > 0, "rollout needs at least one sampler step");
         ensure!(self.shift > 0.0, "sampler shift {} must be positive", self.shift);
+        ensure!(self.guidance.is_finite() && self.guidance >= 0.0, "action guidance {} must be finite and >= 0", self.guidance);
         if let Some(s) = self.history_sigma {
             ensure!((0.0..=1.0).contains(&s), "history sigma {s} must lie in [0, 1]");
         }
@@ -253,7 +256,7 @@ impl<'m> Rollout<'m> {
         )
         .to_device(device);
         let start = Instant::now();
-        let latents = tch::no_grad(|| sample_chunk(model, &prefix.to_kind(kind), &noise.to_kind(kind), &all_actions, &first.schedule, on_step))?;
+        let latents = tch::no_grad(|| sample_chunk(model, &prefix.to_kind(kind), &noise.to_kind(kind), &all_actions, &first.schedule, first.spec.guidance, on_step))?;
         sync();
         let dit_seconds = start.elapsed().as_secs_f64();
 

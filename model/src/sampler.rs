@@ -3,22 +3,27 @@
 //! stepped by the schedule's solver (Euler unless chosen otherwise).
 
 use anyhow::{ensure, Result};
-use tch::Tensor;
+use tch::{Kind, Tensor};
 
 use crate::bwm::{frame_timesteps, BwmModel};
 use crate::schedule::FlowSchedule;
 
 /// Samples latents [B, C, F, H, W] from `noise` of that shape. `prefix` [B, C, P, H, W] holds the
-/// condition latents (timestep 0); `actions` [B, 1+4k, d_a]. `on_step(i, model_input, velocity)` sees
-/// each step.
+/// condition latents (timestep 0); `actions` [B, 1+4k, d_a]. `guidance` w is classifier-free
+/// guidance by the actions: the velocity is v_null + w (v_actions - v_null), v_null the model's
+/// under the null action condition (a model trained with `objective.action_dropout`); 1 is the
+/// plain conditional velocity at one model evaluation per step, other values cost two.
+/// `on_step(i, model_input, velocity)` sees each step.
 pub fn sample_chunk(
     model: &BwmModel,
     prefix: &Tensor,
     noise: &Tensor,
     actions: &Tensor,
     schedule: &FlowSchedule,
+    guidance: f64,
     on_step: &mut dyn FnMut(usize, &Tensor, &Tensor),
 ) -> Result<Tensor> {
+    ensure!(guidance.is_finite() && guidance >= 0.0, "action guidance {guidance} must be finite and >= 0");
     let (ps, ns) = (prefix.size(), noise.size());
     ensure!(
         ps.len() == 5 && ns.len() == 5 && ps[0] == ns[0] && ps[1] == ns[1] && ps[3..] == ns[3..] && ps[2] < ns[2],
@@ -31,7 +36,16 @@ pub fn sample_chunk(
     for i in 0..schedule.len() {
         latents = Tensor::cat(&[prefix.shallow_clone(), latents.narrow(2, p, future)], 2);
         let t = Tensor::full([b], schedule.timesteps[i], (tch::Kind::Float, noise.device()));
-        let v = model.forward(&latents, &frame_timesteps(&t, frames, p), actions)?;
+        let ft = frame_timesteps(&t, frames, p);
+        let v = if guidance == 1.0 {
+            model.forward(&latents, &ft, actions)?
+        } else {
+            // One batch of 2B: the conditional half, then the null half.
+            let keep = Tensor::cat(&[Tensor::ones([b], (Kind::Float, noise.device())), Tensor::zeros([b], (Kind::Float, noise.device()))], 0);
+            let both = model.forward_keeping(&Tensor::cat(&[&latents, &latents], 0), &Tensor::cat(&[&ft, &ft], 0), &Tensor::cat(&[actions, actions], 0), Some(&keep))?;
+            let (cond, null) = (both.narrow(0, 0, b), both.narrow(0, b, b));
+            &null + (&cond - &null) * guidance
+        };
         on_step(i, &latents, &v);
         latents = stepper.step(&latents, &v, i);
     }

@@ -236,3 +236,48 @@ fn bf16_model_rolls_out_finite_frames_close_to_f32() {
     let diff = (&a[0].0 - &b[0].0).abs().mean(Kind::Float).double_value(&[]);
     assert!(diff < 0.05, "bf16 vs f32 mean abs pixel difference {diff}");
 }
+
+#[test]
+fn action_guidance_blends_the_conditional_and_null_velocities() {
+    use bwm_model::sampler::sample_chunk;
+    use bwm_model::schedule::FlowSchedule;
+    let (model, _) = parts(Kind::Float);
+    let d = model.cfg.action.action_dim;
+    let draw = |shape: &[i64], key: u64| keyed_rng::normal(shape, 12, key, Purpose::Augment);
+    // Two samples, x0 + 1 history latent + 2 future latents of 4x4: 1 + 4*3 = 13 action frames.
+    let latents = draw(&[2, 48, 4, 4, 4], 0);
+    let t = Tensor::from_slice(&[500.0f32, 500.0]);
+    let ft = bwm_model::bwm::frame_timesteps(&t, 4, 2);
+    let (actions, other) = (draw(&[2, 13, d], 1).tanh(), draw(&[2, 13, d], 2).tanh());
+
+    // The null condition: what a dropped sample trains on, independent of its actions.
+    let v = |a: &Tensor, keep: Option<&Tensor>| tch::no_grad(|| model.forward_keeping(&latents, &ft, a, keep).unwrap());
+    let all = Tensor::from_slice(&[1.0f32, 1.0]);
+    let none = Tensor::from_slice(&[0.0f32, 0.0]);
+    let mixed = Tensor::from_slice(&[1.0f32, 0.0]);
+    let plain = tch::no_grad(|| model.forward(&latents, &ft, &actions).unwrap());
+    assert!(v(&actions, Some(&all)).equal(&plain), "keeping every sample is the plain forward");
+    assert!(v(&actions, None).equal(&plain));
+    assert!(!v(&other, None).allclose(&plain, 1e-5, 1e-5, false), "the conditional velocity follows the actions");
+    let null = v(&actions, Some(&none));
+    assert!(v(&other, Some(&none)).allclose(&null, 1e-6, 1e-6, false), "the null velocity ignores the actions");
+    assert!(!null.allclose(&plain, 1e-5, 1e-5, false));
+    let m = v(&actions, Some(&mixed));
+    assert!(m.get(0).allclose(&plain.get(0), 1e-5, 1e-5, false) && m.get(1).allclose(&null.get(1), 1e-5, 1e-5, false), "per sample");
+
+    // One Euler step is affine in the velocity, so the guided chunks lie on a line in w; w = 0
+    // samples from the null condition alone.
+    let prefix = latents.narrow(2, 0, 2);
+    let noise = draw(&[2, 48, 4, 4, 4], 3);
+    let schedule = FlowSchedule::inference(1, 5.0);
+    let chunk = |a: &Tensor, w: f64| tch::no_grad(|| sample_chunk(&model, &prefix, &noise, a, &schedule, w, &mut |_, _, _| {}).unwrap());
+    let (c0, c1, c2) = (chunk(&actions, 0.0), chunk(&actions, 1.0), chunk(&actions, 2.5));
+    assert!((&c2 - &c1).allclose(&((&c1 - &c0) * 1.5), 1e-4, 1e-5, false), "v_null + w (v_cond - v_null)");
+    assert!(!c2.allclose(&c1, 1e-5, 1e-5, false));
+    assert!(chunk(&other, 0.0).allclose(&c0, 1e-5, 1e-5, false), "w = 0 ignores the actions");
+    assert!(c1.narrow(2, 0, 2).equal(&prefix) && c2.narrow(2, 0, 2).equal(&prefix), "the prefix stays fixed");
+    let e = sample_chunk(&model, &prefix, &noise, &actions, &schedule, -1.0, &mut |_, _, _| {}).unwrap_err().to_string();
+    assert!(e.contains("guidance"), "{e}");
+    let e = RolloutSpec { guidance: f64::NAN, ..spec(4, 4, 0) }.validate().unwrap_err().to_string();
+    assert!(e.contains("guidance"), "{e}");
+}

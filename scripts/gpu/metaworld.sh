@@ -16,7 +16,8 @@
 # the last started before minute 30 (run 12 of docs/fidelity.md). SKIP_FIDELITY=1 leaves out
 # the fidelity stage (which otherwise runs beside the study and slows it); SKIP_PROBE=1 the probe
 # (graded `wrong` variants, after the study). COMPARE_SOLVER=dpm++2m studies the same model a
-# second time with that sampler (runs/metaworld/study-dpm++2m).
+# second time with that sampler ($RUN/study-dpm++2m); COMPARE_GUIDANCE="2 3" once more per
+# action-guidance value ($RUN/study-g2, ...; the model trained with objective.action_dropout > 0).
 # `bash scripts/gpu/metaworld.sh transfer` runs bench/metaworld/transfer.sh (the base-versus-scratch
 # study of the LoRA issue; its variables apply) instead, its small outputs in $OUT/run.tar.gz;
 # `bash scripts/gpu/metaworld.sh sweep` runs bench/metaworld/sweep.sh (the real-time issue's sampler
@@ -86,9 +87,14 @@ else
     recipe ceiling > "$OUT/ceiling.log" 2>&1 & ceiling=$!
     recipe study 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
     if [ $status = 0 ] && [ -n "${COMPARE_SOLVER:-}" ]; then
-      SOLVER=$COMPARE_SOLVER STUDY_DIR=runs/metaworld/study-$COMPARE_SOLVER recipe study 2>&1 | tee -a "$OUT/recipe.log"
+      SOLVER=$COMPARE_SOLVER STUDY_DIR=$R/study-$COMPARE_SOLVER recipe study 2>&1 | tee -a "$OUT/recipe.log"
       [ "${PIPESTATUS[0]}" = 0 ] || status=1
     fi
+    for w in ${COMPARE_GUIDANCE:-}; do
+      [ $status = 0 ] || break
+      GUIDANCE=$w STUDY_DIR=$R/study-g$w recipe study 2>&1 | tee -a "$OUT/recipe.log"
+      [ "${PIPESTATUS[0]}" = 0 ] || status=1
+    done
     if [ $status = 0 ] && [ "${SKIP_PROBE:-0}" != 1 ]; then
       recipe probe 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
     fi

@@ -2,10 +2,13 @@
 # Variants of the Meta-World recipe side by side on one lent machine (device tool), from the repo
 # root, with the carry of scripts/gpu/metaworld.sh:
 #   bash scripts/gpu/variants.sh NAME "VAR=VALUE ..." [NAME "VAR=VALUE ..." ...]
-# The data and the judge are made once (runs/metaworld); each variant then runs
-# scripts/gpu/metaworld.sh in runs/NAME (its data and judge.pt linked to those) with its variables,
-# on GPU i mod the machine's GPU count for the i-th variant, all at once. STAGES (default: every
-# stage) picks stages, e.g. STAGES="vae ceiling" compares VAEs alone. Each variant's log and
+# The data are made once (runs/metaworld); each variant then runs scripts/gpu/metaworld.sh in
+# runs/NAME (its data linked to those) with its variables, on GPU i mod the machine's GPU count for
+# the i-th variant, all at once; each trains its judge beside its VAE, as the recipe does (a judge
+# made first for all would hold every variant back by its 2 minutes). With STAGES (default: every
+# stage) picking stages, e.g. STAGES="vae ceiling" to compare VAEs alone, one judge is made first
+# for all and linked into each variant's folder. In "VAR=VALUE ...", a word that is not NAME=...
+# continues the value before it ("TRAIN_SETS=a=1 b=2" is one variable). Each variant's log and
 # outputs go to $OUT/NAME (its run.tar.gz holds the run's small files). Longer than one call:
 #   bash scripts/gpu/detached.sh start v bash scripts/gpu/variants.sh s8 "VAE_STRIDE=8" ...
 #   bash scripts/gpu/detached.sh wait v 570 runs/s8/study ...   (back to back)
@@ -15,7 +18,9 @@ set -uo pipefail -f  # -f: a variant's TRAIN_SETS holds brackets, not globs
 cd "$(dirname "$0")/../.."
 OUT=${OUT:-/tmp/out}
 mkdir -p "$OUT"
-bash scripts/gpu/metaworld.sh data judge > "$OUT/shared.log" 2>&1 || { echo "variants: data or judge failed ($OUT/shared.log)"; exit 1; }
+shared=(data)
+[ -n "${STAGES:-}" ] && shared+=(judge)
+bash scripts/gpu/metaworld.sh "${shared[@]}" > "$OUT/shared.log" 2>&1 || { echo "variants: ${shared[*]} failed ($OUT/shared.log)"; exit 1; }
 gpus=$(nvidia-smi -L | wc -l)
 i=0 pids=() names=()
 while [ $# -gt 0 ]; do
@@ -23,10 +28,19 @@ while [ $# -gt 0 ]; do
   case "$name" in metaworld|*/*|"") echo "variants: '$name' cannot name a run folder" >&2; exit 2 ;; esac
   mkdir -p "runs/$name" "$OUT/$name"
   ln -sfn "$PWD/runs/metaworld/data" "runs/$name/data"
-  ln -sfn "$PWD/runs/metaworld/judge.pt" "runs/$name/judge.pt"
-  echo "variants: $name on GPU $((i % gpus)): $vars"
-  # shellcheck disable=SC2086  # the variables are words by design
-  env CUDA_VISIBLE_DEVICES=$((i % gpus)) RUN="runs/$name" OUT="$OUT/$name" $vars \
+  [ -n "${STAGES:-}" ] && ln -sfn "$PWD/runs/metaworld/judge.pt" "runs/$name/judge.pt"
+  # Words split on blanks; one not of the form NAME=... continues the variable before it, so that
+  # "TRAIN_SETS=a=1 b=2" sets TRAIN_SETS to "a=1 b=2".
+  assign=()
+  for w in $vars; do
+    if [[ $w =~ ^[A-Z_][A-Z0-9_]*= ]]; then assign+=("$w")
+    elif [ ${#assign[@]} -gt 0 ]; then assign[-1]+=" $w"
+    else echo "variants: '$vars' must start with NAME=VALUE" >&2; exit 2
+    fi
+  done
+  echo "variants: $name on GPU $((i % gpus)):$(printf ' [%s]' "${assign[@]}")"
+  # shellcheck disable=SC2086  # STAGES are words by design
+  env CUDA_VISIBLE_DEVICES=$((i % gpus)) RUN="runs/$name" OUT="$OUT/$name" "${assign[@]}" \
     bash scripts/gpu/metaworld.sh ${STAGES:-} > "$OUT/$name/log" 2>&1 &
   pids+=($!) names+=("$name") i=$((i + 1))
 done

@@ -186,6 +186,11 @@ pub struct ObjectiveSection {
     /// Condition latents (x0 + history): 1 + H/4; the loss covers the latents after them.
     #[serde(default = "default_condition_latents")]
     pub condition_latents: i64,
+    /// Share of samples trained with the null action condition (no action tokens, no per-frame
+    /// action term), so that sampling can guide by actions (`--guidance`, classifier-free
+    /// guidance); 0: every sample sees its actions (the BWM release).
+    #[serde(default)]
+    pub action_dropout: f64,
 }
 
 fn default_sampling() -> TimestepSampling {
@@ -205,6 +210,7 @@ impl Default for ObjectiveSection {
             shift: default_shift(),
             history_sigma: None,
             condition_latents: default_condition_latents(),
+            action_dropout: 0.0,
         }
     }
 }
@@ -381,6 +387,10 @@ pub struct ValidationSection {
     /// How the validation sampler steps: "euler" or "dpm++2m".
     #[serde(default)]
     pub solver: bwm_model::schedule::Solver,
+    /// Classifier-free guidance by the actions in the validation rollout (1 = off; other values
+    /// need a model trained with `objective.action_dropout`).
+    #[serde(default = "default_guidance")]
+    pub guidance: f64,
     /// VAE to decode rollouts into pixels for PSNR/SSIM and the frame strip: a `bwm train-vae`
     /// output or the published Wan2.2 VAE (`.pth` or safetensors).
     #[serde(default)]
@@ -390,10 +400,13 @@ pub struct ValidationSection {
 fn default_sample_steps() -> usize {
     10
 }
+fn default_guidance() -> f64 {
+    1.0
+}
 
 impl Default for ValidationSection {
     fn default() -> Self {
-        Self { every: 0, sample_steps: default_sample_steps(), solver: Default::default(), vae: None }
+        Self { every: 0, sample_steps: default_sample_steps(), solver: Default::default(), guidance: default_guidance(), vae: None }
     }
 }
 
@@ -454,6 +467,16 @@ impl RunConfig {
         if let Some(s) = self.objective.history_sigma {
             ensure!((0.0..=1.0).contains(&s), "objective.history_sigma must lie in [0, 1], got {s}");
         }
+        ensure!(
+            self.validation.guidance.is_finite() && self.validation.guidance >= 0.0,
+            "validation.guidance must be finite and >= 0, got {}",
+            self.validation.guidance
+        );
+        ensure!(
+            (0.0..1.0).contains(&self.objective.action_dropout),
+            "objective.action_dropout must lie in [0, 1), got {}",
+            self.objective.action_dropout
+        );
         if let TimestepSampling::LogitNormal { std, .. } = self.objective.timestep_sampling {
             ensure!(std > 0.0, "objective.timestep_sampling.std must be positive");
         }

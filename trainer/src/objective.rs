@@ -16,6 +16,7 @@ pub struct Objective {
     pub condition_latents: i64,
     pub sampling: TimestepSampling,
     pub seed: u64,
+    pub action_dropout: f64,
 }
 
 /// Everything random about one sample.
@@ -23,6 +24,8 @@ pub struct Draw {
     pub timestep_index: usize,
     pub noise: Tensor,
     pub history_noise: Tensor,
+    /// Whether the sample sees its actions (false: the null condition, `objective.action_dropout`).
+    pub keep_actions: bool,
 }
 
 /// A batch ready for the model.
@@ -39,7 +42,7 @@ impl Objective {
     pub fn new(cfg: &ObjectiveSection, seed: u64) -> Self {
         let schedule = FlowSchedule::training(bwm_model::schedule::NUM_TRAIN_TIMESTEPS, cfg.shift);
         let history_sigma = cfg.history_sigma.unwrap_or_else(|| schedule.history_sigma());
-        Self { schedule, history_sigma, condition_latents: cfg.condition_latents, sampling: cfg.timestep_sampling, seed }
+        Self { schedule, history_sigma, condition_latents: cfg.condition_latents, sampling: cfg.timestep_sampling, seed, action_dropout: cfg.action_dropout }
     }
 
     /// The grid index of sample `index`'s timestep.
@@ -67,6 +70,7 @@ impl Objective {
             timestep_index: self.timestep_index(index),
             noise: keyed_rng::normal(latent_shape, self.seed, index, Purpose::Noise),
             history_noise: keyed_rng::normal(latent_shape, self.seed, index, Purpose::HistoryNoise),
+            keep_actions: self.action_dropout == 0.0 || keyed_rng::uniform(self.seed, index, Purpose::ActionDropout) >= self.action_dropout,
         }
     }
 

@@ -69,25 +69,19 @@ pub fn forward_backward(
     latents: &Tensor,
     frame_timesteps: &Tensor,
     actions: &Tensor,
+    action_keep: Option<&Tensor>,
     recompute: Recompute,
     loss_fn: &dyn Fn(&Tensor) -> Tensor,
     sink: &mut dyn BlockGradSink,
 ) -> Result<Tensor> {
     let Recompute::Blocks { keep_last } = recompute else {
-        let prediction = model.forward(latents, frame_timesteps, actions)?;
+        let prediction = model.forward_keeping(latents, frame_timesteps, actions, action_keep)?;
         let loss = loss_fn(&prediction);
         loss.f_backward()?;
         return Ok(loss.detach());
     };
 
-    let emb = model.action_encoder.forward(actions)?;
-    let (latent_frames, _, _) = model.dit.token_grid(latents)?;
-    anyhow::ensure!(
-        emb.frame.size()[1] == latent_frames,
-        "actions for {} pixel frames cover {} latent frames, but the latents have {latent_frames}",
-        actions.size()[1],
-        emb.frame.size()[1]
-    );
+    let emb = model.embed_actions(latents, actions, action_keep)?;
     let (tokens, cond) = model.dit.prepare(latents, frame_timesteps, Some(&emb.frame), &emb.context)?;
     let Conditioning { e, e0, context, rope, grid } = cond;
     let leaf = |t: &Tensor| t.detach().set_requires_grad(true);

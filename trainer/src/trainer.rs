@@ -369,7 +369,7 @@ impl Trainer {
             let last_micro = micro + 1 == accum && world > 1 && cfg.train.overlap_grad_reduce;
             let mut sink = BlockAccumulators { opt: &mut self.opt, blocks: &self.block_params, reduce: last_micro.then_some(self.comm.as_mut()) };
             // The mean loss it returns is the mean of `per_sample`, read below.
-            let _ = forward_backward(&self.model, &input, &prepared.frame_timesteps, &batch.actions, recompute, &loss_fn, &mut sink)?;
+            let _ = forward_backward(&self.model, &input, &prepared.frame_timesteps, &batch.actions, batch.action_keep.as_ref(), recompute, &loss_fn, &mut sink)?;
             sample_losses.push(per_sample.into_inner().context("the loss function did not run")?.to_kind(Kind::Float));
             tids.extend(batch.tids);
             self.opt.collect_grads();
@@ -464,6 +464,10 @@ impl Trainer {
             actions: actions.to_device(d),
             noise: Tensor::from_slice(&staged.noise).view(shape.as_slice()).to_device(d),
             history_noise: Tensor::from_slice(&staged.history_noise).view(shape.as_slice()).to_device(d),
+            action_keep: (self.objective.action_dropout > 0.0).then(|| {
+                let keep: Vec<f32> = staged.keep_actions.iter().map(|&k| if k { 1.0 } else { 0.0 }).collect();
+                Tensor::from_slice(&keep).to_device(d)
+            }),
             tids: staged.tids,
         })
     }
@@ -652,6 +656,8 @@ struct Batch {
     actions: Tensor,
     noise: Tensor,
     history_noise: Tensor,
+    /// [B]: 1 where the sample sees its actions, 0 for the null condition; None: all see them.
+    action_keep: Option<Tensor>,
     tids: Vec<usize>,
 }
 
@@ -679,18 +685,20 @@ struct Staged {
     clips: ClipBatch,
     noise: Vec<f32>,
     history_noise: Vec<f32>,
+    keep_actions: Vec<bool>,
     tids: Vec<usize>,
 }
 
 /// The clips and the per-sample draws of global samples `indices`.
 fn stage_batch(cache: &LatentCache, objective: &Objective, seed: u64, train_clips: usize, indices: &[u64]) -> Result<Staged> {
     let clips: Vec<usize> = indices.iter().map(|&g| clip_for_sample(seed, g, train_clips)).collect();
-    let mut staged = Staged { clips: load_clips(cache, &clips)?, noise: Vec::new(), history_noise: Vec::new(), tids: Vec::new() };
+    let mut staged = Staged { clips: load_clips(cache, &clips)?, noise: Vec::new(), history_noise: Vec::new(), keep_actions: Vec::new(), tids: Vec::new() };
     for &g in indices {
         let draw = objective.draw(g, &cache.index.latent_shape);
         staged.noise.extend(Vec::<f32>::try_from(draw.noise.view([-1]))?);
         staged.history_noise.extend(Vec::<f32>::try_from(draw.history_noise.view([-1]))?);
         staged.tids.push(draw.timestep_index);
+        staged.keep_actions.push(draw.keep_actions);
     }
     Ok(staged)
 }

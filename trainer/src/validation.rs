@@ -56,7 +56,7 @@ impl ValidationReport {
 }
 
 /// Predicted latents of one clip: condition prefix (clean x0, history perturbed with a fixed
-/// draw) re-imposed at each of `steps` Euler steps from keyed noise.
+/// draw) re-imposed at each of `steps` sampler steps from keyed noise.
 pub fn rollout_clip(run: &(impl ValidationRun + ?Sized), clean: &Tensor, actions: &Tensor, key: u64, steps: usize) -> Result<Tensor> {
     rollout_clips(run, clean, actions, &[key], steps)
 }
@@ -79,7 +79,7 @@ pub fn rollout_clips(run: &(impl ValidationRun + ?Sized), clean: &Tensor, action
     let schedule = FlowSchedule::inference(steps, run.config().objective.shift).with_solver(run.config().validation.solver);
     let kind = run.model().store.kind();
     let out = tch::no_grad(|| {
-        sample_chunk(run.model(), &prefix.to_kind(kind), &noise.to_kind(kind), actions, &schedule, &mut |_, _, _| {})
+        sample_chunk(run.model(), &prefix.to_kind(kind), &noise.to_kind(kind), actions, &schedule, run.config().validation.guidance, &mut |_, _, _| {})
     })?;
     Ok(out.to_kind(Kind::Float))
 }

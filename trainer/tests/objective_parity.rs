@@ -55,7 +55,7 @@ fn model_input_and_loss_match_the_reference() {
     for (_, w) in model.store.named_parameters() {
         let _ = w.set_requires_grad(true);
     }
-    let recomputed = bwm_trainer::recompute::forward_backward(&model, &p.input, &p.frame_timesteps, &t["actions"], bwm_trainer::recompute::Recompute::Blocks { keep_last: 0 }, &|v| objective.loss(v, &p), &mut bwm_trainer::recompute::GradsInParams::default())
+    let recomputed = bwm_trainer::recompute::forward_backward(&model, &p.input, &p.frame_timesteps, &t["actions"], None, bwm_trainer::recompute::Recompute::Blocks { keep_last: 0 }, &|v| objective.loss(v, &p), &mut bwm_trainer::recompute::GradsInParams::default())
         .unwrap();
     assert!(rel(&recomputed.reshape([1]), &t["loss"]) < 1e-5);
 }

@@ -132,7 +132,7 @@ fn recomputation_gives_the_same_gradients() {
         }
     }
     let named: Vec<(String, Tensor)> = t.opt.params.iter().map(|q| (q.name.clone(), q.param.shallow_clone())).collect();
-    let grads = |recompute: Recompute, capture: bool| -> (f64, Vec<Tensor>) {
+    let grads = |recompute: Recompute, keep: Option<&Tensor>, capture: bool| -> (f64, Vec<Tensor>) {
         for q in &t.opt.params {
             let mut g = q.param.grad();
             if g.defined() {
@@ -140,7 +140,7 @@ fn recomputation_gives_the_same_gradients() {
             }
         }
         let run = |sink: &mut dyn BlockGradSink| {
-            forward_backward(&t.model, &p.input, &p.frame_timesteps, &actions, recompute, &|pred| t.objective.loss(pred, &p), sink).unwrap()
+            forward_backward(&t.model, &p.input, &p.frame_timesteps, &actions, keep, recompute, &|pred| t.objective.loss(pred, &p), sink).unwrap()
         };
         let (loss, captured) = if capture {
             let mut sink = Capture { params: &named, got: Default::default() };
@@ -155,11 +155,14 @@ fn recomputation_gives_the_same_gradients() {
         let g = t.opt.params.iter().map(|q| captured.get(&q.name).map(|g| g.copy()).unwrap_or_else(|| q.param.grad().copy())).collect();
         (loss.double_value(&[]), g)
     };
-    let (l1, g1) = grads(Recompute::Off, false);
-    // Every block recomputed, the last one kept, both kept (the tiny model has 2 blocks).
+    // Every block recomputed, the last one kept, both kept (the tiny model has 2 blocks); every
+    // sample conditioned, and the second one given the null action condition (action dropout).
+    let null_second = Tensor::from_slice(&[1.0f32, 0.0]);
+    for keep in [None, Some(&null_second)] {
+    let (l1, g1) = grads(Recompute::Off, keep, false);
     for (keep_last, capture) in [0, 1, 2].into_iter().flat_map(|k| [(k, false), (k, true)]) {
         let recompute = Recompute::Blocks { keep_last };
-        let (l2, g2) = grads(recompute, capture);
+        let (l2, g2) = grads(recompute, keep, capture);
         assert!((l1 - l2).abs() <= 1e-6 * l1.abs());
         for ((q, a), b) in t.opt.params.iter().zip(&g1).zip(&g2) {
             let scale = a.abs().max().double_value(&[]).max(1e-12);
@@ -168,6 +171,30 @@ fn recomputation_gives_the_same_gradients() {
             assert!(a.abs().sum(Kind::Float).double_value(&[]) > 0.0 || q.name.contains("bias"), "{} got no gradient", q.name);
         }
     }
+    }
+}
+
+#[test]
+fn action_dropout_trains_a_keyed_share_of_samples_without_their_actions() {
+    let dir = tmp_dir("action-dropout");
+    let cache = write_cache(&dir.join("cache"), 2, 6);
+    let run = |name: &str, extra: &str| {
+        let mut t = trainer(config(&cache, &dir.join(name), &format!("[train]\nsteps = 6\nmicro_batch = 2\n{extra}")), Resume::No).unwrap();
+        t.run().unwrap();
+        t
+    };
+    let plain = run("plain", "");
+    let dropped = run("dropped", "[objective]\naction_dropout = 0.5");
+    let shape = &plain.cache.index.latent_shape;
+    assert!((0..12).all(|g| plain.objective.draw(g, shape).keep_actions), "no dropout: every sample sees its actions");
+    let share = (0..4000).filter(|&g| !dropped.objective.draw(g, shape).keep_actions).count() as f64 / 4000.0;
+    assert!((share - 0.5).abs() < 0.03, "dropped share {share}");
+    let kept: Vec<bool> = (0..12).map(|g| dropped.objective.draw(g, shape).keep_actions).collect();
+    assert!(kept.contains(&false) && kept.contains(&true), "the 12 samples of 6 steps mix both: {kept:?}");
+    assert_eq!(kept, (0..12).map(|g| dropped.objective.draw(g, shape).keep_actions).collect::<Vec<_>>(), "keyed: the same draw every time");
+    let losses = |t: &Trainer| t.history.iter().map(|m| m.loss).collect::<Vec<_>>();
+    assert!(losses(&dropped).iter().all(|l| l.is_finite()));
+    assert_ne!(losses(&plain), losses(&dropped), "the null condition changes what the dropped samples predict");
 }
 
 #[test]
@@ -223,6 +250,10 @@ fn config_errors_name_the_key() {
     assert_eq!(c.optim.lr, 2e-5);
     assert!(!c.train.recompute);
     assert!(bwm_trainer::RunConfig::parse(&text, &["train.steps=0".into()]).unwrap_err().to_string().contains("train.steps"));
+    for bad in ["objective.action_dropout=1.0", "objective.action_dropout=-0.1", "validation.guidance=-1.0"] {
+        let e = bwm_trainer::RunConfig::parse(&text, &[bad.into()]).unwrap_err().to_string();
+        assert!(e.contains(bad.split('=').next().unwrap()), "{bad}: {e}");
+    }
 }
 
 #[test]

@@ -67,7 +67,7 @@ impl BwmModel {
         self.forward_traced(latents, frame_timesteps, actions, &mut |_, _| {})
     }
 
-    /// As `forward`, the samples whose `keep` [B] entry is 0 given the null action condition
+    /// As `forward`, the samples whose `keep` `[B]` entry is 0 given the null action condition
     /// (`ActionEmbedding::keep`); `keep` None conditions every sample.
     pub fn forward_keeping(&self, latents: &Tensor, frame_timesteps: &Tensor, actions: &Tensor, keep: Option<&Tensor>) -> Result<Tensor> {
         let emb = self.embed_actions(latents, actions, keep)?;

@@ -656,7 +656,7 @@ struct Batch {
     actions: Tensor,
     noise: Tensor,
     history_noise: Tensor,
-    /// [B]: 1 where the sample sees its actions, 0 for the null condition; None: all see them.
+    /// `[B]`: 1 where the sample sees its actions, 0 for the null condition; None: all see them.
     action_keep: Option<Tensor>,
     tids: Vec<usize>,
 }

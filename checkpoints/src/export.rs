@@ -760,7 +760,7 @@ pub fn export(input: &str, out: &Path, opts: &ExportOptions, progress: &mut dyn 
             }),
             base_model: base_model.clone(),
             training: p.run.as_ref().map(|r| {
-                let mut t = serde_json::json!({"run": r.name, "seed": r.seed, "preset": r.preset, "dtype": r.dtype, "residual": r.residual, "lr": r.lr, "ema_decay": r.ema_decay});
+                let mut t = serde_json::json!({"run": r.name, "seed": r.seed, "preset": r.preset, "dtype": r.dtype, "residual": r.residual, "action_dropout": r.action_dropout.unwrap_or(0.0), "lr": r.lr, "ema_decay": r.ema_decay});
                 if let Some(st) = &p.state {
                     t["step"] = st.step.into();
                     t["samples_seen"] = st.samples_seen.into();

@@ -417,16 +417,28 @@ pub fn check_fits(source: &dyn WeightSource, cfg: &ModelConfig, what: &str) -> R
     Ok(())
 }
 
-/// The DiT residual-stream setting (`model.residual`: `f32` or `model`) the opened weights were
-/// trained with, when they record it: a training checkpoint's run config, or an export's
-/// `config.json` (`training.residual`). `None` for weights that do not say (official, release,
-/// foreign files).
-pub fn trained_residual(opened: &OpenedWeights) -> Result<Option<String>> {
+/// What weights record of the training behind them: a training checkpoint's run config, or an
+/// export's `config.json` (`training`). Weights that do not say (official, release, foreign files)
+/// record nothing.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct TrainingRecord {
+    /// `f32` or `model`: the DiT's residual stream in training (`model.residual`).
+    pub residual: Option<String>,
+    /// `objective.action_dropout`: the share of samples trained on the null action condition,
+    /// which classifier-free guidance by the actions needs (0 for a run that did not set it).
+    pub action_dropout: Option<f64>,
+}
+
+pub fn training_record(opened: &OpenedWeights) -> Result<TrainingRecord> {
     if crate::run_dir::is_training_checkpoint(&opened.location) {
-        return Ok(crate::run_info::CheckpointState::read(&opened.location)?.run.residual);
+        let run = crate::run_info::CheckpointState::read(&opened.location)?.run;
+        return Ok(TrainingRecord { residual: run.residual, action_dropout: Some(run.action_dropout.unwrap_or(0.0)) });
     }
     let training = opened.repo_config.as_ref().and_then(|c| c.training.as_ref());
-    Ok(training.and_then(|t| t.get("residual")).and_then(|r| r.as_str()).map(String::from))
+    Ok(TrainingRecord {
+        residual: training.and_then(|t| t.get("residual")).and_then(|r| r.as_str()).map(String::from),
+        action_dropout: training.and_then(|t| t.get("action_dropout")).and_then(|a| a.as_f64()),
+    })
 }
 
 /// Builds the BWM model from weights in any layout ([`open_any`]). `cfg` defaults to the config the

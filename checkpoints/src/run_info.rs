@@ -58,6 +58,8 @@ struct ObjectivePart {
     history_sigma: Option<f64>,
     #[serde(default)]
     condition_latents: Option<i64>,
+    #[serde(default)]
+    action_dropout: Option<f64>,
 }
 
 #[derive(Debug, Clone, Default, Deserialize)]
@@ -112,6 +114,9 @@ pub struct RunInfo {
     pub shift: Option<f64>,
     pub history_sigma: Option<f64>,
     pub condition_latents: Option<i64>,
+    /// `objective.action_dropout`: the share of samples trained on the null action condition
+    /// (absent = 0).
+    pub action_dropout: Option<f64>,
     pub lr: Option<f64>,
     pub ema_decay: Option<f64>,
     pub steps_planned: Option<u64>,
@@ -158,6 +163,7 @@ impl RunInfo {
             shift: raw.objective.shift,
             history_sigma: raw.objective.history_sigma,
             condition_latents: raw.objective.condition_latents,
+            action_dropout: raw.objective.action_dropout,
             lr: raw.optim.lr,
             ema_decay: raw.optim.ema_decay,
             steps_planned: raw.train.steps,

@@ -9,7 +9,7 @@ use std::path::Path;
 use bwm_checkpoints::convert::{convert_dit, convert_vae, ConvertOptions, VaeNaming};
 use bwm_checkpoints::export::{export, ExportDtype, ExportOptions};
 use bwm_checkpoints::keymap::{detect_layout, from_layout, to_layout, DitLayout};
-use bwm_checkpoints::open::{load_model, open_any, trained_residual};
+use bwm_checkpoints::open::{load_model, open_any, training_record};
 use bwm_checkpoints::repo::RepoConfig;
 use bwm_checkpoints::write_tensors;
 use bwm_model::{BwmModel, ModelConfig, ParamStore};
@@ -100,24 +100,29 @@ fn export_then_load_gives_identical_tensors_in_every_layout() {
 }
 
 #[test]
-fn the_trained_residual_setting_travels_from_the_run_to_the_export() {
+fn the_trained_residual_and_action_dropout_travel_from_the_run_to_the_export() {
     let root = tmp_dir("residual");
     let model = random_model(&tiny(), 13);
-    let ckpt = fake_run(&root, &model, &|c| run_toml("res", "tiny", None, c).replace("dtype = \"f32\"\n", "dtype = \"f32\"\nresidual = \"model\"\n"));
-    let residual = |path: &Path| trained_residual(&open_any(path.to_str().unwrap()).unwrap()).unwrap();
+    let ckpt = fake_run(&root, &model, &|c| {
+        run_toml("res", "tiny", None, c).replace("dtype = \"f32\"\n", "dtype = \"f32\"\nresidual = \"model\"\n") + "\n[objective]\naction_dropout = 0.1\n"
+    });
+    let record = |path: &Path| training_record(&open_any(path.to_str().unwrap()).unwrap()).unwrap();
+    let residual = |path: &Path| record(path).residual;
     assert_eq!(residual(&ckpt).as_deref(), Some("model"), "the training checkpoint's run config");
+    assert_eq!(record(&ckpt).action_dropout, Some(0.1));
     // The checkpoint folder itself loads as a model, under its run's config.
     let back = load_model(ckpt.to_str().unwrap(), None, Kind::Float, Device::Cpu).unwrap();
     assert_same(&trained(&back), &trained(&model), Kind::Float, "training checkpoint folder");
     let out = root.join("out");
     export(ckpt.to_str().unwrap(), &out, &ExportOptions { dtype: ExportDtype::F32, ..Default::default() }, &mut |_| {}).unwrap();
     assert_eq!(residual(&out).as_deref(), Some("model"), "the export's config.json");
-    // A run that does not set it, and weights that do not record it.
+    assert_eq!(record(&out).action_dropout, Some(0.1));
+    // A run that does not set them (trained without action dropout), and weights that record nothing.
     let plain = fake_run(&root.join("plain"), &model, &|c| run_toml("plain", "tiny", None, c));
-    assert_eq!(residual(&plain), None);
+    assert_eq!(record(&plain), bwm_checkpoints::open::TrainingRecord { residual: None, action_dropout: Some(0.0) });
     let file = root.join("bare.safetensors");
     write_tensors(&file, &trained(&model).into_iter().collect::<Vec<_>>(), &BTreeMap::new()).unwrap();
-    assert_eq!(residual(&file), None);
+    assert_eq!(record(&file), Default::default());
 }
 
 #[test]

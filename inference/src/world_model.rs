@@ -4,7 +4,7 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, ensure, Context, Result};
-use bwm_checkpoints::open::{build_model, open_any, trained_residual, with_lora_adapters};
+use bwm_checkpoints::open::{build_model, open_any, training_record, with_lora_adapters};
 use bwm_data::ActionStats;
 use bwm_model::fp8::{quantize_dit_blocks, Fp8Scaling};
 use bwm_model::rollout::{default_history_sigma, Rollout, RolloutSpec};
@@ -86,6 +86,17 @@ impl Default for WorldModelOptions {
     }
 }
 
+/// Guidance by the actions contrasts the model's prediction with its prediction under the null
+/// action condition, which only a model trained with action dropout has learned; weights whose
+/// training recorded none are refused (weights that record nothing are taken at their word).
+fn check_guidance(guidance: f64, trained_action_dropout: Option<f64>) -> Result<()> {
+    ensure!(
+        guidance == 1.0 || trained_action_dropout != Some(0.0),
+        "--guidance {guidance} needs a model trained with objective.action_dropout > 0 (the null action condition it guides against); these weights were trained without it. Use --guidance 1"
+    );
+    Ok(())
+}
+
 pub struct WorldModel {
     pub model: BwmModel,
     pub vae: WanVae,
@@ -140,7 +151,9 @@ impl WorldModelOptions {
         let (mut model, trained) = match (&self.checkpoint, &self.random_weights) {
             (Some(ckpt), _) => {
                 let mut opened = open_any(ckpt).with_context(|| format!("--checkpoint {ckpt}"))?;
-                let trained = trained_residual(&opened).with_context(|| format!("--checkpoint {ckpt}"))?;
+                let record = training_record(&opened).with_context(|| format!("--checkpoint {ckpt}"))?;
+                check_guidance(self.guidance, record.action_dropout).with_context(|| format!("--checkpoint {ckpt}"))?;
+                let trained = record.residual;
                 if let Some(adapters) = &self.lora {
                     opened = with_lora_adapters(opened, adapters).with_context(|| format!("--lora {}", adapters.display()))?;
                 }
@@ -223,4 +236,18 @@ pub fn tensor_rows(t: &Tensor) -> Result<Vec<Vec<f32>>> {
     ensure!(s.len() == 2, "expected [rows, d] actions, got {s:?}");
     let flat = Vec::<f32>::try_from(t.to_device(Device::Cpu).to_kind(Kind::Float).contiguous().view([-1]))?;
     Ok(flat.chunks(s[1].max(1) as usize).map(|c| c.to_vec()).collect())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::check_guidance;
+
+    #[test]
+    fn guidance_needs_a_model_trained_with_action_dropout() {
+        assert!(check_guidance(1.0, Some(0.0)).is_ok(), "no guidance: any model");
+        assert!(check_guidance(2.0, Some(0.1)).is_ok());
+        assert!(check_guidance(2.0, None).is_ok(), "weights that record nothing are not second-guessed");
+        let e = check_guidance(2.0, Some(0.0)).unwrap_err().to_string();
+        assert!(e.contains("--guidance 2") && e.contains("objective.action_dropout"), "{e}");
+    }
 }

@@ -28,7 +28,7 @@ pub struct ActionEmbedding {
 impl ActionEmbedding {
     /// The embedding with every sample whose `keep` `[B]` entry is 0 given the null condition: no
     /// action tokens to attend to (zero context) and no per-frame action term. Training on it for a
-    /// share of samples (`train.action_dropout`) teaches the model the action-free prediction that
+    /// share of samples (`objective.action_dropout`) teaches the model the action-free prediction that
     /// classifier-free guidance contrasts with.
     pub fn keep(&self, keep: &Tensor) -> Result<ActionEmbedding> {
         let b = self.context.size()[0];

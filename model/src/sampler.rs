@@ -33,18 +33,23 @@ pub fn sample_chunk(
     let future = ns[2] - p;
     let mut latents = noise.shallow_clone();
     let mut stepper = schedule.stepper();
+    // Guided steps run one batch of 2B: the conditional half, then the null half.
+    let guided = (guidance != 1.0).then(|| {
+        let device = noise.device();
+        let keep = Tensor::cat(&[Tensor::ones([b], (Kind::Float, device)), Tensor::zeros([b], (Kind::Float, device))], 0);
+        (keep, Tensor::cat(&[actions, actions], 0))
+    });
     for i in 0..schedule.len() {
         latents = Tensor::cat(&[prefix.shallow_clone(), latents.narrow(2, p, future)], 2);
         let t = Tensor::full([b], schedule.timesteps[i], (tch::Kind::Float, noise.device()));
         let ft = frame_timesteps(&t, frames, p);
-        let v = if guidance == 1.0 {
-            model.forward(&latents, &ft, actions)?
-        } else {
-            // One batch of 2B: the conditional half, then the null half.
-            let keep = Tensor::cat(&[Tensor::ones([b], (Kind::Float, noise.device())), Tensor::zeros([b], (Kind::Float, noise.device()))], 0);
-            let both = model.forward_keeping(&Tensor::cat(&[&latents, &latents], 0), &Tensor::cat(&[&ft, &ft], 0), &Tensor::cat(&[actions, actions], 0), Some(&keep))?;
-            let (cond, null) = (both.narrow(0, 0, b), both.narrow(0, b, b));
-            &null + (&cond - &null) * guidance
+        let v = match &guided {
+            None => model.forward(&latents, &ft, actions)?,
+            Some((keep, doubled_actions)) => {
+                let both = model.forward_keeping(&Tensor::cat(&[&latents, &latents], 0), &Tensor::cat(&[&ft, &ft], 0), doubled_actions, Some(keep))?;
+                let (cond, null) = (both.narrow(0, 0, b), both.narrow(0, b, b));
+                &null + (&cond - &null) * guidance
+            }
         };
         on_step(i, &latents, &v);
         latents = stepper.step(&latents, &v, i);

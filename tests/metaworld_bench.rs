@@ -62,9 +62,11 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
             .envs([("VAL_EPISODES", "1"), ("VAE_EPISODES", "6")])
             .envs([("JUDGE_STEPS", "5"), ("STUDY_EPISODES", "1"), ("STUDY_JOBS", "2"), ("STUDY_HORIZON", "48"), ("STUDY_VARIANTS", "expert,wrong")])
             .env("PROBE_VARIANTS", "wrong-0cm,wrong-6cm")
-            // The DiT trained with action dropout, every world-model stage guided by the actions.
-            .env("TRAIN_SETS", format!("{TOY_DIT} objective.action_dropout=0.5"))
-            .env("GUIDANCE", "1.5"),
+            // The DiT trained with action dropout and its own history noise, every world-model
+            // stage guided by the actions; the data's near misses closer than the default.
+            .env("TRAIN_SETS", format!("{TOY_DIT} objective.action_dropout=0.5 objective.history_sigma=0.1"))
+            .env("GUIDANCE", "1.5")
+            .env("MISS_CM", "1,6"),
         "recipe.sh",
     );
 
@@ -92,7 +94,7 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
         Command::new(python())
             .arg(Path::new(ROOT).join("bench/metaworld/generate.py"))
             .args(["--tasks", "drawer-open-v3,button-press-topdown-v3", "--episodes", "1", "--seed-start", "100000"])
-            .args(["--frames", "100", "--resolution", "64", "--workers", "1", "--out"])
+            .args(["--frames", "100", "--resolution", "64", "--miss-cm", "1,6", "--workers", "1", "--out"])
             .arg(&again),
         "generate.py",
     );
@@ -109,6 +111,7 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
     let fidelity = json(&runs.join("fidelity/fidelity.json"));
     assert_eq!(fidelity["episodes"], 2, "{fidelity}");
     assert_eq!(fidelity["guidance"], 1.5, "{fidelity}");
+    assert_eq!(fidelity["history_sigma"], 0.1, "sampling follows the trained history noise: {fidelity}");
     let config = std::fs::read_to_string(runs.join("config.toml")).unwrap();
     assert!(config.contains("action_dropout = 0.5"), "{config}");
 

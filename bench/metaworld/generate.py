@@ -4,7 +4,8 @@ parquet files, no video). README.md describes the layout and the seed convention
     python generate.py --tasks drawer-open-v3,button-press-topdown-v3 --episodes 200 \\
         --seed-start 0 --frames 120 --resolution 64 --out DIR --workers 2
 
-Each episode is a pure function of (task, seed, --frames, --resolution, --degraded-fraction, --spread):
+Each episode is a pure function of (task, seed, --frames, --resolution, --degraded-fraction, --spread,
+--miss-cm):
 the same arguments give the same bytes whatever --workers is.
 """
 
@@ -30,7 +31,7 @@ CHUNKS_SIZE = 1000
 EXPLORE_LOW = np.array([-0.35, 0.40, 0.05])
 EXPLORE_HIGH = np.array([0.35, 0.95, 0.40])
 # Degraded modes and their weights among degraded episodes. "miss" (the expert steering on an
-# object estimate off by 2-12 cm, 2-15 with --spread wide) is weighted up: its hand goes through
+# object estimate off by 2-12 cm, 2-15 with --spread wide, --miss-cm otherwise) is weighted up: its hand goes through
 # the expert's motions close to the object, succeeding or not depending on the distance and
 # direction, and a world model (and a judge) that saw few such episodes shows the drawer opening
 # or the button pressed whenever the hand passes near them.
@@ -41,11 +42,15 @@ class Behaviour:
     """The scripted expert on the true object position with action noise, randomly interrupted
     by exploration (random waypoints and gripper commands), or degraded in one `mode`."""
 
-    def __init__(self, task: str, rng: np.random.Generator, frames: int, degraded_fraction: float, spread: str = "narrow"):
+    def __init__(self, task: str, rng: np.random.Generator, frames: int, degraded_fraction: float, spread: str = "narrow",
+                 miss: tuple[float, float] | None = None):
         import policies
 
         if spread not in ("narrow", "wide"):
             raise ValueError(f"unknown spread {spread!r} (narrow or wide)")
+        miss = miss or ((0.02, 0.15) if spread == "wide" else (0.02, 0.12))
+        if not 0.0 <= miss[0] <= miss[1]:
+            raise ValueError(f"the miss range {miss} must be 0 <= low <= high (m)")
         self.policies, self.task, self.rng = policies, task, rng
         if spread == "wide":
             # The experts' action noise log-uniform from near-clean to a jitter that sometimes
@@ -75,7 +80,7 @@ class Behaviour:
             if rng.random() < 0.4:
                 self.explore[: rng.integers(5, 25)] = True
         elif self.mode == "miss":
-            self.offset = perception_error(0.02, 0.15 if spread == "wide" else 0.12)
+            self.offset = perception_error(*miss)
         elif self.mode == "pause":
             for _ in range(rng.integers(2, 5)):
                 self.hold[span(8, 25)] = True
@@ -140,8 +145,8 @@ def run_episode(job: tuple) -> dict:
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    root, episode_index, first_index, task_index, task, seed, frames, resolution, degraded, spread = job
-    behaviour = Behaviour(task, episode_rng(task, seed), frames, degraded, spread)
+    root, episode_index, first_index, task_index, task, seed, frames, resolution, degraded, spread, miss = job
+    behaviour = Behaviour(task, episode_rng(task, seed), frames, degraded, spread, miss)
     images, states, commands, deltas, success = [], [], [], [], []
     with Sim(task, seed, resolution) as sim:
         image, state = sim.reset()
@@ -228,6 +233,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--spread", choices=["narrow", "wide"], default="narrow",
                         help="the experts' action noise and speed: narrow (noise 0.05-0.4, full speed; misses 2-12 cm) or wide "
                              "(noise log-uniform 0.05-1.2, 30%% of episodes at a speed cap of 0.3-1; misses 2-15 cm)")
+    parser.add_argument("--miss-cm", help="LOW,HIGH: how far off (cm, random direction) the `miss` episodes' expert steers; "
+                        "default 2,12 (2,15 with --spread wide). Outcomes flip a few cm from the object, so a range "
+                        "close to it puts more episodes on both sides of the contact boundary")
     parser.add_argument("--out", required=True, help="dataset folder (must not exist unless --force)")
     parser.add_argument("--workers", type=int, default=min(4, os.cpu_count() or 1))
     parser.add_argument("--force", action="store_true", help="replace --out if it exists")
@@ -248,6 +256,14 @@ def parse_args(argv=None) -> argparse.Namespace:
         parser.error("--resolution must be in 16 .. 1024")
     if not 0.0 <= args.degraded_fraction <= 1.0:
         parser.error("--degraded-fraction must be in [0, 1]")
+    if args.miss_cm is not None:
+        try:
+            lo, hi = (float(x) for x in args.miss_cm.split(","))
+        except ValueError:
+            parser.error(f"--miss-cm takes LOW,HIGH in cm, got {args.miss_cm!r}")
+        if not 0.0 <= lo <= hi <= 100.0:
+            parser.error(f"--miss-cm needs 0 <= LOW <= HIGH <= 100, got {args.miss_cm!r}")
+        args.miss_cm = (lo / 100, hi / 100)
     if args.workers < 1:
         parser.error("--workers must be at least 1")
     if os.path.exists(args.out) and not args.force:
@@ -264,7 +280,7 @@ def main(argv=None) -> None:
     for i in range(args.episodes):
         for task_index, task in enumerate(args.tasks):
             e = len(jobs)
-            jobs.append((tmp, e, e * args.frames, task_index, task, args.seed_start + i, args.frames, args.resolution, args.degraded_fraction, args.spread))
+            jobs.append((tmp, e, e * args.frames, task_index, task, args.seed_start + i, args.frames, args.resolution, args.degraded_fraction, args.spread, args.miss_cm))
     start = time.time()
     try:
         results = []

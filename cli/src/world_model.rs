@@ -65,7 +65,8 @@ pub struct WorldModelArgs {
     /// order at one model evaluation per step).
     #[arg(long, default_value = "euler")]
     pub solver: bwm_model::schedule::Solver,
-    /// Noise level of the history latents (default: the training level, 0.2083); 0 turns it off.
+    /// Noise level of the history latents (default: the level the weights were trained with,
+    /// `objective.history_sigma`, else 0.2083); 0 turns it off.
     #[arg(long)]
     pub history_sigma: Option<f64>,
     /// Classifier-free guidance by the actions: each step's velocity is v_null + w (v_actions -

@@ -235,6 +235,7 @@ pub fn run(options: &WorldModelOptions, a: &FidelityOptions) -> Result<()> {
         "sample_steps": wm.spec.steps,
         "solver": wm.spec.solver.to_string(),
         "guidance": wm.spec.guidance,
+        "history_sigma": wm.spec.history_sigma,
         "seed": wm.spec.seed,
         "fp8": wm.fp8.map(|s| s.to_string()),
         "tasks": tasks,

@@ -103,6 +103,7 @@ struct ModelInfo {
     sample_steps: usize,
     solver: String,
     guidance: f64,
+    history_sigma: Option<f64>,
     stats: bool,
 }
 
@@ -170,6 +171,7 @@ pub fn serve(wm: &WorldModelOptions, a: &ServeOptions) -> Result<()> {
                 sample_steps: wm.spec.steps,
                 solver: wm.spec.solver.to_string(),
                 guidance: wm.spec.guidance,
+                history_sigma: wm.spec.history_sigma,
                 stats: wm.stats.is_some(),
             };
             if ready_tx.send(Ok(info)).is_err() {
@@ -405,6 +407,7 @@ fn health(shared: &Shared) -> String {
         "sample_steps": i.sample_steps,
         "solver": i.solver,
         "guidance": i.guidance,
+        "history_sigma": i.history_sigma,
         "stats": i.stats,
         "queue_depth": c.pending.load(Ordering::SeqCst).saturating_sub(usize::from(c.busy.load(Ordering::SeqCst))),
         "queue_capacity": shared.queue_capacity,
@@ -676,6 +679,7 @@ mod tests {
             sample_steps: 1,
             solver: "euler".into(),
             guidance: 1.0,
+            history_sigma: Some(0.2),
             stats: false,
         }
     }

@@ -51,7 +51,9 @@ pub struct WorldModelOptions {
     pub shift: f64,
     /// How the sampler steps: Euler (the reference's) or DPM-Solver++(2M).
     pub solver: Solver,
-    /// Noise level of the history latents (None: the training level, 0.2083); 0 turns it off.
+    /// Noise level of the history latents; None: the level the weights were trained with (a
+    /// training checkpoint's run config, an export's schedule), else the BWM release's 0.2083; 0
+    /// turns it off.
     pub history_sigma: Option<f64>,
     /// Classifier-free guidance by the actions (1: off; see `sample_chunk`).
     pub guidance: f64,
@@ -121,8 +123,10 @@ impl WorldModelOptions {
         options
     }
 
-    pub fn spec(&self) -> Result<RolloutSpec> {
-        let sigma = self.history_sigma.unwrap_or_else(default_history_sigma);
+    /// The rollout settings, for weights trained with history noise `trained_history_sigma` (None:
+    /// the default or not recorded).
+    pub fn spec(&self, trained_history_sigma: Option<f64>) -> Result<RolloutSpec> {
+        let sigma = self.history_sigma.or(trained_history_sigma).unwrap_or_else(default_history_sigma);
         let spec = RolloutSpec {
             history: self.history,
             future: self.future,
@@ -138,7 +142,7 @@ impl WorldModelOptions {
     }
 
     pub fn load(&self) -> Result<WorldModel> {
-        let spec = self.spec()?;
+        self.spec(None)?; // wrong flags are named before any weights are opened
         let device = parse_device(&self.device)?;
         let kind = match self.dtype.as_str() {
             "auto" if device.is_cuda() => Kind::BFloat16,
@@ -148,21 +152,21 @@ impl WorldModelOptions {
         let preset = self.model_preset.as_deref().map(ModelConfig::preset).transpose()?;
         ensure!(self.lora.is_none() || self.checkpoint.is_some(), "--lora needs --checkpoint: the base weights its adapters go onto");
         // The residual stream the weights were trained with, unless --residual says otherwise.
-        let (mut model, trained) = match (&self.checkpoint, &self.random_weights) {
+        let (mut model, trained, trained_history_sigma) = match (&self.checkpoint, &self.random_weights) {
             (Some(ckpt), _) => {
                 let mut opened = open_any(ckpt).with_context(|| format!("--checkpoint {ckpt}"))?;
                 let record = training_record(&opened).with_context(|| format!("--checkpoint {ckpt}"))?;
                 check_guidance(self.guidance, record.action_dropout).with_context(|| format!("--checkpoint {ckpt}"))?;
-                let trained = record.residual;
                 if let Some(adapters) = &self.lora {
                     opened = with_lora_adapters(opened, adapters).with_context(|| format!("--lora {}", adapters.display()))?;
                 }
-                let trained = trained.map(|r| r.parse::<Residual>().map_err(|e| anyhow::anyhow!("--checkpoint {ckpt}: model.residual {e}"))).transpose()?;
-                (build_model(opened, preset.as_ref(), kind, device).with_context(|| format!("--checkpoint {ckpt}"))?, trained)
+                let trained = record.residual.map(|r| r.parse::<Residual>().map_err(|e| anyhow::anyhow!("--checkpoint {ckpt}: model.residual {e}"))).transpose()?;
+                (build_model(opened, preset.as_ref(), kind, device).with_context(|| format!("--checkpoint {ckpt}"))?, trained, record.history_sigma)
             }
-            (None, Some(name)) => (BwmModel::random(&ModelConfig::preset(name)?, kind, device, self.seed as i64)?, None),
+            (None, Some(name)) => (BwmModel::random(&ModelConfig::preset(name)?, kind, device, self.seed as i64)?, None, None),
             (None, None) => bail!("pass --checkpoint (trained weights) or --random-weights PRESET"),
         };
+        let spec = self.spec(trained_history_sigma).context("the history noise the weights were trained with")?;
         model.dit.residual = self.residual.or(trained).unwrap_or_default().kind(kind);
         if let Some(scaling) = self.fp8 {
             quantize_dit_blocks(&mut model.dit, scaling).context("--fp8")?;
@@ -240,7 +244,18 @@ pub fn tensor_rows(t: &Tensor) -> Result<Vec<Vec<f32>>> {
 
 #[cfg(test)]
 mod tests {
-    use super::check_guidance;
+    use super::{check_guidance, WorldModelOptions};
+    use bwm_model::rollout::default_history_sigma;
+
+    #[test]
+    fn history_noise_follows_the_flag_then_the_training_then_the_release() {
+        let sigma = |flag: Option<f64>, trained: Option<f64>| WorldModelOptions { history_sigma: flag, ..Default::default() }.spec(trained).unwrap().history_sigma;
+        assert_eq!(sigma(None, None), Some(default_history_sigma()), "weights that record nothing: the release's level");
+        assert_eq!(sigma(None, Some(0.05)), Some(0.05), "the level the weights were trained with");
+        assert_eq!(sigma(Some(0.1), Some(0.05)), Some(0.1), "--history-sigma overrides it");
+        assert_eq!(sigma(Some(0.0), Some(0.05)), None, "--history-sigma 0 turns it off");
+        assert_eq!(sigma(None, Some(0.0)), None, "weights trained on clean history sample on clean history");
+    }
 
     #[test]
     fn guidance_needs_a_model_trained_with_action_dropout() {

@@ -3,7 +3,9 @@
 # root, with the carry of scripts/gpu/metaworld.sh:
 #   bash scripts/gpu/variants.sh NAME "VAR=VALUE ..." [NAME "VAR=VALUE ..." ...]
 # The data are made once (runs/metaworld); each variant then runs scripts/gpu/metaworld.sh in
-# runs/NAME (its data linked to those) with its variables, on GPU i mod the machine's GPU count for
+# runs/NAME (its data linked to those, unless it sets a variable the data depend on: TASKS,
+# TRAIN_EPISODES, VAL_EPISODES, SPREAD, MISS_CM, FRAMES or RESOLUTION; then it makes its own) with
+# its variables, on GPU i mod the machine's GPU count for
 # the i-th variant, all at once; each trains its judge beside its VAE, as the recipe does (a judge
 # made first for all would hold every variant back by its 2 minutes). With STAGES (default: every
 # stage) picking stages, e.g. STAGES="vae ceiling" to compare VAEs alone, one judge is made first
@@ -27,8 +29,6 @@ while [ $# -gt 0 ]; do
   name=$1 vars=$2; shift 2
   case "$name" in metaworld|*/*|"") echo "variants: '$name' cannot name a run folder" >&2; exit 2 ;; esac
   mkdir -p "runs/$name" "$OUT/$name"
-  ln -sfn "$PWD/runs/metaworld/data" "runs/$name/data"
-  [ -n "${STAGES:-}" ] && ln -sfn "$PWD/runs/metaworld/judge.pt" "runs/$name/judge.pt"
   # Words split on blanks; one not of the form NAME=... continues the variable before it, so that
   # "TRAIN_SETS=a=1 b=2" sets TRAIN_SETS to "a=1 b=2".
   assign=()
@@ -38,10 +38,19 @@ while [ $# -gt 0 ]; do
     else echo "variants: '$vars' must start with NAME=VALUE" >&2; exit 2
     fi
   done
+  stages=${STAGES:-}
+  if printf '%s\n' "${assign[@]}" | grep -qE '^(TASKS|TRAIN_EPISODES|VAL_EPISODES|SPREAD|MISS_CM|FRAMES|RESOLUTION)='; then
+    [ -L "runs/$name/data" ] && rm "runs/$name/data"
+    [ -n "$stages" ] && stages="data $stages"
+    echo "variants: $name makes its own data"
+  else
+    ln -sfn "$PWD/runs/metaworld/data" "runs/$name/data"
+  fi
+  [ -n "${STAGES:-}" ] && ln -sfn "$PWD/runs/metaworld/judge.pt" "runs/$name/judge.pt"
   echo "variants: $name on GPU $((i % gpus)):$(printf ' [%s]' "${assign[@]}")"
-  # shellcheck disable=SC2086  # STAGES are words by design
+  # shellcheck disable=SC2086  # stages are words by design
   env CUDA_VISIBLE_DEVICES=$((i % gpus)) RUN="runs/$name" OUT="$OUT/$name" "${assign[@]}" \
-    bash scripts/gpu/metaworld.sh ${STAGES:-} > "$OUT/$name/log" 2>&1 &
+    bash scripts/gpu/metaworld.sh $stages > "$OUT/$name/log" 2>&1 &
   pids+=($!) names+=("$name") i=$((i + 1))
 done
 status=0

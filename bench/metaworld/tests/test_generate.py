@@ -43,6 +43,37 @@ def test_an_unknown_spread_is_refused():
         raise AssertionError("an unknown spread was accepted")
 
 
+def test_the_miss_range_is_where_misses_steer():
+    near = [generate.Behaviour(TASK, generate.episode_rng(TASK, seed), 120, 0.4, "narrow", (0.01, 0.06)) for seed in range(300)]
+    radii = np.array([np.linalg.norm(b.offset) for b in near if b.mode == "miss"])
+    assert len(radii) > 20 and radii.min() >= 0.01 - 1e-9 and radii.max() <= 0.06 + 1e-9
+    # The range changes no other draw: the same seeds give the same modes, noise and experts' offsets.
+    default = behaviours("narrow")
+    assert [b.mode for b in near] == [b.mode for b in default]
+    assert all(a.noise == b.noise for a, b in zip(near, default))
+    assert all((a.offset == b.offset).all() for a, b in zip(near, default) if a.mode != "miss")
+    for bad in ((0.05, 0.01), (-0.01, 0.02)):
+        try:
+            generate.Behaviour(TASK, generate.episode_rng(TASK, 0), 120, 0.4, "narrow", bad)
+        except ValueError as e:
+            assert "miss range" in str(e)
+        else:
+            raise AssertionError(f"the miss range {bad} was accepted")
+
+
+def test_miss_cm_is_parsed_in_cm():
+    args = generate.parse_args(["--task", TASK, "--episodes", "1", "--out", "/nonexistent/x", "--miss-cm", "1,6"])
+    assert args.miss_cm == (0.01, 0.06)
+    assert generate.parse_args(["--task", TASK, "--episodes", "1", "--out", "/nonexistent/x"]).miss_cm is None
+    for bad in ("6,1", "1", "a,b"):
+        try:
+            generate.parse_args(["--task", TASK, "--episodes", "1", "--out", "/nonexistent/x", "--miss-cm", bad])
+        except SystemExit:
+            pass
+        else:
+            raise AssertionError(f"--miss-cm {bad} was accepted")
+
+
 def test_a_speed_cap_bounds_the_experts_steps():
     b = next(b for b in behaviours("wide") if b.speed < 0.6 and b.mode == "expert")
     b.noise, b.explore[:] = 0.0, False

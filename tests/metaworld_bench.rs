@@ -177,6 +177,36 @@ fn the_generator_spreads_its_experts_as_asked() {
 }
 
 #[test]
+fn near_misses_are_counted_by_distance_in_the_simulator() {
+    let dir = temp_dir("misses");
+    let path = dir.join("misses.json");
+    run(
+        Command::new(python())
+            .arg(Path::new(ROOT).join("bench/metaworld/miss_outcomes.py"))
+            .args(["--tasks", "drawer-open-v3", "--episodes", "16", "--frames", "100", "--miss-cm", "2,12", "--miss-cm", "3,9", "--out"])
+            .arg(&path),
+        "miss_outcomes.py",
+    );
+    let report = json(&path);
+    let drawer = &report["tasks"]["drawer-open-v3"];
+    // The range moves how far the misses steer, not which seeds miss.
+    let count = |range: &str| drawer[range]["miss_episodes"].as_u64().unwrap_or_else(|| panic!("{report}"));
+    assert!(count("2,12") >= 1 && count("2,12") == count("3,9"), "{report}");
+    for (range, lo, hi) in [("2,12", 2.0, 12.0), ("3,9", 2.0, 10.0)] {
+        let bands = drawer[range]["by_cm"].as_object().unwrap();
+        let mut episodes = 0;
+        for (band, row) in bands {
+            let (a, b) = band.split_once('-').unwrap();
+            let (a, b): (f64, f64) = (a.parse().unwrap(), b.parse().unwrap());
+            assert!(a >= lo && b <= hi, "band {band} outside --miss-cm {range}: {report}");
+            assert!(row["succeeded"].as_u64() <= row["episodes"].as_u64(), "{report}");
+            episodes += row["episodes"].as_u64().unwrap();
+        }
+        assert_eq!(episodes, count(range), "{report}");
+    }
+}
+
+#[test]
 fn the_study_scores_rates_and_episodes() {
     run(Command::new(python()).arg(Path::new(ROOT).join("bench/metaworld/tests/test_study.py")), "test_study.py");
 }

@@ -1,0 +1,97 @@
+"""How the generator's near misses end in the simulator, by how far off they steer.
+
+    python miss_outcomes.py --tasks drawer-open-v3,button-press-topdown-v3 --episodes 400 \\
+        --miss-cm 2,12 --miss-cm 3,9
+
+For the training seeds 0..episodes-1 (the recipe's train split), every episode that generate.py
+would degrade into a `miss` (the expert steering on an object estimate off by a random distance in
+a random direction) is simulated with that distance drawn from each --miss-cm range, and its
+outcome counted by distance band. The bands where outcomes flip are where a world model needs
+examples on both sides of the contact; a range that puts most misses far past them adds failures
+it already draws, one inside them adds successes. Prints one JSON object (and writes it to --out).
+Only the episodes' draws and the simulator are used: nothing is rendered but each reset's frame.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+import numpy as np
+
+import generate
+from mw import TASKS, Sim
+
+
+def parse_range(text: str) -> tuple[float, float]:
+    try:
+        lo, hi = (float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"takes LOW,HIGH in cm, got {text!r}") from None
+    if not 0.0 <= lo <= hi <= 100.0:
+        raise argparse.ArgumentTypeError(f"needs 0 <= LOW <= HIGH <= 100, got {text!r}")
+    return lo, hi
+
+
+def outcomes(task: str, episodes: int, miss_cm: tuple[float, float], frames: int, degraded: float, spread: str) -> list[tuple[float, bool]]:
+    """(distance in cm, succeeded) of every `miss` episode among seeds 0..episodes-1."""
+    miss = (miss_cm[0] / 100, miss_cm[1] / 100)
+    out = []
+    for seed in range(episodes):
+        behaviour = generate.Behaviour(task, generate.episode_rng(task, seed), frames, degraded, spread, miss)
+        if behaviour.mode != "miss":
+            continue
+        with Sim(task, seed, 32) as sim:
+            _, state = sim.reset()
+            done = False
+            for t in range(frames):
+                _, state, success = sim.step(behaviour.command(t, state, sim.object_pos()), render=False)
+                done = done or bool(success)
+        out.append((float(np.linalg.norm(behaviour.offset)) * 100, done))
+    return out
+
+
+def by_band(results: list[tuple[float, bool]], band: float) -> dict:
+    top = max((d for d, _ in results), default=0.0)
+    bands = {}
+    for k in range(int(top // band) + 1):
+        lo, hi = k * band, (k + 1) * band
+        inside = [s for d, s in results if lo <= d < hi]
+        if inside:
+            bands[f"{lo:g}-{hi:g}"] = {"episodes": len(inside), "succeeded": sum(inside)}
+    return bands
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--tasks", default=",".join(TASKS))
+    parser.add_argument("--episodes", type=int, default=400, help="training seeds 0..episodes-1 per task")
+    parser.add_argument("--miss-cm", type=parse_range, action="append", help="LOW,HIGH (cm); repeat to compare (default 2,12)")
+    parser.add_argument("--band-cm", type=float, default=2.0, help="width of the distance bands")
+    parser.add_argument("--frames", type=int, default=120)
+    parser.add_argument("--degraded-fraction", type=float, default=0.4)
+    parser.add_argument("--spread", choices=["narrow", "wide"], default="narrow")
+    parser.add_argument("--out", help="also write the JSON here")
+    args = parser.parse_args(argv)
+    tasks = args.tasks.split(",")
+    if unknown := [t for t in tasks if t not in TASKS]:
+        parser.error(f"unknown task(s) {', '.join(unknown)} (known: {', '.join(TASKS)})")
+    if args.episodes < 1 or args.frames < 2 or args.band_cm <= 0:
+        parser.error("--episodes must be at least 1, --frames at least 2, --band-cm positive")
+    report = {"episodes": args.episodes, "frames": args.frames, "degraded_fraction": args.degraded_fraction, "spread": args.spread, "tasks": {}}
+    for task in tasks:
+        for lo, hi in args.miss_cm or [(2.0, 12.0)]:
+            results = outcomes(task, args.episodes, (lo, hi), args.frames, args.degraded_fraction, args.spread)
+            row = {"miss_episodes": len(results), "succeeded": sum(s for _, s in results), "by_cm": by_band(results, args.band_cm)}
+            report["tasks"].setdefault(task, {})[f"{lo:g},{hi:g}"] = row
+            print(f"miss_outcomes: {task} --miss-cm {lo:g},{hi:g}: {row['succeeded']} of {row['miss_episodes']} misses succeed", file=sys.stderr, flush=True)
+    text = json.dumps(report, indent=1)
+    if args.out:
+        with open(args.out, "w") as f:
+            f.write(text + "\n")
+    print(text)
+
+
+if __name__ == "__main__":
+    main()

@@ -31,10 +31,10 @@ CHUNKS_SIZE = 1000
 EXPLORE_LOW = np.array([-0.35, 0.40, 0.05])
 EXPLORE_HIGH = np.array([0.35, 0.95, 0.40])
 # Degraded modes and their weights among degraded episodes. "miss" (the expert steering on an
-# object estimate off by 2-12 cm, 2-15 with --spread wide, --miss-cm otherwise) is weighted up: its hand goes through
-# the expert's motions close to the object, succeeding or not depending on the distance and
-# direction, and a world model (and a judge) that saw few such episodes shows the drawer opening
-# or the button pressed whenever the hand passes near them.
+# object estimate off by 2-12 cm, 2-15 with --spread wide, or --miss-cm) is weighted up: its hand
+# goes through the expert's motions close to the object, succeeding or not depending on the
+# distance and direction, and a world model (and a judge) that saw few such episodes shows the
+# drawer opening or the button pressed whenever the hand passes near them.
 DEGRADED_MODES = {"pause": 1, "wrong": 1, "miss": 3, "burst": 1, "stop": 1, "explore": 1, "late": 1}
 
 
@@ -220,6 +220,17 @@ def features(resolution: int) -> dict:
     }
 
 
+def miss_range(text: str) -> tuple[float, float]:
+    """`--miss-cm LOW,HIGH` (cm) as (low, high) in metres."""
+    try:
+        lo, hi = (float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"takes LOW,HIGH in cm, got {text!r}") from None
+    if not 0.0 <= lo <= hi <= 100.0:
+        raise argparse.ArgumentTypeError(f"needs 0 <= LOW <= HIGH <= 100, got {text!r}")
+    return lo / 100, hi / 100
+
+
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     which = parser.add_mutually_exclusive_group(required=True)
@@ -233,7 +244,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--spread", choices=["narrow", "wide"], default="narrow",
                         help="the experts' action noise and speed: narrow (noise 0.05-0.4, full speed; misses 2-12 cm) or wide "
                              "(noise log-uniform 0.05-1.2, 30%% of episodes at a speed cap of 0.3-1; misses 2-15 cm)")
-    parser.add_argument("--miss-cm", help="LOW,HIGH: how far off (cm, random direction) the `miss` episodes' expert steers; "
+    parser.add_argument("--miss-cm", type=miss_range, help="LOW,HIGH: how far off (cm, random direction) the `miss` episodes' expert steers; "
                         "default 2,12 (2,15 with --spread wide). Outcomes flip a few cm from the object, so a range "
                         "close to it puts more episodes on both sides of the contact boundary")
     parser.add_argument("--out", required=True, help="dataset folder (must not exist unless --force)")
@@ -256,14 +267,6 @@ def parse_args(argv=None) -> argparse.Namespace:
         parser.error("--resolution must be in 16 .. 1024")
     if not 0.0 <= args.degraded_fraction <= 1.0:
         parser.error("--degraded-fraction must be in [0, 1]")
-    if args.miss_cm is not None:
-        try:
-            lo, hi = (float(x) for x in args.miss_cm.split(","))
-        except ValueError:
-            parser.error(f"--miss-cm takes LOW,HIGH in cm, got {args.miss_cm!r}")
-        if not 0.0 <= lo <= hi <= 100.0:
-            parser.error(f"--miss-cm needs 0 <= LOW <= HIGH <= 100, got {args.miss_cm!r}")
-        args.miss_cm = (lo / 100, hi / 100)
     if args.workers < 1:
         parser.error("--workers must be at least 1")
     if os.path.exists(args.out) and not args.force:

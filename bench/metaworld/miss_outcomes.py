@@ -24,19 +24,9 @@ import generate
 from mw import TASKS, Sim
 
 
-def parse_range(text: str) -> tuple[float, float]:
-    try:
-        lo, hi = (float(x) for x in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"takes LOW,HIGH in cm, got {text!r}") from None
-    if not 0.0 <= lo <= hi <= 100.0:
-        raise argparse.ArgumentTypeError(f"needs 0 <= LOW <= HIGH <= 100, got {text!r}")
-    return lo, hi
-
-
-def outcomes(task: str, episodes: int, miss_cm: tuple[float, float], frames: int, degraded: float, spread: str) -> list[tuple[float, bool]]:
-    """(distance in cm, succeeded) of every `miss` episode among seeds 0..episodes-1."""
-    miss = (miss_cm[0] / 100, miss_cm[1] / 100)
+def outcomes(task: str, episodes: int, miss: tuple[float, float], frames: int, degraded: float, spread: str) -> list[tuple[float, bool]]:
+    """(distance in cm, succeeded) of every `miss` episode among seeds 0..episodes-1, the misses
+    drawn `miss` (m) off."""
     out = []
     for seed in range(episodes):
         behaviour = generate.Behaviour(task, generate.episode_rng(task, seed), frames, degraded, spread, miss)
@@ -67,7 +57,7 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--tasks", default=",".join(TASKS))
     parser.add_argument("--episodes", type=int, default=400, help="training seeds 0..episodes-1 per task")
-    parser.add_argument("--miss-cm", type=parse_range, action="append", help="LOW,HIGH (cm); repeat to compare (default 2,12)")
+    parser.add_argument("--miss-cm", type=generate.miss_range, action="append", help="LOW,HIGH (cm); repeat to compare (default 2,12)")
     parser.add_argument("--band-cm", type=float, default=2.0, help="width of the distance bands")
     parser.add_argument("--frames", type=int, default=120)
     parser.add_argument("--degraded-fraction", type=float, default=0.4)
@@ -81,8 +71,9 @@ def main(argv=None) -> None:
         parser.error("--episodes must be at least 1, --frames at least 2, --band-cm positive")
     report = {"episodes": args.episodes, "frames": args.frames, "degraded_fraction": args.degraded_fraction, "spread": args.spread, "tasks": {}}
     for task in tasks:
-        for lo, hi in args.miss_cm or [(2.0, 12.0)]:
+        for lo, hi in args.miss_cm or [(0.02, 0.12)]:
             results = outcomes(task, args.episodes, (lo, hi), args.frames, args.degraded_fraction, args.spread)
+            lo, hi = round(lo * 100, 6), round(hi * 100, 6)
             row = {"miss_episodes": len(results), "succeeded": sum(s for _, s in results), "by_cm": by_band(results, args.band_cm)}
             report["tasks"].setdefault(task, {})[f"{lo:g},{hi:g}"] = row
             print(f"miss_outcomes: {task} --miss-cm {lo:g},{hi:g}: {row['succeeded']} of {row['miss_episodes']} misses succeed", file=sys.stderr, flush=True)

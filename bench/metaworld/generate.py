@@ -140,6 +140,25 @@ def image_stats(images: np.ndarray) -> dict:
     return {k: ([[[x]] for x in s[k]] if k != "count" else [len(images)]) for k in s}
 
 
+def simulate(behaviour: Behaviour, sim, frames: int, render: bool = True) -> tuple[list, list, list, list, list]:
+    """`behaviour` in `sim` for `frames` frames from its reset: per frame the image (None unless
+    `render`), state, command and Meta-World delta action; and frames + 1 success flags, each
+    whether the task was done as that frame was shown (the last: after the last command)."""
+    images, states, commands, deltas, success = [], [], [], [], []
+    image, state = sim.reset()
+    done = False
+    for t in range(frames):
+        command = behaviour.command(t, state, sim.object_pos())
+        images.append(image)
+        states.append(state)
+        commands.append(command)
+        success.append(done)
+        image, state, done = sim.step(command, render=render and t + 1 < frames)
+        deltas.append(sim.last_action)
+    success.append(done)
+    return images, states, commands, deltas, success
+
+
 def run_episode(job: tuple) -> dict:
     """Simulates one episode and writes its parquet file; returns its metadata."""
     import pyarrow as pa
@@ -147,19 +166,8 @@ def run_episode(job: tuple) -> dict:
 
     root, episode_index, first_index, task_index, task, seed, frames, resolution, degraded, spread, miss = job
     behaviour = Behaviour(task, episode_rng(task, seed), frames, degraded, spread, miss)
-    images, states, commands, deltas, success = [], [], [], [], []
     with Sim(task, seed, resolution) as sim:
-        image, state = sim.reset()
-        done = False
-        for t in range(frames):
-            command = behaviour.command(t, state, sim.object_pos())
-            images.append(image)
-            states.append(state)
-            commands.append(command)
-            success.append(done)
-            image, state, done = sim.step(command, render=t + 1 < frames)
-            deltas.append(sim.last_action)
-        success.append(done)
+        images, states, commands, deltas, success = simulate(behaviour, sim, frames)
     images, states, commands, deltas = (np.stack(x) for x in (images, states, commands, deltas))
     success = np.array(success)
     vec = lambda rows: pa.FixedSizeListArray.from_arrays(pa.array(rows.reshape(-1), pa.float32()), rows.shape[1])

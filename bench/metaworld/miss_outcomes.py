@@ -33,12 +33,8 @@ def outcomes(task: str, episodes: int, miss: tuple[float, float], frames: int, d
         if behaviour.mode != "miss":
             continue
         with Sim(task, seed, 32) as sim:
-            _, state = sim.reset()
-            done = False
-            for t in range(frames):
-                _, state, success = sim.step(behaviour.command(t, state, sim.object_pos()), render=False)
-                done = done or bool(success)
-        out.append((float(np.linalg.norm(behaviour.offset)) * 100, done))
+            success = generate.simulate(behaviour, sim, frames, render=False)[4]
+        out.append((float(np.linalg.norm(behaviour.offset)) * 100, any(success)))
     return out
 
 

@@ -70,8 +70,7 @@ impl BwmModel {
     /// As `forward`, the samples whose `keep` `[B]` entry is 0 given the null action condition
     /// (`ActionEmbedding::keep`); `keep` None conditions every sample.
     pub fn forward_keeping(&self, latents: &Tensor, frame_timesteps: &Tensor, actions: &Tensor, keep: Option<&Tensor>) -> Result<Tensor> {
-        let emb = self.embed_actions(latents, actions, keep)?;
-        self.dit.forward_traced(latents, frame_timesteps, Some(&emb.frame), &emb.context, &mut |_, _| {})
+        self.forward_with(latents, frame_timesteps, actions, keep, &mut |_, _| {})
     }
 
     /// The action embedding of `actions` for `latents`, checked to cover its latent frames, with
@@ -100,7 +99,18 @@ impl BwmModel {
         actions: &Tensor,
         trace: &mut dyn FnMut(&str, &Tensor),
     ) -> Result<Tensor> {
-        let emb = self.embed_actions(latents, actions, None)?;
+        self.forward_with(latents, frame_timesteps, actions, None, trace)
+    }
+
+    fn forward_with(
+        &self,
+        latents: &Tensor,
+        frame_timesteps: &Tensor,
+        actions: &Tensor,
+        keep: Option<&Tensor>,
+        trace: &mut dyn FnMut(&str, &Tensor),
+    ) -> Result<Tensor> {
+        let emb = self.embed_actions(latents, actions, keep)?;
         trace("action_context", &emb.context);
         trace("action_mod", &emb.frame);
         self.dit.forward_traced(latents, frame_timesteps, Some(&emb.frame), &emb.context, trace)

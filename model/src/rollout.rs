@@ -51,7 +51,7 @@ impl RolloutSpec {
         ensure!(self.history % 4 == 0, "rollout history {} must be a multiple of 4", self.history);
         ensure!(self.steps > 0, "rollout needs at least one sampler step");
         ensure!(self.shift > 0.0, "sampler shift {} must be positive", self.shift);
-        ensure!(self.guidance.is_finite() && self.guidance >= 0.0, "action guidance {} must be finite and >= 0", self.guidance);
+        crate::sampler::validate_guidance(self.guidance)?;
         if let Some(s) = self.history_sigma {
             ensure!((0.0..=1.0).contains(&s), "history sigma {s} must lie in [0, 1]");
         }

@@ -8,6 +8,12 @@ use tch::{Kind, Tensor};
 use crate::bwm::{frame_timesteps, BwmModel};
 use crate::schedule::FlowSchedule;
 
+/// Action guidance w must be finite and >= 0 (1: off, 0: the null condition alone).
+pub fn validate_guidance(w: f64) -> Result<()> {
+    ensure!(w.is_finite() && w >= 0.0, "action guidance {w} must be finite and >= 0");
+    Ok(())
+}
+
 /// Samples latents [B, C, F, H, W] from `noise` of that shape. `prefix` [B, C, P, H, W] holds the
 /// condition latents (timestep 0); `actions` [B, 1+4k, d_a]. `guidance` w is classifier-free
 /// guidance by the actions: the velocity is v_null + w (v_actions - v_null), v_null the model's
@@ -23,7 +29,7 @@ pub fn sample_chunk(
     guidance: f64,
     on_step: &mut dyn FnMut(usize, &Tensor, &Tensor),
 ) -> Result<Tensor> {
-    ensure!(guidance.is_finite() && guidance >= 0.0, "action guidance {guidance} must be finite and >= 0");
+    validate_guidance(guidance)?;
     let (ps, ns) = (prefix.size(), noise.size());
     ensure!(
         ps.len() == 5 && ns.len() == 5 && ps[0] == ns[0] && ps[1] == ns[1] && ps[3..] == ns[3..] && ps[2] < ns[2],

@@ -467,11 +467,7 @@ impl RunConfig {
         if let Some(s) = self.objective.history_sigma {
             ensure!((0.0..=1.0).contains(&s), "objective.history_sigma must lie in [0, 1], got {s}");
         }
-        ensure!(
-            self.validation.guidance.is_finite() && self.validation.guidance >= 0.0,
-            "validation.guidance must be finite and >= 0, got {}",
-            self.validation.guidance
-        );
+        bwm_model::sampler::validate_guidance(self.validation.guidance).context("validation.guidance")?;
         ensure!(
             (0.0..1.0).contains(&self.objective.action_dropout),
             "objective.action_dropout must lie in [0, 1), got {}",

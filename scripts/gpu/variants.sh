@@ -5,9 +5,9 @@
 # The data are made once (runs/metaworld); each variant then runs scripts/gpu/metaworld.sh in
 # runs/NAME (its data linked to those, unless it sets a variable the data depend on: TASKS,
 # TRAIN_EPISODES, VAL_EPISODES, SPREAD, MISS_CM, FRAMES or RESOLUTION; then it makes its own) with
-# its variables, on GPU i mod the machine's GPU count for
-# the i-th variant, all at once; each trains its judge beside its VAE, as the recipe does (a judge
-# made first for all would hold every variant back by its 2 minutes). With STAGES (default: every
+# its variables, on GPU i mod the machine's GPU count for the i-th variant, all at once; each
+# trains its judge beside its VAE, as the recipe does (a judge made first for all would hold every
+# variant back by its 2 minutes). With STAGES (default: every
 # stage) picking stages, e.g. STAGES="vae ceiling" to compare VAEs alone, one judge is made first
 # for all and linked into each variant's folder. In "VAR=VALUE ...", a word that is not NAME=...
 # continues the value before it ("TRAIN_SETS=a=1 b=2" is one variable). Each variant's log and

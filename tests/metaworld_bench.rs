@@ -63,10 +63,12 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
             .envs([("JUDGE_STEPS", "5"), ("STUDY_EPISODES", "1"), ("STUDY_JOBS", "2"), ("STUDY_HORIZON", "48"), ("STUDY_VARIANTS", "expert,wrong")])
             .env("PROBE_VARIANTS", "wrong-0cm,wrong-6cm")
             // The DiT trained with action dropout and its own history noise, every world-model
-            // stage guided by the actions; the data's near misses closer than the default.
+            // stage guided by the actions; the data's near misses closer than the default, and
+            // decoys among its degraded episodes.
             .env("TRAIN_SETS", format!("{TOY_DIT} objective.action_dropout=0.5 objective.history_sigma=0.1"))
             .env("GUIDANCE", "1.5")
-            .env("MISS_CM", "1,6"),
+            .env("MISS_CM", "1,6")
+            .env("DECOY", "3"),
         "recipe.sh",
     );
 
@@ -94,7 +96,7 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
         Command::new(python())
             .arg(Path::new(ROOT).join("bench/metaworld/generate.py"))
             .args(["--tasks", "drawer-open-v3,button-press-topdown-v3", "--episodes", "1", "--seed-start", "100000"])
-            .args(["--frames", "100", "--resolution", "64", "--miss-cm", "1,6", "--workers", "1", "--out"])
+            .args(["--frames", "100", "--resolution", "64", "--miss-cm", "1,6", "--decoy-weight", "3", "--workers", "1", "--out"])
             .arg(&again),
         "generate.py",
     );
@@ -157,10 +159,30 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
         assert_eq!(counts, 1, "{r}");
     }
     assert_eq!(study["judge_on_simulator_frames"]["n"], 4, "{study}");
+    // Each task's episodes by the hand's closest approach in the simulator: both of them, once.
+    for task in ["drawer-open-v3", "button-press-topdown-v3"] {
+        let bands = study["by_approach"][task].as_object().unwrap_or_else(|| panic!("no by_approach for {task}: {study}"));
+        let episodes: u64 = bands.values().map(|c| c["episodes"].as_u64().unwrap()).sum();
+        assert_eq!(episodes, 2, "{task}: {bands:?}");
+    }
     let judged = json(&runs.join("study/judged.json"));
     assert_eq!(judged["judged"]["drawer-open-v3"]["wrong"].as_array().map(Vec::len), Some(1), "{judged}");
     assert!(study["per_task"]["drawer-open-v3"]["mae"].is_number(), "{study}");
     assert!(runs.join("study/study.svg").is_file() && runs.join("study/eval-1/episodes.jsonl").is_file());
+    // Scored again from its episodes, without the world model: the same rates, the flags kept.
+    run(
+        Command::new(python())
+            .arg(Path::new(ROOT).join("bench/metaworld/study.py"))
+            .arg("--data")
+            .arg(runs.join("data/val"))
+            .args(["--episodes", "1", "--horizon", "48", "--resolution", "64", "--workers", "2", "--variants", "expert,wrong", "--rescore", "--out"])
+            .arg(runs.join("study")),
+        "study.py --rescore",
+    );
+    let rescored = json(&runs.join("study/study.json"));
+    assert_eq!(rescored["rates"], study["rates"], "{rescored}");
+    assert_eq!(rescored["by_approach"], study["by_approach"], "{rescored}");
+    assert_eq!(rescored["world_model_flags"], study["world_model_flags"], "{rescored}");
 
     // The probe: the graded `wrong` variants through the same study, in their own folder.
     let probe = json(&runs.join("probe/study.json"));
@@ -204,6 +226,27 @@ fn near_misses_are_counted_by_distance_in_the_simulator() {
         }
         assert_eq!(episodes, count(range), "{report}");
     }
+
+    // With decoys in the data, they are counted by how far from the object they aim: anywhere in
+    // the drawer's 20 cm range.
+    run(
+        Command::new(python())
+            .arg(Path::new(ROOT).join("bench/metaworld/miss_outcomes.py"))
+            .args(["--tasks", "drawer-open-v3", "--episodes", "30", "--frames", "100", "--decoy-weight", "3", "--out"])
+            .arg(&path),
+        "miss_outcomes.py --decoy-weight",
+    );
+    let report = json(&path);
+    let decoy = &report["tasks"]["drawer-open-v3"]["decoy"];
+    let n = decoy["decoy_episodes"].as_u64().unwrap_or_else(|| panic!("{report}"));
+    assert!(n >= 1, "{report}");
+    let mut episodes = 0;
+    for (band, row) in decoy["by_cm"].as_object().unwrap() {
+        let b: f64 = band.split_once('-').unwrap().1.parse().unwrap();
+        assert!(b <= 22.0, "a decoy aims {band} cm off, outside the range: {report}");
+        episodes += row["episodes"].as_u64().unwrap();
+    }
+    assert_eq!(episodes, n, "{report}");
 }
 
 #[test]

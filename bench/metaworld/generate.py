@@ -5,7 +5,7 @@ parquet files, no video). README.md describes the layout and the seed convention
         --seed-start 0 --frames 120 --resolution 64 --out DIR --workers 2
 
 Each episode is a pure function of (task, seed, --frames, --resolution, --degraded-fraction, --spread,
---miss-cm):
+--miss-cm, --decoy-weight):
 the same arguments give the same bytes whatever --workers is.
 """
 
@@ -36,6 +36,11 @@ EXPLORE_HIGH = np.array([0.35, 0.95, 0.40])
 # distance and direction, and a world model (and a judge) that saw few such episodes shows the
 # drawer opening or the button pressed whenever the hand passes near them.
 DEGRADED_MODES = {"pause": 1, "wrong": 1, "miss": 3, "burst": 1, "stop": 1, "explore": 1, "late": 1}
+# "decoy" (the expert acting on an object placement drawn afresh from the task's range, as in
+# another episode: the motion of a success, aimed wherever that placement was) weighs
+# --decoy-weight beside those, 0 by default. It comes last, so that at weight 0 every other draw
+# stays as it was.
+DECOY = "decoy"
 
 
 class Behaviour:
@@ -43,7 +48,7 @@ class Behaviour:
     by exploration (random waypoints and gripper commands), or degraded in one `mode`."""
 
     def __init__(self, task: str, rng: np.random.Generator, frames: int, degraded_fraction: float, spread: str = "narrow",
-                 miss: tuple[float, float] | None = None):
+                 miss: tuple[float, float] | None = None, decoy_weight: float = 0.0):
         import policies
 
         if spread not in ("narrow", "wide"):
@@ -51,6 +56,8 @@ class Behaviour:
         miss = miss or ((0.02, 0.15) if spread == "wide" else (0.02, 0.12))
         if not 0.0 <= miss[0] <= miss[1]:
             raise ValueError(f"the miss range {miss} must be 0 <= low <= high (m)")
+        if not (np.isfinite(decoy_weight) and decoy_weight >= 0):
+            raise ValueError(f"the decoy weight {decoy_weight} must be finite and >= 0")
         self.policies, self.task, self.rng = policies, task, rng
         if spread == "wide":
             # The experts' action noise log-uniform from near-clean to a jitter that sometimes
@@ -59,12 +66,13 @@ class Behaviour:
             self.speed = float(rng.uniform(0.3, 1.0)) if rng.random() < 0.3 else 1.0
         else:
             self.noise, self.speed = rng.uniform(0.05, 0.4), 1.0
-        modes, weights = list(DEGRADED_MODES), np.array(list(DEGRADED_MODES.values()), float)
+        modes, weights = [*DEGRADED_MODES, DECOY], np.array([*DEGRADED_MODES.values(), decoy_weight], float)
         self.mode = str(rng.choice(modes, p=weights / weights.sum())) if rng.random() < degraded_fraction else "expert"
         self.explore = np.zeros(frames, bool)  # frames spent on random waypoints
         self.hold = np.zeros(frames, bool)  # frames spent still
         self.burst = np.zeros(frames, bool)  # frames of heavy noise
         self.offset = np.zeros(3)
+        self.decoy = None  # where a decoy episode's expert believes the object is
 
         def span(lo: int, hi: int) -> slice:
             start = int(rng.integers(0, frames))
@@ -95,10 +103,15 @@ class Behaviour:
             self.explore[:] = True
         elif self.mode == "late":
             self.hold[: rng.integers(30, 70)] = True
+        elif self.mode == DECOY:
+            self.decoy = rng.uniform(*policies.OBJECT_RANGE[task])
         self.waypoint, self.until, self.gain, self.grip = None, -1, 10.0, -1.0
 
     def command(self, t: int, state: np.ndarray, obj: np.ndarray) -> np.ndarray:
         rng, grip = self.rng, self.policies.GRIP[self.task]
+        if self.decoy is not None:
+            # Relative to the object as placed, so that a drawer the hand does pull still follows it.
+            self.offset, self.decoy = self.decoy - obj, None
         if self.hold[t]:
             return state.copy()
         if self.explore[t]:
@@ -164,8 +177,8 @@ def run_episode(job: tuple) -> dict:
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    root, episode_index, first_index, task_index, task, seed, frames, resolution, degraded, spread, miss = job
-    behaviour = Behaviour(task, episode_rng(task, seed), frames, degraded, spread, miss)
+    root, episode_index, first_index, task_index, task, seed, frames, resolution, degraded, spread, miss, decoy = job
+    behaviour = Behaviour(task, episode_rng(task, seed), frames, degraded, spread, miss, decoy)
     with Sim(task, seed, resolution) as sim:
         images, states, commands, deltas, success = simulate(behaviour, sim, frames)
     images, states, commands, deltas = (np.stack(x) for x in (images, states, commands, deltas))
@@ -255,6 +268,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--miss-cm", type=miss_range, help="LOW,HIGH: how far off (cm, random direction) the `miss` episodes' expert steers; "
                         "default 2,12 (2,15 with --spread wide). Outcomes flip a few cm from the object, so a range "
                         "close to it puts more episodes on both sides of the contact boundary")
+    parser.add_argument("--decoy-weight", type=float, default=0.0,
+                        help="weight of `decoy` episodes among the degraded ones (the others weigh 1, `miss` 3): the expert "
+                             "acting on an object placement drawn afresh from the task's range, so that the motion of a "
+                             "success does not tell where the object is; default 0 (none)")
     parser.add_argument("--out", required=True, help="dataset folder (must not exist unless --force)")
     parser.add_argument("--workers", type=int, default=min(4, os.cpu_count() or 1))
     parser.add_argument("--force", action="store_true", help="replace --out if it exists")
@@ -275,6 +292,8 @@ def parse_args(argv=None) -> argparse.Namespace:
         parser.error("--resolution must be in 16 .. 1024")
     if not 0.0 <= args.degraded_fraction <= 1.0:
         parser.error("--degraded-fraction must be in [0, 1]")
+    if not (np.isfinite(args.decoy_weight) and args.decoy_weight >= 0):
+        parser.error("--decoy-weight must be finite and >= 0")
     if args.workers < 1:
         parser.error("--workers must be at least 1")
     if os.path.exists(args.out) and not args.force:
@@ -291,7 +310,7 @@ def main(argv=None) -> None:
     for i in range(args.episodes):
         for task_index, task in enumerate(args.tasks):
             e = len(jobs)
-            jobs.append((tmp, e, e * args.frames, task_index, task, args.seed_start + i, args.frames, args.resolution, args.degraded_fraction, args.spread, args.miss_cm))
+            jobs.append((tmp, e, e * args.frames, task_index, task, args.seed_start + i, args.frames, args.resolution, args.degraded_fraction, args.spread, args.miss_cm, args.decoy_weight))
     start = time.time()
     try:
         results = []

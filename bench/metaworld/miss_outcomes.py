@@ -8,7 +8,10 @@ would degrade into a `miss` (the expert steering on an object estimate off by a 
 a random direction) is simulated with that distance drawn from each --miss-cm range, and its
 outcome counted by distance band. The bands where outcomes flip are where a world model needs
 examples on both sides of the contact; a range that puts most misses far past them adds failures
-it already draws, one inside them adds successes. Prints one JSON object (and writes it to --out).
+it already draws, one inside them adds successes. With --decoy-weight W, the data's draws are
+those of `generate.py --decoy-weight W`, and the `decoy` episodes (the expert aiming at a fresh
+placement from the task's range) are counted the same way, by how far from the object they aim.
+Prints one JSON object (and writes it to --out).
 Only the episodes' draws and the simulator are used: nothing is rendered but each reset's frame.
 """
 
@@ -24,17 +27,18 @@ import generate
 from mw import TASKS, Sim
 
 
-def outcomes(task: str, episodes: int, miss: tuple[float, float], frames: int, degraded: float, spread: str) -> list[tuple[float, bool]]:
-    """(distance in cm, succeeded) of every `miss` episode among seeds 0..episodes-1, the misses
-    drawn `miss` (m) off."""
+def outcomes(task: str, episodes: int, miss: tuple[float, float], frames: int, degraded: float, spread: str,
+             decoy_weight: float = 0.0, mode: str = "miss") -> list[tuple[float, bool]]:
+    """(distance in cm, succeeded) of every `mode` episode among seeds 0..episodes-1, the misses
+    drawn `miss` (m) off; the distance is how far from the object the episode's expert aims."""
     out = []
     for seed in range(episodes):
-        behaviour = generate.Behaviour(task, generate.episode_rng(task, seed), frames, degraded, spread, miss)
-        if behaviour.mode != "miss":
+        behaviour = generate.Behaviour(task, generate.episode_rng(task, seed), frames, degraded, spread, miss, decoy_weight)
+        if behaviour.mode != mode:
             continue
         with Sim(task, seed, 32) as sim:
             success = generate.simulate(behaviour, sim, frames, render=False)[4]
-        out.append((float(np.linalg.norm(behaviour.offset)) * 100, any(success)))
+        out.append((float(np.linalg.norm(behaviour.offset[:2])) * 100, any(success)))
     return out
 
 
@@ -54,6 +58,8 @@ def main(argv=None) -> None:
     parser.add_argument("--tasks", default=",".join(TASKS))
     parser.add_argument("--episodes", type=int, default=400, help="training seeds 0..episodes-1 per task")
     parser.add_argument("--miss-cm", type=generate.miss_range, action="append", help="LOW,HIGH (cm); repeat to compare (default 2,12)")
+    parser.add_argument("--decoy-weight", type=float, default=0.0, help="the data's `decoy` weight (generate.py --decoy-weight); above 0 "
+                        "the decoy episodes are counted too")
     parser.add_argument("--band-cm", type=float, default=2.0, help="width of the distance bands")
     parser.add_argument("--frames", type=int, default=120)
     parser.add_argument("--degraded-fraction", type=float, default=0.4)
@@ -65,14 +71,22 @@ def main(argv=None) -> None:
         parser.error(f"unknown task(s) {', '.join(unknown)} (known: {', '.join(TASKS)})")
     if args.episodes < 1 or args.frames < 2 or args.band_cm <= 0:
         parser.error("--episodes must be at least 1, --frames at least 2, --band-cm positive")
-    report = {"episodes": args.episodes, "frames": args.frames, "degraded_fraction": args.degraded_fraction, "spread": args.spread, "tasks": {}}
+    if not (np.isfinite(args.decoy_weight) and args.decoy_weight >= 0):
+        parser.error("--decoy-weight must be finite and >= 0")
+    report = {"episodes": args.episodes, "frames": args.frames, "degraded_fraction": args.degraded_fraction, "spread": args.spread,
+              "decoy_weight": args.decoy_weight, "tasks": {}}
     for task in tasks:
-        for lo, hi in args.miss_cm or [(0.02, 0.12)]:
-            results = outcomes(task, args.episodes, (lo, hi), args.frames, args.degraded_fraction, args.spread)
+        counted = [("miss", r) for r in args.miss_cm or [(0.02, 0.12)]]
+        if args.decoy_weight > 0:
+            counted.append(("decoy", counted[0][1]))
+        for mode, (lo, hi) in counted:
+            results = outcomes(task, args.episodes, (lo, hi), args.frames, args.degraded_fraction, args.spread, args.decoy_weight, mode)
             lo, hi = round(lo * 100, 6), round(hi * 100, 6)
-            row = {"miss_episodes": len(results), "succeeded": sum(s for _, s in results), "by_cm": by_band(results, args.band_cm)}
-            report["tasks"].setdefault(task, {})[f"{lo:g},{hi:g}"] = row
-            print(f"miss_outcomes: {task} --miss-cm {lo:g},{hi:g}: {row['succeeded']} of {row['miss_episodes']} misses succeed", file=sys.stderr, flush=True)
+            row = {f"{mode}_episodes": len(results), "succeeded": sum(s for _, s in results), "by_cm": by_band(results, args.band_cm)}
+            name = "decoy" if mode == "decoy" else f"{lo:g},{hi:g}"
+            report["tasks"].setdefault(task, {})[name] = row
+            print(f"miss_outcomes: {task} {name if mode == 'decoy' else '--miss-cm ' + name}: {row['succeeded']} of {len(results)} "
+                  f"{mode} episodes succeed", file=sys.stderr, flush=True)
     text = json.dumps(report, indent=1)
     if args.out:
         with open(args.out, "w") as f:

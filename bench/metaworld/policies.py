@@ -210,13 +210,23 @@ def make_policy(task: str, variant: str, seed: int) -> Policy:
     return Policy(task, variant, seed)
 
 
+@dataclass
+class Episode:
+    """One simulator episode of a policy: the step (1-based) at which the success flag was first
+    raised (None: not within the horizon), the closest the hand came to the object before then
+    (cm; the end effector to the drawer handle / the button top, over every step), and with
+    `record` every frame from x0 on (uint8 [T, H, W, 3])."""
+
+    first: int | None
+    approach_cm: float
+    frames: np.ndarray | None = None
+
+
 def run_episode(task: str, variant: str, seed: int, horizon: int = 120, chunk: int = 24, resolution: int = 64,
-                record: bool = False) -> tuple[int | None, np.ndarray | None]:
+                record: bool = False) -> Episode:
     """One episode of the policy in the simulator as the world-model evaluator runs it (a frame
-    every `chunk` steps, `chunk` commands back). Returns the step (1-based) at which the
-    simulator's success flag was first raised, None when not within `horizon` steps, and, with
-    `record`, every frame from x0 on (uint8 [T, H, W, 3]; the episode then runs the whole horizon
-    instead of stopping at success)."""
+    every `chunk` steps, `chunk` commands back). Without `record` it stops at the first success;
+    with it the episode runs the whole horizon and keeps every frame."""
     from mw import Sim
 
     policy = make_policy(task, variant, seed)
@@ -224,25 +234,27 @@ def run_episode(task: str, variant: str, seed: int, horizon: int = 120, chunk: i
         image, state = sim.reset()
         frames = [image] if record else None
         first, t = None, 0
+        approach = float(np.linalg.norm(sim.hand_pos() - sim.object_pos()))
         while t < horizon and (record or first is None):
             commands = policy.act(image, state, min(chunk, horizon - t))
             for i, command in enumerate(commands):
                 last = i == len(commands) - 1
                 image, state, done = sim.step(command, render=record or last)
                 t += 1
+                if first is None:
+                    approach = min(approach, float(np.linalg.norm(sim.hand_pos() - sim.object_pos())))
                 if done and first is None:
                     first = t
                 if record:
                     frames.append(image)
                 elif done:
                     break
-    return first, (np.stack(frames) if record else None)
+    return Episode(first, 100 * approach, np.stack(frames) if record else None)
 
 
-def measure_truth(task: str, variant: str, seeds, horizon: int = 120, chunk: int = 24, resolution: int = 64) -> list[int | None]:
-    """Per seed: the step at which the episode first succeeds in the simulator, None when it does
-    not within `horizon` (run_episode)."""
-    return [run_episode(task, variant, seed, horizon, chunk, resolution)[0] for seed in seeds]
+def measure_truth(task: str, variant: str, seeds, horizon: int = 120, chunk: int = 24, resolution: int = 64) -> list[Episode]:
+    """Per seed, the episode in the simulator without its frames (run_episode)."""
+    return [run_episode(task, variant, seed, horizon, chunk, resolution) for seed in seeds]
 
 
 if __name__ == "__main__":
@@ -260,8 +272,8 @@ if __name__ == "__main__":
     rates = {}
     for task in args.tasks:
         for variant in VARIANTS[task]:
-            first = measure_truth(task, variant, seeds, args.horizon, args.chunk)
-            rates.setdefault(task, {})[variant] = sum(f is not None for f in first) / len(first)
+            episodes = measure_truth(task, variant, seeds, args.horizon, args.chunk)
+            rates.setdefault(task, {})[variant] = sum(e.first is not None for e in episodes) / len(episodes)
             print(f"{task:26s} {variant:10s} {100 * rates[task][variant]:5.1f}%", flush=True)
     if args.json:
         with open(args.json, "w") as f:

@@ -9,8 +9,9 @@ generated frames) against its true success rate in the simulator on the same pla
 Episodes: the first --episodes episodes of each task in the held-out dataset; episode k of a task
 starts from that episode's frame 0 and pose, and the policy's per-episode randomness and the
 simulator's placement both follow that episode's seed (its `seed` in meta/episodes.jsonl).
-Truth: policies.measure_truth over the same seeds (cached in DIR/truth.json: the step of each
-episode's first success, null for a failure). The variants are
+Truth: policies.measure_truth over the same seeds (cached in DIR/truth.json: per episode the step
+of its first success, null for a failure, and the closest the hand came to the object before it,
+in cm). The variants are
 split over --jobs `bwm evaluate` processes that share the servers (a variant's episodes stay in
 one process, in order, so that the policy server hands out seeds in the dataset's order).
 
@@ -20,14 +21,18 @@ measured apart from the world model's.
 
 Writes DIR/study.json (rates and agreement: Pearson r, Spearman rank correlation, MAE, per task
 and over all variants; whether the best variant is ranked first; the same for the judge on the
-simulator's frames), DIR/study.csv,
+simulator's frames; the episodes per task by the hand's closest approach to the object, with how
+many succeeded and how many the world model drew), DIR/study.csv,
 DIR/study.svg (estimated against true rates) and each process's evaluate output in DIR/eval-*/.
-Everything after `--` goes to `bwm evaluate` (the world model's flags).
+Everything after `--` goes to `bwm evaluate` (the world model's flags). With --rescore, a finished
+study in DIR is scored again from its eval-*/episodes.jsonl and judged.json (after a change to the
+scoring), without the world model, the judge or `--`.
 """
 
 from __future__ import annotations
 
 import argparse
+import glob
 import json
 import math
 import multiprocessing
@@ -71,19 +76,20 @@ def _truth_job(job):
     task, variant, seeds, horizon, chunk, resolution = job
     import policies
 
-    return task, variant, policies.measure_truth(task, variant, seeds, horizon, chunk, resolution)
+    episodes = policies.measure_truth(task, variant, seeds, horizon, chunk, resolution)
+    return task, variant, [[e.first, round(e.approach_cm, 3)] for e in episodes]
 
 
 def measure_truth(episodes, variants, horizon, chunk, resolution, workers) -> dict:
-    """{task: {variant: [first success step or None per episode]}} in the simulator, episodes in
-    parallel by variant."""
+    """{task: {variant: [[first success step or None, closest approach in cm] per episode]}} in the
+    simulator, episodes in parallel by variant."""
     jobs = [(t, v, [s for _, s in eps], horizon, chunk, resolution) for t, eps in episodes.items() for v in variants]
     truth: dict = {}
     start = time.time()
     with multiprocessing.get_context("spawn").Pool(workers) as pool:
         for n, (task, variant, outcome) in enumerate(pool.imap_unordered(_truth_job, jobs), 1):
             truth.setdefault(task, {})[variant] = outcome
-            rate = np.mean([f is not None for f in outcome])
+            rate = np.mean([f is not None for f, _ in outcome])
             print(f"study: truth {n}/{len(jobs)}: {task} {variant} {100 * rate:.0f}% ({time.time() - start:.0f} s)", flush=True)
     return truth
 
@@ -106,7 +112,7 @@ def _judged_job(job):
 
     probs = []
     for seed in seeds:
-        _, frames = policies.run_episode(task, variant, seed, horizon, chunk, resolution, record=True)
+        frames = policies.run_episode(task, variant, seed, horizon, chunk, resolution, record=True).frames
         probs.append(_judge.judge({"frames": frames, "task": task, "prompt": task})["success_probability"])
     return task, variant, probs
 
@@ -216,21 +222,42 @@ def by_success_chunk(first: list, drawn: list[bool], chunk: int) -> dict:
     return dict(sorted(out.items(), key=lambda kv: (kv[0] == "failures", len(kv[0]), kv[0])))
 
 
+def by_approach(approach_cm: list[float], true: list[bool], drawn: list[bool], band: float = 2.0, last: float = 10.0) -> dict:
+    """Episodes by how close the hand came to the object in the simulator (before any success),
+    in bands of `band` cm up to `last`: how many succeeded there and how many the world model drew
+    as successes. Where the two part is how far off a hand the world model still lets act.
+    {"0-2 cm": {"episodes": n, "true": k, "drawn": m}, ..., "10+ cm": ...}."""
+    out: dict = {}
+    for d, t, e in zip(approach_cm, true, drawn):
+        lo = min(math.floor(d / band) * band, last)
+        name = f"{lo:g}+ cm" if lo >= last else f"{lo:g}-{lo + band:g} cm"
+        cell = out.setdefault((lo, name), {"episodes": 0, "true": 0, "drawn": 0})
+        cell["episodes"] += 1
+        cell["true"] += int(t)
+        cell["drawn"] += int(e)
+    return {name: cell for (_, name), cell in sorted(out.items())}
+
+
 def summarize(truth: dict, estimates: dict, judged: dict, tasks: list[str], variants: list[str], chunk: int) -> dict:
-    """Agreement of the world model's estimates with the truth (each episode's first success step
-    or None); `judged` (the judge on the simulator's frames) adds that column and its own
-    agreement, the judge's share of the error."""
+    """Agreement of the world model's estimates with the truth (per episode [first success step or
+    None, closest approach in cm]); `judged` (the judge on the simulator's frames) adds that column
+    and its own agreement, the judge's share of the error."""
     rows, pooled_true, pooled_est, pooled_first = [], [], [], []
+    approach: dict = {}
     for t in tasks:
         for v in variants:
             est = estimates[t][v]
-            first = truth[t][v]
+            first = [f for f, _ in truth[t][v]]
             # Episode k of a task is the k-th held-out placement and policy seed in both.
             by_episode = {e["episode"]: bool(e["success"]) for e in est}
             paired = [(f, by_episode[k]) for k, f in enumerate(first) if k in by_episode]
             pooled_first += [p[0] for p in paired]
             pooled_true += [p[0] is not None for p in paired]
             pooled_est += [p[1] for p in paired]
+            near, succeeded, drawn = approach.setdefault(t, ([], [], []))
+            near += [d for k, (_, d) in enumerate(truth[t][v]) if k in by_episode]
+            succeeded += [p[0] is not None for p in paired]
+            drawn += [p[1] for p in paired]
             rows.append({"task": t, "variant": v, "episodes": len(first), "true": float(np.mean([f is not None for f in first])),
                          "estimated": float(np.mean([e["success"] for e in est])), "errors": sum(e["error"] is not None for e in est),
                          "judged_simulator": float(np.mean([p >= THRESHOLD for p in judged[t][v]])),
@@ -246,7 +273,8 @@ def summarize(truth: dict, estimates: dict, judged: dict, tasks: list[str], vari
     judge_alone = agreement([f"{r['variant']}/{r['task']}" for r in rows], [r["judged_simulator"] for r in rows], [r["true"] for r in rows])
     return {"rates": rows, "per_task": per_task, "all": overall, "variants_mean_over_tasks": by_variant,
             "judge_on_simulator_frames": judge_alone, "per_episode": episode_agreement(pooled_true, pooled_est),
-            "by_success_chunk": by_success_chunk(pooled_first, pooled_est, chunk)}
+            "by_success_chunk": by_success_chunk(pooled_first, pooled_est, chunk),
+            "by_approach": {t: by_approach(*approach[t]) for t in tasks}}
 
 
 def fmt(v) -> str:
@@ -366,9 +394,17 @@ def run_evaluations(groups, a, ports, judge_url, episodes) -> dict:
         msg = "\n".join(f"evaluate {g} exited {rc}; {o}/evaluate.log ends:\n{tail(os.path.join(o, 'evaluate.log'))}" for g, rc, o in failed)
         raise SystemExit(f"study: {msg}")
     print(f"study: {total} world-model episodes in {time.time() - start:.0f} s", flush=True)
+    return read_estimates([o for _, _, _, o in procs])
+
+
+def read_estimates(dirs: list[str]) -> dict:
+    """{task: {variant: [record]}} from the episodes.jsonl that `bwm evaluate` wrote in each of `dirs`."""
     estimates: dict = {}
-    for _, _, _, o in procs:
-        with open(os.path.join(o, "episodes.jsonl")) as f:
+    for o in dirs:
+        path = os.path.join(o, "episodes.jsonl")
+        if not os.path.isfile(path):
+            raise SystemExit(f"study: no {path} (was the study run in this folder?)")
+        with open(path) as f:
             for line in f:
                 r = json.loads(line)
                 estimates.setdefault(r["task"], {}).setdefault(r["policy"], []).append(r)
@@ -404,6 +440,9 @@ def main(argv=None) -> None:
                     help="episodes each bwm evaluate process runs at once, its chunks generated as one batch")
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="processes measuring the truth")
     ap.add_argument("--truth-only", action="store_true", help="measure (or find cached) the true rates in DIR/truth.json and stop")
+    ap.add_argument("--rescore", action="store_true",
+                    help="score the world-model episodes already in DIR/eval-*/ again (the truth measured again when its "
+                         "cache is of another kind), without running the world model or the judge")
     ap.add_argument("--bwm", default=os.path.join(os.environ.get("CARGO_TARGET_DIR", "target"), "release", "bwm"))
     a = ap.parse_args(argv)
     a.wm = wm
@@ -418,7 +457,7 @@ def main(argv=None) -> None:
         ap.error(f"{problem} (shared named variants: {', '.join(shared)})")
     if a.episodes < 1 or a.jobs < 1 or a.workers < 1:
         ap.error("--episodes, --jobs and --workers must be at least 1")
-    if a.truth_only:
+    if a.truth_only or a.rescore:
         pass
     elif not os.access(a.bwm, os.X_OK):
         ap.error(f"no bwm binary at {a.bwm} (make build, or pass --bwm)")
@@ -430,13 +469,32 @@ def main(argv=None) -> None:
     episodes = episodes_by_task(a.data, tasks, a.episodes)
 
     key = {"episodes": {t: [s for _, s in e] for t, e in episodes.items()}, "horizon": a.horizon, "chunk": a.chunk,
-           "resolution": a.resolution, "variants": variants, "outcome": "first success step"}
+           "resolution": a.resolution, "variants": variants, "outcome": "first success step, closest approach (cm)"}
     truth_path = os.path.join(a.out, "truth.json")
     truth = cached(truth_path, "truth", key, lambda: measure_truth(episodes, variants, a.horizon, a.chunk, a.resolution, a.workers))
     if a.truth_only:
         print(f"study: true success rates in {truth_path}")
         return
-    judged = cached(os.path.join(a.out, "judged.json"), "judged", {**key, "judge": file_digest(a.judge)},
+    judged_path = os.path.join(a.out, "judged.json")
+    # What the judge's verdicts depend on: the episodes, not the form of the truth.
+    episodes_key = {k: v for k, v in key.items() if k != "outcome"}
+    if a.rescore:
+        evals = sorted(glob.glob(os.path.join(a.out, "eval-*")))
+        if not evals or not os.path.isfile(judged_path) or not os.path.isfile(os.path.join(a.out, "study.json")):
+            raise SystemExit(f"study: --rescore needs a finished study in {a.out} (eval-*/, judged.json, study.json)")
+        with open(os.path.join(a.out, "study.json")) as f:
+            before = json.load(f)
+        with open(judged_path) as f:
+            found = json.load(f)
+        # The judge's file is not needed again: its verdicts are kept with the episodes they judged.
+        if {k: v for k, v in found["key"].items() if k not in ("judge", "outcome")} != episodes_key:
+            raise SystemExit(f"study: {judged_path} holds other episodes than --data/--episodes/--variants ask for")
+        summary = summarize(truth, read_estimates(evals), found["judged"], tasks, variants, a.chunk)
+        for k in ("episodes_per_rate", "horizon", "world_model_flags", "episodes_in_flight"):
+            summary[k] = before.get(k)
+        write_summary(a.out, summary, tasks, a.chunk)
+        return
+    judged = cached(judged_path, "judged", {**episodes_key, "judge": file_digest(a.judge)},
                     lambda: judge_simulator(episodes, variants, a.horizon, a.chunk, a.resolution, a.workers, a.judge))
 
     seeds_path = os.path.join(a.out, "episode_seeds.json")
@@ -478,15 +536,20 @@ def main(argv=None) -> None:
     summary["horizon"] = a.horizon
     summary["world_model_flags"] = wm
     summary["episodes_in_flight"] = a.episodes_in_flight
-    with open(os.path.join(a.out, "study.json"), "w") as f:
+    write_summary(a.out, summary, tasks, a.chunk)
+
+
+def write_summary(out: str, summary: dict, tasks: list[str], chunk: int) -> None:
+    """DIR/study.json, study.csv and study.svg, and the tables on stdout."""
+    with open(os.path.join(out, "study.json"), "w") as f:
         json.dump(summary, f, indent=1)
-    with open(os.path.join(a.out, "study.csv"), "w") as f:
+    with open(os.path.join(out, "study.csv"), "w") as f:
         f.write("task,variant,episodes,true_success_rate,estimated_success_rate,errors,judge_on_simulator_rate\n")
         for r in summary["rates"]:
             f.write(f"{r['task']},{r['variant']},{r['episodes']},{r['true']:.4f},{r['estimated']:.4f},{r['errors']},{r['judged_simulator']:.4f}\n")
     a_ = summary["all"]
     title = f"r = {fmt(a_['pearson_r'])}, rho = {fmt(a_['spearman_rho'])}, MAE = {fmt(a_['mae'])}"
-    with open(os.path.join(a.out, "study.svg"), "w") as f:
+    with open(os.path.join(out, "study.svg"), "w") as f:
         f.write(svg_scatter(summary["rates"], tasks, title))
     print(f"{'task':26s} {'variant':10s} {'true':>6s} {'world model':>11s} {'judge on simulator':>18s} {'same outcome':>12s} {'kappa':>6s}")
     for r in summary["rates"]:
@@ -501,8 +564,11 @@ def main(argv=None) -> None:
     print(f"per episode, pooled: the world model draws the simulator's outcome in {e['agreement']:.3f} of {e['n']} episodes "
           f"(chance {e['chance']:.3f}, kappa {fmt(e['kappa'])}; missed {e['missed']} successes, invented {e['invented']})")
     cells = ", ".join(f"{name} {c['drawn']}/{c['true']}" for name, c in summary["by_success_chunk"].items())
-    print(f"drawn as successes, by the chunk of {a.chunk} steps in which the simulator succeeds (pooled): {cells}")
-    print(f"study: wrote {os.path.join(a.out, 'study.json')}, study.csv, study.svg")
+    print(f"drawn as successes, by the chunk of {chunk} steps in which the simulator succeeds (pooled): {cells}")
+    for t, bands in summary["by_approach"].items():
+        cells = ", ".join(f"{name} {c['true']}/{c['drawn']}/{c['episodes']}" for name, c in bands.items())
+        print(f"{t}, by the hand's closest approach to the object in the simulator (true/drawn/episodes): {cells}")
+    print(f"study: wrote {os.path.join(out, 'study.json')}, study.csv, study.svg")
 
 
 if __name__ == "__main__":

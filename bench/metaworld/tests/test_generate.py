@@ -74,6 +74,41 @@ def test_miss_cm_is_parsed_in_cm():
             raise AssertionError(f"--miss-cm {bad} was accepted")
 
 
+def test_decoys_steer_on_a_fresh_placement_and_weight_zero_changes_nothing():
+    import policies
+
+    lo, hi = policies.OBJECT_RANGE[TASK]
+    with_decoys = [generate.Behaviour(TASK, generate.episode_rng(TASK, seed), 120, 0.4, "narrow", None, 3.0) for seed in range(300)]
+    decoys = [b for b in with_decoys if b.mode == "decoy"]
+    # 40% degraded, decoys 3 of the 12 weights among them: about 30 of 300.
+    assert 15 <= len(decoys) <= 50, len(decoys)
+    obj = np.array([0.05, 0.73, 0.09])
+    for b in decoys:
+        target = b.decoy.copy()
+        assert ((target >= lo - 1e-12) & (target <= hi + 1e-12)).all(), target
+        b.command(0, np.array([0.0, 0.6, 0.2, -1.0], np.float32), obj)
+        assert np.allclose(obj + b.offset, target) and b.decoy is None
+    # Their aims are spread over the range, not clustered at the object.
+    assert np.ptp([obj[0] + b.offset[0] for b in decoys]) > 0.15
+    default = behaviours("narrow")
+    zero = [generate.Behaviour(TASK, generate.episode_rng(TASK, seed), 120, 0.4, "narrow", None, 0.0) for seed in range(300)]
+    assert [b.mode for b in zero] == [b.mode for b in default] and "decoy" not in {b.mode for b in zero}
+    assert all(a.noise == b.noise and (a.offset == b.offset).all() for a, b in zip(zero, default))
+    for bad in (-1.0, float("nan"), float("inf")):
+        try:
+            generate.Behaviour(TASK, generate.episode_rng(TASK, 0), 120, 0.4, "narrow", None, bad)
+        except ValueError as e:
+            assert "decoy weight" in str(e)
+        else:
+            raise AssertionError(f"the decoy weight {bad} was accepted")
+        try:
+            generate.parse_args(["--task", TASK, "--episodes", "1", "--out", "/nonexistent/x", "--decoy-weight", str(bad)])
+        except SystemExit:
+            pass
+        else:
+            raise AssertionError(f"--decoy-weight {bad} was accepted")
+
+
 def test_a_speed_cap_bounds_the_experts_steps():
     b = next(b for b in behaviours("wide") if b.speed < 0.6 and b.mode == "expert")
     b.noise, b.explore[:] = 0.0, False

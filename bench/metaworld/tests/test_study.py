@@ -20,8 +20,9 @@ def test_episode_agreement_counts_and_kappa():
 
 
 def test_summarize_pairs_episodes_by_index():
-    # The truth is each episode's first success step (None: a failure).
-    truth = {"t": {"a": [30, None, 100, None], "b": [None, None, None, None]}}
+    # The truth is each episode's first success step (None: a failure) and the hand's closest
+    # approach to the object (cm).
+    truth = {"t": {"a": [[30, 0.5], [None, 3.0], [100, 1.0], [None, 12.0]], "b": [[None, 9.5]] * 4}}
     record = lambda k, ok: {"episode": k, "success": ok, "error": None}
     estimates = {"t": {"a": [record(2, True), record(0, True), record(3, True), record(1, False)],
                        "b": [record(k, False) for k in range(4)]}}
@@ -35,6 +36,16 @@ def test_summarize_pairs_episodes_by_index():
     assert s["by_success_chunk"] == {"chunk 1": {"true": 1, "drawn": 1}, "chunk 4": {"true": 1, "drawn": 1},
                                      "failures": {"true": 6, "drawn": 1}}, s["by_success_chunk"]
     assert list(s["rates"][0]["by_success_chunk"]) == ["chunk 1", "chunk 4", "failures"]
+    # Episode 3 (a failure 12 cm off) is the one drawn as a success.
+    assert s["by_approach"] == {"t": {"0-2 cm": {"episodes": 2, "true": 2, "drawn": 2}, "2-4 cm": {"episodes": 1, "true": 0, "drawn": 0},
+                                      "8-10 cm": {"episodes": 4, "true": 0, "drawn": 0}, "10+ cm": {"episodes": 1, "true": 0, "drawn": 1}}}, s["by_approach"]
+
+
+def test_approach_bands_sort_numerically_and_end_open():
+    b = study.by_approach([0.0, 1.99, 2.0, 10.0, 25.0, 4.5, 12.3], [True] * 7, [False] * 7)
+    assert list(b) == ["0-2 cm", "2-4 cm", "4-6 cm", "10+ cm"], b
+    assert b["0-2 cm"]["episodes"] == 2 and b["10+ cm"]["episodes"] == 3 and b["2-4 cm"]["true"] == 1, b
+    assert study.by_approach([], [], []) == {}
 
 
 def test_success_chunks_sort_numerically():

@@ -2,12 +2,12 @@
 # Variants of the Meta-World recipe side by side on one lent machine (device tool), from the repo
 # root, with the carry of scripts/gpu/metaworld.sh:
 #   bash scripts/gpu/variants.sh NAME "VAR=VALUE ..." [NAME "VAR=VALUE ..." ...]
-# The data are made once (runs/metaworld); each variant then runs scripts/gpu/metaworld.sh in
-# runs/NAME (its data linked to those, unless it sets a variable the data depend on: TASKS,
-# TRAIN_EPISODES, VAL_EPISODES, SPREAD, MISS_CM, DECOY, FRAMES or RESOLUTION; then it makes its
-# own) with its variables, on GPU i mod the machine's GPU count for the i-th variant, all at once; each
-# trains its judge beside its VAE, as the recipe does (a judge made first for all would hold every
-# variant back by its 2 minutes). With STAGES (default: every
+# The data are made once (runs/metaworld, when a variant uses them); each variant then runs
+# scripts/gpu/metaworld.sh in runs/NAME (its data linked to those, unless it sets a variable the
+# data depend on: TASKS, TRAIN_EPISODES, VAL_EPISODES, SPREAD, MISS_CM, DECOY, FRAMES or
+# RESOLUTION; then it makes its own) with its variables, on GPU i mod the machine's GPU count for
+# the i-th variant, all at once; each trains its judge beside its VAE, as the recipe does (a judge
+# made first for all would hold every variant back by its 2 minutes). With STAGES (default: every
 # stage) picking stages, e.g. STAGES="vae ceiling" to compare VAEs alone, one judge is made first
 # for all and linked into each variant's folder. In "VAR=VALUE ...", a word that is not NAME=...
 # continues the value before it ("TRAIN_SETS=a=1 b=2" is one variable). Each variant's log and
@@ -20,17 +20,12 @@ set -uo pipefail -f  # -f: a variant's TRAIN_SETS holds brackets, not globs
 cd "$(dirname "$0")/../.."
 OUT=${OUT:-/tmp/out}
 mkdir -p "$OUT"
-shared=(data)
-[ -n "${STAGES:-}" ] && shared+=(judge)
-bash scripts/gpu/metaworld.sh "${shared[@]}" > "$OUT/shared.log" 2>&1 || { echo "variants: ${shared[*]} failed ($OUT/shared.log)"; exit 1; }
-gpus=$(nvidia-smi -L | wc -l)
-i=0 pids=() names=()
+# Every variant's words first: a word not of the form NAME=... continues the variable before it.
+# A variant's assignments are kept as one newline-separated string (bash has no arrays of arrays).
+names=() assigns=() own=()
 while [ $# -gt 0 ]; do
   name=$1 vars=$2; shift 2
   case "$name" in metaworld|*/*|"") echo "variants: '$name' cannot name a run folder" >&2; exit 2 ;; esac
-  mkdir -p "runs/$name" "$OUT/$name"
-  # Words split on blanks; one not of the form NAME=... continues the variable before it, so that
-  # "TRAIN_SETS=a=1 b=2" sets TRAIN_SETS to "a=1 b=2".
   assign=()
   for w in $vars; do
     if [[ $w =~ ^[A-Z_][A-Z0-9_]*= ]]; then assign+=("$w")
@@ -38,8 +33,24 @@ while [ $# -gt 0 ]; do
     else echo "variants: '$vars' must start with NAME=VALUE" >&2; exit 2
     fi
   done
+  names+=("$name") assigns+=("$(printf '%s\n' "${assign[@]}")")
+  if printf '%s\n' "${assign[@]}" | grep -qE '^(TASKS|TRAIN_EPISODES|VAL_EPISODES|SPREAD|MISS_CM|DECOY|FRAMES|RESOLUTION)='; then own+=(1); else own+=(0); fi
+done
+# The shared data only when a variant links them (or the shared judge trains on them).
+shared=()
+[[ " ${own[*]} " == *" 0 "* ]] || [ -n "${STAGES:-}" ] && shared+=(data)
+[ -n "${STAGES:-}" ] && shared+=(judge)
+if [ ${#shared[@]} -gt 0 ]; then
+  bash scripts/gpu/metaworld.sh "${shared[@]}" > "$OUT/shared.log" 2>&1 || { echo "variants: ${shared[*]} failed ($OUT/shared.log)"; exit 1; }
+fi
+gpus=$(nvidia-smi -L | wc -l)
+pids=()
+for i in "${!names[@]}"; do
+  name=${names[$i]}
+  mapfile -t assign <<< "${assigns[$i]}"
+  mkdir -p "runs/$name" "$OUT/$name"
   stages=${STAGES:-}
-  if printf '%s\n' "${assign[@]}" | grep -qE '^(TASKS|TRAIN_EPISODES|VAL_EPISODES|SPREAD|MISS_CM|DECOY|FRAMES|RESOLUTION)='; then
+  if [ "${own[$i]}" = 1 ]; then
     [ -L "runs/$name/data" ] && rm "runs/$name/data"
     [ -n "$stages" ] && stages="data $stages"
     echo "variants: $name makes its own data"
@@ -51,7 +62,7 @@ while [ $# -gt 0 ]; do
   # shellcheck disable=SC2086  # stages are words by design
   env CUDA_VISIBLE_DEVICES=$((i % gpus)) RUN="runs/$name" OUT="$OUT/$name" "${assign[@]}" \
     bash scripts/gpu/metaworld.sh $stages > "$OUT/$name/log" 2>&1 &
-  pids+=($!) names+=("$name") i=$((i + 1))
+  pids+=($!)
 done
 status=0
 for k in "${!pids[@]}"; do

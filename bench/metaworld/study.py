@@ -38,6 +38,7 @@ import math
 import multiprocessing
 import os
 import shlex
+import shutil
 import subprocess
 import sys
 import time
@@ -367,6 +368,10 @@ def write_config(path: str, variants: list[str], ports: dict, judge_url: str, da
 def run_evaluations(groups, a, ports, judge_url, episodes) -> dict:
     """Runs one `bwm evaluate` per variant group at once; returns {task: {variant: [record]}}."""
     procs = []
+    # An earlier study in this folder with more groups left eval-N folders this one does not write.
+    for stale in glob.glob(os.path.join(a.out, "eval-*")):
+        if os.path.basename(stale) not in {f"eval-{g}" for g in range(len(groups))}:
+            shutil.rmtree(stale)
     for g, variants in enumerate(groups):
         out = os.path.join(a.out, f"eval-{g}")
         os.makedirs(out, exist_ok=True)
@@ -407,7 +412,10 @@ def read_estimates(dirs: list[str]) -> dict:
         with open(path) as f:
             for line in f:
                 r = json.loads(line)
-                estimates.setdefault(r["task"], {}).setdefault(r["policy"], []).append(r)
+                mine = estimates.setdefault(r["task"], {}).setdefault(r["policy"], [])
+                if any(e["episode"] == r["episode"] for e in mine):
+                    raise SystemExit(f"study: episode {r['episode']} of {r['policy']}/{r['task']} appears twice in {', '.join(dirs)}")
+                mine.append(r)
     return estimates
 
 
@@ -471,14 +479,11 @@ def main(argv=None) -> None:
     key = {"episodes": {t: [s for _, s in e] for t, e in episodes.items()}, "horizon": a.horizon, "chunk": a.chunk,
            "resolution": a.resolution, "variants": variants, "outcome": "first success step, closest approach (cm)"}
     truth_path = os.path.join(a.out, "truth.json")
-    truth = cached(truth_path, "truth", key, lambda: measure_truth(episodes, variants, a.horizon, a.chunk, a.resolution, a.workers))
-    if a.truth_only:
-        print(f"study: true success rates in {truth_path}")
-        return
     judged_path = os.path.join(a.out, "judged.json")
     # What the judge's verdicts depend on: the episodes, not the form of the truth.
     episodes_key = {k: v for k, v in key.items() if k != "outcome"}
     if a.rescore:
+        # Everything checked before the truth is measured again (minutes) or its cache replaced.
         evals = sorted(glob.glob(os.path.join(a.out, "eval-*")))
         if not evals or not os.path.isfile(judged_path) or not os.path.isfile(os.path.join(a.out, "study.json")):
             raise SystemExit(f"study: --rescore needs a finished study in {a.out} (eval-*/, judged.json, study.json)")
@@ -489,7 +494,16 @@ def main(argv=None) -> None:
         # The judge's file is not needed again: its verdicts are kept with the episodes they judged.
         if {k: v for k, v in found["key"].items() if k not in ("judge", "outcome")} != episodes_key:
             raise SystemExit(f"study: {judged_path} holds other episodes than --data/--episodes/--variants ask for")
-        summary = summarize(truth, read_estimates(evals), found["judged"], tasks, variants, a.chunk)
+        estimates = read_estimates(evals)
+        missing = [f"{v}/{t}" for t in tasks for v in variants if v not in estimates.get(t, {})]
+        if missing:
+            raise SystemExit(f"study: {a.out}/eval-*/ hold no episodes of {', '.join(missing)}")
+    truth = cached(truth_path, "truth", key, lambda: measure_truth(episodes, variants, a.horizon, a.chunk, a.resolution, a.workers))
+    if a.truth_only:
+        print(f"study: true success rates in {truth_path}")
+        return
+    if a.rescore:
+        summary = summarize(truth, estimates, found["judged"], tasks, variants, a.chunk)
         for k in ("episodes_per_rate", "horizon", "world_model_flags", "episodes_in_flight"):
             summary[k] = before.get(k)
         write_summary(a.out, summary, tasks, a.chunk)

@@ -47,7 +47,8 @@ gpus=$(nvidia-smi -L | wc -l)
 pids=()
 for i in "${!names[@]}"; do
   name=${names[$i]}
-  mapfile -t assign <<< "${assigns[$i]}"
+  assign=()
+  [ -n "${assigns[$i]}" ] && mapfile -t assign <<< "${assigns[$i]}"
   mkdir -p "runs/$name" "$OUT/$name"
   stages=${STAGES:-}
   if [ "${own[$i]}" = 1 ]; then

@@ -241,6 +241,17 @@ def features(resolution: int) -> dict:
     }
 
 
+def decoy_weight(text: str) -> float:
+    """`--decoy-weight W`: finite and >= 0."""
+    try:
+        w = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"takes a number, got {text!r}") from None
+    if not (np.isfinite(w) and w >= 0):
+        raise argparse.ArgumentTypeError(f"must be finite and >= 0, got {text!r}")
+    return w
+
+
 def miss_range(text: str) -> tuple[float, float]:
     """`--miss-cm LOW,HIGH` (cm) as (low, high) in metres."""
     try:
@@ -268,7 +279,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--miss-cm", type=miss_range, help="LOW,HIGH: how far off (cm, random direction) the `miss` episodes' expert steers; "
                         "default 2,12 (2,15 with --spread wide). Outcomes flip a few cm from the object, so a range "
                         "close to it puts more episodes on both sides of the contact boundary")
-    parser.add_argument("--decoy-weight", type=float, default=0.0,
+    parser.add_argument("--decoy-weight", type=decoy_weight, default=0.0,
                         help="weight of `decoy` episodes among the degraded ones (the others weigh 1, `miss` 3): the expert "
                              "acting on an object placement drawn afresh from the task's range, so that the motion of a "
                              "success does not tell where the object is; default 0 (none)")
@@ -292,8 +303,6 @@ def parse_args(argv=None) -> argparse.Namespace:
         parser.error("--resolution must be in 16 .. 1024")
     if not 0.0 <= args.degraded_fraction <= 1.0:
         parser.error("--degraded-fraction must be in [0, 1]")
-    if not (np.isfinite(args.decoy_weight) and args.decoy_weight >= 0):
-        parser.error("--decoy-weight must be finite and >= 0")
     if args.workers < 1:
         parser.error("--workers must be at least 1")
     if os.path.exists(args.out) and not args.force:

@@ -58,7 +58,7 @@ def main(argv=None) -> None:
     parser.add_argument("--tasks", default=",".join(TASKS))
     parser.add_argument("--episodes", type=int, default=400, help="training seeds 0..episodes-1 per task")
     parser.add_argument("--miss-cm", type=generate.miss_range, action="append", help="LOW,HIGH (cm); repeat to compare (default 2,12)")
-    parser.add_argument("--decoy-weight", type=float, default=0.0, help="the data's `decoy` weight (generate.py --decoy-weight); above 0 "
+    parser.add_argument("--decoy-weight", type=generate.decoy_weight, default=0.0, help="the data's `decoy` weight (generate.py --decoy-weight); above 0 "
                         "the decoy episodes are counted too")
     parser.add_argument("--band-cm", type=float, default=2.0, help="width of the distance bands")
     parser.add_argument("--frames", type=int, default=120)
@@ -71,8 +71,6 @@ def main(argv=None) -> None:
         parser.error(f"unknown task(s) {', '.join(unknown)} (known: {', '.join(TASKS)})")
     if args.episodes < 1 or args.frames < 2 or args.band_cm <= 0:
         parser.error("--episodes must be at least 1, --frames at least 2, --band-cm positive")
-    if not (np.isfinite(args.decoy_weight) and args.decoy_weight >= 0):
-        parser.error("--decoy-weight must be finite and >= 0")
     report = {"episodes": args.episodes, "frames": args.frames, "degraded_fraction": args.degraded_fraction, "spread": args.spread,
               "decoy_weight": args.decoy_weight, "tasks": {}}
     for task in tasks:

@@ -63,11 +63,12 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
             .envs([("JUDGE_STEPS", "5"), ("STUDY_EPISODES", "1"), ("STUDY_JOBS", "2"), ("STUDY_HORIZON", "48"), ("STUDY_VARIANTS", "expert,wrong")])
             .env("PROBE_VARIANTS", "wrong-0cm,wrong-6cm")
             // The DiT trained with action dropout and its own history noise, every world-model
-            // stage guided by the actions; the data's near misses closer than the default, and
-            // decoys among its degraded episodes.
+            // stage guided by the actions; the data's near misses drawn around the measured
+            // outcome boundary and weighted up, and decoys among its degraded episodes.
             .env("TRAIN_SETS", format!("{TOY_DIT} objective.action_dropout=0.5 objective.history_sigma=0.1"))
             .env("GUIDANCE", "1.5")
-            .env("MISS_CM", "1,6")
+            .env("MISS_BOUNDARY", Path::new(ROOT).join("bench/metaworld/boundary.json"))
+            .env("MISS_WEIGHT", "9")
             .env("DECOY", "3"),
         "recipe.sh",
     );
@@ -96,7 +97,9 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
         Command::new(python())
             .arg(Path::new(ROOT).join("bench/metaworld/generate.py"))
             .args(["--tasks", "drawer-open-v3,button-press-topdown-v3", "--episodes", "1", "--seed-start", "100000"])
-            .args(["--frames", "100", "--resolution", "64", "--miss-cm", "1,6", "--decoy-weight", "3", "--workers", "1", "--out"])
+            .args(["--frames", "100", "--resolution", "64", "--miss-weight", "9", "--decoy-weight", "3", "--workers", "1", "--miss-boundary"])
+            .arg(Path::new(ROOT).join("bench/metaworld/boundary.json"))
+            .arg("--out")
             .arg(&again),
         "generate.py",
     );
@@ -227,6 +230,31 @@ fn near_misses_are_counted_by_distance_in_the_simulator() {
         assert_eq!(episodes, count(range), "{report}");
     }
 
+    // Misses drawn around the measured boundary (the committed boundary.json) and weighted up:
+    // more seeds miss, the same ones in both ways of drawing them, and none beyond twice the
+    // drawer's widest boundary (8.75 cm).
+    run(
+        Command::new(python())
+            .arg(Path::new(ROOT).join("bench/metaworld/miss_outcomes.py"))
+            .args(["--tasks", "drawer-open-v3", "--episodes", "16", "--frames", "100", "--miss-weight", "9", "--miss-boundary"])
+            .arg(Path::new(ROOT).join("bench/metaworld/boundary.json"))
+            .arg("--out")
+            .arg(&path),
+        "miss_outcomes.py --miss-boundary",
+    );
+    let weighted = json(&path);
+    let drawer_weighted = &weighted["tasks"]["drawer-open-v3"];
+    let n = drawer_weighted["boundary"]["miss_episodes"].as_u64().unwrap_or_else(|| panic!("{weighted}"));
+    assert_eq!(Some(n), drawer_weighted["2,12"]["miss_episodes"].as_u64(), "{weighted}");
+    assert!(n > count("2,12"), "--miss-weight 9 made no more misses than 3: {weighted} / {report}");
+    let mut episodes = 0;
+    for (band, row) in drawer_weighted["boundary"]["by_cm"].as_object().unwrap() {
+        let b: f64 = band.split_once('-').unwrap().1.parse().unwrap();
+        assert!(b <= 19.0, "a miss steers {band} cm off, past twice the boundary: {weighted}");
+        episodes += row["episodes"].as_u64().unwrap();
+    }
+    assert_eq!(episodes, n, "{weighted}");
+
     // With decoys in the data, they are counted by how far from the object they aim: anywhere in
     // the drawer's 20 cm range.
     run(
@@ -247,6 +275,11 @@ fn near_misses_are_counted_by_distance_in_the_simulator() {
         episodes += row["episodes"].as_u64().unwrap();
     }
     assert_eq!(episodes, n, "{report}");
+}
+
+#[test]
+fn the_outcome_boundary_is_measured_in_the_simulator() {
+    run(Command::new(python()).arg(Path::new(ROOT).join("bench/metaworld/tests/test_boundary.py")), "test_boundary.py");
 }
 
 #[test]

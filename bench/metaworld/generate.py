@@ -5,7 +5,7 @@ parquet files, no video). README.md describes the layout and the seed convention
         --seed-start 0 --frames 120 --resolution 64 --out DIR --workers 2
 
 Each episode is a pure function of (task, seed, --frames, --resolution, --degraded-fraction, --spread,
---miss-cm, --decoy-weight):
+--miss-cm or --miss-boundary, --miss-weight, --decoy-weight):
 the same arguments give the same bytes whatever --workers is.
 """
 
@@ -23,6 +23,7 @@ import zlib
 
 import numpy as np
 
+import boundary
 from mw import ACTION_SCALE, FPS, TASKS, Sim
 
 DATA_PATH = "data/chunk-{episode_chunk:03d}/episode_{episode_index:06d}.parquet"
@@ -31,7 +32,8 @@ CHUNKS_SIZE = 1000
 EXPLORE_LOW = np.array([-0.35, 0.40, 0.05])
 EXPLORE_HIGH = np.array([0.35, 0.95, 0.40])
 # Degraded modes and their weights among degraded episodes. "miss" (the expert steering on an
-# object estimate off by 2-12 cm, 2-15 with --spread wide, or --miss-cm) is weighted up: its hand
+# object estimate off by 2-12 cm, 2-15 with --spread wide, --miss-cm, or around the outcome's
+# boundary in its direction with --miss-boundary) is weighted up (--miss-weight): its hand
 # goes through the expert's motions close to the object, succeeding or not depending on the
 # distance and direction, and a world model (and a judge) that saw few such episodes shows the
 # drawer opening or the button pressed whenever the hand passes near them.
@@ -48,16 +50,18 @@ class Behaviour:
     by exploration (random waypoints and gripper commands), or degraded in one `mode`."""
 
     def __init__(self, task: str, rng: np.random.Generator, frames: int, degraded_fraction: float, spread: str = "narrow",
-                 miss: tuple[float, float] | None = None, decoy_weight: float = 0.0):
+                 miss: tuple[float, float] | boundary.Boundary | None = None, decoy_weight: float = 0.0,
+                 miss_weight: float = DEGRADED_MODES["miss"]):
         import policies
 
         if spread not in ("narrow", "wide"):
             raise ValueError(f"unknown spread {spread!r} (narrow or wide)")
         miss = miss or ((0.02, 0.15) if spread == "wide" else (0.02, 0.12))
-        if not 0.0 <= miss[0] <= miss[1]:
+        if not isinstance(miss, boundary.Boundary) and not 0.0 <= miss[0] <= miss[1]:
             raise ValueError(f"the miss range {miss} must be 0 <= low <= high (m)")
-        if not (np.isfinite(decoy_weight) and decoy_weight >= 0):
-            raise ValueError(f"the decoy weight {decoy_weight} must be finite and >= 0")
+        for name, w in (("decoy", decoy_weight), ("miss", miss_weight)):
+            if not (np.isfinite(w) and w >= 0):
+                raise ValueError(f"the {name} weight {w} must be finite and >= 0")
         self.policies, self.task, self.rng = policies, task, rng
         if spread == "wide":
             # The experts' action noise log-uniform from near-clean to a jitter that sometimes
@@ -66,7 +70,8 @@ class Behaviour:
             self.speed = float(rng.uniform(0.3, 1.0)) if rng.random() < 0.3 else 1.0
         else:
             self.noise, self.speed = rng.uniform(0.05, 0.4), 1.0
-        modes, weights = [*DEGRADED_MODES, DECOY], np.array([*DEGRADED_MODES.values(), decoy_weight], float)
+        weights = {**DEGRADED_MODES, "miss": miss_weight, DECOY: decoy_weight}
+        modes, weights = list(weights), np.array(list(weights.values()), float)
         self.mode = str(rng.choice(modes, p=weights / weights.sum())) if rng.random() < degraded_fraction else "expert"
         self.explore = np.zeros(frames, bool)  # frames spent on random waypoints
         self.hold = np.zeros(frames, bool)  # frames spent still
@@ -88,7 +93,7 @@ class Behaviour:
             if rng.random() < 0.4:
                 self.explore[: rng.integers(5, 25)] = True
         elif self.mode == "miss":
-            self.offset = perception_error(*miss)
+            self.offset = miss.draw(task, rng) if isinstance(miss, boundary.Boundary) else perception_error(*miss)
         elif self.mode == "pause":
             for _ in range(rng.integers(2, 5)):
                 self.hold[span(8, 25)] = True
@@ -177,8 +182,8 @@ def run_episode(job: tuple) -> dict:
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    root, episode_index, first_index, task_index, task, seed, frames, resolution, degraded, spread, miss, decoy = job
-    behaviour = Behaviour(task, episode_rng(task, seed), frames, degraded, spread, miss, decoy)
+    root, episode_index, first_index, task_index, task, seed, frames, resolution, degraded, spread, miss, decoy, miss_weight = job
+    behaviour = Behaviour(task, episode_rng(task, seed), frames, degraded, spread, miss, decoy, miss_weight)
     with Sim(task, seed, resolution) as sim:
         images, states, commands, deltas, success = simulate(behaviour, sim, frames)
     images, states, commands, deltas = (np.stack(x) for x in (images, states, commands, deltas))
@@ -241,8 +246,8 @@ def features(resolution: int) -> dict:
     }
 
 
-def decoy_weight(text: str) -> float:
-    """`--decoy-weight W`: finite and >= 0."""
+def weight(text: str) -> float:
+    """A mode's weight (`--decoy-weight W`, `--miss-weight W`): finite and >= 0."""
     try:
         w = float(text)
     except ValueError:
@@ -276,10 +281,16 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--spread", choices=["narrow", "wide"], default="narrow",
                         help="the experts' action noise and speed: narrow (noise 0.05-0.4, full speed; misses 2-12 cm) or wide "
                              "(noise log-uniform 0.05-1.2, 30%% of episodes at a speed cap of 0.3-1; misses 2-15 cm)")
-    parser.add_argument("--miss-cm", type=miss_range, help="LOW,HIGH: how far off (cm, random direction) the `miss` episodes' expert steers; "
+    where = parser.add_mutually_exclusive_group()
+    where.add_argument("--miss-cm", type=miss_range, help="LOW,HIGH: how far off (cm, random direction) the `miss` episodes' expert steers; "
                         "default 2,12 (2,15 with --spread wide). Outcomes flip a few cm from the object, so a range "
                         "close to it puts more episodes on both sides of the contact boundary")
-    parser.add_argument("--decoy-weight", type=decoy_weight, default=0.0,
+    where.add_argument("--miss-boundary", metavar="FILE", help="boundary.py's report: each `miss` steers in a random direction "
+                       f"{boundary.FACTOR[0]:g}-{boundary.FACTOR[1]:g} times as far off as the expert's outcome flips in that "
+                       "direction (measured in the simulator), so that every direction has misses on both sides of it")
+    parser.add_argument("--miss-weight", type=weight, default=float(DEGRADED_MODES["miss"]),
+                        help=f"weight of `miss` episodes among the degraded ones (default {DEGRADED_MODES['miss']}; the others weigh 1)")
+    parser.add_argument("--decoy-weight", type=weight, default=0.0,
                         help="weight of `decoy` episodes among the degraded ones (the others weigh 1, `miss` 3): the expert "
                              "acting on an object placement drawn afresh from the task's range, so that the motion of a "
                              "success does not tell where the object is; default 0 (none)")
@@ -307,6 +318,12 @@ def parse_args(argv=None) -> argparse.Namespace:
         parser.error("--workers must be at least 1")
     if os.path.exists(args.out) and not args.force:
         parser.error(f"{args.out} exists (--force replaces it)")
+    args.miss = args.miss_cm
+    if args.miss_boundary:
+        try:
+            args.miss = boundary.load(args.miss_boundary, args.tasks)
+        except ValueError as e:
+            parser.error(f"--miss-boundary: {e}")
     return args
 
 
@@ -319,7 +336,7 @@ def main(argv=None) -> None:
     for i in range(args.episodes):
         for task_index, task in enumerate(args.tasks):
             e = len(jobs)
-            jobs.append((tmp, e, e * args.frames, task_index, task, args.seed_start + i, args.frames, args.resolution, args.degraded_fraction, args.spread, args.miss_cm, args.decoy_weight))
+            jobs.append((tmp, e, e * args.frames, task_index, task, args.seed_start + i, args.frames, args.resolution, args.degraded_fraction, args.spread, args.miss, args.decoy_weight, args.miss_weight))
     start = time.time()
     try:
         results = []

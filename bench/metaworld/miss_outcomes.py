@@ -8,9 +8,13 @@ would degrade into a `miss` (the expert steering on an object estimate off by a 
 a random direction) is simulated with that distance drawn from each --miss-cm range, and its
 outcome counted by distance band. The bands where outcomes flip are where a world model needs
 examples on both sides of the contact; a range that puts most misses far past them adds failures
-it already draws, one inside them adds successes. With --decoy-weight W, the data's draws are
-those of `generate.py --decoy-weight W`, and the `decoy` episodes (the expert aiming at a fresh
-placement from the task's range) are counted the same way, by how far from the object they aim.
+it already draws, one inside them adds successes. With --miss-boundary FILE, the misses are
+drawn as `generate.py --miss-boundary FILE` draws them (around where the outcome flips in their
+direction, measure_boundary.py) and counted beside the ranges. With --miss-weight W and
+--decoy-weight W, the data's draws are those of generate.py with the same weights, and with a
+decoy weight above 0 the
+`decoy` episodes (the expert aiming at a fresh placement from the task's range) are counted
+the same way, by how far from the object they aim.
 Prints one JSON object (and writes it to --out).
 Only the episodes' draws and the simulator are used: nothing is rendered but each reset's frame.
 """
@@ -23,17 +27,19 @@ import sys
 
 import numpy as np
 
+import boundary
 import generate
 from mw import TASKS, Sim
 
 
-def outcomes(task: str, episodes: int, miss: tuple[float, float], frames: int, degraded: float, spread: str,
-             decoy_weight: float = 0.0, mode: str = "miss") -> list[tuple[float, bool]]:
+def outcomes(task: str, episodes: int, miss: tuple[float, float] | boundary.Boundary, frames: int, degraded: float, spread: str,
+             decoy_weight: float = 0.0, mode: str = "miss", miss_weight: float = generate.DEGRADED_MODES["miss"]) -> list[tuple[float, bool]]:
     """(distance in cm, succeeded) of every `mode` episode among seeds 0..episodes-1, the misses
-    drawn `miss` (m) off; the distance is how far from the object the episode's expert aims."""
+    drawn `miss` (m) off or around its boundary; the distance is how far from the object the
+    episode's expert aims."""
     out = []
     for seed in range(episodes):
-        behaviour = generate.Behaviour(task, generate.episode_rng(task, seed), frames, degraded, spread, miss, decoy_weight)
+        behaviour = generate.Behaviour(task, generate.episode_rng(task, seed), frames, degraded, spread, miss, decoy_weight, miss_weight)
         if behaviour.mode != mode:
             continue
         with Sim(task, seed, 32) as sim:
@@ -58,7 +64,10 @@ def main(argv=None) -> None:
     parser.add_argument("--tasks", default=",".join(TASKS))
     parser.add_argument("--episodes", type=int, default=400, help="training seeds 0..episodes-1 per task")
     parser.add_argument("--miss-cm", type=generate.miss_range, action="append", help="LOW,HIGH (cm); repeat to compare (default 2,12)")
-    parser.add_argument("--decoy-weight", type=generate.decoy_weight, default=0.0, help="the data's `decoy` weight (generate.py --decoy-weight); above 0 "
+    parser.add_argument("--miss-boundary", metavar="FILE", help="also count misses drawn around this boundary (generate.py --miss-boundary)")
+    parser.add_argument("--miss-weight", type=generate.weight, default=float(generate.DEGRADED_MODES["miss"]),
+                        help="the data's `miss` weight (generate.py --miss-weight)")
+    parser.add_argument("--decoy-weight", type=generate.weight, default=0.0, help="the data's `decoy` weight (generate.py --decoy-weight); above 0 "
                         "the decoy episodes are counted too")
     parser.add_argument("--band-cm", type=float, default=2.0, help="width of the distance bands")
     parser.add_argument("--frames", type=int, default=120)
@@ -71,20 +80,27 @@ def main(argv=None) -> None:
         parser.error(f"unknown task(s) {', '.join(unknown)} (known: {', '.join(TASKS)})")
     if args.episodes < 1 or args.frames < 2 or args.band_cm <= 0:
         parser.error("--episodes must be at least 1, --frames at least 2, --band-cm positive")
+    around = None
+    if args.miss_boundary:
+        try:
+            around = boundary.load(args.miss_boundary, tasks)
+        except ValueError as e:
+            parser.error(f"--miss-boundary: {e}")
     report = {"episodes": args.episodes, "frames": args.frames, "degraded_fraction": args.degraded_fraction, "spread": args.spread,
-              "decoy_weight": args.decoy_weight, "tasks": {}}
+              "miss_weight": args.miss_weight, "decoy_weight": args.decoy_weight, "tasks": {}}
     for task in tasks:
-        counted = [("miss", r) for r in args.miss_cm or [(0.02, 0.12)]]
+        # (name in the report, mode, how misses are drawn)
+        counted = [(f"{round(lo * 100, 6):g},{round(hi * 100, 6):g}", "miss", (lo, hi)) for lo, hi in args.miss_cm or [(0.02, 0.12)]]
+        if around:
+            counted.append(("boundary", "miss", around))
         if args.decoy_weight > 0:
-            counted.append(("decoy", counted[0][1]))
-        for mode, (lo, hi) in counted:
-            results = outcomes(task, args.episodes, (lo, hi), args.frames, args.degraded_fraction, args.spread, args.decoy_weight, mode)
-            lo, hi = round(lo * 100, 6), round(hi * 100, 6)
+            counted.append(("decoy", "decoy", counted[0][2]))
+        for name, mode, miss in counted:
+            results = outcomes(task, args.episodes, miss, args.frames, args.degraded_fraction, args.spread, args.decoy_weight, mode, args.miss_weight)
             row = {f"{mode}_episodes": len(results), "succeeded": sum(s for _, s in results), "by_cm": by_band(results, args.band_cm)}
-            name = "decoy" if mode == "decoy" else f"{lo:g},{hi:g}"
             report["tasks"].setdefault(task, {})[name] = row
-            print(f"miss_outcomes: {task} {name if mode == 'decoy' else '--miss-cm ' + name}: {row['succeeded']} of {len(results)} "
-                  f"{mode} episodes succeed", file=sys.stderr, flush=True)
+            label = {"decoy": "decoy", "boundary": "--miss-boundary"}.get(name, f"--miss-cm {name}")
+            print(f"miss_outcomes: {task} {label}: {row['succeeded']} of {len(results)} {mode} episodes succeed", file=sys.stderr, flush=True)
     text = json.dumps(report, indent=1)
     if args.out:
         with open(args.out, "w") as f:

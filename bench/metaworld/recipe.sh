@@ -33,6 +33,8 @@ TRAIN_EPISODES="${TRAIN_EPISODES:-400}"   # per task, seeds 0..
 VAL_EPISODES="${VAL_EPISODES:-50}"        # per task, seeds 100000.. (never trained on)
 SPREAD="${SPREAD:-narrow}"                # the experts' noise and speed in the data: narrow or wide (generate.py --spread)
 MISS_CM="${MISS_CM:-}"                    # LOW,HIGH: how far off the data's `miss` episodes steer (generate.py --miss-cm; default 2,12)
+MISS_BOUNDARY="${MISS_BOUNDARY:-}"        # instead: misses around where the outcome flips in their direction (generate.py --miss-boundary; bench/metaworld/boundary.json)
+MISS_WEIGHT="${MISS_WEIGHT:-3}"           # weight of `miss` episodes among the degraded (generate.py --miss-weight; the others weigh 1)
 DECOY="${DECOY:-0}"                       # weight of `decoy` episodes among the degraded (generate.py --decoy-weight; 0: none)
 FRAMES="${FRAMES:-120}"
 RESOLUTION="${RESOLUTION:-128}"          # frames are RESOLUTION x RESOLUTION pixels (8x8 latent cells at 128)
@@ -99,7 +101,8 @@ if wants data; then
     if [ -f "$RUN/data/$split/meta/info.json" ]; then echo "recipe: $RUN/data/$split exists"; continue; fi
     if [ $split = train ]; then n=$TRAIN_EPISODES; s=0; else n=$VAL_EPISODES; s=100000; fi
     timed "data-$split" "$PYTHON" bench/metaworld/generate.py --tasks "$TASKS" --episodes "$n" --seed-start "$s" \
-      --frames "$FRAMES" --resolution "$RESOLUTION" --spread "$SPREAD" ${MISS_CM:+--miss-cm "$MISS_CM"} --decoy-weight "$DECOY" --workers "$WORKERS" --out "$RUN/data/$split"
+      --frames "$FRAMES" --resolution "$RESOLUTION" --spread "$SPREAD" ${MISS_CM:+--miss-cm "$MISS_CM"} ${MISS_BOUNDARY:+--miss-boundary "$MISS_BOUNDARY"} \
+      --miss-weight "$MISS_WEIGHT" --decoy-weight "$DECOY" --workers "$WORKERS" --out "$RUN/data/$split"
   done
 fi
 

@@ -4,8 +4,8 @@
 #   bash scripts/gpu/variants.sh NAME "VAR=VALUE ..." [NAME "VAR=VALUE ..." ...]
 # The data are made once (runs/metaworld, when a variant uses them); each variant then runs
 # scripts/gpu/metaworld.sh in runs/NAME (its data linked to those, unless it sets a variable the
-# data depend on: TASKS, TRAIN_EPISODES, VAL_EPISODES, SPREAD, MISS_CM, DECOY, FRAMES or
-# RESOLUTION; then it makes its own) with its variables, on GPU i mod the machine's GPU count for
+# data depend on: TASKS, TRAIN_EPISODES, VAL_EPISODES, SPREAD, MISS_CM, MISS_BOUNDARY, MISS_WEIGHT,
+# DECOY, FRAMES or RESOLUTION; then it makes its own) with its variables, on GPU i mod the machine's GPU count for
 # the i-th variant, all at once; each trains its judge beside its VAE, as the recipe does (a judge
 # made first for all would hold every variant back by its 2 minutes). With STAGES (default: every
 # stage) picking stages, e.g. STAGES="vae ceiling" to compare VAEs alone, one judge is made first
@@ -34,7 +34,7 @@ while [ $# -gt 0 ]; do
     fi
   done
   names+=("$name") assigns+=("$(printf '%s\n' "${assign[@]}")")
-  if printf '%s\n' "${assign[@]}" | grep -qE '^(TASKS|TRAIN_EPISODES|VAL_EPISODES|SPREAD|MISS_CM|DECOY|FRAMES|RESOLUTION)='; then own+=(1); else own+=(0); fi
+  if printf '%s\n' "${assign[@]}" | grep -qE '^(TASKS|TRAIN_EPISODES|VAL_EPISODES|SPREAD|MISS_CM|MISS_BOUNDARY|MISS_WEIGHT|DECOY|FRAMES|RESOLUTION)='; then own+=(1); else own+=(0); fi
 done
 # The shared data only when a variant links them (or the shared judge trains on them).
 shared=()

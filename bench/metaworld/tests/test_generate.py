@@ -122,6 +122,108 @@ def test_a_speed_cap_bounds_the_experts_steps():
     assert max(steps) <= b.speed * ACTION_SCALE + 1e-6 and max(steps) > 0.9 * b.speed * ACTION_SCALE, (b.speed, max(steps))
 
 
+def boundary_file(directory, radii_cm, task=TASK, degrees=None):
+    import json
+
+    path = os.path.join(directory, "boundary.json")
+    degrees = degrees if degrees is not None else [k * 360 / len(radii_cm) for k in range(len(radii_cm))]
+    with open(path, "w") as f:
+        json.dump({"tasks": {task: {"directions_deg": degrees, "boundary_cm": radii_cm}}}, f)
+    return path
+
+
+def test_misses_around_a_boundary_steer_as_far_off_as_it_is_in_their_direction():
+    import tempfile
+
+    import boundary
+
+    with tempfile.TemporaryDirectory() as d:
+        # 2 cm toward +x, 8 toward +y, 4 toward -x, 6 toward -y.
+        around = boundary.load(boundary_file(d, [2.0, 8.0, 4.0, 6.0]), [TASK])
+    assert np.isclose(around.radius(TASK, 0.0), 0.02) and np.isclose(around.radius(TASK, np.pi / 2), 0.08)
+    assert np.isclose(around.radius(TASK, np.pi / 4), 0.05), "linear between measured directions"
+    assert np.isclose(around.radius(TASK, 7 * np.pi / 4), 0.04) and np.isclose(around.radius(TASK, -np.pi / 4), 0.04), "wraps at 360 deg"
+    bs = [generate.Behaviour(TASK, generate.episode_rng(TASK, seed), 120, 0.4, "narrow", around) for seed in range(300)]
+    misses = [b.offset for b in bs if b.mode == "miss"]
+    assert len(misses) > 20
+    factors = [np.linalg.norm(o) / around.radius(TASK, np.arctan2(o[1], o[0])) for o in misses]
+    assert min(factors) >= boundary.FACTOR[0] - 1e-9 and max(factors) <= boundary.FACTOR[1] + 1e-9, factors
+    assert all(o[2] == 0 for o in misses)
+    # Both sides of the boundary, in every quadrant.
+    assert sum(f < 1 for f in factors) >= 3 and sum(f > 1 for f in factors) >= 3
+    assert len({int(np.arctan2(o[1], o[0]) // (np.pi / 2)) for o in misses}) == 4
+    # Where misses steer changes no other draw.
+    default = behaviours("narrow")
+    assert [b.mode for b in bs] == [b.mode for b in default]
+    assert all(a.noise == b.noise and (a.offset == b.offset).all() for a, b in zip(bs, default) if a.mode != "miss")
+
+
+def test_a_bad_boundary_file_is_refused():
+    import json
+    import tempfile
+
+    import boundary
+
+    with tempfile.TemporaryDirectory() as d:
+        cases = {
+            "non-positive": boundary_file(d, [2.0, 0.0, 4.0, 6.0]),
+        }
+        for name, (radii, degrees) in {"uneven": ([2.0, 3.0, 4.0], [0, 90, 180]), "lengths": ([2.0, 3.0], [0, 90, 180])}.items():
+            path = os.path.join(d, f"{name}.json")
+            with open(path, "w") as f:
+                json.dump({"tasks": {TASK: {"directions_deg": degrees, "boundary_cm": radii}}}, f)
+            cases[name] = path
+        cases["not a report"] = os.path.join(d, "list.json")
+        with open(cases["not a report"], "w") as f:
+            f.write("[1, 2]")
+        cases["missing"] = os.path.join(d, "missing.json")
+        for name, path in cases.items():
+            try:
+                boundary.load(path, [TASK])
+            except ValueError as e:
+                assert path in str(e), e
+            else:
+                raise AssertionError(f"the {name} boundary file was accepted")
+        good = boundary_file(d, [2.0, 8.0, 4.0, 6.0])
+        # A task the file does not cover is refused, in the class and on the command line.
+        try:
+            boundary.load(good, [TASK, "button-press-topdown-v3"])
+        except ValueError as e:
+            assert "button-press-topdown-v3" in str(e)
+        else:
+            raise AssertionError("a boundary without the button was accepted for it")
+        out = ["--episodes", "1", "--out", os.path.join(d, "x")]
+        args = generate.parse_args(["--task", TASK, *out, "--miss-boundary", good])
+        assert isinstance(args.miss, boundary.Boundary) and args.miss_cm is None
+        for argv in (["--tasks", f"{TASK},button-press-topdown-v3", "--miss-boundary", good],
+                     ["--task", TASK, "--miss-boundary", good, "--miss-cm", "2,12"],
+                     ["--task", TASK, "--miss-boundary", cases["uneven"]]):
+            try:
+                generate.parse_args([*argv, *out])
+            except SystemExit:
+                pass
+            else:
+                raise AssertionError(f"{argv} was accepted")
+
+
+def test_the_miss_weight_sets_how_many_episodes_miss():
+    default = behaviours("narrow")
+    same = [generate.Behaviour(TASK, generate.episode_rng(TASK, seed), 120, 0.4, "narrow", None, 0.0, 3.0) for seed in range(300)]
+    assert [b.mode for b in same] == [b.mode for b in default]
+    more = [generate.Behaviour(TASK, generate.episode_rng(TASK, seed), 120, 0.4, "narrow", None, 0.0, 9.0) for seed in range(300)]
+    count = lambda bs: sum(b.mode == "miss" for b in bs)  # noqa: E731
+    # 40% degraded: misses 3 of 9 weights (about 40 of 300), or 9 of 15 (about 72).
+    assert count(more) > count(default) + 15, (count(more), count(default))
+    assert [b.mode for b in more if b.mode == "expert"] and sum(b.mode == "expert" for b in more) == sum(b.mode == "expert" for b in default)
+    for bad in (-1.0, float("nan")):
+        try:
+            generate.Behaviour(TASK, generate.episode_rng(TASK, 0), 120, 0.4, "narrow", None, 0.0, bad)
+        except ValueError as e:
+            assert "miss weight" in str(e)
+        else:
+            raise AssertionError(f"the miss weight {bad} was accepted")
+
+
 if __name__ == "__main__":
     for name, fn in list(globals().items()):
         if name.startswith("test_"):

@@ -1,0 +1,80 @@
+"""Where the scripted expert's outcome flips, per task and direction (measured in the simulator by
+measure_boundary.py), and the near misses that generate.py draws around it (`--miss-boundary`).
+
+The report (measure_boundary.py): for each direction in the table plane (0 deg = +x, 90 deg =
++y, away from the robot) and each seed (an object placement outside the train and validation
+seeds), the expert with its usual action noise steers on the object estimate moved d cm that way,
+and d is bisected between 0 (it succeeds) and --max-cm until the first failing distance is known
+within --tolerance-cm. Each bracket [succeeds at lo, fails at hi] is kept; a direction's boundary
+is the median of its brackets' midpoints (--max-cm where the expert still succeeds that far off).
+A world model needs examples on both sides of this boundary in every direction: the drawer's
+handle is still caught about 8 cm to the side of it but not 4 cm in front, and near misses drawn
+at one distance for every direction put most of them where the outcome is the same on both
+sides. `generate.py --miss-boundary FILE` draws each miss in a random direction at FACTOR times
+that direction's boundary.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+# A miss drawn around the boundary lies at this many times its direction's boundary distance:
+# a third inside (the expert still succeeds), two thirds outside up to twice as far, where the
+# outcome is settled but the motion is still a near one.
+FACTOR = (0.5, 2.0)
+
+
+@dataclass
+class Boundary:
+    """Per task, the boundary distance (m) at evenly spaced directions from 0 rad."""
+
+    radii: dict[str, np.ndarray]
+    source: str = "boundary"
+
+    def radius(self, task: str, angle: float) -> float:
+        """The boundary distance (m) toward `angle` (rad), linear between measured directions."""
+        if task not in self.radii:
+            raise ValueError(f"{self.source} has no boundary for {task} (it has {', '.join(self.radii)})")
+        r = self.radii[task]
+        step = 2 * math.pi / len(r)
+        x = (angle % (2 * math.pi)) / step
+        i = int(x) % len(r)
+        w = x - int(x)
+        return float((1 - w) * r[i] + w * r[(i + 1) % len(r)])
+
+    def draw(self, task: str, rng: np.random.Generator) -> np.ndarray:
+        """A miss offset (m): a random direction, FACTOR times its boundary distance."""
+        angle = rng.uniform(0, 2 * np.pi)
+        d = self.radius(task, angle) * rng.uniform(*FACTOR)
+        return np.array([np.cos(angle), np.sin(angle), 0.0]) * d
+
+
+def load(path: str, tasks: list[str] = ()) -> Boundary:
+    """A measure_boundary.py report as a Boundary, every task's distances checked, and each of
+    `tasks` in it."""
+    try:
+        with open(path) as f:
+            report = json.load(f)
+    except (OSError, ValueError) as e:
+        raise ValueError(f"cannot read the boundary file {path}: {e}") from None
+    rows = report.get("tasks") if isinstance(report, dict) else None
+    if not isinstance(rows, dict) or not rows:
+        raise ValueError(f"{path} is not a measure_boundary.py report (no \"tasks\")")
+    radii = {}
+    for task, row in rows.items():
+        cm = row.get("boundary_cm") if isinstance(row, dict) else None
+        degrees = row.get("directions_deg") if isinstance(row, dict) else None
+        if not isinstance(cm, list) or not isinstance(degrees, list) or len(cm) < 2 or len(cm) != len(degrees):
+            raise ValueError(f"{path}: {task} needs boundary_cm and directions_deg of one length, at least 2")
+        if not np.allclose(degrees, np.arange(len(cm)) * 360 / len(cm)):
+            raise ValueError(f"{path}: {task}'s directions are not evenly spaced from 0 deg")
+        if not all(isinstance(c, (int, float)) and math.isfinite(c) and c > 0 for c in cm):
+            raise ValueError(f"{path}: {task}'s boundary distances must be finite and > 0 cm, got {cm}")
+        radii[task] = np.array(cm, float) / 100
+    if missing := [t for t in tasks if t not in radii]:
+        raise ValueError(f"{path} has no boundary for {', '.join(missing)} (it has {', '.join(radii)})")
+    return Boundary(radii, path)

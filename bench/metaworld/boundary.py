@@ -4,14 +4,16 @@ measure_boundary.py), and the near misses that generate.py draws around it (`--m
 The report (measure_boundary.py): for each direction in the table plane (0 deg = +x, 90 deg =
 +y, away from the robot) and each seed (an object placement outside the train and validation
 seeds), the expert with its usual action noise steers on the object estimate moved d cm that way,
-and d is bisected between 0 (it succeeds) and --max-cm until the first failing distance is known
-within --tolerance-cm. Each bracket [succeeds at lo, fails at hi] is kept; a direction's boundary
-is the median of its brackets' midpoints (--max-cm where the expert still succeeds that far off).
+and d is bisected between 0 (it succeeds) and --max-cm (it fails) until a distance where the
+outcome flips is known within --tolerance-cm (the outcome is taken to change once along a
+direction). Each bracket [succeeds at lo, fails at hi] is kept; a direction's boundary is the
+median of its brackets' midpoints, --max-cm where the expert still succeeds that far off (the
+button's +y: the hand's reach ends beyond it).
 A world model needs examples on both sides of this boundary in every direction: the drawer's
 handle is still caught about 8 cm to the side of it but not 4 cm in front, and near misses drawn
 at one distance for every direction put most of them where the outcome is the same on both
 sides. `generate.py --miss-boundary FILE` draws each miss in a random direction at FACTOR times
-that direction's boundary.
+that direction's boundary, never beyond the report's --max-cm, where nothing was measured.
 """
 
 from __future__ import annotations
@@ -28,11 +30,23 @@ import numpy as np
 FACTOR = (0.5, 2.0)
 
 
+def direction(angle: float) -> np.ndarray:
+    """The unit vector in the table plane toward `angle` (rad; 0 = +x, pi/2 = +y)."""
+    return np.array([np.cos(angle), np.sin(angle), 0.0])
+
+
+def directions_deg(n: int) -> list[float]:
+    """`n` directions evenly spaced from 0 deg."""
+    return [k * 360 / n for k in range(n)]
+
+
 @dataclass
 class Boundary:
-    """Per task, the boundary distance (m) at evenly spaced directions from 0 rad."""
+    """Per task, the boundary distance (m) at evenly spaced directions from 0 rad, and the
+    farthest distance measured (m)."""
 
     radii: dict[str, np.ndarray]
+    limit: float
     source: str = "boundary"
 
     def radius(self, task: str, angle: float) -> float:
@@ -40,22 +54,24 @@ class Boundary:
         if task not in self.radii:
             raise ValueError(f"{self.source} has no boundary for {task} (it has {', '.join(self.radii)})")
         r = self.radii[task]
-        step = 2 * math.pi / len(r)
-        x = (angle % (2 * math.pi)) / step
-        i = int(x) % len(r)
-        w = x - int(x)
+        x = (angle % (2 * math.pi)) / (2 * math.pi / len(r))
+        i, w = int(x) % len(r), x - int(x)
         return float((1 - w) * r[i] + w * r[(i + 1) % len(r)])
 
     def draw(self, task: str, rng: np.random.Generator) -> np.ndarray:
-        """A miss offset (m): a random direction, FACTOR times its boundary distance."""
+        """A miss offset (m): a random direction, FACTOR times its boundary distance, at most the
+        farthest distance measured."""
         angle = rng.uniform(0, 2 * np.pi)
-        d = self.radius(task, angle) * rng.uniform(*FACTOR)
-        return np.array([np.cos(angle), np.sin(angle), 0.0]) * d
+        return direction(angle) * min(self.radius(task, angle) * rng.uniform(*FACTOR), self.limit)
+
+
+def _numbers(values) -> bool:
+    return isinstance(values, list) and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in values)
 
 
 def load(path: str, tasks: list[str] = ()) -> Boundary:
     """A measure_boundary.py report as a Boundary, every task's distances checked, and each of
-    `tasks` in it."""
+    `tasks` in it; ValueError naming `path` otherwise."""
     try:
         with open(path) as f:
             report = json.load(f)
@@ -64,17 +80,31 @@ def load(path: str, tasks: list[str] = ()) -> Boundary:
     rows = report.get("tasks") if isinstance(report, dict) else None
     if not isinstance(rows, dict) or not rows:
         raise ValueError(f"{path} is not a measure_boundary.py report (no \"tasks\")")
+    limit = report.get("max_cm")
+    if not (_numbers([limit]) and limit > 0):
+        raise ValueError(f"{path}: max_cm must be a number > 0, got {limit!r}")
     radii = {}
     for task, row in rows.items():
         cm = row.get("boundary_cm") if isinstance(row, dict) else None
         degrees = row.get("directions_deg") if isinstance(row, dict) else None
-        if not isinstance(cm, list) or not isinstance(degrees, list) or len(cm) < 2 or len(cm) != len(degrees):
-            raise ValueError(f"{path}: {task} needs boundary_cm and directions_deg of one length, at least 2")
-        if not np.allclose(degrees, np.arange(len(cm)) * 360 / len(cm)):
+        if not (_numbers(cm) and _numbers(degrees)) or len(cm) < 2 or len(cm) != len(degrees):
+            raise ValueError(f"{path}: {task} needs boundary_cm and directions_deg, lists of numbers of one length, at least 2")
+        if not np.allclose(degrees, directions_deg(len(cm))):
             raise ValueError(f"{path}: {task}'s directions are not evenly spaced from 0 deg")
-        if not all(isinstance(c, (int, float)) and math.isfinite(c) and c > 0 for c in cm):
-            raise ValueError(f"{path}: {task}'s boundary distances must be finite and > 0 cm, got {cm}")
+        if not all(0 < c <= limit for c in cm):
+            raise ValueError(f"{path}: {task}'s boundary distances must be > 0 and at most max_cm ({limit:g}) cm, got {cm}")
         radii[task] = np.array(cm, float) / 100
     if missing := [t for t in tasks if t not in radii]:
         raise ValueError(f"{path} has no boundary for {', '.join(missing)} (it has {', '.join(radii)})")
-    return Boundary(radii, path)
+    return Boundary(radii, limit / 100, path)
+
+
+def from_argument(parser, path: str | None, tasks: list[str]) -> Boundary | None:
+    """`--miss-boundary FILE` of a command line: the Boundary, None when not given; the parser's
+    error (exit 2) when the file does not load or lacks one of `tasks`."""
+    if path is None:
+        return None
+    try:
+        return load(path, tasks)
+    except ValueError as e:
+        parser.error(f"--miss-boundary: {e}")

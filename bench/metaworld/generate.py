@@ -85,7 +85,7 @@ class Behaviour:
 
         def perception_error(lo: float, hi: float) -> np.ndarray:
             angle = rng.uniform(0, 2 * np.pi)
-            return np.array([np.cos(angle), np.sin(angle), 0.0]) * rng.uniform(lo, hi)
+            return boundary.direction(angle) * rng.uniform(lo, hi)
 
         if self.mode == "expert":
             # Up to 3 cm off: approaches vary, and the expert still succeeds.
@@ -285,13 +285,14 @@ def parse_args(argv=None) -> argparse.Namespace:
     where.add_argument("--miss-cm", type=miss_range, help="LOW,HIGH: how far off (cm, random direction) the `miss` episodes' expert steers; "
                         "default 2,12 (2,15 with --spread wide). Outcomes flip a few cm from the object, so a range "
                         "close to it puts more episodes on both sides of the contact boundary")
-    where.add_argument("--miss-boundary", metavar="FILE", help="boundary.py's report: each `miss` steers in a random direction "
+    where.add_argument("--miss-boundary", metavar="FILE", help="measure_boundary.py's report: each `miss` steers in a random direction "
                        f"{boundary.FACTOR[0]:g}-{boundary.FACTOR[1]:g} times as far off as the expert's outcome flips in that "
-                       "direction (measured in the simulator), so that every direction has misses on both sides of it")
+                       "direction (measured in the simulator, for the same --frames), at most the report's max_cm, so that "
+                       "directions have misses on both sides of it")
     parser.add_argument("--miss-weight", type=weight, default=float(DEGRADED_MODES["miss"]),
                         help=f"weight of `miss` episodes among the degraded ones (default {DEGRADED_MODES['miss']}; the others weigh 1)")
     parser.add_argument("--decoy-weight", type=weight, default=0.0,
-                        help="weight of `decoy` episodes among the degraded ones (the others weigh 1, `miss` 3): the expert "
+                        help="weight of `decoy` episodes among the degraded ones (the others weigh 1, `miss` --miss-weight): the expert "
                              "acting on an object placement drawn afresh from the task's range, so that the motion of a "
                              "success does not tell where the object is; default 0 (none)")
     parser.add_argument("--out", required=True, help="dataset folder (must not exist unless --force)")
@@ -318,12 +319,7 @@ def parse_args(argv=None) -> argparse.Namespace:
         parser.error("--workers must be at least 1")
     if os.path.exists(args.out) and not args.force:
         parser.error(f"{args.out} exists (--force replaces it)")
-    args.miss = args.miss_cm
-    if args.miss_boundary:
-        try:
-            args.miss = boundary.load(args.miss_boundary, args.tasks)
-        except ValueError as e:
-            parser.error(f"--miss-boundary: {e}")
+    args.miss = boundary.from_argument(parser, args.miss_boundary, args.tasks) or args.miss_cm
     return args
 
 

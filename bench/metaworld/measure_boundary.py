@@ -20,7 +20,7 @@ import zlib
 import numpy as np
 
 import generate
-from boundary import FACTOR
+from boundary import direction, directions_deg
 from mw import TASKS, Sim
 
 
@@ -36,9 +36,10 @@ def succeeds(task: str, seed: int, offset_cm: np.ndarray, frames: int) -> bool:
 
 def bracket(job: tuple) -> list[float | None] | None:
     """[lo, hi] (cm) along one direction: the expert succeeds lo off and fails hi off, hi - lo
-    <= tolerance; [max, None] when it succeeds max off; None when it fails on the object itself."""
+    <= tolerance (bisected: the outcome is taken to flip once); [max, None] when it succeeds max
+    off; None when it fails on the object itself."""
     task, seed, degrees, max_cm, tolerance, frames = job
-    unit = np.array([math.cos(math.radians(degrees)), math.sin(math.radians(degrees)), 0.0])
+    unit = direction(math.radians(degrees))
     if not succeeds(task, seed, 0 * unit, frames):
         return None
     if succeeds(task, seed, max_cm * unit, frames):
@@ -51,7 +52,7 @@ def bracket(job: tuple) -> list[float | None] | None:
 
 
 def measure(tasks: list[str], directions: int, seeds: list[int], max_cm: float, tolerance: float, frames: int, workers: int) -> dict:
-    degrees = [k * 360 / directions for k in range(directions)]
+    degrees = directions_deg(directions)
     jobs = [(t, s, d, max_cm, tolerance, frames) for t in tasks for d in degrees for s in seeds]
     with multiprocessing.get_context("spawn").Pool(workers) as pool:
         found = []
@@ -59,7 +60,7 @@ def measure(tasks: list[str], directions: int, seeds: list[int], max_cm: float, 
             found.append(b)
             print(f"\rboundary: {i + 1}/{len(jobs)} brackets", end="", file=sys.stderr, flush=True)
     print(file=sys.stderr)
-    report = {"frames": frames, "seeds": seeds, "max_cm": max_cm, "tolerance_cm": tolerance, "factor": list(FACTOR), "tasks": {}}
+    report = {"frames": frames, "seeds": seeds, "max_cm": max_cm, "tolerance_cm": tolerance, "tasks": {}}
     for t in tasks:
         brackets = [[found.pop(0) for _ in seeds] for _ in degrees]
         cm = []
@@ -91,7 +92,7 @@ def main(argv=None) -> None:
                         help="FIRST:END, object placements (default 900000:900004, outside the recipe's train and validation seeds)")
     parser.add_argument("--max-cm", type=float, default=16.0, help="the farthest distance tried")
     parser.add_argument("--tolerance-cm", type=float, default=0.5, help="bisection stops when the bracket is this narrow")
-    parser.add_argument("--frames", type=int, default=120)
+    parser.add_argument("--frames", type=int, default=120, help="episode length (the generator's --frames: a shorter episode leaves less time to succeed)")
     parser.add_argument("--workers", type=int, default=min(4, os.cpu_count() or 1))
     parser.add_argument("--out", required=True, help="the JSON report (generate.py --miss-boundary reads it)")
     args = parser.parse_args(argv)

@@ -11,10 +11,9 @@ examples on both sides of the contact; a range that puts most misses far past th
 it already draws, one inside them adds successes. With --miss-boundary FILE, the misses are
 drawn as `generate.py --miss-boundary FILE` draws them (around where the outcome flips in their
 direction, measure_boundary.py) and counted beside the ranges. With --miss-weight W and
---decoy-weight W, the data's draws are those of generate.py with the same weights, and with a
-decoy weight above 0 the
-`decoy` episodes (the expert aiming at a fresh placement from the task's range) are counted
-the same way, by how far from the object they aim.
+--decoy-weight W, the data's draws are those of generate.py with the same weights; with a decoy
+weight above 0 the `decoy` episodes (the expert aiming at a fresh placement from the task's
+range) are counted the same way, by how far from the object they aim.
 Prints one JSON object (and writes it to --out).
 Only the episodes' draws and the simulator are used: nothing is rendered but each reset's frame.
 """
@@ -80,12 +79,7 @@ def main(argv=None) -> None:
         parser.error(f"unknown task(s) {', '.join(unknown)} (known: {', '.join(TASKS)})")
     if args.episodes < 1 or args.frames < 2 or args.band_cm <= 0:
         parser.error("--episodes must be at least 1, --frames at least 2, --band-cm positive")
-    around = None
-    if args.miss_boundary:
-        try:
-            around = boundary.load(args.miss_boundary, tasks)
-        except ValueError as e:
-            parser.error(f"--miss-boundary: {e}")
+    around = boundary.from_argument(parser, args.miss_boundary, tasks)
     report = {"episodes": args.episodes, "frames": args.frames, "degraded_fraction": args.degraded_fraction, "spread": args.spread,
               "miss_weight": args.miss_weight, "decoy_weight": args.decoy_weight, "tasks": {}}
     for task in tasks:

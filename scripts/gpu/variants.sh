@@ -11,7 +11,9 @@
 # stage) picking stages, e.g. STAGES="vae ceiling" to compare VAEs alone, one judge is made first
 # for all and linked into each variant's folder. In "VAR=VALUE ...", a word that is not NAME=...
 # continues the value before it ("TRAIN_SETS=a=1 b=2" is one variable). Each variant's log and
-# outputs go to $OUT/NAME (its run.tar.gz holds the run's small files). Longer than one call:
+# outputs go to $OUT/NAME (its run.tar.gz holds the run's small files). The host's cores are shared:
+# each variant's WORKERS (the data's and the study's processes) defaults to nproc / variants.
+# Longer than one call:
 #   bash scripts/gpu/detached.sh start v bash scripts/gpu/variants.sh s8 "VAE_STRIDE=8" ...
 #   bash scripts/gpu/detached.sh wait v 570 runs/s8/study ...   (back to back)
 # Exits 1 when any variant failed.
@@ -44,6 +46,7 @@ if [ ${#shared[@]} -gt 0 ]; then
   bash scripts/gpu/metaworld.sh "${shared[@]}" > "$OUT/shared.log" 2>&1 || { echo "variants: ${shared[*]} failed ($OUT/shared.log)"; exit 1; }
 fi
 gpus=$(nvidia-smi -L | wc -l)
+workers=$(( $(nproc) / ${#names[@]} )); [ "$workers" -ge 1 ] || workers=1
 pids=()
 for i in "${!names[@]}"; do
   name=${names[$i]}
@@ -61,7 +64,7 @@ for i in "${!names[@]}"; do
   [ -n "${STAGES:-}" ] && ln -sfn "$PWD/runs/metaworld/judge.pt" "runs/$name/judge.pt"
   echo "variants: $name on GPU $((i % gpus)):$(printf ' [%s]' "${assign[@]}")"
   # shellcheck disable=SC2086  # stages are words by design
-  env CUDA_VISIBLE_DEVICES=$((i % gpus)) RUN="runs/$name" OUT="$OUT/$name" "${assign[@]}" \
+  env CUDA_VISIBLE_DEVICES=$((i % gpus)) RUN="runs/$name" OUT="$OUT/$name" WORKERS="${WORKERS:-$workers}" "${assign[@]}" \
     bash scripts/gpu/metaworld.sh $stages > "$OUT/$name/log" 2>&1 &
   pids+=($!)
 done

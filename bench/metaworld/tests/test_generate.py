@@ -94,19 +94,26 @@ def test_decoys_steer_on_a_fresh_placement_and_weight_zero_changes_nothing():
     zero = [generate.Behaviour(TASK, generate.episode_rng(TASK, seed), 120, 0.4, "narrow", None, 0.0) for seed in range(300)]
     assert [b.mode for b in zero] == [b.mode for b in default] and "decoy" not in {b.mode for b in zero}
     assert all(a.noise == b.noise and (a.offset == b.offset).all() for a, b in zip(zero, default))
+    bad_weights_are_refused("decoy")
+
+
+def bad_weights_are_refused(mode):
+    """A negative or non-finite weight of `mode` ("decoy" or "miss") is refused by Behaviour and
+    on the command line."""
     for bad in (-1.0, float("nan"), float("inf")):
+        weights = {"decoy_weight": 0.0, "miss_weight": 3.0, f"{mode}_weight": bad}
         try:
-            generate.Behaviour(TASK, generate.episode_rng(TASK, 0), 120, 0.4, "narrow", None, bad)
+            generate.Behaviour(TASK, generate.episode_rng(TASK, 0), 120, 0.4, "narrow", None, **weights)
         except ValueError as e:
-            assert "decoy weight" in str(e)
+            assert f"{mode} weight" in str(e)
         else:
-            raise AssertionError(f"the decoy weight {bad} was accepted")
+            raise AssertionError(f"the {mode} weight {bad} was accepted")
         try:
-            generate.parse_args(["--task", TASK, "--episodes", "1", "--out", "/nonexistent/x", "--decoy-weight", str(bad)])
+            generate.parse_args(["--task", TASK, "--episodes", "1", "--out", "/nonexistent/x", f"--{mode}-weight", str(bad)])
         except SystemExit:
             pass
         else:
-            raise AssertionError(f"--decoy-weight {bad} was accepted")
+            raise AssertionError(f"--{mode}-weight {bad} was accepted")
 
 
 def test_a_speed_cap_bounds_the_experts_steps():
@@ -122,14 +129,32 @@ def test_a_speed_cap_bounds_the_experts_steps():
     assert max(steps) <= b.speed * ACTION_SCALE + 1e-6 and max(steps) > 0.9 * b.speed * ACTION_SCALE, (b.speed, max(steps))
 
 
-def boundary_file(directory, radii_cm, task=TASK, degrees=None):
+def boundary_file(directory, radii_cm, degrees=None, max_cm=16.0, name="boundary.json"):
     import json
 
-    path = os.path.join(directory, "boundary.json")
+    path = os.path.join(directory, name)
     degrees = degrees if degrees is not None else [k * 360 / len(radii_cm) for k in range(len(radii_cm))]
     with open(path, "w") as f:
-        json.dump({"tasks": {task: {"directions_deg": degrees, "boundary_cm": radii_cm}}}, f)
+        json.dump({"max_cm": max_cm, "tasks": {TASK: {"directions_deg": degrees, "boundary_cm": radii_cm}}}, f)
     return path
+
+
+def test_the_default_draws_are_those_the_recipe_was_measured_on():
+    """Every option added to the generator since run 22 (2026-11-27) leaves the default episodes as
+    they were: a digest of 1600 episodes' draws, taken with the generator of commit 6a58b7e."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for task in ("drawer-open-v3", "button-press-topdown-v3"):
+        for spread in ("narrow", "wide"):
+            for decoy in (0.0, 3.0):
+                for seed in range(200):
+                    b = generate.Behaviour(task, generate.episode_rng(task, seed), 120, 0.4, spread, None, decoy)
+                    decoy_at = None if b.decoy is None else np.round(b.decoy, 12).tolist()
+                    h.update(repr((b.mode, np.round(b.offset, 12).tolist(), round(b.noise, 12), round(b.speed, 12), b.explore.tolist(),
+                                   b.hold.tolist(), b.burst.tolist(), decoy_at)).encode())
+                    h.update(repr(b.rng.bit_generator.state).encode())
+    assert h.hexdigest() == "46d4904554d8048bc019b932728dd1a8bd084c4cb8dbf6d8d5cc8c882627458b", h.hexdigest()
 
 
 def test_misses_around_a_boundary_steer_as_far_off_as_it_is_in_their_direction():
@@ -152,10 +177,18 @@ def test_misses_around_a_boundary_steer_as_far_off_as_it_is_in_their_direction()
     # Both sides of the boundary, in every quadrant.
     assert sum(f < 1 for f in factors) >= 3 and sum(f > 1 for f in factors) >= 3
     assert len({int(np.arctan2(o[1], o[0]) // (np.pi / 2)) for o in misses}) == 4
-    # Where misses steer changes no other draw.
+    # Where misses steer changes no other draw, now or later in the episode (the same number of
+    # draws: the generator's state after them is the same).
     default = behaviours("narrow")
     assert [b.mode for b in bs] == [b.mode for b in default]
     assert all(a.noise == b.noise and (a.offset == b.offset).all() for a, b in zip(bs, default) if a.mode != "miss")
+    assert all(a.rng.bit_generator.state == b.rng.bit_generator.state for a, b in zip(bs, default))
+    # Never beyond the farthest distance measured: a boundary at it draws misses up to it, not past.
+    with tempfile.TemporaryDirectory() as d:
+        capped = boundary.load(boundary_file(d, [2.0, 8.0, 4.0, 6.0], max_cm=8.0), [TASK])
+    rng = np.random.default_rng(0)
+    reach = [np.linalg.norm(capped.draw(TASK, rng)) for _ in range(2000)]
+    assert max(reach) <= 0.08 + 1e-12 and sum(r > 0.0799 for r in reach) > 100
 
 
 def test_a_bad_boundary_file_is_refused():
@@ -166,13 +199,14 @@ def test_a_bad_boundary_file_is_refused():
 
     with tempfile.TemporaryDirectory() as d:
         cases = {
-            "non-positive": boundary_file(d, [2.0, 0.0, 4.0, 6.0]),
+            "non-positive": boundary_file(d, [2.0, 0.0, 4.0, 6.0], name="zero.json"),
+            "past max_cm": boundary_file(d, [2.0, 20.0, 4.0, 6.0], name="far.json"),
+            "boolean": boundary_file(d, [2.0, True, 4.0, 6.0], name="bool.json"),
+            "uneven": boundary_file(d, [2.0, 3.0, 4.0], degrees=[0, 90, 180], name="uneven.json"),
+            "lengths": boundary_file(d, [2.0, 3.0], degrees=[0, 90, 180], name="lengths.json"),
+            "text directions": boundary_file(d, [2.0, 3.0], degrees=["a", "b"], name="text.json"),
+            "no max_cm": boundary_file(d, [2.0, 3.0], max_cm=None, name="nomax.json"),
         }
-        for name, (radii, degrees) in {"uneven": ([2.0, 3.0, 4.0], [0, 90, 180]), "lengths": ([2.0, 3.0], [0, 90, 180])}.items():
-            path = os.path.join(d, f"{name}.json")
-            with open(path, "w") as f:
-                json.dump({"tasks": {TASK: {"directions_deg": degrees, "boundary_cm": radii}}}, f)
-            cases[name] = path
         cases["not a report"] = os.path.join(d, "list.json")
         with open(cases["not a report"], "w") as f:
             f.write("[1, 2]")
@@ -197,7 +231,8 @@ def test_a_bad_boundary_file_is_refused():
         assert isinstance(args.miss, boundary.Boundary) and args.miss_cm is None
         for argv in (["--tasks", f"{TASK},button-press-topdown-v3", "--miss-boundary", good],
                      ["--task", TASK, "--miss-boundary", good, "--miss-cm", "2,12"],
-                     ["--task", TASK, "--miss-boundary", cases["uneven"]]):
+                     ["--task", TASK, "--miss-boundary", cases["uneven"]],
+                     ["--task", TASK, "--miss-boundary", ""]):
             try:
                 generate.parse_args([*argv, *out])
             except SystemExit:
@@ -208,20 +243,13 @@ def test_a_bad_boundary_file_is_refused():
 
 def test_the_miss_weight_sets_how_many_episodes_miss():
     default = behaviours("narrow")
-    same = [generate.Behaviour(TASK, generate.episode_rng(TASK, seed), 120, 0.4, "narrow", None, 0.0, 3.0) for seed in range(300)]
-    assert [b.mode for b in same] == [b.mode for b in default]
     more = [generate.Behaviour(TASK, generate.episode_rng(TASK, seed), 120, 0.4, "narrow", None, 0.0, 9.0) for seed in range(300)]
     count = lambda bs: sum(b.mode == "miss" for b in bs)  # noqa: E731
     # 40% degraded: misses 3 of 9 weights (about 40 of 300), or 9 of 15 (about 72).
     assert count(more) > count(default) + 15, (count(more), count(default))
     assert [b.mode for b in more if b.mode == "expert"] and sum(b.mode == "expert" for b in more) == sum(b.mode == "expert" for b in default)
-    for bad in (-1.0, float("nan")):
-        try:
-            generate.Behaviour(TASK, generate.episode_rng(TASK, 0), 120, 0.4, "narrow", None, 0.0, bad)
-        except ValueError as e:
-            assert "miss weight" in str(e)
-        else:
-            raise AssertionError(f"the miss weight {bad} was accepted")
+    bad_weights_are_refused("miss")
+    assert generate.parse_args(["--task", TASK, "--episodes", "1", "--out", "/nonexistent/x", "--miss-weight", "9"]).miss_weight == 9.0
 
 
 if __name__ == "__main__":

@@ -7,7 +7,8 @@
 #   bash scripts/gpu/detached.sh wait NAME SECONDS [DIR ...]  follows that output until CMD ends or
 #                                                          SECONDS pass, then packs NAME's out folder
 #                                                          and the files under 3 MB in each DIR (outside
-#                                                          videos/) into $OUT/NAME.tar.gz, the first
+#                                                          videos/) into $OUT/NAME.tar.gz (in 15 MiB
+#                                                          parts NAME.tar.gz.part-NN when larger), the first
 #                                                          episode of each videos/ folder into
 #                                                          $OUT/NAME-videos.tar.gz, both partial if
 #                                                          CMD is still running
@@ -62,6 +63,11 @@ case "$mode" in
     done
     [ "$video_left" -gt 0 ] && echo "detached: $video_left episode videos left out of $name-videos.tar.gz (over 14 MiB in all)"
     tar -czf "${OUT:-/tmp/out}/$name.tar.gz" -C "$dir/pack" .
+    # Over the device tool's 16 MiB a file does not come back.
+    if [ "$(stat -c %s "${OUT:-/tmp/out}/$name.tar.gz")" -gt $((15 << 20)) ]; then
+      split -b 15M -d "${OUT:-/tmp/out}/$name.tar.gz" "${OUT:-/tmp/out}/$name.tar.gz.part-" && rm "${OUT:-/tmp/out}/$name.tar.gz"
+      echo "detached: $name.tar.gz over 15 MiB, in parts: cat $name.tar.gz.part-* | tar -xz"
+    fi
     tar -czf "${OUT:-/tmp/out}/$name-videos.tar.gz" -C "$dir/videos" .
     if [ -f "$dir/rc" ]; then
       rc=$(cat "$dir/rc"); echo "detached: $name ended with status $rc"

@@ -201,6 +201,20 @@ fn the_generator_spreads_its_experts_as_asked() {
     run(Command::new(python()).arg(Path::new(ROOT).join("bench/metaworld/tests/test_generate.py")), "test_generate.py");
 }
 
+/// The episodes of a miss_outcomes.py `by_cm` row, every band inside [lo, hi] cm and no band
+/// with more successes than episodes.
+fn episodes_in_bands(by_cm: &Value, lo: f64, hi: f64, report: &Value) -> u64 {
+    let mut episodes = 0;
+    for (band, row) in by_cm.as_object().unwrap_or_else(|| panic!("no bands: {report}")) {
+        let (a, b) = band.split_once('-').unwrap();
+        let (a, b): (f64, f64) = (a.parse().unwrap(), b.parse().unwrap());
+        assert!(a >= lo && b <= hi, "band {band} outside {lo}-{hi} cm: {report}");
+        assert!(row["succeeded"].as_u64() <= row["episodes"].as_u64(), "{report}");
+        episodes += row["episodes"].as_u64().unwrap();
+    }
+    episodes
+}
+
 #[test]
 fn near_misses_are_counted_by_distance_in_the_simulator() {
     let dir = temp_dir("misses");
@@ -218,16 +232,7 @@ fn near_misses_are_counted_by_distance_in_the_simulator() {
     let count = |range: &str| drawer[range]["miss_episodes"].as_u64().unwrap_or_else(|| panic!("{report}"));
     assert!(count("2,12") >= 1 && count("2,12") == count("3,9"), "{report}");
     for (range, lo, hi) in [("2,12", 2.0, 12.0), ("3,9", 2.0, 10.0)] {
-        let bands = drawer[range]["by_cm"].as_object().unwrap();
-        let mut episodes = 0;
-        for (band, row) in bands {
-            let (a, b) = band.split_once('-').unwrap();
-            let (a, b): (f64, f64) = (a.parse().unwrap(), b.parse().unwrap());
-            assert!(a >= lo && b <= hi, "band {band} outside --miss-cm {range}: {report}");
-            assert!(row["succeeded"].as_u64() <= row["episodes"].as_u64(), "{report}");
-            episodes += row["episodes"].as_u64().unwrap();
-        }
-        assert_eq!(episodes, count(range), "{report}");
+        assert_eq!(episodes_in_bands(&drawer[range]["by_cm"], lo, hi, &report), count(range), "--miss-cm {range}: {report}");
     }
 
     // Misses drawn around the measured boundary (the committed boundary.json) and weighted up:
@@ -247,13 +252,7 @@ fn near_misses_are_counted_by_distance_in_the_simulator() {
     let n = drawer_weighted["boundary"]["miss_episodes"].as_u64().unwrap_or_else(|| panic!("{weighted}"));
     assert_eq!(Some(n), drawer_weighted["2,12"]["miss_episodes"].as_u64(), "{weighted}");
     assert!(n > count("2,12"), "--miss-weight 9 made no more misses than 3: {weighted} / {report}");
-    let mut episodes = 0;
-    for (band, row) in drawer_weighted["boundary"]["by_cm"].as_object().unwrap() {
-        let b: f64 = band.split_once('-').unwrap().1.parse().unwrap();
-        assert!(b <= 18.0, "a miss steers {band} cm off, past twice the boundary: {weighted}");
-        episodes += row["episodes"].as_u64().unwrap();
-    }
-    assert_eq!(episodes, n, "{weighted}");
+    assert_eq!(episodes_in_bands(&drawer_weighted["boundary"]["by_cm"], 0.0, 18.0, &weighted), n, "{weighted}");
 
     // With decoys in the data, they are counted by how far from the object they aim: anywhere in
     // the drawer's 20 cm range.
@@ -268,12 +267,7 @@ fn near_misses_are_counted_by_distance_in_the_simulator() {
     let decoy = &report["tasks"]["drawer-open-v3"]["decoy"];
     let n = decoy["decoy_episodes"].as_u64().unwrap_or_else(|| panic!("{report}"));
     assert!(n >= 1, "{report}");
-    let mut episodes = 0;
-    for (band, row) in decoy["by_cm"].as_object().unwrap() {
-        let b: f64 = band.split_once('-').unwrap().1.parse().unwrap();
-        assert!(b <= 22.0, "a decoy aims {band} cm off, outside the range: {report}");
-        episodes += row["episodes"].as_u64().unwrap();
-    }
+    let episodes = episodes_in_bands(&decoy["by_cm"], 0.0, 22.0, &report);
     assert_eq!(episodes, n, "{report}");
 }
 

@@ -369,8 +369,9 @@ def run_evaluations(groups, a, ports, judge_url, episodes) -> dict:
     """Runs one `bwm evaluate` per variant group at once; returns {task: {variant: [record]}}."""
     procs = []
     # An earlier study in this folder with more groups left eval-N folders this one does not write.
+    written = {f"eval-{g}" for g in range(len(groups))}
     for stale in glob.glob(os.path.join(a.out, "eval-*")):
-        if os.path.basename(stale) not in {f"eval-{g}" for g in range(len(groups))}:
+        if os.path.basename(stale) not in written:
             shutil.rmtree(stale)
     for g, variants in enumerate(groups):
         out = os.path.join(a.out, f"eval-{g}")

@@ -112,6 +112,33 @@ fn bench_rollout_runs_on_the_attention_backend_asked_for() {
 }
 
 #[test]
+fn bench_rollout_runs_with_the_cpu_threads_asked_for() {
+    let dir = temp_dir("bench-rollout-threads");
+    let vae = dir.path().join("vae.safetensors");
+    write_random_vae(&vae, 3);
+    let rollout = ["bench-rollout", "--random-weights", "tiny", "--vae", vae.to_str().unwrap(), "--device", "cpu", "--height", "32", "--width", "32", "--history", "4", "--future", "4", "--sample-steps", "1", "--chunks", "1"];
+    let threads = |flag: Option<&str>, env: &[(&str, &str)]| {
+        let mut cmd = Command::new(bwm());
+        cmd.env_remove("OMP_NUM_THREADS").env_remove("BWM_CPU_THREADS").envs(env.iter().copied());
+        if let Some(n) = flag {
+            cmd.args(["--cpu-threads", n]);
+        }
+        let out = cmd.args(rollout).output().unwrap();
+        let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+        assert!(out.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
+        number_after(line(&stdout, "bench-rollout:"), "libtorch CPU threads ")
+    };
+    assert_eq!(threads(Some("1"), &[]), 1.0);
+    assert_eq!(threads(None, &[("BWM_CPU_THREADS", "3")]), 3.0);
+    // Without the flag and without a CUDA device, libtorch's own choice stands, OMP_NUM_THREADS included.
+    assert_eq!(threads(None, &[("OMP_NUM_THREADS", "2")]), 2.0);
+    assert_eq!(threads(Some("1"), &[("OMP_NUM_THREADS", "2")]), 1.0);
+    let out = Command::new(bwm()).args(["--cpu-threads", "0"]).args(rollout).output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("--cpu-threads"), "{err}");
+}
+
+#[test]
 fn bench_rollout_samples_with_the_default_steps_and_takes_cudnn_autotuning() {
     let dir = temp_dir("bench-rollout-defaults");
     let vae = dir.path().join("vae.safetensors");

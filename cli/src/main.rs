@@ -38,6 +38,12 @@ struct Cli {
     /// may differ between runs, so bit-exact repeats and resumes need it off.
     #[arg(long, global = true, env = "BWM_CUDNN_BENCHMARK")]
     cudnn_benchmark: bool,
+    /// Threads of libtorch's CPU operator pool. Default: 1 on a machine with a CUDA device, where
+    /// the CPU only feeds the GPU and a pool of one spinning thread per core beside the launching
+    /// thread slows launch-bound steps (docs/performance.md, "CPU threads beside the GPU"); libtorch's
+    /// own choice (one per core, or OMP_NUM_THREADS when set) otherwise.
+    #[arg(long, global = true, env = "BWM_CPU_THREADS", value_parser = clap::value_parser!(i32).range(1..))]
+    cpu_threads: Option<i32>,
     #[command(subcommand)]
     command: Command,
 }
@@ -95,6 +101,11 @@ fn main() {
     let cli = Cli::parse();
     bwm_sdp::set_backend(cli.sdp_backend);
     tch::Cuda::cudnn_set_benchmark(cli.cudnn_benchmark);
+    match cli.cpu_threads {
+        Some(n) => tch::set_num_threads(n),
+        None if std::env::var_os("OMP_NUM_THREADS").is_none() && tch::Cuda::is_available() => tch::set_num_threads(1),
+        None => {}
+    }
     if cli.cudnn_benchmark {
         eprintln!("bwm: cuDNN convolution autotuning on (--cudnn-benchmark)");
     }

@@ -184,7 +184,7 @@ pub fn rollout(wm: &WorldModel, height: i64, width: i64, chunks: usize) -> Resul
     let dit = &wm.model.cfg.dit;
     let kernel = bwm_sdp::kernel_for_shape(dit.num_heads, dit.head_dim(), 1024, wm.model.store.kind(), wm.device)?;
     println!(
-        "bench-rollout: {:?} {:?}, {}x{}, x0 + {} history frames, {} frames per chunk, {} {} steps, attention backend {} ({kernel}), {}",
+        "bench-rollout: {:?} {:?}, {}x{}, x0 + {} history frames, {} frames per chunk, {} {} steps, attention backend {} ({kernel}), libtorch CPU threads {}, {}",
         wm.device,
         wm.model.store.kind(),
         width,
@@ -194,6 +194,7 @@ pub fn rollout(wm: &WorldModel, height: i64, width: i64, chunks: usize) -> Resul
         spec.steps,
         spec.solver,
         bwm_sdp::backend(),
+        tch::get_num_threads(),
         wm.fp8.map_or("block linears in the weights' dtype".to_string(), |s| format!("block linears in FP8 ({s} scaling)"))
     );
     for i in 0..chunks {

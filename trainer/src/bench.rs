@@ -71,7 +71,7 @@ pub fn run(a: &BenchTrainOptions) -> Result<()> {
     let dit = &t.model.cfg.dit;
     let kernel = bwm_sdp::kernel_for_shape(dit.num_heads, dit.head_dim(), 1024, t.model.store.kind(), t.device)?;
     println!(
-        "bench-train: {} ({} parameters, {} trained) on {:?}, {:?}, clip {}x{} with {} frames -> latents {:?}, micro-batch {} x accumulation {}, recompute {}, attention backend {} ({kernel})",
+        "bench-train: {} ({} parameters, {} trained) on {:?}, {:?}, clip {}x{} with {} frames -> latents {:?}, micro-batch {} x accumulation {}, recompute {}, attention backend {} ({kernel}), libtorch CPU threads {}",
         t.cfg.model.preset,
         t.model.store.num_parameters(),
         t.opt.num_trainable(),
@@ -84,7 +84,8 @@ pub fn run(a: &BenchTrainOptions) -> Result<()> {
         t.cfg.train.micro_batch,
         t.cfg.train.grad_accum,
         t.cfg.train.recompute,
-        bwm_sdp::backend()
+        bwm_sdp::backend(),
+        tch::get_num_threads()
     );
     let mut timed = Vec::new();
     for _ in 0..a.steps {

@@ -365,6 +365,23 @@ def write_config(path: str, variants: list[str], ports: dict, judge_url: str, da
         f.write("\n".join(lines))
 
 
+def evaluate_env(wm: list[str], jobs: int, environ) -> dict:
+    """The environment of each of `jobs` `bwm evaluate` processes given the world-model flags `wm`.
+    On the CPU each gets its share of the cores for libtorch's CPU threads (by default every one
+    would start a thread per core, and --jobs of them oversubscribe the machine); on a CUDA device
+    bwm keeps its CPU pool to one thread by itself (spinning threads slow its launch-bound steps:
+    docs/performance.md, "CPU threads beside the GPU"), unless OMP_NUM_THREADS says otherwise."""
+    device = "auto"
+    for i, w in enumerate(wm):
+        if w == "--device" and i + 1 < len(wm):
+            device = wm[i + 1]
+        elif w.startswith("--device="):
+            device = w.split("=", 1)[1]
+    if device.startswith("cuda"):
+        return dict(environ)
+    return dict(environ, OMP_NUM_THREADS=str(max(1, (os.cpu_count() or 1) // jobs)))
+
+
 def run_evaluations(groups, a, ports, judge_url, episodes) -> dict:
     """Runs one `bwm evaluate` per variant group at once; returns {task: {variant: [record]}}."""
     procs = []
@@ -381,9 +398,7 @@ def run_evaluations(groups, a, ports, judge_url, episodes) -> dict:
         cmd = [a.bwm, "evaluate", "--config", config, "--out", out, "--episodes-in-flight", str(a.episodes_in_flight), *a.wm]
         log = open(os.path.join(out, "evaluate.log"), "w")
         print(f"study: evaluate {g}: {', '.join(variants)}: {shlex.join(cmd)}", flush=True)
-        # Each process gets its share of the cores for libtorch's CPU threads: by default every
-        # one would start a thread per core, and --jobs of them oversubscribe the machine.
-        env = dict(os.environ, OMP_NUM_THREADS=str(max(1, (os.cpu_count() or 1) // len(groups))))
+        env = evaluate_env(a.wm, len(groups), os.environ)
         procs.append((g, subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env), log, out))
     total = sum(len(v) for v in groups) * sum(len(e) for e in episodes.values())
     start, last = time.time(), 0.0

@@ -54,6 +54,18 @@ def test_success_chunks_sort_numerically():
     assert b["chunk 1"] == {"true": 2, "drawn": 1} and b["chunk 0"] == {"true": 1, "drawn": 1}, b
 
 
+
+def test_evaluate_processes_share_the_cores_only_off_the_gpu():
+    share = str(max(1, (os.cpu_count() or 1) // 2))
+    base = {"PATH": "/bin"}
+    assert study.evaluate_env(["--checkpoint", "c", "--device", "cpu"], 2, base) == {"PATH": "/bin", "OMP_NUM_THREADS": share}
+    # auto is the CPU on a machine without CUDA: the share, which bwm leaves to libtorch.
+    assert study.evaluate_env(["--checkpoint", "c"], 2, base)["OMP_NUM_THREADS"] == share
+    for wm in (["--device", "cuda"], ["--device=cuda:1"], ["--vae", "v", "--device", "cuda:0", "--fp8", "tensor"]):
+        assert study.evaluate_env(wm, 2, base) == base, wm
+    assert study.evaluate_env(["--device", "cuda"], 2, {"OMP_NUM_THREADS": "3"}) == {"OMP_NUM_THREADS": "3"}
+    assert "OMP_NUM_THREADS" not in base
+
 if __name__ == "__main__":
     for name, fn in list(globals().items()):
         if name.startswith("test_"):

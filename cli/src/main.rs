@@ -38,10 +38,10 @@ struct Cli {
     /// may differ between runs, so bit-exact repeats and resumes need it off.
     #[arg(long, global = true, env = "BWM_CUDNN_BENCHMARK")]
     cudnn_benchmark: bool,
-    /// Threads of libtorch's CPU operator pool. Default: 1 on a machine with a CUDA device, where
-    /// the CPU only feeds the GPU and a pool of one spinning thread per core beside the launching
-    /// thread slows launch-bound steps (docs/performance.md, "CPU threads beside the GPU"); libtorch's
-    /// own choice (one per core, or OMP_NUM_THREADS when set) otherwise.
+    /// Threads of libtorch's CPU operator pool. Default: OMP_NUM_THREADS when set; else 1 on a
+    /// machine with a CUDA device, where the CPU only feeds the GPU and a pool of one spinning
+    /// thread per core beside the launching thread slows launch-bound steps (docs/performance.md,
+    /// "CPU threads beside the GPU"); else libtorch's own choice (one per core).
     #[arg(long, global = true, env = "BWM_CPU_THREADS", value_parser = clap::value_parser!(i32).range(1..))]
     cpu_threads: Option<i32>,
     #[command(subcommand)]

@@ -11,7 +11,8 @@
 #                                                          parts NAME.tar.gz.part-NN when larger), the first
 #                                                          episode of each videos/ folder into
 #                                                          $OUT/NAME-videos.tar.gz, both partial if
-#                                                          CMD is still running
+#                                                          CMD is still running (then with the last line
+#                                                          of each log in the out folder)
 # Calls that follow each other within the machine's idle time find the same process. `wait` exits 0
 # when CMD ended with 0, 1 when it failed, 3 while it is still running.
 set -uo pipefail
@@ -73,6 +74,11 @@ case "$mode" in
       rc=$(cat "$dir/rc"); echo "detached: $name ended with status $rc"
       [ "$rc" = 0 ] && exit 0 || exit 1
     fi
+    # Where each log under the out folder stands, so that the next call can follow at once (a
+    # machine idle for 30 s between calls goes back, and the run with it).
+    for f in "$dir"/out/*.log "$dir"/out/*/log; do
+      [ -s "$f" ] && echo "detached: ${f#"$dir/out/"}: $(tr '\r' '\n' < "$f" | grep -v '^[[:space:]]*$' | tail -1 | cut -c1-160)"
+    done
     echo "detached: $name still running after $seconds s"; exit 3
     ;;
   *) usage ;;

@@ -5,7 +5,8 @@
 # The data are made once (runs/metaworld, when a variant uses them); each variant then runs
 # scripts/gpu/metaworld.sh in runs/NAME (its data linked to those, unless it sets a variable the
 # data depend on: TASKS, TRAIN_EPISODES, VAL_EPISODES, SPREAD, MISS_CM, MISS_BOUNDARY, MISS_WEIGHT,
-# DECOY, FRAMES or RESOLUTION; then it makes its own) with its variables, on GPU i mod the machine's GPU count for
+# DECOY, FRAMES or RESOLUTION; then it makes its own, or uses an earlier variant's made with the
+# same values of those, starting once they are written) with its variables, on GPU i mod the machine's GPU count for
 # the i-th variant, all at once; each trains its judge beside its VAE, as the recipe does (a judge
 # made first for all would hold every variant back by its 2 minutes). With STAGES (default: every
 # stage) picking stages, e.g. STAGES="vae ceiling" to compare VAEs alone, one judge is made first
@@ -24,7 +25,7 @@ OUT=${OUT:-/tmp/out}
 mkdir -p "$OUT"
 # Every variant's words first: a word not of the form NAME=... continues the variable before it.
 # A variant's assignments are kept as one newline-separated string (bash has no arrays of arrays).
-names=() assigns=() own=()
+names=() assigns=() own=() keys=() lead=()
 while [ $# -gt 0 ]; do
   name=$1 vars=$2; shift 2
   case "$name" in metaworld|*/*|"") echo "variants: '$name' cannot name a run folder" >&2; exit 2 ;; esac
@@ -36,7 +37,12 @@ while [ $# -gt 0 ]; do
     fi
   done
   names+=("$name") assigns+=("$(printf '%s\n' "${assign[@]}")")
-  if printf '%s\n' "${assign[@]}" | grep -qE '^(TASKS|TRAIN_EPISODES|VAL_EPISODES|SPREAD|MISS_CM|MISS_BOUNDARY|MISS_WEIGHT|DECOY|FRAMES|RESOLUTION)='; then own+=(1); else own+=(0); fi
+  key=$(printf '%s\n' "${assign[@]}" | grep -E '^(TASKS|TRAIN_EPISODES|VAL_EPISODES|SPREAD|MISS_CM|MISS_BOUNDARY|MISS_WEIGHT|DECOY|FRAMES|RESOLUTION)=' | sort)
+  if [ -n "$key" ]; then own+=(1); else own+=(0); fi
+  # A variant whose data variables are an earlier one's uses that one's data (its lead).
+  l=${#keys[@]}
+  for j in "${!keys[@]}"; do [ -n "$key" ] && [ "${keys[$j]}" = "$key" ] && { l=$j; break; }; done
+  keys+=("$key") lead+=("$l")
 done
 # The shared data only when a variant links them (or the shared judge trains on them).
 shared=()
@@ -54,7 +60,14 @@ for i in "${!names[@]}"; do
   [ -n "${assigns[$i]}" ] && mapfile -t assign <<< "${assigns[$i]}"
   mkdir -p "runs/$name" "$OUT/$name"
   stages=${STAGES:-}
-  if [ "${own[$i]}" = 1 ]; then
+  after=  # the lead's data, when this variant waits for them
+  if [ "${own[$i]}" = 1 ] && [ "${lead[$i]}" != "$i" ] && { [ -L "runs/$name/data" ] || [ ! -e "runs/$name/data" ]; }; then
+    lead_name=${names[${lead[$i]}]}
+    ln -sfn "$PWD/runs/$lead_name/data" "runs/$name/data"
+    [ -n "$stages" ] && stages="data $stages"
+    after=runs/$lead_name/data/val/meta/info.json  # generate.py renames a finished dataset into place
+    echo "variants: $name uses $lead_name's data (the same data variables)"
+  elif [ "${own[$i]}" = 1 ]; then
     [ -L "runs/$name/data" ] && rm "runs/$name/data"
     [ -n "$stages" ] && stages="data $stages"
     echo "variants: $name makes its own data"
@@ -64,8 +77,16 @@ for i in "${!names[@]}"; do
   [ -n "${STAGES:-}" ] && ln -sfn "$PWD/runs/metaworld/judge.pt" "runs/$name/judge.pt"
   echo "variants: $name on GPU $((i % gpus)):$(printf ' [%s]' "${assign[@]}")"
   # shellcheck disable=SC2086  # stages are words by design
-  env CUDA_VISIBLE_DEVICES=$((i % gpus)) RUN="runs/$name" OUT="$OUT/$name" WORKERS="${WORKERS:-$workers}" "${assign[@]}" \
-    bash scripts/gpu/metaworld.sh $stages > "$OUT/$name/log" 2>&1 &
+  (
+    if [ -n "$after" ]; then
+      until [ -f "$after" ]; do
+        kill -0 "${pids[${lead[$i]}]}" 2>/dev/null || [ -f "$after" ] || { echo "variants: ${names[${lead[$i]}]} ended without its data"; exit 1; }
+        sleep 5
+      done
+    fi
+    exec env CUDA_VISIBLE_DEVICES=$((i % gpus)) RUN="runs/$name" OUT="$OUT/$name" WORKERS="${WORKERS:-$workers}" "${assign[@]}" \
+      bash scripts/gpu/metaworld.sh $stages
+  ) > "$OUT/$name/log" 2>&1 &
   pids+=($!)
 done
 status=0

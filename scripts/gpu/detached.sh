@@ -27,7 +27,7 @@ case "$mode" in
       echo "detached: $name is already running (pid $(cat "$dir/pid"))" >&2; exit 1
     fi
     rm -rf "$dir"; mkdir -p "$dir/out"
-    OUT="$dir/out" setsid bash -c '"$@" > "'"$dir"'/log" 2>&1; echo $? > "'"$dir"'/rc"' detached "$@" < /dev/null &
+    OUT="$dir/out" setsid bash -c '"$@" > "'"$dir"'/log" 2>&1; echo $? > "'"$dir"'/rc"' detached "$@" < /dev/null > /dev/null 2>&1 &  # holds none of the caller's pipes
     echo $! > "$dir/pid"
     echo "detached: $name started (pid $!, output in $dir/log)"
     ;;

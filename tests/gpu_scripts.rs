@@ -1,0 +1,135 @@
+//! The lent-GPU orchestration scripts on the CPU: scripts/gpu/variants.sh with a stub recipe and a
+//! stub nvidia-smi (which variants make data, which share it, and when they start), and
+//! scripts/gpu/detached.sh's start/wait protocol (exit codes, the logs' progress, the archive).
+
+mod common;
+
+use std::fs;
+use std::os::unix::fs::PermissionsExt;
+use std::path::Path;
+use std::process::{Command, Output};
+
+const ROOT: &str = env!("CARGO_MANIFEST_DIR");
+
+/// A stub of scripts/gpu/metaworld.sh: makes each missing split as generate.py does (written
+/// beside, then renamed into place) and records what it made and whether its data were there
+/// when it started; fails before any data with FAIL=1.
+const STUB_RECIPE: &str = r#"
+[ "${FAIL:-0}" = 1 ] && { echo "stub: failing"; exit 1; }
+[ -f "$RUN/data/val/meta/info.json" ] && echo "$RUN found its data" >> "$MADE"
+for split in train val; do
+  [ -f "$RUN/data/$split/meta/info.json" ] && continue
+  mkdir -p "$RUN/data/$split.tmp/meta"; sleep 1; echo "{}" > "$RUN/data/$split.tmp/meta/info.json"
+  mv "$RUN/data/$split.tmp" "$RUN/data/$split"; echo "$RUN made $split" >> "$MADE"
+done
+echo "stub: $RUN on GPU $CUDA_VISIBLE_DEVICES with DECOY=${DECOY:-} VAE_SEED=${VAE_SEED:-}"
+"#;
+
+fn write_executable(path: &Path, text: &str) {
+    fs::write(path, text).unwrap();
+    fs::set_permissions(path, fs::Permissions::from_mode(0o755)).unwrap();
+}
+
+/// variants.sh copied into `dir` beside the stub recipe, run there with a stub nvidia-smi of 4 GPUs.
+fn variants(dir: &Path, args: &[&str]) -> Output {
+    fs::create_dir_all(dir.join("scripts/gpu")).unwrap();
+    fs::create_dir_all(dir.join("bin")).unwrap();
+    fs::copy(Path::new(ROOT).join("scripts/gpu/variants.sh"), dir.join("scripts/gpu/variants.sh")).unwrap();
+    fs::write(dir.join("scripts/gpu/metaworld.sh"), STUB_RECIPE).unwrap();
+    write_executable(&dir.join("bin/nvidia-smi"), "#!/bin/sh\nfor i in 0 1 2 3; do echo \"GPU $i: stub\"; done\n");
+    let path = format!("{}:{}", dir.join("bin").display(), std::env::var("PATH").unwrap_or_default());
+    Command::new("bash")
+        .arg(dir.join("scripts/gpu/variants.sh"))
+        .args(args)
+        .current_dir(dir)
+        .env("PATH", path)
+        .env("OUT", dir.join("out"))
+        .env("MADE", dir.join("made.txt"))
+        .output()
+        .unwrap()
+}
+
+fn lines(path: &Path) -> Vec<String> {
+    let mut v: Vec<String> = fs::read_to_string(path).unwrap_or_default().lines().map(String::from).collect();
+    v.sort();
+    v
+}
+
+#[test]
+fn variants_with_the_same_data_variables_share_one_dataset() {
+    let dir = common::temp_dir("gpu-variants");
+    let d = dir.path();
+    let out = variants(d, &["a", "DECOY=3 MISS_WEIGHT=9", "b", "MISS_WEIGHT=9 DECOY=3 VAE_SEED=1", "c", "DECOY=6"]);
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
+    assert!(stdout.contains("variants: b uses a's data"), "{stdout}");
+    // Two datasets made (a's and c's); b started once a's were written and found them.
+    assert_eq!(
+        lines(&d.join("made.txt")),
+        ["runs/a made train", "runs/a made val", "runs/b found its data", "runs/c made train", "runs/c made val"],
+        "{stdout}"
+    );
+    assert_eq!(fs::read_link(d.join("runs/b/data")).unwrap(), d.join("runs/a/data"));
+    assert!(!fs::symlink_metadata(d.join("runs/c/data")).unwrap().file_type().is_symlink());
+    let b_log = fs::read_to_string(d.join("out/b/log")).unwrap();
+    assert!(b_log.contains("stub: runs/b on GPU 1 with DECOY=3 VAE_SEED=1"), "{b_log}");
+
+    // A lead that fails before its data takes the variants waiting on them down with it.
+    let dir = common::temp_dir("gpu-variants-failed");
+    let d = dir.path();
+    let out = variants(d, &["a", "DECOY=3 FAIL=1", "b", "DECOY=3 VAE_SEED=1"]);
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(!out.status.success() && stdout.contains("variants: a failed") && stdout.contains("variants: b failed"), "{stdout}");
+    let b_log = fs::read_to_string(d.join("out/b/log")).unwrap();
+    assert!(b_log.contains("a ended without its data"), "{b_log}");
+    assert!(!d.join("made.txt").exists());
+}
+
+/// Removes detached.sh's folder of a name when the test ends, also on failure.
+struct Detached(String);
+
+impl Drop for Detached {
+    fn drop(&mut self) {
+        let dir = Path::new("/tmp/detached").join(&self.0);
+        if let Ok(pid) = fs::read_to_string(dir.join("pid")) {
+            let _ = Command::new("kill").arg("--").arg(format!("-{}", pid.trim())).output();
+        }
+        let _ = fs::remove_dir_all(dir);
+    }
+}
+
+#[test]
+fn detached_work_is_followed_across_waits_and_packed() {
+    let name = Detached(format!("test-{}", std::process::id()));
+    let out_dir = common::temp_dir("gpu-detached");
+    let script = Path::new(ROOT).join("scripts/gpu/detached.sh");
+    let run = |args: &[&str]| -> Output {
+        Command::new("bash").arg(&script).args(args).env("OUT", out_dir.path()).output().unwrap()
+    };
+    // The command writes a variant-like log (progress with carriage returns), then waits for a file.
+    let gate = out_dir.path().join("go");
+    let work = format!(
+        "mkdir -p $OUT/v; printf 'step 1/9\\nstep 2/9\\n' > $OUT/v/log; printf 'a\\r1/5 episodes' > $OUT/r.log; until [ -f {} ]; do sleep 0.2; done",
+        gate.display()
+    );
+    let started = run(&["start", &name.0, "bash", "-c", &work]);
+    assert!(started.status.success(), "{}", String::from_utf8_lossy(&started.stderr));
+    let mut waited = run(&["wait", &name.0, "1"]);
+    for _ in 0..20 {
+        if String::from_utf8_lossy(&waited.stdout).contains("v/log: step 2/9") {
+            break;
+        }
+        waited = run(&["wait", &name.0, "1"]);
+    }
+    let stdout = String::from_utf8_lossy(&waited.stdout);
+    assert_eq!(waited.status.code(), Some(3), "{stdout}");
+    assert!(stdout.contains("detached: v/log: step 2/9") && stdout.contains("detached: r.log: 1/5 episodes"), "{stdout}");
+    assert!(out_dir.path().join(format!("{}.tar.gz", name.0)).exists());
+    fs::write(&gate, "").unwrap();
+    let done = run(&["wait", &name.0, "30"]);
+    let stdout = String::from_utf8_lossy(&done.stdout);
+    assert_eq!(done.status.code(), Some(0), "{stdout}");
+    assert!(stdout.contains("ended with status 0") && !stdout.contains("v/log:"), "{stdout}");
+    let listing = Command::new("tar").arg("-tzf").arg(out_dir.path().join(format!("{}.tar.gz", name.0))).output().unwrap();
+    assert!(String::from_utf8_lossy(&listing.stdout).contains("out/v/log"), "{}", String::from_utf8_lossy(&listing.stdout));
+}

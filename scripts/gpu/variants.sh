@@ -25,7 +25,7 @@ OUT=${OUT:-/tmp/out}
 mkdir -p "$OUT"
 # Every variant's words first: a word not of the form NAME=... continues the variable before it.
 # A variant's assignments are kept as one newline-separated string (bash has no arrays of arrays).
-names=() assigns=() own=() keys=() lead=()
+names=() assigns=() keys=() lead=()
 while [ $# -gt 0 ]; do
   name=$1 vars=$2; shift 2
   case "$name" in metaworld|*/*|"") echo "variants: '$name' cannot name a run folder" >&2; exit 2 ;; esac
@@ -38,7 +38,6 @@ while [ $# -gt 0 ]; do
   done
   names+=("$name") assigns+=("$(printf '%s\n' "${assign[@]}")")
   key=$(printf '%s\n' "${assign[@]}" | grep -E '^(TASKS|TRAIN_EPISODES|VAL_EPISODES|SPREAD|MISS_CM|MISS_BOUNDARY|MISS_WEIGHT|DECOY|FRAMES|RESOLUTION)=' | sort)
-  if [ -n "$key" ]; then own+=(1); else own+=(0); fi
   # A variant whose data variables are an earlier one's uses that one's data (its lead).
   l=${#keys[@]}
   for j in "${!keys[@]}"; do [ -n "$key" ] && [ "${keys[$j]}" = "$key" ] && { l=$j; break; }; done
@@ -46,7 +45,9 @@ while [ $# -gt 0 ]; do
 done
 # The shared data only when a variant links them (or the shared judge trains on them).
 shared=()
-[[ " ${own[*]} " == *" 0 "* ]] || [ -n "${STAGES:-}" ] && shared+=(data)
+own=0  # variants that make (or share) their own data
+for k in "${keys[@]}"; do [ -n "$k" ] && own=$((own + 1)); done
+[ "$own" -lt ${#names[@]} ] || [ -n "${STAGES:-}" ] && shared+=(data)
 [ -n "${STAGES:-}" ] && shared+=(judge)
 if [ ${#shared[@]} -gt 0 ]; then
   bash scripts/gpu/metaworld.sh "${shared[@]}" > "$OUT/shared.log" 2>&1 || { echo "variants: ${shared[*]} failed ($OUT/shared.log)"; exit 1; }
@@ -61,15 +62,14 @@ for i in "${!names[@]}"; do
   mkdir -p "runs/$name" "$OUT/$name"
   stages=${STAGES:-}
   after=  # the lead's data, when this variant waits for them
-  if [ "${own[$i]}" = 1 ] && [ "${lead[$i]}" != "$i" ] && { [ -L "runs/$name/data" ] || [ ! -e "runs/$name/data" ]; }; then
+  [ -n "${keys[$i]}" ] && [ -n "$stages" ] && stages="data $stages"
+  if [ -n "${keys[$i]}" ] && [ "${lead[$i]}" != "$i" ] && { [ -L "runs/$name/data" ] || [ ! -e "runs/$name/data" ]; }; then
     lead_name=${names[${lead[$i]}]}
     ln -sfn "$PWD/runs/$lead_name/data" "runs/$name/data"
-    [ -n "$stages" ] && stages="data $stages"
     after=runs/$lead_name/data/val/meta/info.json  # generate.py renames a finished dataset into place
     echo "variants: $name uses $lead_name's data (the same data variables)"
-  elif [ "${own[$i]}" = 1 ]; then
+  elif [ -n "${keys[$i]}" ]; then
     [ -L "runs/$name/data" ] && rm "runs/$name/data"
-    [ -n "$stages" ] && stages="data $stages"
     echo "variants: $name makes its own data"
   else
     ln -sfn "$PWD/runs/metaworld/data" "runs/$name/data"

@@ -25,12 +25,19 @@
 # (stages up to train, truth and judge) where it has not; run it detached as the recipe.
 set -uo pipefail
 source "$(dirname "$0")/common.sh"
-for f in .gl/*.deb; do dpkg -x "$f" /; done
-ldconfig
+# Under a lock: variants.sh starts several at once, and two pip installs into one target remove
+# each other's files (run 23's mw9 failed so).
+(
+  flock 9
+  for f in .gl/*.deb; do dpkg -x "$f" /; done
+  ldconfig
+  if [ ! -d /tmp/site/metaworld ]; then
+    rm -rf /tmp/site /tmp/site.part
+    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site.part .whl/*.whl &&
+      mv /tmp/site.part /tmp/site
+  fi
+) 9> /tmp/metaworld-setup.lock || exit 1
 export MUJOCO_GL=egl PYOPENGL_PLATFORM=egl PYTHONUNBUFFERED=1
-if [ ! -d /tmp/site/metaworld ]; then
-  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
-fi
 export PYTHONPATH=/tmp/site
 # Unpacked beside and renamed: a second instance started while one runs would otherwise fail
 # writing the binary the first is executing ("Text file busy").

@@ -284,6 +284,17 @@ prompt = "stack the cube (drop)"
     // alpha, bottle episode 1 (connection 2): 6 actions per reply, 4 executed (cut to whole groups of 4).
     let bottle = replies("alpha", 2);
     assert_eq!(bottle.len(), 4);
+    // The record keeps the poses that drove the model: the executed four of each reply, the
+    // adapter's 14 indices of each row.
+    let sent: Vec<Vec<f64>> = bottle.iter().flat_map(|r| r["actions"].as_array().unwrap()[..4].to_vec()).map(|a| a.as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect()).collect();
+    let recorded: Vec<Vec<f64>> = rec("alpha", "bottle", 1)["actions"].as_array().unwrap().iter().map(|a| a.as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect()).collect();
+    assert_eq!(recorded.len(), 16);
+    for (r, s) in recorded.iter().zip(&sent) {
+        assert!(r.len() == 14 && r.iter().zip(s).all(|(a, b)| (a - b).abs() < 1e-5), "recorded {r:?}, sent {s:?}");
+    }
+    for r in &records {
+        assert_eq!(r["actions"].as_array().map(Vec::len), r["frames"].as_u64().map(|f| f as usize), "one action per generated frame: {r}");
+    }
     for w in bottle.windows(2) {
         let executed = &w[0]["actions"][3];
         for (i, s) in state(w[1]).iter().enumerate() {

@@ -151,8 +151,11 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
         assert!(r["true"].as_f64().is_some_and(|v| (0.0..=1.0).contains(&v)), "{r}");
         assert!(r["estimated"].as_f64().is_some_and(|v| (0.0..=1.0).contains(&v)), "{r}");
         assert!(r["judged_simulator"].as_f64().is_some_and(|v| (0.0..=1.0).contains(&v)), "{r}");
+        assert!(r["replayed"].as_f64().is_some_and(|v| (0.0..=1.0).contains(&v)), "each world-model episode's actions replayed: {r}");
     }
     assert_eq!(study["all"]["n"], 4, "{study}");
+    assert_eq!(study["replayed"]["per_episode"]["n"], 4, "{study}");
+    assert_eq!(study["replayed"]["estimated_vs_replayed"]["n"], 4, "{study}");
     let flags: Vec<&str> = study["world_model_flags"].as_array().unwrap().iter().filter_map(Value::as_str).collect();
     assert!(flags.windows(2).any(|w| w == ["--guidance", "1.5"]), "{flags:?}");
     assert_eq!(study["per_episode"]["n"], 4, "one episode per rate, each paired with its truth: {study}");
@@ -185,6 +188,7 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
     let rescored = json(&runs.join("study/study.json"));
     assert_eq!(rescored["rates"], study["rates"], "{rescored}");
     assert_eq!(rescored["by_approach"], study["by_approach"], "{rescored}");
+    assert_eq!(rescored["replayed"], study["replayed"], "{rescored}");
     assert_eq!(rescored["world_model_flags"], study["world_model_flags"], "{rescored}");
 
     // The probe: the graded `wrong` variants through the same study, in their own folder.

@@ -212,14 +212,40 @@ def make_policy(task: str, variant: str, seed: int) -> Policy:
 
 @dataclass
 class Episode:
-    """One simulator episode of a policy: the step (1-based) at which the success flag was first
-    raised (None: not within the horizon), the closest the hand came to the object before then
-    (cm; the end effector to the drawer handle / the button top, over every step), and with
-    `record` every frame from x0 on (uint8 [T, H, W, 3])."""
+    """One simulator episode: the step (1-based) at which the success flag was first raised (None:
+    not within the horizon), the closest the hand came to the object before then (cm; the end
+    effector to the drawer handle / the button top, over every step), the commands issued
+    (float32 [T, 4]) and with `record` every frame from x0 on (uint8 [T + 1, H, W, 3])."""
 
     first: int | None
     approach_cm: float
+    commands: np.ndarray
     frames: np.ndarray | None = None
+
+
+class _Outcome:
+    """The first success step and the closest approach before it, step by step."""
+
+    def __init__(self, sim):
+        self.sim, self.t, self.first, self.commands = sim, 0, None, []
+        self.approach = self._distance()
+
+    def _distance(self) -> float:
+        return float(np.linalg.norm(self.sim.hand_pos() - self.sim.object_pos()))
+
+    def step(self, command, render: bool):
+        image, state, done = self.sim.step(command, render=render)
+        self.t += 1
+        self.commands.append(np.asarray(command, np.float32))
+        if self.first is None:
+            self.approach = min(self.approach, self._distance())
+            if done:
+                self.first = self.t
+        return image, state, done
+
+    def episode(self, frames=None) -> Episode:
+        commands = np.stack(self.commands) if self.commands else np.zeros((0, 4), np.float32)
+        return Episode(self.first, 100 * self.approach, commands, None if frames is None else np.stack(frames))
 
 
 def run_episode(task: str, variant: str, seed: int, horizon: int = 120, chunk: int = 24, resolution: int = 64,
@@ -233,23 +259,30 @@ def run_episode(task: str, variant: str, seed: int, horizon: int = 120, chunk: i
     with Sim(task, seed, resolution) as sim:
         image, state = sim.reset()
         frames = [image] if record else None
-        first, t = None, 0
-        approach = float(np.linalg.norm(sim.hand_pos() - sim.object_pos()))
-        while t < horizon and (record or first is None):
-            commands = policy.act(image, state, min(chunk, horizon - t))
+        outcome = _Outcome(sim)
+        while outcome.t < horizon and (record or outcome.first is None):
+            commands = policy.act(image, state, min(chunk, horizon - outcome.t))
             for i, command in enumerate(commands):
-                last = i == len(commands) - 1
-                image, state, done = sim.step(command, render=record or last)
-                t += 1
-                if first is None:
-                    approach = min(approach, float(np.linalg.norm(sim.hand_pos() - sim.object_pos())))
-                if done and first is None:
-                    first = t
+                image, state, done = outcome.step(command, render=record or i == len(commands) - 1)
                 if record:
                     frames.append(image)
                 elif done:
                     break
-    return Episode(first, 100 * approach, np.stack(frames) if record else None)
+        return outcome.episode(frames)
+
+
+def replay(task: str, seed: int, commands, resolution: int = 64) -> Episode:
+    """A fixed sequence of commands (a world-model episode's actions) issued open loop in the
+    simulator from the placement of `seed`, up to its first success."""
+    from mw import Sim
+
+    with Sim(task, seed, resolution) as sim:
+        sim.reset()
+        outcome = _Outcome(sim)
+        for command in np.asarray(commands, np.float32).reshape(-1, 4):
+            if outcome.step(command, render=False)[2]:
+                break
+        return outcome.episode()
 
 
 def measure_truth(task: str, variant: str, seeds, horizon: int = 120, chunk: int = 24, resolution: int = 64) -> list[Episode]:

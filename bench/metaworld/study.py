@@ -22,7 +22,10 @@ measured apart from the world model's.
 Writes DIR/study.json (rates and agreement: Pearson r, Spearman rank correlation, MAE, per task
 and over all variants; whether the best variant is ranked first; the same for the judge on the
 simulator's frames; the episodes per task by the hand's closest approach to the object, with how
-many succeeded and how many the world model drew), DIR/study.csv,
+many succeeded and how many the world model drew; and, where `bwm evaluate` kept each episode's
+actions, those actions replayed in the simulator from the same placement, under "replayed": the
+world model's outcomes against the simulator's for the same actions, its own error, apart from
+the policies acting otherwise on its frames than on the simulator's), DIR/study.csv,
 DIR/study.svg (estimated against true rates) and each process's evaluate output in DIR/eval-*/.
 Everything after `--` goes to `bwm evaluate` (the world model's flags). With --rescore, a finished
 study in DIR is scored again from its eval-*/episodes.jsonl and judged.json (after a change to the
@@ -129,6 +132,35 @@ def judge_simulator(episodes, variants, horizon, chunk, resolution, workers, jud
             out.setdefault(task, {})[variant] = probs
             rate = np.mean([p >= THRESHOLD for p in probs])
             print(f"study: judge on simulator frames {n}/{len(jobs)}: {task} {variant} {100 * rate:.0f}% ({time.time() - start:.0f} s)", flush=True)
+    return out
+
+
+def _replay_job(job):
+    task, variant, runs, resolution = job
+    import policies
+
+    return task, variant, {k: [e.first, round(e.approach_cm, 3)] for k, seed, actions in runs
+                           for e in [policies.replay(task, seed, actions, resolution)]}
+
+
+def replay_world_model(estimates: dict, episodes: dict, resolution: int, workers: int) -> dict | None:
+    """{task: {variant: {episode: [first success step or None, closest approach in cm]}}}: each
+    world-model episode's actions (the commands its policy sent through the world model's frames)
+    issued in the simulator from the same placement. Where the world model's outcome differs from
+    this one it drew the wrong outcome of those actions; where this one differs from the truth the
+    policy acted otherwise on the world model's frames than on the simulator's. None when the
+    records hold no actions (a study of a `bwm evaluate` that did not keep them)."""
+    records = [r for per in estimates.values() for rs in per.values() for r in rs]
+    if not records or any("actions" not in r for r in records):
+        return None
+    jobs = [(t, v, [(r["episode"], episodes[t][r["episode"]][1], r["actions"]) for r in rs], resolution)
+            for t, per in estimates.items() for v, rs in per.items()]
+    out: dict = {}
+    start = time.time()
+    with multiprocessing.get_context("spawn").Pool(min(workers, len(jobs))) as pool:
+        for task, variant, outcome in pool.imap_unordered(_replay_job, jobs):
+            out.setdefault(task, {})[variant] = outcome
+    print(f"study: {len(records)} world-model episodes' actions replayed in the simulator ({time.time() - start:.0f} s)", flush=True)
     return out
 
 
@@ -239,12 +271,15 @@ def by_approach(approach_cm: list[float], true: list[bool], drawn: list[bool], b
     return {name: cell for (_, name), cell in sorted(out.items())}
 
 
-def summarize(truth: dict, estimates: dict, judged: dict, tasks: list[str], variants: list[str], chunk: int) -> dict:
+def summarize(truth: dict, estimates: dict, judged: dict, tasks: list[str], variants: list[str], chunk: int,
+              replayed: dict | None = None) -> dict:
     """Agreement of the world model's estimates with the truth (per episode [first success step or
     None, closest approach in cm]); `judged` (the judge on the simulator's frames) adds that column
-    and its own agreement, the judge's share of the error."""
-    rows, pooled_true, pooled_est, pooled_first = [], [], [], []
+    and its own agreement, the judge's share of the error; `replayed` (replay_world_model) the
+    simulator's outcome of the world model's own episodes, which splits the rest of the error."""
+    rows, pooled_true, pooled_est, pooled_first, pooled_replayed, pooled_drawn = [], [], [], [], [], []
     approach: dict = {}
+    replay_approach: dict = {}
     for t in tasks:
         for v in variants:
             est = estimates[t][v]
@@ -259,11 +294,24 @@ def summarize(truth: dict, estimates: dict, judged: dict, tasks: list[str], vari
             near += [d for k, (_, d) in enumerate(truth[t][v]) if k in by_episode]
             succeeded += [p[0] is not None for p in paired]
             drawn += [p[1] for p in paired]
-            rows.append({"task": t, "variant": v, "episodes": len(first), "true": float(np.mean([f is not None for f in first])),
-                         "estimated": float(np.mean([e["success"] for e in est])), "errors": sum(e["error"] is not None for e in est),
-                         "judged_simulator": float(np.mean([p >= THRESHOLD for p in judged[t][v]])),
-                         "per_episode": episode_agreement([p[0] is not None for p in paired], [p[1] for p in paired]),
-                         "by_success_chunk": by_success_chunk([p[0] for p in paired], [p[1] for p in paired], chunk)})
+            row = {"task": t, "variant": v, "episodes": len(first), "true": float(np.mean([f is not None for f in first])),
+                   "estimated": float(np.mean([e["success"] for e in est])), "errors": sum(e["error"] is not None for e in est),
+                   "judged_simulator": float(np.mean([p >= THRESHOLD for p in judged[t][v]])),
+                   "per_episode": episode_agreement([p[0] is not None for p in paired], [p[1] for p in paired]),
+                   "by_success_chunk": by_success_chunk([p[0] for p in paired], [p[1] for p in paired], chunk)}
+            if replayed is not None:
+                # JSON keys are strings once the outcomes have been through a file.
+                outcome = {int(k): o for k, o in replayed[t][v].items()}
+                again = [(outcome[k][0] is not None, by_episode[k], outcome[k][1]) for k in sorted(by_episode)]
+                row["replayed"] = float(np.mean([a[0] for a in again]))
+                row["per_episode_replayed"] = episode_agreement([a[0] for a in again], [a[1] for a in again])
+                pooled_replayed += [a[0] for a in again]
+                pooled_drawn += [a[1] for a in again]
+                near, succeeded, drawn = replay_approach.setdefault(t, ([], [], []))
+                near += [a[2] for a in again]
+                succeeded += [a[0] for a in again]
+                drawn += [a[1] for a in again]
+            rows.append(row)
     per_task = {}
     for t in tasks:
         mine = [r for r in rows if r["task"] == t]
@@ -272,10 +320,21 @@ def summarize(truth: dict, estimates: dict, judged: dict, tasks: list[str], vari
     mean = lambda v, key: float(np.mean([r[key] for r in rows if r["variant"] == v]))
     by_variant = agreement(variants, [mean(v, "estimated") for v in variants], [mean(v, "true") for v in variants])
     judge_alone = agreement([f"{r['variant']}/{r['task']}" for r in rows], [r["judged_simulator"] for r in rows], [r["true"] for r in rows])
-    return {"rates": rows, "per_task": per_task, "all": overall, "variants_mean_over_tasks": by_variant,
-            "judge_on_simulator_frames": judge_alone, "per_episode": episode_agreement(pooled_true, pooled_est),
-            "by_success_chunk": by_success_chunk(pooled_first, pooled_est, chunk),
-            "by_approach": {t: by_approach(*approach[t]) for t in tasks}}
+    out = {"rates": rows, "per_task": per_task, "all": overall, "variants_mean_over_tasks": by_variant,
+           "judge_on_simulator_frames": judge_alone, "per_episode": episode_agreement(pooled_true, pooled_est),
+           "by_success_chunk": by_success_chunk(pooled_first, pooled_est, chunk),
+           "by_approach": {t: by_approach(*approach[t]) for t in tasks}}
+    if replayed is not None:
+        names = [f"{r['variant']}/{r['task']}" for r in rows]
+        out["replayed"] = {
+            # The world model's outcomes against the simulator's for the same actions: its own error.
+            "estimated_vs_replayed": agreement(names, [r["estimated"] for r in rows], [r["replayed"] for r in rows]),
+            "per_episode": episode_agreement(pooled_replayed, pooled_drawn),
+            # The policies acting on the world model's frames instead of the simulator's: the rest.
+            "replayed_vs_true": agreement(names, [r["replayed"] for r in rows], [r["true"] for r in rows]),
+            "by_approach": {t: by_approach(*replay_approach[t]) for t in tasks},
+        }
+    return out
 
 
 def fmt(v) -> str:
@@ -519,7 +578,8 @@ def main(argv=None) -> None:
         print(f"study: true success rates in {truth_path}")
         return
     if a.rescore:
-        summary = summarize(truth, estimates, found["judged"], tasks, variants, a.chunk)
+        replayed = replay_world_model(estimates, episodes, a.resolution, a.workers)
+        summary = summarize(truth, estimates, found["judged"], tasks, variants, a.chunk, replayed)
         for k in ("episodes_per_rate", "horizon", "world_model_flags", "episodes_in_flight"):
             summary[k] = before.get(k)
         write_summary(a.out, summary, tasks, a.chunk)
@@ -561,7 +621,8 @@ def main(argv=None) -> None:
             except subprocess.TimeoutExpired:
                 proc.kill()
 
-    summary = summarize(truth, estimates, judged, tasks, variants, a.chunk)
+    replayed = replay_world_model(estimates, episodes, a.resolution, a.workers)
+    summary = summarize(truth, estimates, judged, tasks, variants, a.chunk, replayed)
     summary["episodes_per_rate"] = a.episodes
     summary["horizon"] = a.horizon
     summary["world_model_flags"] = wm
@@ -574,18 +635,20 @@ def write_summary(out: str, summary: dict, tasks: list[str], chunk: int) -> None
     with open(os.path.join(out, "study.json"), "w") as f:
         json.dump(summary, f, indent=1)
     with open(os.path.join(out, "study.csv"), "w") as f:
-        f.write("task,variant,episodes,true_success_rate,estimated_success_rate,errors,judge_on_simulator_rate\n")
+        f.write("task,variant,episodes,true_success_rate,estimated_success_rate,errors,judge_on_simulator_rate,replayed_rate\n")
         for r in summary["rates"]:
-            f.write(f"{r['task']},{r['variant']},{r['episodes']},{r['true']:.4f},{r['estimated']:.4f},{r['errors']},{r['judged_simulator']:.4f}\n")
+            replayed = f"{r['replayed']:.4f}" if "replayed" in r else ""
+            f.write(f"{r['task']},{r['variant']},{r['episodes']},{r['true']:.4f},{r['estimated']:.4f},{r['errors']},{r['judged_simulator']:.4f},{replayed}\n")
     a_ = summary["all"]
     title = f"r = {fmt(a_['pearson_r'])}, rho = {fmt(a_['spearman_rho'])}, MAE = {fmt(a_['mae'])}"
     with open(os.path.join(out, "study.svg"), "w") as f:
         f.write(svg_scatter(summary["rates"], tasks, title))
-    print(f"{'task':26s} {'variant':10s} {'true':>6s} {'world model':>11s} {'judge on simulator':>18s} {'same outcome':>12s} {'kappa':>6s}")
+    print(f"{'task':26s} {'variant':10s} {'true':>6s} {'world model':>11s} {'judge on simulator':>18s} {'same outcome':>12s} {'kappa':>6s}"
+          f" {'replayed':>8s}")
     for r in summary["rates"]:
         e = r["per_episode"]
         print(f"{r['task']:26s} {r['variant']:10s} {r['true']:6.2f} {r['estimated']:11.2f} {r['judged_simulator']:18.2f} "
-              f"{e['agreement']:12.2f} {fmt(e['kappa']):>6s}")
+              f"{e['agreement']:12.2f} {fmt(e['kappa']):>6s} {fmt(r.get('replayed')):>8s}")
     for name, g in [*summary["per_task"].items(), ("all variants x tasks", summary["all"]), ("variants (mean over tasks)", summary["variants_mean_over_tasks"]),
                     ("the judge alone, on the simulator's frames", summary["judge_on_simulator_frames"])]:
         print(f"{name}: Pearson r {fmt(g['pearson_r'])}, Spearman {fmt(g['spearman_rho'])}, MAE {fmt(g['mae'])}, "
@@ -598,6 +661,16 @@ def write_summary(out: str, summary: dict, tasks: list[str], chunk: int) -> None
     for t, bands in summary["by_approach"].items():
         cells = ", ".join(f"{name} {c['true']}/{c['drawn']}/{c['episodes']}" for name, c in bands.items())
         print(f"{t}, by the hand's closest approach to the object in the simulator (true/drawn/episodes): {cells}")
+    if "replayed" in summary:
+        g, e = summary["replayed"]["estimated_vs_replayed"], summary["replayed"]["per_episode"]
+        print(f"the world model's episodes replayed in the simulator: its rates against the replays' Pearson r {fmt(g['pearson_r'])}, "
+              f"MAE {fmt(g['mae'])}; per episode the same outcome in {e['agreement']:.3f} (kappa {fmt(e['kappa'])}; "
+              f"missed {e['missed']}, invented {e['invented']})")
+        g = summary["replayed"]["replayed_vs_true"]
+        print(f"the replays' rates against the truth (the policies on the world model's frames): Pearson r {fmt(g['pearson_r'])}, MAE {fmt(g['mae'])}")
+        for t, bands in summary["replayed"]["by_approach"].items():
+            cells = ", ".join(f"{name} {c['true']}/{c['drawn']}/{c['episodes']}" for name, c in bands.items())
+            print(f"{t}, by the replayed hand's closest approach to the object (replay succeeds/drawn/episodes): {cells}")
     print(f"study: wrote {os.path.join(out, 'study.json')}, study.csv, study.svg")
 
 

@@ -41,6 +41,49 @@ def test_summarize_pairs_episodes_by_index():
                                       "8-10 cm": {"episodes": 4, "true": 0, "drawn": 0}, "10+ cm": {"episodes": 1, "true": 0, "drawn": 1}}}, s["by_approach"]
 
 
+def test_replayed_actions_split_the_world_models_error_from_the_policies():
+    truth = {"t": {"a": [[30, 0.5], [None, 6.0], [None, 7.0], [None, 12.0]]}}
+    record = lambda k, ok: {"episode": k, "success": ok, "error": None, "actions": []}
+    estimates = {"t": {"a": [record(0, True), record(1, True), record(2, True), record(3, False)]}}
+    judged = {"t": {"a": [0.9, 0.1, 0.1, 0.1]}}
+    # In the world model's loop the policy's hand came within 1 cm in episode 1 and succeeded in
+    # the simulator too; episode 2's stayed 7 cm off: an opening the world model invented.
+    # Keys as a JSON file gives them back.
+    replayed = {"t": {"a": {"0": [40, 0.4], "1": [50, 1.0], "2": [None, 7.0], "3": [None, 11.0]}}}
+    s = study.summarize(truth, estimates, judged, ["t"], ["a"], chunk=24, replayed=replayed)
+    row = s["rates"][0]
+    assert (row["true"], row["estimated"], row["replayed"]) == (0.25, 0.75, 0.5), row
+    e = row["per_episode_replayed"]
+    assert (e["both_success"], e["missed"], e["invented"], e["both_fail"]) == (2, 0, 1, 1), e
+    assert s["replayed"]["per_episode"] == e
+    assert s["replayed"]["by_approach"] == {"t": {"0-2 cm": {"episodes": 2, "true": 2, "drawn": 2},
+                                                  "6-8 cm": {"episodes": 1, "true": 0, "drawn": 1},
+                                                  "10+ cm": {"episodes": 1, "true": 0, "drawn": 0}}}, s["replayed"]
+    assert s["replayed"]["replayed_vs_true"]["mae"] == 0.25 and s["replayed"]["estimated_vs_replayed"]["mae"] == 0.25
+    # Without replays (records without actions) nothing of it appears.
+    plain = study.summarize(truth, estimates, judged, ["t"], ["a"], chunk=24)
+    assert "replayed" not in plain and "replayed" not in plain["rates"][0]
+    assert study.replay_world_model({"t": {"a": [{"episode": 0, "success": True}]}}, {"t": [(0, 1)]}, 64, 1) is None
+
+
+def test_a_simulator_episodes_commands_replayed_give_its_outcome():
+    import policies
+
+    for task, variant, seed in [("drawer-open-v3", "expert", 100000), ("button-press-topdown-v3", "wrong", 100001)]:
+        ran = policies.run_episode(task, variant, seed, horizon=120, chunk=24, resolution=64)
+        again = policies.replay(task, seed, ran.commands.tolist(), resolution=64)
+        assert (again.first, again.approach_cm) == (ran.first, ran.approach_cm), (task, variant, ran, again)
+        assert len(ran.commands) == (ran.first or 120), (task, variant, len(ran.commands))
+    # The expert's opening cut short of its success is a failure; on another placement its
+    # commands miss the handle.
+    assert ran.first is None
+    expert = policies.run_episode("drawer-open-v3", "expert", 100000, resolution=64)
+    assert expert.first is not None
+    assert policies.replay("drawer-open-v3", 100000, expert.commands[: expert.first - 1], resolution=64).first is None
+    elsewhere = [policies.replay("drawer-open-v3", s, expert.commands, resolution=64) for s in range(100002, 100010)]
+    assert any(e.first is None for e in elsewhere), [e.approach_cm for e in elsewhere]
+
+
 def test_approach_bands_sort_numerically_and_end_open():
     b = study.by_approach([0.0, 1.99, 2.0, 10.0, 25.0, 4.5, 12.3], [True] * 7, [False] * 7)
     assert list(b) == ["0-2 cm", "2-4 cm", "4-6 cm", "10+ cm"], b

@@ -166,6 +166,7 @@ pub fn run(options: &WorldModelOptions, config: &Path, out: &Path, in_flight: us
                 error: run.error.as_ref().map(|e| format!("{e:#}")),
                 video,
                 seconds: e.seconds.unwrap_or_default(),
+                actions: run.actions,
             };
             println!("[{}/{total}] {}", records.len() + 1, progress_line(&record));
             writeln!(episodes_file, "{}", serde_json::to_string(&record)?)
@@ -223,6 +224,8 @@ struct EpisodeRun {
     metadata: Option<String>,
     verdict: Option<Verdict>,
     error: Option<anyhow::Error>,
+    /// The poses sent to the world model, before normalization.
+    actions: Vec<Vec<f32>>,
 }
 
 /// An episode in flight: its record so far and, until it ends, what drives it.
@@ -362,5 +365,7 @@ fn next_poses(cfg: &EvalConfig, wm: &WorldModel, mut fk: Option<&mut Fk>, policy
             break;
         }
     }
-    wm.normalize(&poses)
+    let window = wm.normalize(&poses)?;
+    run.actions.extend(poses);
+    Ok(window)
 }

@@ -30,6 +30,10 @@ pub struct EpisodeRecord {
     pub error: Option<String>,
     pub video: Option<String>,
     pub seconds: f64,
+    /// The poses that drove the world model, one per generated frame, in its action space before
+    /// normalization (the adapter's output): what replaying the episode on the robot, or in the
+    /// simulator that the world model stands in for, would command.
+    pub actions: Vec<Vec<f32>>,
 }
 
 #[derive(Debug, Clone, Serialize, PartialEq)]
@@ -335,6 +339,7 @@ mod tests {
             error: error.then(|| "boom".into()),
             video: None,
             seconds: 0.0,
+            actions: Vec::new(),
         }
     }
 

@@ -261,6 +261,9 @@ impl<'m> Rollout<'m> {
         let dit_seconds = start.elapsed().as_secs_f64();
 
         // The causal decoder runs through the prefix latents for its cache; their pixels are dropped.
+        // Widened, joined and clamped where they were decoded, then moved once: on the host these
+        // passes over every pixel ran on libtorch's CPU pool (0.4 s of a 5B chunk's decode with
+        // one thread, docs/performance.md).
         let start = Instant::now();
         let frames = tch::no_grad(|| -> Result<Tensor> {
             let mut stream = vae.decoder_stream();
@@ -268,10 +271,12 @@ impl<'m> Rollout<'m> {
             for i in 0..latents.size()[2] {
                 let px = stream.next(&latents.narrow(2, i, 1))?;
                 if i >= p {
-                    future.push(px.to_device(Device::Cpu).to_kind(Kind::Float));
+                    future.push(px);
                 }
             }
-            Ok(Tensor::cat(&future, 2).clamp(-1.0, 1.0))
+            let mut pixels = Tensor::cat(&future, 2).to_kind(Kind::Float);
+            let _ = pixels.clamp_(-1.0, 1.0);
+            Ok(pixels.to_device(Device::Cpu))
         })
         .context("decoding the generated chunk")?;
         sync();

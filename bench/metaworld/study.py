@@ -300,8 +300,7 @@ def summarize(truth: dict, estimates: dict, judged: dict, tasks: list[str], vari
                    "per_episode": episode_agreement([p[0] is not None for p in paired], [p[1] for p in paired]),
                    "by_success_chunk": by_success_chunk([p[0] for p in paired], [p[1] for p in paired], chunk)}
             if replayed is not None:
-                # JSON keys are strings once the outcomes have been through a file.
-                outcome = {int(k): o for k, o in replayed[t][v].items()}
+                outcome = replayed[t][v]
                 again = [(outcome[k][0] is not None, by_episode[k], outcome[k][1]) for k in sorted(by_episode)]
                 row["replayed"] = float(np.mean([a[0] for a in again]))
                 row["per_episode_replayed"] = episode_agreement([a[0] for a in again], [a[1] for a in again])

@@ -48,8 +48,7 @@ def test_replayed_actions_split_the_world_models_error_from_the_policies():
     judged = {"t": {"a": [0.9, 0.1, 0.1, 0.1]}}
     # In the world model's loop the policy's hand came within 1 cm in episode 1 and succeeded in
     # the simulator too; episode 2's stayed 7 cm off: an opening the world model invented.
-    # Keys as a JSON file gives them back.
-    replayed = {"t": {"a": {"0": [40, 0.4], "1": [50, 1.0], "2": [None, 7.0], "3": [None, 11.0]}}}
+    replayed = {"t": {"a": {0: [40, 0.4], 1: [50, 1.0], 2: [None, 7.0], 3: [None, 11.0]}}}
     s = study.summarize(truth, estimates, judged, ["t"], ["a"], chunk=24, replayed=replayed)
     row = s["rates"][0]
     assert (row["true"], row["estimated"], row["replayed"]) == (0.25, 0.75, 0.5), row

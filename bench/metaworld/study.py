@@ -304,6 +304,9 @@ def summarize(truth: dict, estimates: dict, judged: dict, tasks: list[str], vari
                 again = [(outcome[k][0] is not None, by_episode[k], outcome[k][1]) for k in sorted(by_episode)]
                 row["replayed"] = float(np.mean([a[0] for a in again]))
                 row["per_episode_replayed"] = episode_agreement([a[0] for a in again], [a[1] for a in again])
+                # Per world-model episode: [episode, drawn as a success, replay's first success step
+                # or None, replay's closest approach in cm].
+                row["replayed_episodes"] = [[k, by_episode[k], *outcome[k]] for k in sorted(by_episode)]
                 pooled_replayed += [a[0] for a in again]
                 pooled_drawn += [a[1] for a in again]
                 near, succeeded, drawn = replay_approach.setdefault(t, ([], [], []))

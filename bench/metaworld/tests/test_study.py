@@ -55,6 +55,7 @@ def test_replayed_actions_split_the_world_models_error_from_the_policies():
     e = row["per_episode_replayed"]
     assert (e["both_success"], e["missed"], e["invented"], e["both_fail"]) == (2, 0, 1, 1), e
     assert s["replayed"]["per_episode"] == e
+    assert row["replayed_episodes"] == [[0, True, 40, 0.4], [1, True, 50, 1.0], [2, True, None, 7.0], [3, False, None, 11.0]]
     assert s["replayed"]["by_approach"] == {"t": {"0-2 cm": {"episodes": 2, "true": 2, "drawn": 2},
                                                   "6-8 cm": {"episodes": 1, "true": 0, "drawn": 1},
                                                   "10+ cm": {"episodes": 1, "true": 0, "drawn": 0}}}, s["replayed"]

@@ -276,7 +276,8 @@ prompt = "stack the cube (drop)"
     let replies = |policy: &str, conn: u64| -> Vec<&Value> {
         entries.iter().filter(|e| e["policy"] == policy && e["conn"] == conn && e["event"] == "reply").collect()
     };
-    let state = |e: &Value| -> Vec<f64> { e["state"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect() };
+    let floats = |a: &Value| -> Vec<f64> { a.as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect() };
+    let state = |e: &Value| floats(&e["state"]);
     let cube = replies("alpha", 3);
     assert_eq!(cube[0]["prompt"], "stack the cube");
     assert!(state(cube[0]).iter().zip(&pose).all(|(a, b)| (a - *b as f64).abs() < 1e-6), "the file's pose is the first state");
@@ -286,8 +287,8 @@ prompt = "stack the cube (drop)"
     assert_eq!(bottle.len(), 4);
     // The record keeps the poses that drove the model: the executed four of each reply, the
     // adapter's 14 indices of each row.
-    let sent: Vec<Vec<f64>> = bottle.iter().flat_map(|r| r["actions"].as_array().unwrap()[..4].to_vec()).map(|a| a.as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect()).collect();
-    let recorded: Vec<Vec<f64>> = rec("alpha", "bottle", 1)["actions"].as_array().unwrap().iter().map(|a| a.as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect()).collect();
+    let sent: Vec<Vec<f64>> = bottle.iter().flat_map(|r| r["actions"].as_array().unwrap()[..4].iter().map(floats)).collect();
+    let recorded: Vec<Vec<f64>> = rec("alpha", "bottle", 1)["actions"].as_array().unwrap().iter().map(floats).collect();
     assert_eq!(recorded.len(), 16);
     for (r, s) in recorded.iter().zip(&sent) {
         assert!(r.len() == 14 && r.iter().zip(s).all(|(a, b)| (a - b).abs() < 1e-5), "recorded {r:?}, sent {s:?}");

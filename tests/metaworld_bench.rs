@@ -156,6 +156,13 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
     assert_eq!(study["all"]["n"], 4, "{study}");
     assert_eq!(study["replayed"]["per_episode"]["n"], 4, "{study}");
     assert_eq!(study["replayed"]["estimated_vs_replayed"]["n"], 4, "{study}");
+    // Each task's two episodes (one per variant) sorted by both outcomes into the judge's bands.
+    let by_probability = study["replayed"]["by_probability"].as_object().expect("replayed.by_probability");
+    assert_eq!(by_probability.len(), 2, "{study}");
+    for (task, kinds) in by_probability {
+        let counted: u64 = kinds.as_object().unwrap().values().flat_map(|b| b.as_object().unwrap().values()).filter_map(Value::as_u64).sum();
+        assert_eq!(counted, 2, "{task}: {kinds}");
+    }
     let flags: Vec<&str> = study["world_model_flags"].as_array().unwrap().iter().filter_map(Value::as_str).collect();
     assert!(flags.windows(2).any(|w| w == ["--guidance", "1.5"]), "{flags:?}");
     assert_eq!(study["per_episode"]["n"], 4, "one episode per rate, each paired with its truth: {study}");

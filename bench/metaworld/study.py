@@ -25,7 +25,8 @@ simulator's frames; the episodes per task by the hand's closest approach to the 
 many succeeded and how many the world model drew; and, where `bwm evaluate` kept each episode's
 actions, those actions replayed in the simulator from the same placement, under "replayed": the
 world model's outcomes against the simulator's for the same actions, its own error, apart from
-the policies acting otherwise on its frames than on the simulator's), DIR/study.csv,
+the policies acting otherwise on its frames than on the simulator's, and how clearly it drew them:
+the judge's probability on its frames by both outcomes), DIR/study.csv,
 DIR/study.svg (estimated against true rates) and each process's evaluate output in DIR/eval-*/.
 Everything after `--` goes to `bwm evaluate` (the world model's flags). With --rescore, a finished
 study in DIR is scored again from its eval-*/episodes.jsonl and judged.json (after a change to the
@@ -84,18 +85,26 @@ def _truth_job(job):
     return task, variant, [[e.first, round(e.approach_cm, 3)] for e in episodes]
 
 
+def by_variant_in_processes(job, jobs: list, workers: int, show, initializer=None, initargs=()) -> dict:
+    """{task: {variant: result}} of `job` over `jobs` (each job's first two items its task and
+    variant; `job` returns (task, variant, result)) in spawned processes, `show(task, variant,
+    result)` naming each result as it comes, printed with the count and seconds so far."""
+    out: dict = {}
+    start = time.time()
+    with multiprocessing.get_context("spawn").Pool(min(workers, len(jobs)), initializer=initializer, initargs=initargs) as pool:
+        for n, (task, variant, result) in enumerate(pool.imap_unordered(job, jobs), 1):
+            out.setdefault(task, {})[variant] = result
+            print(f"study: {show(task, variant, result)} {n}/{len(jobs)} ({time.time() - start:.0f} s)", flush=True)
+    return out
+
+
 def measure_truth(episodes, variants, horizon, chunk, resolution, workers) -> dict:
     """{task: {variant: [[first success step or None, closest approach in cm] per episode]}} in the
     simulator, episodes in parallel by variant."""
     jobs = [(t, v, [s for _, s in eps], horizon, chunk, resolution) for t, eps in episodes.items() for v in variants]
-    truth: dict = {}
-    start = time.time()
-    with multiprocessing.get_context("spawn").Pool(workers) as pool:
-        for n, (task, variant, outcome) in enumerate(pool.imap_unordered(_truth_job, jobs), 1):
-            truth.setdefault(task, {})[variant] = outcome
-            rate = np.mean([f is not None for f, _ in outcome])
-            print(f"study: truth {n}/{len(jobs)}: {task} {variant} {100 * rate:.0f}% ({time.time() - start:.0f} s)", flush=True)
-    return truth
+    return by_variant_in_processes(
+        _truth_job, jobs, workers,
+        lambda t, v, outcome: f"truth: {t} {v} {100 * np.mean([f is not None for f, _ in outcome]):.0f}%")
 
 
 _judge = None
@@ -125,14 +134,10 @@ def judge_simulator(episodes, variants, horizon, chunk, resolution, workers, jud
     """{task: {variant: [judge's success probability per episode]}} on the simulator's own frames
     of the same episodes: the judge's share of the study's error, apart from the world model's."""
     jobs = [(t, v, [s for _, s in eps], horizon, chunk, resolution) for t, eps in episodes.items() for v in variants]
-    out: dict = {}
-    start = time.time()
-    with multiprocessing.get_context("spawn").Pool(workers, initializer=_load_judge, initargs=(judge,)) as pool:
-        for n, (task, variant, probs) in enumerate(pool.imap_unordered(_judged_job, jobs), 1):
-            out.setdefault(task, {})[variant] = probs
-            rate = np.mean([p >= THRESHOLD for p in probs])
-            print(f"study: judge on simulator frames {n}/{len(jobs)}: {task} {variant} {100 * rate:.0f}% ({time.time() - start:.0f} s)", flush=True)
-    return out
+    return by_variant_in_processes(
+        _judged_job, jobs, workers,
+        lambda t, v, probs: f"judge on simulator frames: {t} {v} {100 * np.mean([p >= THRESHOLD for p in probs]):.0f}%",
+        initializer=_load_judge, initargs=(judge,))
 
 
 def _replay_job(job):
@@ -155,13 +160,9 @@ def replay_world_model(estimates: dict, episodes: dict, resolution: int, workers
         return None
     jobs = [(t, v, [(r["episode"], episodes[t][r["episode"]][1], r["actions"]) for r in rs], resolution)
             for t, per in estimates.items() for v, rs in per.items()]
-    out: dict = {}
-    start = time.time()
-    with multiprocessing.get_context("spawn").Pool(min(workers, len(jobs))) as pool:
-        for task, variant, outcome in pool.imap_unordered(_replay_job, jobs):
-            out.setdefault(task, {})[variant] = outcome
-    print(f"study: {len(records)} world-model episodes' actions replayed in the simulator ({time.time() - start:.0f} s)", flush=True)
-    return out
+    return by_variant_in_processes(
+        _replay_job, jobs, workers,
+        lambda t, v, outcome: f"world model's actions replayed: {t} {v} {100 * np.mean([f is not None for f, _ in outcome.values()]):.0f}%")
 
 
 def cached(path: str, name: str, key: dict, measure):
@@ -271,6 +272,27 @@ def by_approach(approach_cm: list[float], true: list[bool], drawn: list[bool], b
     return {name: cell for (_, name), cell in sorted(out.items())}
 
 
+PROBABILITY_BANDS = (0.0, 0.05, 0.2, 0.5, 0.8, 0.95, 1.0)
+
+
+def by_probability(probability: list, true: list[bool], drawn: list[bool]) -> dict:
+    """Episodes by the judge's success probability on the world model's frames, apart for each
+    pair of outcomes (the simulator's, the world model's): how clearly the world model draws what
+    it draws, and whether any threshold would part its successes from its inventions. Episodes
+    without a probability (failed runs) are left out, the pairs named as episode_agreement counts
+    them: {"both_success": {"0-0.05": n, ..., "0.95-1": n}, "missed": ..., "invented": ..., "both_fail": ...}."""
+    names = {(True, True): "both_success", (True, False): "missed",
+             (False, True): "invented", (False, False): "both_fail"}
+    bands = [f"{lo:g}-{hi:g}" for lo, hi in zip(PROBABILITY_BANDS, PROBABILITY_BANDS[1:])]
+    out = {name: dict.fromkeys(bands, 0) for name in names.values()}
+    for p, t, d in zip(probability, true, drawn):
+        if p is None:
+            continue
+        band = min(int(np.searchsorted(PROBABILITY_BANDS, p, side="right")) - 1, len(bands) - 1)
+        out[names[(bool(t), bool(d))]][bands[max(band, 0)]] += 1
+    return out
+
+
 def summarize(truth: dict, estimates: dict, judged: dict, tasks: list[str], variants: list[str], chunk: int,
               replayed: dict | None = None) -> dict:
     """Agreement of the world model's estimates with the truth (per episode [first success step or
@@ -286,6 +308,7 @@ def summarize(truth: dict, estimates: dict, judged: dict, tasks: list[str], vari
             first = [f for f, _ in truth[t][v]]
             # Episode k of a task is the k-th held-out placement and policy seed in both.
             by_episode = {e["episode"]: bool(e["success"]) for e in est}
+            chance = {e["episode"]: e.get("success_probability") for e in est}
             paired = [(f, by_episode[k]) for k, f in enumerate(first) if k in by_episode]
             pooled_first += [p[0] for p in paired]
             pooled_true += [p[0] is not None for p in paired]
@@ -309,10 +332,11 @@ def summarize(truth: dict, estimates: dict, judged: dict, tasks: list[str], vari
                 row["replayed_episodes"] = [[k, by_episode[k], *outcome[k]] for k in sorted(by_episode)]
                 pooled_replayed += [a[0] for a in again]
                 pooled_drawn += [a[1] for a in again]
-                near, succeeded, drawn = replay_approach.setdefault(t, ([], [], []))
+                near, succeeded, drawn, probability = replay_approach.setdefault(t, ([], [], [], []))
                 near += [a[2] for a in again]
                 succeeded += [a[0] for a in again]
                 drawn += [a[1] for a in again]
+                probability += [chance[k] for k in sorted(by_episode)]
             rows.append(row)
     per_task = {}
     for t in tasks:
@@ -334,7 +358,9 @@ def summarize(truth: dict, estimates: dict, judged: dict, tasks: list[str], vari
             "per_episode": episode_agreement(pooled_replayed, pooled_drawn),
             # The policies acting on the world model's frames instead of the simulator's: the rest.
             "replayed_vs_true": agreement(names, [r["replayed"] for r in rows], [r["true"] for r in rows]),
-            "by_approach": {t: by_approach(*replay_approach[t]) for t in tasks},
+            "by_approach": {t: by_approach(*replay_approach[t][:3]) for t in tasks},
+            # The judge's probability on the world model's frames by the replay's outcome and its own.
+            "by_probability": {t: by_probability(replay_approach[t][3], replay_approach[t][1], replay_approach[t][2]) for t in tasks},
         }
     return out
 
@@ -673,6 +699,9 @@ def write_summary(out: str, summary: dict, tasks: list[str], chunk: int) -> None
         for t, bands in summary["replayed"]["by_approach"].items():
             cells = ", ".join(f"{name} {c['true']}/{c['drawn']}/{c['episodes']}" for name, c in bands.items())
             print(f"{t}, by the replayed hand's closest approach to the object (replay succeeds/drawn/episodes): {cells}")
+        for t, kinds in summary["replayed"]["by_probability"].items():
+            cells = "; ".join(f"{kind} {' '.join(str(n) for n in bands.values())}" for kind, bands in kinds.items())
+            print(f"{t}, the judge's probability on the world model's frames in bands {' '.join(next(iter(kinds.values())))}: {cells}")
     print(f"study: wrote {os.path.join(out, 'study.json')}, study.csv, study.svg")
 
 

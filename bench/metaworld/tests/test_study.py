@@ -43,8 +43,8 @@ def test_summarize_pairs_episodes_by_index():
 
 def test_replayed_actions_split_the_world_models_error_from_the_policies():
     truth = {"t": {"a": [[30, 0.5], [None, 6.0], [None, 7.0], [None, 12.0]]}}
-    record = lambda k, ok: {"episode": k, "success": ok, "error": None, "actions": []}
-    estimates = {"t": {"a": [record(0, True), record(1, True), record(2, True), record(3, False)]}}
+    record = lambda k, ok, p: {"episode": k, "success": ok, "error": None, "actions": [], "success_probability": p}
+    estimates = {"t": {"a": [record(0, True, 0.97), record(1, True, 0.6), record(2, True, 0.5), record(3, False, 0.0)]}}
     judged = {"t": {"a": [0.9, 0.1, 0.1, 0.1]}}
     # In the world model's loop the policy's hand came within 1 cm in episode 1 and succeeded in
     # the simulator too; episode 2's stayed 7 cm off: an opening the world model invented.
@@ -60,6 +60,11 @@ def test_replayed_actions_split_the_world_models_error_from_the_policies():
                                                   "6-8 cm": {"episodes": 1, "true": 0, "drawn": 1},
                                                   "10+ cm": {"episodes": 1, "true": 0, "drawn": 0}}}, s["replayed"]
     assert s["replayed"]["replayed_vs_true"]["mae"] == 0.25 and s["replayed"]["estimated_vs_replayed"]["mae"] == 0.25
+    # The judge's probabilities on the world model's frames, by the replay's outcome and its own.
+    bands = s["replayed"]["by_probability"]["t"]
+    assert bands["both_success"] == {"0-0.05": 0, "0.05-0.2": 0, "0.2-0.5": 0, "0.5-0.8": 1, "0.8-0.95": 0, "0.95-1": 1}, bands
+    assert bands["invented"]["0.5-0.8"] == 1 and bands["both_fail"]["0-0.05"] == 1, bands
+    assert sum(bands["missed"].values()) == 0, bands
     # Without replays (records without actions) nothing of it appears.
     plain = study.summarize(truth, estimates, judged, ["t"], ["a"], chunk=24)
     assert "replayed" not in plain and "replayed" not in plain["rates"][0]
@@ -89,6 +94,22 @@ def test_approach_bands_sort_numerically_and_end_open():
     assert list(b) == ["0-2 cm", "2-4 cm", "4-6 cm", "10+ cm"], b
     assert b["0-2 cm"]["episodes"] == 2 and b["10+ cm"]["episodes"] == 3 and b["2-4 cm"]["true"] == 1, b
     assert study.by_approach([], [], []) == {}
+
+
+def test_probability_bands_close_at_one_and_skip_failed_runs():
+    b = study.by_probability([1.0, 0.0, 0.05, 0.2, None, 0.9499], [True, False, True, True, True, False], [True, False, False, False, True, True])
+    assert b["both_success"]["0.95-1"] == 1 and b["both_fail"]["0-0.05"] == 1, b
+    assert b["missed"]["0.05-0.2"] == 1 and b["missed"]["0.2-0.5"] == 1, b
+    assert b["invented"]["0.8-0.95"] == 1 and sum(sum(k.values()) for k in b.values()) == 5, b
+
+
+def test_variants_run_in_processes_by_task_and_variant():
+    # Two variants' truth over one seed and a few steps, each in its own spawned process.
+    episodes = {"button-press-topdown-v3": [(0, 100000)]}
+    truth = study.measure_truth(episodes, ["expert", "wrong"], horizon=8, chunk=4, resolution=32, workers=2)
+    assert set(truth) == {"button-press-topdown-v3"} and set(truth["button-press-topdown-v3"]) == {"expert", "wrong"}, truth
+    for outcome in truth["button-press-topdown-v3"].values():
+        assert len(outcome) == 1 and outcome[0][0] is None and outcome[0][1] > 0, outcome
 
 
 def test_success_chunks_sort_numerically():

@@ -301,14 +301,14 @@ def summarize(truth: dict, estimates: dict, judged: dict, tasks: list[str], vari
     simulator's outcome of the world model's own episodes, which splits the rest of the error."""
     rows, pooled_true, pooled_est, pooled_first, pooled_replayed, pooled_drawn = [], [], [], [], [], []
     approach: dict = {}
-    replay_approach: dict = {}
+    replayed_by_task: dict = {}
     for t in tasks:
         for v in variants:
             est = estimates[t][v]
             first = [f for f, _ in truth[t][v]]
             # Episode k of a task is the k-th held-out placement and policy seed in both.
             by_episode = {e["episode"]: bool(e["success"]) for e in est}
-            chance = {e["episode"]: e.get("success_probability") for e in est}
+            probability_of = {e["episode"]: e.get("success_probability") for e in est}
             paired = [(f, by_episode[k]) for k, f in enumerate(first) if k in by_episode]
             pooled_first += [p[0] for p in paired]
             pooled_true += [p[0] is not None for p in paired]
@@ -332,11 +332,11 @@ def summarize(truth: dict, estimates: dict, judged: dict, tasks: list[str], vari
                 row["replayed_episodes"] = [[k, by_episode[k], *outcome[k]] for k in sorted(by_episode)]
                 pooled_replayed += [a[0] for a in again]
                 pooled_drawn += [a[1] for a in again]
-                near, succeeded, drawn, probability = replay_approach.setdefault(t, ([], [], [], []))
+                near, succeeded, drawn, probability = replayed_by_task.setdefault(t, ([], [], [], []))
                 near += [a[2] for a in again]
                 succeeded += [a[0] for a in again]
                 drawn += [a[1] for a in again]
-                probability += [chance[k] for k in sorted(by_episode)]
+                probability += [probability_of[k] for k in sorted(by_episode)]
             rows.append(row)
     per_task = {}
     for t in tasks:
@@ -358,9 +358,9 @@ def summarize(truth: dict, estimates: dict, judged: dict, tasks: list[str], vari
             "per_episode": episode_agreement(pooled_replayed, pooled_drawn),
             # The policies acting on the world model's frames instead of the simulator's: the rest.
             "replayed_vs_true": agreement(names, [r["replayed"] for r in rows], [r["true"] for r in rows]),
-            "by_approach": {t: by_approach(*replay_approach[t][:3]) for t in tasks},
+            "by_approach": {t: by_approach(*replayed_by_task[t][:3]) for t in tasks},
             # The judge's probability on the world model's frames by the replay's outcome and its own.
-            "by_probability": {t: by_probability(replay_approach[t][3], replay_approach[t][1], replay_approach[t][2]) for t in tasks},
+            "by_probability": {t: by_probability(replayed_by_task[t][3], replayed_by_task[t][1], replayed_by_task[t][2]) for t in tasks},
         }
     return out
 

@@ -288,8 +288,8 @@ def by_probability(probability: list, true: list[bool], drawn: list[bool]) -> di
     for p, t, d in zip(probability, true, drawn):
         if p is None:
             continue
-        band = min(int(np.searchsorted(PROBABILITY_BANDS, p, side="right")) - 1, len(bands) - 1)
-        out[names[(bool(t), bool(d))]][bands[max(band, 0)]] += 1
+        # Each band holds its lower edge; the last also 1.
+        out[names[(bool(t), bool(d))]][bands[int(np.searchsorted(PROBABILITY_BANDS[1:-1], p, side="right"))]] += 1
     return out
 
 
@@ -299,9 +299,11 @@ def summarize(truth: dict, estimates: dict, judged: dict, tasks: list[str], vari
     None, closest approach in cm]); `judged` (the judge on the simulator's frames) adds that column
     and its own agreement, the judge's share of the error; `replayed` (replay_world_model) the
     simulator's outcome of the world model's own episodes, which splits the rest of the error."""
-    rows, pooled_true, pooled_est, pooled_first, pooled_replayed, pooled_drawn = [], [], [], [], [], []
+    rows, pooled_true, pooled_est, pooled_first = [], [], [], []
     approach: dict = {}
-    replayed_by_task: dict = {}
+    # Per task, per world-model episode: (replay succeeded, drawn as a success, replay's closest
+    # approach in cm, the judge's probability on the world model's frames).
+    replayed_by_task: dict = {t: [] for t in tasks}
     for t in tasks:
         for v in variants:
             est = estimates[t][v]
@@ -324,19 +326,13 @@ def summarize(truth: dict, estimates: dict, judged: dict, tasks: list[str], vari
                    "by_success_chunk": by_success_chunk([p[0] for p in paired], [p[1] for p in paired], chunk)}
             if replayed is not None:
                 outcome = replayed[t][v]
-                again = [(outcome[k][0] is not None, by_episode[k], outcome[k][1]) for k in sorted(by_episode)]
-                row["replayed"] = float(np.mean([a[0] for a in again]))
-                row["per_episode_replayed"] = episode_agreement([a[0] for a in again], [a[1] for a in again])
                 # Per world-model episode: [episode, drawn as a success, replay's first success step
                 # or None, replay's closest approach in cm].
                 row["replayed_episodes"] = [[k, by_episode[k], *outcome[k]] for k in sorted(by_episode)]
-                pooled_replayed += [a[0] for a in again]
-                pooled_drawn += [a[1] for a in again]
-                near, succeeded, drawn, probability = replayed_by_task.setdefault(t, ([], [], [], []))
-                near += [a[2] for a in again]
-                succeeded += [a[0] for a in again]
-                drawn += [a[1] for a in again]
-                probability += [probability_of[k] for k in sorted(by_episode)]
+                again = [(f is not None, d, cm, probability_of[k]) for k, d, f, cm in row["replayed_episodes"]]
+                row["replayed"] = float(np.mean([a[0] for a in again]))
+                row["per_episode_replayed"] = episode_agreement([a[0] for a in again], [a[1] for a in again])
+                replayed_by_task[t] += again
             rows.append(row)
     per_task = {}
     for t in tasks:
@@ -352,15 +348,17 @@ def summarize(truth: dict, estimates: dict, judged: dict, tasks: list[str], vari
            "by_approach": {t: by_approach(*approach[t]) for t in tasks}}
     if replayed is not None:
         names = [f"{r['variant']}/{r['task']}" for r in rows]
+        column = lambda eps, i: [a[i] for a in eps]
+        pooled = [a for t in tasks for a in replayed_by_task[t]]
         out["replayed"] = {
             # The world model's outcomes against the simulator's for the same actions: its own error.
             "estimated_vs_replayed": agreement(names, [r["estimated"] for r in rows], [r["replayed"] for r in rows]),
-            "per_episode": episode_agreement(pooled_replayed, pooled_drawn),
+            "per_episode": episode_agreement(column(pooled, 0), column(pooled, 1)),
             # The policies acting on the world model's frames instead of the simulator's: the rest.
             "replayed_vs_true": agreement(names, [r["replayed"] for r in rows], [r["true"] for r in rows]),
-            "by_approach": {t: by_approach(*replayed_by_task[t][:3]) for t in tasks},
+            "by_approach": {t: by_approach(column(eps, 2), column(eps, 0), column(eps, 1)) for t, eps in replayed_by_task.items()},
             # The judge's probability on the world model's frames by the replay's outcome and its own.
-            "by_probability": {t: by_probability(replayed_by_task[t][3], replayed_by_task[t][1], replayed_by_task[t][2]) for t in tasks},
+            "by_probability": {t: by_probability(column(eps, 3), column(eps, 0), column(eps, 1)) for t, eps in replayed_by_task.items()},
         }
     return out
 

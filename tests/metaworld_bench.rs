@@ -205,6 +205,33 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
     for v in ["wrong-0cm", "wrong-6cm"] {
         assert!(names.iter().any(|n| n.ends_with(&format!("/{v}"))), "{v} missing: {names:?}");
     }
+
+    // The judge that also learns from the VAE's round trips of training frames, beside the first
+    // (its own file, report and ceiling; the first judge's left as they were).
+    let before = std::fs::read(runs.join("judge.pt")).unwrap();
+    let log = run(
+        toy("recipe.sh", &runs).args(["judge", "ceiling"]).envs([("JUDGE_STEPS", "5"), ("JUDGE_FRAMES", "reconstructed"), ("JUDGE_RECONSTRUCT_EPISODES", "4")]),
+        "recipe.sh judge ceiling (JUDGE_FRAMES=reconstructed)",
+    );
+    let second = json(&runs.join("judge-reconstructed.json"));
+    for task in ["drawer-open-v3", "button-press-topdown-v3"] {
+        let t = &second["tasks"][task];
+        // The first four training episodes hold both tasks (interleaved by seed): two each.
+        assert_eq!(t["train_reconstructed_frames"], 200, "{second}");
+        assert_eq!(t["train_frames"], 500, "three real episodes and two reconstructed: {second}");
+        assert_eq!(t["held_out_frames"]["n"], 100, "scored on the real held-out frames: {second}");
+    }
+    let ceiling = json(&runs.join("ceiling/judge-reconstructed.json"));
+    assert_eq!(ceiling["judge"].as_str().map(|j| j.ends_with("judge-reconstructed.pt")), Some(true), "{ceiling}");
+    assert_eq!(ceiling["tasks"]["drawer-open-v3"]["reconstructed"]["frames"]["n"], 100, "{ceiling}");
+    assert!(std::fs::read(runs.join("judge.pt")).unwrap() == before, "the first judge untouched");
+    let timings = std::fs::read_to_string(runs.join("timings.tsv")).unwrap();
+    assert!(timings.lines().any(|l| l.split('\t').next() == Some("judge-reconstructed")), "{timings}\n{log}");
+}
+
+#[test]
+fn the_judge_learns_from_reconstructed_frames() {
+    run(Command::new(python()).arg(Path::new(ROOT).join("bench/metaworld/tests/test_judge.py")), "test_judge.py");
 }
 
 #[test]

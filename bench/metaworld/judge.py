@@ -2,12 +2,16 @@
 frame, whether the simulator's success flag is raised, trained on real frames of generate.py's
 datasets and served over evaluate's HTTP judge protocol.
 
-train: judge.py train --data TRAIN_DATASET [...] --val VAL_DATASET [...] --out judge.pt
+train: judge.py train --data TRAIN_DATASET [...] [--reconstructed REC [...]] --val VAL_DATASET [...] --out judge.pt
   Frames are sampled per task (up to --max-frames), classes balanced in every batch, lightly
   augmented (shifts of a few pixels, brightness/contrast, blur standing in for generated frames'
-  softness, noise). Writes judge.pt (weights + normalisation per task) and judge.json: accuracy,
-  balanced accuracy and confusion counts on the held-out datasets' frames, and the same per
-  episode under the serving rule.
+  softness, noise). With --reconstructed (`bwm reconstruct` of the training datasets through the
+  VAE a world model decodes with, one file per --data dataset), the sampled frames of the episodes
+  a file holds are also learned as that VAE draws them, with the simulator's flags: a judge that
+  has seen only real frames may read the decoder's softened open drawer as closed
+  (docs/fidelity.md, run 25). Writes judge.pt (weights + normalisation per task) and judge.json:
+  accuracy, balanced accuracy and confusion counts on the held-out datasets' real frames, and
+  the same per episode under the serving rule.
 score: judge.py score --model judge.pt --val VAL_DATASET [...] --reconstructed REC [...] --out FILE
   The trained judge on every held-out frame and on the same frames after a round trip through the
   world model's VAE (`bwm reconstruct`, one file per dataset): what it concludes from a perfect
@@ -233,9 +237,39 @@ def pick_device(name: str) -> str:
     return name
 
 
-def load_all(roots, max_frames, seed, known):
+def load_all(roots, max_frames, seed, known, reconstructed=()):
+    """Frames of every dataset per task; with `reconstructed` (one `bwm reconstruct` output per
+    root, same order), the frames of the episodes each holds once more as reconstructed."""
     rng = np.random.default_rng(seed)
-    return merge([load_frames(r, max_frames // len(roots), rng, known) for r in roots])
+    parts = [load_frames(r, max_frames // len(roots), rng, known) for r in roots]
+    if reconstructed:
+        if len(reconstructed) != len(roots):
+            raise ValueError(f"{len(roots)} --data datasets but {len(reconstructed)} --reconstructed files (one per dataset, same order)")
+        parts = [with_reconstructions(part, path) for part, path in zip(parts, reconstructed)]
+    return merge(parts)
+
+
+def with_reconstructions(part: dict[str, dict], path: str) -> dict[str, dict]:
+    """`part` (load_frames' layout) with the frames of the episodes `path` holds appended as that
+    file draws them (same flags, episodes and rows), marked in "reconstructed"."""
+    from safetensors import safe_open
+
+    with safe_open(path, "numpy") as f:
+        held = {int(k.split(".", 1)[1]) for k in f.keys() if k.startswith("episode.") and k.split(".", 1)[1].isdigit()}
+        out, added = {}, 0
+        for task, d in part.items():
+            d = dict(d, reconstructed=np.zeros(len(d["success"]), bool))
+            at = np.flatnonzero(np.isin(d["episode"], sorted(held)))
+            if len(at):
+                sub = {k: v[at] for k, v in d.items()}
+                videos = {f"episode.{e}": f.get_tensor(f"episode.{e}") for e in np.unique(sub["episode"])}
+                sub["frames"], sub["reconstructed"] = reconstructed_frames(sub, videos, path), np.ones(len(at), bool)
+                d = {k: np.concatenate([d[k], sub[k]]) for k in d}
+                added += len(at)
+            out[task] = d
+    if not added:
+        raise ValueError(f"{path} holds none of the sampled episodes: reconstruct the same dataset (`bwm reconstruct --data` it)")
+    return out
 
 
 def train(a) -> None:
@@ -247,12 +281,14 @@ def train(a) -> None:
     if device == "cpu":
         torch.set_num_threads(os.cpu_count() or 1)
     t0 = time.time()
-    data = load_all(a.data, a.max_frames, a.seed, TASKS)
+    data = load_all(a.data, a.max_frames, a.seed, TASKS, a.reconstructed)
     held = load_all(a.val, a.max_frames * 4, a.seed + 1, TASKS) if a.val else {}
-    print(f"judge: read {sum(len(d['success']) for d in data.values())} training and "
+    rec = sum(int(d["reconstructed"].sum()) for d in data.values() if "reconstructed" in d)
+    print(f"judge: read {sum(len(d['success']) for d in data.values())} training frames ({rec} of them reconstructed) and "
           f"{sum(len(d['success']) for d in held.values())} held-out frames in {time.time() - t0:.0f} s, device {device}", flush=True)
     tasks = [t for t in a.tasks.split(",")] if a.tasks else sorted(data)
-    models, report = {}, {"format": FORMAT, "window": a.window, "threshold": 0.5, "device": device, "tasks": {}}
+    models, report = {}, {"format": FORMAT, "window": a.window, "threshold": 0.5, "device": device,
+                          "reconstructed": a.reconstructed, "tasks": {}}
     for task in tasks:
         if task not in data:
             raise SystemExit(f"judge: no training frames of task {task!r} (found: {', '.join(sorted(data))})")
@@ -263,7 +299,8 @@ def train(a) -> None:
             net, mean, std = train_task(d["frames"], d["success"], a.steps, a.batch, a.lr, device, a.seed, print)
         except ValueError as e:
             raise SystemExit(f"judge: {task}: {e}")
-        entry = {"train_frames": len(d["success"]), "train_success_fraction": float(d["success"].mean()), "seconds": time.time() - t1}
+        entry = {"train_frames": len(d["success"]), "train_success_fraction": float(d["success"].mean()),
+                 "train_reconstructed_frames": int(d["reconstructed"].sum()) if "reconstructed" in d else 0, "seconds": time.time() - t1}
         if task in held:
             h = held[task]
             probs = predict(net, mean, std, h["frames"], device)
@@ -473,6 +510,8 @@ def main(argv=None) -> None:
     sub = ap.add_subparsers(dest="command", required=True)
     t = sub.add_parser("train", help="train on datasets' frames labelled by the simulator's success flag")
     t.add_argument("--data", nargs="+", required=True, help="LeRobot v2.1 datasets from generate.py")
+    t.add_argument("--reconstructed", nargs="*", default=[],
+                   help="`bwm reconstruct` outputs, one per --data dataset (same order): their episodes' sampled frames also learned as reconstructed")
     t.add_argument("--val", nargs="*", default=[], help="held-out datasets (other seeds) to report accuracy on")
     t.add_argument("--tasks", help="comma-separated (default: every task in --data)")
     t.add_argument("--out", default="judge.pt", help="weights; the report goes beside it as .json")

@@ -7,10 +7,12 @@
 #   fidelity bwm fidelity on the held-out episodes (FIDELITY_EPISODES: some): $FIDELITY_DIR, default $RUN/fidelity/ (JSON, curves, videos)
 #   truth    bench/metaworld/study.py --truth-only: each policy variant's true success rate in the
 #            simulator on the held-out placements (CPU; $RUN/study/truth.json)
-#   judge    bench/metaworld/judge.py: a success classifier on real frames (accuracy on held-out ones)
+#   judge    bench/metaworld/judge.py: a success classifier on real frames (accuracy on held-out
+#            ones): $JUDGE; with JUDGE_FRAMES=reconstructed also on training frames after a round
+#            trip through this run's VAE (bwm reconstruct; after the vae stage)
 #   ceiling  bwm reconstruct + judge.py score: the judge on the held-out frames after a round trip
 #            through the VAE, i.e. what it concludes from a perfect world model's frames:
-#            $RUN/ceiling/judge.json
+#            $RUN/ceiling/judge.json (judge-reconstructed.json for that judge)
 #   study    bench/metaworld/study.py: every policy variant through `bwm evaluate` against its true
 #            success rate in the simulator, and the judge on the simulator's own frames of the same
 #            episodes: $RUN/study/ (study.json, study.csv, study.svg, judged.json)
@@ -67,6 +69,14 @@ FP8="${FP8:-}"                            # tensor or row: the DiT blocks' linea
 GUIDANCE="${GUIDANCE:-1}"                 # bwm --guidance: classifier-free guidance by the actions (1 = off; other
                                           # values need TRAIN_SETS=objective.action_dropout=P with P > 0)
 JUDGE_STEPS="${JUDGE_STEPS:-600}"
+JUDGE_FRAMES="${JUDGE_FRAMES:-real}"      # what the judge learns from: real (the simulator's frames) or reconstructed
+                                          # (those and training frames through this run's VAE; docs/fidelity.md, run 25)
+JUDGE_RECONSTRUCT_EPISODES="${JUDGE_RECONSTRUCT_EPISODES:-400}"  # training episodes reconstructed for it (the first: both tasks, seeds interleaved)
+case "$JUDGE_FRAMES" in
+  real) JUDGE="$RUN/judge.pt" ;;
+  reconstructed) JUDGE="$RUN/judge-reconstructed.pt" ;;
+  *) echo "recipe: JUDGE_FRAMES must be real or reconstructed, not '$JUDGE_FRAMES'" >&2; exit 2 ;;
+esac
 STUDY_EPISODES="${STUDY_EPISODES:-50}"    # per task and variant, the first held-out episodes
 STUDY_JOBS="${STUDY_JOBS:-8}"             # bwm evaluate processes at once
 STUDY_IN_FLIGHT="${STUDY_IN_FLIGHT:-16}"  # episodes each of them runs at once (one batch per chunk)
@@ -160,31 +170,39 @@ if wants truth; then
 fi
 
 if wants judge; then
-  if [ -f "$RUN/judge.pt" ]; then echo "recipe: $RUN/judge.pt exists"; else
-    timed judge "$PYTHON" bench/metaworld/judge.py train --data "$RUN/data/train" --val "$RUN/data/val" \
-      --steps "$JUDGE_STEPS" --device "$DEVICE" --out "$RUN/judge.pt"
-  fi
+  judge() {
+    local reconstructed=()
+    if [ "$JUDGE_FRAMES" = reconstructed ]; then
+      [ -f "$RUN/vae.safetensors" ] || { echo "recipe: JUDGE_FRAMES=reconstructed needs the vae stage's $RUN/vae.safetensors" >&2; return 1; }
+      "$BWM" reconstruct --data "$RUN/data/train" --vae "$RUN/vae.safetensors" --resolution "${RESOLUTION}x$RESOLUTION" \
+        --max-episodes "$JUDGE_RECONSTRUCT_EPISODES" --device "$DEVICE" --out "$RUN/judge-reconstructed/train.safetensors" || return 1
+      reconstructed=(--reconstructed "$RUN/judge-reconstructed/train.safetensors")
+    fi
+    "$PYTHON" bench/metaworld/judge.py train --data "$RUN/data/train" "${reconstructed[@]}" --val "$RUN/data/val" \
+      --steps "$JUDGE_STEPS" --device "$DEVICE" --out "$JUDGE"
+  }
+  if [ -f "$JUDGE" ]; then echo "recipe: $JUDGE exists"; else timed "$(basename "$JUDGE" .pt)" judge; fi
 fi
 
 if wants ceiling; then
   ceiling() {
     "$BWM" reconstruct --data "$RUN/data/val" --vae "$RUN/vae.safetensors" --resolution "${RESOLUTION}x$RESOLUTION" --device "$DEVICE" \
       --out "$RUN/ceiling/val.safetensors" &&
-    "$PYTHON" bench/metaworld/judge.py score --model "$RUN/judge.pt" --val "$RUN/data/val" \
-      --reconstructed "$RUN/ceiling/val.safetensors" --device "$DEVICE" --out "$RUN/ceiling/judge.json"
+    "$PYTHON" bench/metaworld/judge.py score --model "$JUDGE" --val "$RUN/data/val" \
+      --reconstructed "$RUN/ceiling/val.safetensors" --device "$DEVICE" --out "$RUN/ceiling/$(basename "$JUDGE" .pt).json"
   }
   timed ceiling ceiling
 fi
 
 if wants study; then
   world_model
-  timed study "$PYTHON" bench/metaworld/study.py "${STUDY_ARGS[@]}" --judge "$RUN/judge.pt" --bwm "$BWM" \
+  timed study "$PYTHON" bench/metaworld/study.py "${STUDY_ARGS[@]}" --judge "$JUDGE" --bwm "$BWM" \
     --jobs "$STUDY_JOBS" --episodes-in-flight "$STUDY_IN_FLIGHT" -- "${WM[@]}"
 fi
 
 if wants probe; then
   world_model
   timed probe "$PYTHON" bench/metaworld/study.py "${COMMON_STUDY_ARGS[@]}" --variants "$PROBE_VARIANTS" --out "$RUN/probe" \
-    --judge "$RUN/judge.pt" --bwm "$BWM" --jobs "$STUDY_JOBS" --episodes-in-flight "$STUDY_IN_FLIGHT" -- "${WM[@]}"
+    --judge "$JUDGE" --bwm "$BWM" --jobs "$STUDY_JOBS" --episodes-in-flight "$STUDY_IN_FLIGHT" -- "${WM[@]}"
 fi
 echo "recipe: done; stage times in $RUN/timings.tsv"

@@ -17,7 +17,10 @@
 # the fidelity stage (which otherwise runs beside the study and slows it); SKIP_PROBE=1 the probe
 # (graded `wrong` variants, after the study). COMPARE_SOLVER=dpm++2m studies the same model a
 # second time with that sampler ($RUN/study-dpm++2m); COMPARE_GUIDANCE="2 3" once more per
-# action-guidance value ($RUN/study-g2, ...; the model trained with objective.action_dropout > 0).
+# action-guidance value ($RUN/study-g2, ...; the model trained with objective.action_dropout > 0);
+# COMPARE_JUDGE=reconstructed once more with the judge that also learned from this run's VAE's
+# round trips of training frames ($RUN/study-judge-reconstructed, its ceiling in
+# $RUN/ceiling/judge-reconstructed.json; JUDGE_FRAMES=reconstructed makes it the study's own).
 # `bash scripts/gpu/metaworld.sh transfer` runs bench/metaworld/transfer.sh (the base-versus-scratch
 # study of the LoRA issue; its variables apply) instead, its small outputs in $OUT/run.tar.gz;
 # `bash scripts/gpu/metaworld.sh sweep` runs bench/metaworld/sweep.sh (the real-time issue's sampler
@@ -59,16 +62,35 @@ PY
 recipe() { bash bench/metaworld/recipe.sh "$@"; }
 R=${RUN:-runs/metaworld}
 # The stages up to a trained model, the independent ones side by side: truth (MuJoCo, CPU) and
-# the judge (a small CNN) beside the VAE, latents and DiT. Stages already done are skipped.
+# the judge (a small CNN) beside the VAE, latents and DiT; a judge that learns from the VAE's
+# round trips (JUDGE_FRAMES or COMPARE_JUDGE = reconstructed) beside the latents and DiT, once
+# the VAE is trained. Stages already done are skipped.
+JUDGES="${JUDGE_FRAMES:-real} ${COMPARE_JUDGE:-}"
+if [ -n "${COMPARE_JUDGE:-}" ]; then
+  case "$COMPARE_JUDGE" in real|reconstructed) ;; *) echo "metaworld: COMPARE_JUDGE must be real or reconstructed" >&2; exit 2 ;; esac
+  [ "$COMPARE_JUDGE" != "${JUDGE_FRAMES:-real}" ] || { echo "metaworld: COMPARE_JUDGE=$COMPARE_JUDGE is the study's own judge (JUDGE_FRAMES)" >&2; exit 2; }
+fi
+judge_log() { if [ "$1" = real ]; then echo "$OUT/judge.log"; else echo "$OUT/judge-$1.log"; fi; }
 train_stages() {
   status=0
   recipe data 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
   if [ $status = 0 ]; then
     recipe truth > "$OUT/truth.log" 2>&1 & truth=$!
-    recipe judge > "$OUT/judge.log" 2>&1 & judge=$!
-    recipe vae latents train 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
+    judges=()
+    for frames in $JUDGES; do
+      [ "$frames" = real ] || continue
+      JUDGE_FRAMES=$frames recipe judge > "$(judge_log "$frames")" 2>&1 & judges+=($!)
+    done
+    recipe vae 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
+    if [ $status = 0 ]; then
+      for frames in $JUDGES; do
+        [ "$frames" = real ] && continue
+        JUDGE_FRAMES=$frames recipe judge > "$(judge_log "$frames")" 2>&1 & judges+=($!)
+      done
+      recipe latents train 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
+    fi
     wait $truth || { echo "metaworld: truth failed ($OUT/truth.log)"; status=1; }
-    wait $judge || { echo "metaworld: judge failed ($OUT/judge.log)"; status=1; }
+    for pid in "${judges[@]}"; do wait "$pid" || { echo "metaworld: a judge failed ($OUT/judge*.log)"; status=1; }; done
   fi
 }
 if [ "${1:-}" = transfer ]; then
@@ -93,6 +115,14 @@ else
     [ "${SKIP_FIDELITY:-0}" = 1 ] || { recipe fidelity > "$OUT/fidelity.log" 2>&1 & fidelity=$!; }
     recipe ceiling > "$OUT/ceiling.log" 2>&1 & ceiling=$!
     recipe study 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
+    if [ $status = 0 ] && [ -n "${COMPARE_JUDGE:-}" ]; then
+      # The same world model judged by the other judge; its ceiling after the first (both write
+      # the held-out round trip).
+      wait $ceiling || { echo "metaworld: ceiling failed ($OUT/ceiling.log)"; status=1; }
+      JUDGE_FRAMES=$COMPARE_JUDGE recipe ceiling > "$OUT/ceiling-$COMPARE_JUDGE.log" 2>&1 & ceiling=$!
+      JUDGE_FRAMES=$COMPARE_JUDGE STUDY_DIR=$R/study-judge-$COMPARE_JUDGE recipe study 2>&1 | tee -a "$OUT/recipe.log"
+      [ "${PIPESTATUS[0]}" = 0 ] || status=1
+    fi
     if [ $status = 0 ] && [ -n "${COMPARE_SOLVER:-}" ]; then
       SOLVER=$COMPARE_SOLVER STUDY_DIR=$R/study-$COMPARE_SOLVER recipe study 2>&1 | tee -a "$OUT/recipe.log"
       [ "${PIPESTATUS[0]}" = 0 ] || status=1
@@ -106,7 +136,7 @@ else
       recipe probe 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
     fi
     [ -z "$fidelity" ] || wait $fidelity || { echo "metaworld: fidelity failed ($OUT/fidelity.log)"; status=1; }
-    wait $ceiling || { echo "metaworld: ceiling failed ($OUT/ceiling.log)"; status=1; }
+    wait $ceiling || { echo "metaworld: ceiling failed ($OUT/ceiling*.log)"; status=1; }
   fi
 fi
 # What the run measured comes back as one archive (small files only; the datasets, latents,

@@ -52,6 +52,10 @@ static ONE_PIPELINE_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
 const TOY_DIT: &str = "model.dit.dim=48 model.dit.patch_size=[1,2,2] model.dit.ffn_dim=96 model.dit.num_heads=4 model.dit.num_layers=1 train.micro_batch=2 checkpoint.every=2 validation.every=2 validation.sample_steps=2";
 
+/// The judge and the study at toy sizes (the judge stage also judges the study's episodes).
+const TOY_STUDY: [(&str, &str); 5] =
+    [("JUDGE_STEPS", "5"), ("STUDY_EPISODES", "1"), ("STUDY_JOBS", "2"), ("STUDY_HORIZON", "48"), ("STUDY_VARIANTS", "expert,wrong")];
+
 #[test]
 fn the_metaworld_recipe_runs_every_stage_on_cpu() {
     let _turn = ONE_PIPELINE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
@@ -60,7 +64,7 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
     let log = run(
         toy("recipe.sh", &runs)
             .envs([("VAL_EPISODES", "1"), ("VAE_EPISODES", "6")])
-            .envs([("JUDGE_STEPS", "5"), ("STUDY_EPISODES", "1"), ("STUDY_JOBS", "2"), ("STUDY_HORIZON", "48"), ("STUDY_VARIANTS", "expert,wrong")])
+            .envs(TOY_STUDY)
             .env("PROBE_VARIANTS", "wrong-0cm,wrong-6cm")
             // The DiT trained with action dropout and its own history noise, every world-model
             // stage guided by the actions; the data's near misses drawn around the measured
@@ -79,8 +83,14 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
     let losses = std::fs::read_to_string(runs.join("losses.tsv")).unwrap();
     assert_eq!(losses.lines().map(|l| l.split('\t').next().unwrap()).collect::<Vec<_>>(), ["1", "2"], "{losses}");
 
+    // The judge on the simulator's frames was measured in the judge stage, beside training; the
+    // study found it cached.
+    let study_log = log.split("recipe: study (").nth(1).and_then(|rest| rest.split("recipe: ").next()).expect("the study's log");
+    assert!(!study_log.contains("judge on simulator frames"), "{study_log}");
+    assert!(log.split("recipe: judged (").nth(1).is_some_and(|rest| rest.contains("judge on simulator frames")), "{log}");
+
     let timings = std::fs::read_to_string(runs.join("timings.tsv")).unwrap();
-    for stage in ["data-train", "data-val", "vae", "latents", "train", "fidelity", "truth", "judge", "ceiling", "study", "probe"] {
+    for stage in ["data-train", "data-val", "vae", "latents", "train", "fidelity", "truth", "judge", "judged", "ceiling", "study", "probe"] {
         assert!(timings.lines().any(|l| l.split('\t').next() == Some(stage)), "no {stage} in timings.tsv:\n{timings}\n{log}");
     }
 
@@ -209,8 +219,9 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
     // The judge that also learns from the VAE's round trips of training frames, beside the first
     // (its own file, report and ceiling; the first judge's left as they were).
     let before = std::fs::read(runs.join("judge.pt")).unwrap();
+    let first_judge = judged["key"]["judge"].clone();
     let log = run(
-        toy("recipe.sh", &runs).args(["judge", "ceiling"]).envs([("JUDGE_STEPS", "5"), ("JUDGE_FRAMES", "reconstructed"), ("JUDGE_RECONSTRUCT_EPISODES", "4")]),
+        toy("recipe.sh", &runs).args(["judge", "ceiling"]).envs(TOY_STUDY).envs([("JUDGE_FRAMES", "reconstructed"), ("JUDGE_RECONSTRUCT_EPISODES", "4")]),
         "recipe.sh judge ceiling (JUDGE_FRAMES=reconstructed)",
     );
     let second = json(&runs.join("judge-reconstructed.json"));
@@ -226,7 +237,13 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
     assert_eq!(ceiling["tasks"]["drawer-open-v3"]["reconstructed"]["frames"]["n"], 100, "{ceiling}");
     assert!(std::fs::read(runs.join("judge.pt")).unwrap() == before, "the first judge untouched");
     let timings = std::fs::read_to_string(runs.join("timings.tsv")).unwrap();
-    assert!(timings.lines().any(|l| l.split('\t').next() == Some("judge-reconstructed")), "{timings}\n{log}");
+    for stage in ["judge-reconstructed", "judged-reconstructed"] {
+        assert!(timings.lines().any(|l| l.split('\t').next() == Some(stage)), "no {stage}: {timings}\n{log}");
+    }
+    // Its verdicts on the simulator's frames, cached for a study with it.
+    let judged = json(&runs.join("study/judged.json"));
+    assert!(judged["key"]["judge"].as_str().is_some_and(|d| d.len() == 64) && judged["key"]["judge"] != first_judge, "{judged}");
+    assert_eq!(judged["judged"]["drawer-open-v3"]["wrong"].as_array().map(Vec::len), Some(1), "{judged}");
 }
 
 #[test]

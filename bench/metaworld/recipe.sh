@@ -9,7 +9,8 @@
 #            simulator on the held-out placements (CPU; $RUN/study/truth.json)
 #   judge    bench/metaworld/judge.py: a success classifier on real frames (accuracy on held-out
 #            ones): $JUDGE; with JUDGE_FRAMES=reconstructed also on training frames after a round
-#            trip through this run's VAE (bwm reconstruct; after the vae stage)
+#            trip through this run's VAE (bwm reconstruct; after the vae stage); then the judge on
+#            the simulator's frames of the study's episodes ($STUDY_DIR/judged.json, for the study)
 #   ceiling  bwm reconstruct + judge.py score: the judge on the held-out frames after a round trip
 #            through the VAE, i.e. what it concludes from a perfect world model's frames:
 #            $RUN/ceiling/judge.json (judge-reconstructed.json for that judge)
@@ -181,7 +182,11 @@ if wants judge; then
     "$PYTHON" bench/metaworld/judge.py train --data "$RUN/data/train" "${reconstructed[@]}" --val "$RUN/data/val" \
       --steps "$JUDGE_STEPS" --device "$DEVICE" --out "$JUDGE"
   }
-  if [ -f "$JUDGE" ]; then echo "recipe: $JUDGE exists"; else timed "$(basename "$JUDGE" .pt)" judge; fi
+  name=$(basename "$JUDGE" .pt)
+  if [ -f "$JUDGE" ]; then echo "recipe: $JUDGE exists"; else timed "$name" judge; fi
+  # The judge on the simulator's frames of the study's episodes (the study's first step, cached
+  # for it) here, beside training.
+  timed "${name/judge/judged}" "$PYTHON" bench/metaworld/study.py "${STUDY_ARGS[@]}" --judge "$JUDGE" --judged-only
 fi
 
 if wants ceiling; then

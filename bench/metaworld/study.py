@@ -30,7 +30,9 @@ the judge's probability on its frames by both outcomes), DIR/study.csv,
 DIR/study.svg (estimated against true rates) and each process's evaluate output in DIR/eval-*/.
 Everything after `--` goes to `bwm evaluate` (the world model's flags). With --rescore, a finished
 study in DIR is scored again from its eval-*/episodes.jsonl and judged.json (after a change to the
-scoring), without the world model, the judge or `--`.
+scoring), without the world model, the judge or `--`. With --judged-only, the judge on the
+simulator's frames alone (DIR/judged.json, cached for the study that follows): the recipe runs it
+beside training, where the study would otherwise begin with it.
 """
 
 from __future__ import annotations
@@ -549,6 +551,8 @@ def main(argv=None) -> None:
                     help="episodes each bwm evaluate process runs at once, its chunks generated as one batch")
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="processes measuring the truth")
     ap.add_argument("--truth-only", action="store_true", help="measure (or find cached) the true rates in DIR/truth.json and stop")
+    ap.add_argument("--judged-only", action="store_true",
+                    help="judge the simulator's frames of the episodes (or find them cached) in DIR/judged.json and stop")
     ap.add_argument("--rescore", action="store_true",
                     help="score the world-model episodes already in DIR/eval-*/ again (the truth measured again when its "
                          "cache is of another kind), without running the world model or the judge")
@@ -566,12 +570,16 @@ def main(argv=None) -> None:
         ap.error(f"{problem} (shared named variants: {', '.join(shared)})")
     if a.episodes < 1 or a.jobs < 1 or a.workers < 1:
         ap.error("--episodes, --jobs and --workers must be at least 1")
+    if sum([a.truth_only, a.judged_only, a.rescore]) > 1:
+        ap.error("--truth-only, --judged-only and --rescore exclude each other")
     if a.truth_only or a.rescore:
+        pass
+    elif not a.judge or not os.path.isfile(a.judge):
+        ap.error(f"no judge at {a.judge} (judge.py train writes it)")
+    elif a.judged_only:
         pass
     elif not os.access(a.bwm, os.X_OK):
         ap.error(f"no bwm binary at {a.bwm} (make build, or pass --bwm)")
-    elif not a.judge or not os.path.isfile(a.judge):
-        ap.error(f"no judge at {a.judge} (judge.py train writes it)")
     elif not wm:
         ap.error("pass the world model's flags after `--` (--checkpoint, --vae, --stats, ...)")
     os.makedirs(a.out, exist_ok=True)
@@ -599,6 +607,14 @@ def main(argv=None) -> None:
         missing = [f"{v}/{t}" for t in tasks for v in variants if v not in estimates.get(t, {})]
         if missing:
             raise SystemExit(f"study: {a.out}/eval-*/ hold no episodes of {', '.join(missing)}")
+    def judge_the_simulator():
+        return cached(judged_path, "judged", {**episodes_key, "judge": file_digest(a.judge)},
+                      lambda: judge_simulator(episodes, variants, a.horizon, a.chunk, a.resolution, a.workers, a.judge))
+
+    if a.judged_only:
+        judge_the_simulator()
+        print(f"study: the judge on the simulator's frames in {judged_path}")
+        return
     truth = cached(truth_path, "truth", key, lambda: measure_truth(episodes, variants, a.horizon, a.chunk, a.resolution, a.workers))
     if a.truth_only:
         print(f"study: true success rates in {truth_path}")
@@ -610,8 +626,7 @@ def main(argv=None) -> None:
             summary[k] = before.get(k)
         write_summary(a.out, summary, tasks, a.chunk)
         return
-    judged = cached(judged_path, "judged", {**episodes_key, "judge": file_digest(a.judge)},
-                    lambda: judge_simulator(episodes, variants, a.horizon, a.chunk, a.resolution, a.workers, a.judge))
+    judged = judge_the_simulator()
 
     seeds_path = os.path.join(a.out, "episode_seeds.json")
     with open(seeds_path, "w") as f:

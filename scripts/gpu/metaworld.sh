@@ -71,6 +71,8 @@ if [ -n "${COMPARE_JUDGE:-}" ]; then
   [ "$COMPARE_JUDGE" != "${JUDGE_FRAMES:-real}" ] || { echo "metaworld: COMPARE_JUDGE=$COMPARE_JUDGE is the study's own judge (JUDGE_FRAMES)" >&2; exit 2; }
 fi
 judge_log() { if [ "$1" = real ]; then echo "$OUT/judge.log"; else echo "$OUT/judge-$1.log"; fi; }
+# The study each judge is for (its judge stage leaves the judge on the simulator's frames there).
+study_dir() { if [ "$1" = "${JUDGE_FRAMES:-real}" ]; then echo "${STUDY_DIR:-$R/study}"; else echo "$R/study-judge-$1"; fi; }
 train_stages() {
   status=0
   recipe data 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
@@ -79,13 +81,13 @@ train_stages() {
     judges=()
     for frames in $JUDGES; do
       [ "$frames" = real ] || continue
-      JUDGE_FRAMES=$frames recipe judge > "$(judge_log "$frames")" 2>&1 & judges+=($!)
+      JUDGE_FRAMES=$frames STUDY_DIR=$(study_dir "$frames") recipe judge > "$(judge_log "$frames")" 2>&1 & judges+=($!)
     done
     recipe vae 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
     if [ $status = 0 ]; then
       for frames in $JUDGES; do
         [ "$frames" = real ] && continue
-        JUDGE_FRAMES=$frames recipe judge > "$(judge_log "$frames")" 2>&1 & judges+=($!)
+        JUDGE_FRAMES=$frames STUDY_DIR=$(study_dir "$frames") recipe judge > "$(judge_log "$frames")" 2>&1 & judges+=($!)
       done
       recipe latents train 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
     fi
@@ -120,7 +122,7 @@ else
       # the held-out round trip).
       wait $ceiling || { echo "metaworld: ceiling failed ($OUT/ceiling.log)"; status=1; }
       JUDGE_FRAMES=$COMPARE_JUDGE recipe ceiling > "$OUT/ceiling-$COMPARE_JUDGE.log" 2>&1 & ceiling=$!
-      JUDGE_FRAMES=$COMPARE_JUDGE STUDY_DIR=$R/study-judge-$COMPARE_JUDGE recipe study 2>&1 | tee -a "$OUT/recipe.log"
+      JUDGE_FRAMES=$COMPARE_JUDGE STUDY_DIR=$(study_dir "$COMPARE_JUDGE") recipe study 2>&1 | tee -a "$OUT/recipe.log"
       [ "${PIPESTATUS[0]}" = 0 ] || status=1
     fi
     if [ $status = 0 ] && [ -n "${COMPARE_SOLVER:-}" ]; then

@@ -74,10 +74,11 @@ JUDGE_FRAMES="${JUDGE_FRAMES:-real}"      # what the judge learns from: real (th
                                           # (those and training frames through this run's VAE; docs/fidelity.md, run 25)
 JUDGE_RECONSTRUCT_EPISODES="${JUDGE_RECONSTRUCT_EPISODES:-400}"  # training episodes reconstructed for it (the first: both tasks, seeds interleaved)
 case "$JUDGE_FRAMES" in
-  real) JUDGE="$RUN/judge.pt" ;;
-  reconstructed) JUDGE="$RUN/judge-reconstructed.pt" ;;
+  real) JUDGE_NAME=judge ;;
+  reconstructed) JUDGE_NAME=judge-reconstructed ;;
   *) echo "recipe: JUDGE_FRAMES must be real or reconstructed, not '$JUDGE_FRAMES'" >&2; exit 2 ;;
 esac
+JUDGE="$RUN/$JUDGE_NAME.pt"
 STUDY_EPISODES="${STUDY_EPISODES:-50}"    # per task and variant, the first held-out episodes
 STUDY_JOBS="${STUDY_JOBS:-8}"             # bwm evaluate processes at once
 STUDY_IN_FLIGHT="${STUDY_IN_FLIGHT:-16}"  # episodes each of them runs at once (one batch per chunk)
@@ -182,11 +183,10 @@ if wants judge; then
     "$PYTHON" bench/metaworld/judge.py train --data "$RUN/data/train" "${reconstructed[@]}" --val "$RUN/data/val" \
       --steps "$JUDGE_STEPS" --device "$DEVICE" --out "$JUDGE"
   }
-  name=$(basename "$JUDGE" .pt)
-  if [ -f "$JUDGE" ]; then echo "recipe: $JUDGE exists"; else timed "$name" judge; fi
+  if [ -f "$JUDGE" ]; then echo "recipe: $JUDGE exists"; else timed "$JUDGE_NAME" judge; fi
   # The judge on the simulator's frames of the study's episodes (the study's first step, cached
   # for it) here, beside training.
-  timed "${name/judge/judged}" "$PYTHON" bench/metaworld/study.py "${STUDY_ARGS[@]}" --judge "$JUDGE" --judged-only
+  timed "${JUDGE_NAME/judge/judged}" "$PYTHON" bench/metaworld/study.py "${STUDY_ARGS[@]}" --judge "$JUDGE" --judged-only
 fi
 
 if wants ceiling; then
@@ -194,7 +194,7 @@ if wants ceiling; then
     "$BWM" reconstruct --data "$RUN/data/val" --vae "$RUN/vae.safetensors" --resolution "${RESOLUTION}x$RESOLUTION" --device "$DEVICE" \
       --out "$RUN/ceiling/val.safetensors" &&
     "$PYTHON" bench/metaworld/judge.py score --model "$JUDGE" --val "$RUN/data/val" \
-      --reconstructed "$RUN/ceiling/val.safetensors" --device "$DEVICE" --out "$RUN/ceiling/$(basename "$JUDGE" .pt).json"
+      --reconstructed "$RUN/ceiling/val.safetensors" --device "$DEVICE" --out "$RUN/ceiling/$JUDGE_NAME.json"
   }
   timed ceiling ceiling
 fi

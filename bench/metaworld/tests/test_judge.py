@@ -70,9 +70,9 @@ def test_reconstructed_frames_are_added_with_the_real_flags():
         assert entry["held_out_frames"]["n"] == 3 * FRAMES, entry
 
         # A file per dataset, and one that holds episodes of this dataset.
-        for bad, message in (([rec, rec], "one per dataset"), ([os.path.join(folder, "other.safetensors")], "holds none")):
-            if bad[0].endswith("other.safetensors"):
-                save_file({"episode.7": as_reconstructed(episodes[0][1])}, bad[0])
+        other = os.path.join(folder, "other.safetensors")
+        save_file({"episode.7": as_reconstructed(episodes[0][1])}, other)
+        for bad, message in (([rec, rec], "one per dataset"), ([other], "holds none")):
             try:
                 judge.main(["train", "--data", data, "--reconstructed", *bad, "--steps", "1", "--device", "cpu", "--out", out])
             except SystemExit as e:

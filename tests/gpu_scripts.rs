@@ -1,6 +1,8 @@
 //! The lent-GPU orchestration scripts on the CPU: scripts/gpu/variants.sh with a stub recipe and a
-//! stub nvidia-smi (which variants make data, which share it, and when they start), and
-//! scripts/gpu/detached.sh's start/wait protocol (exit codes, the logs' progress, the archive).
+//! stub nvidia-smi (which variants make data, which share it, and when they start),
+//! scripts/gpu/metaworld-stages.sh over a stub bench/metaworld/recipe.sh (which judge each stage
+//! and study gets, and where each study writes), and scripts/gpu/detached.sh's start/wait protocol
+//! (exit codes, the logs' progress, the archive).
 
 mod common;
 
@@ -83,6 +85,73 @@ fn variants_with_the_same_data_variables_share_one_dataset() {
     let b_log = fs::read_to_string(d.join("out/b/log")).unwrap();
     assert!(b_log.contains("a ended without its data"), "{b_log}");
     assert!(!d.join("made.txt").exists());
+}
+
+/// A stub of bench/metaworld/recipe.sh: records each call's stages with the judge and study folder
+/// it would use (recipe.sh's defaults), and leaves a study.json naming the judge in that folder.
+const STUB_STAGES: &str = r#"
+study=${STUDY_DIR:-$RUN/study}
+echo "$* judge=${JUDGE_FRAMES:-real} study=$study" >> "$CALLS"
+for s in "$@"; do
+  if [ "$s" = study ]; then mkdir -p "$study"; echo "{\"judge\": \"${JUDGE_FRAMES:-real}\"}" > "$study/study.json"; fi
+done
+"#;
+
+/// metaworld-stages.sh copied into `dir` beside the stub recipe, run there for runs/x with `vars`.
+fn stages(dir: &Path, vars: &[(&str, &str)]) -> (Output, Vec<String>) {
+    fs::create_dir_all(dir.join("scripts/gpu")).unwrap();
+    fs::create_dir_all(dir.join("bench/metaworld")).unwrap();
+    fs::copy(Path::new(ROOT).join("scripts/gpu/metaworld-stages.sh"), dir.join("scripts/gpu/metaworld-stages.sh")).unwrap();
+    fs::write(dir.join("bench/metaworld/recipe.sh"), STUB_STAGES).unwrap();
+    let calls = dir.join("calls.txt");
+    let _ = fs::remove_file(&calls);
+    let out = Command::new("bash")
+        .arg(dir.join("scripts/gpu/metaworld-stages.sh"))
+        .current_dir(dir)
+        .env_remove("JUDGE_FRAMES")
+        .env_remove("STUDY_DIR")
+        .env_remove("COMPARE_JUDGE")
+        .env("RUN", "runs/x")
+        .env("OUT", dir.join("out"))
+        .env("CALLS", &calls)
+        .env("SKIP_FIDELITY", "1")
+        .env("SKIP_PROBE", "1")
+        .envs(vars.iter().copied())
+        .output()
+        .unwrap();
+    let calls = fs::read_to_string(&calls).unwrap_or_default().lines().map(String::from).collect();
+    (out, calls)
+}
+
+#[test]
+fn each_judge_has_its_own_study_folder() {
+    let dir = common::temp_dir("gpu-stages");
+    let d = dir.path();
+    for (own, other) in [("real", "reconstructed"), ("reconstructed", "real")] {
+        let (out, calls) = stages(d, &[("JUDGE_FRAMES", own), ("COMPARE_JUDGE", other)]);
+        let log = format!("{}\n{}\n{calls:#?}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+        assert!(out.status.success(), "{log}");
+        let second = format!("runs/x/study-judge-{other}");
+        for (judge, folder) in [(own, "runs/x/study"), (other, second.as_str())] {
+            // The judge stage leaves the judge on the simulator's frames in the folder of the study it is for.
+            for stage in ["judge", "study"] {
+                let call = format!("{stage} judge={judge} study={folder}");
+                assert_eq!(calls.iter().filter(|c| **c == call).count(), 1, "{call}\n{log}");
+            }
+            let study = fs::read_to_string(d.join(folder).join("study.json")).unwrap();
+            assert_eq!(study.trim(), format!("{{\"judge\": \"{judge}\"}}"), "{folder}\n{log}");
+            assert!(calls.iter().any(|c| c.starts_with(&format!("ceiling judge={judge} "))), "{log}");
+        }
+        // The judge that learns from the VAE's round trips starts once the VAE is trained.
+        let vae = calls.iter().position(|c| c.starts_with("vae ")).expect("a vae stage");
+        let reconstructed = calls.iter().position(|c| c.starts_with("judge judge=reconstructed ")).unwrap();
+        assert!(vae < reconstructed, "{log}");
+        fs::remove_dir_all(d.join("runs")).unwrap();
+    }
+    let (out, calls) = stages(d, &[("JUDGE_FRAMES", "real"), ("COMPARE_JUDGE", "real")]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("is the study's own judge"));
+    assert!(calls.is_empty(), "{calls:?}");
 }
 
 /// Removes detached.sh's folder of a name when the test ends, also on failure.

@@ -1,0 +1,99 @@
+#!/usr/bin/env bash
+# The Meta-World recipe's stages in the order scripts/gpu/metaworld.sh runs them, once that has set
+# the lent machine up (its header says which stages and variables; it execs this). Apart so that the
+# CPU tests run the orchestration over a stub recipe (tests/gpu_scripts.rs). Needs $BWM and $PYTHON
+# as recipe.sh does; logs go to $OUT.
+set -uo pipefail
+OUT="${OUT:-/tmp/out}"; mkdir -p "$OUT"
+recipe() { bash bench/metaworld/recipe.sh "$@"; }
+R=${RUN:-runs/metaworld}
+# The stages up to a trained model, the independent ones side by side: truth (MuJoCo, CPU) and
+# the judge (a small CNN) beside the VAE, latents and DiT; a judge that learns from the VAE's
+# round trips (JUDGE_FRAMES or COMPARE_JUDGE = reconstructed) beside the latents and DiT, once
+# the VAE is trained. Stages already done are skipped.
+JUDGES="${JUDGE_FRAMES:-real} ${COMPARE_JUDGE:-}"
+if [ -n "${COMPARE_JUDGE:-}" ]; then
+  case "$COMPARE_JUDGE" in real|reconstructed) ;; *) echo "metaworld: COMPARE_JUDGE must be real or reconstructed" >&2; exit 2 ;; esac
+  [ "$COMPARE_JUDGE" != "${JUDGE_FRAMES:-real}" ] || { echo "metaworld: COMPARE_JUDGE=$COMPARE_JUDGE is the study's own judge (JUDGE_FRAMES)" >&2; exit 2; }
+fi
+judge_log() { if [ "$1" = real ]; then echo "$OUT/judge.log"; else echo "$OUT/judge-$1.log"; fi; }
+# The study each judge is for (its judge stage leaves the judge on the simulator's frames there).
+# Taken once here: a command's own `JUDGE_FRAMES=... STUDY_DIR=$(study_dir ...)` prefix is in effect
+# while its later assignments expand (run 26's second judge and study went to the first's folder).
+OWN_JUDGE=${JUDGE_FRAMES:-real}
+OWN_STUDY=${STUDY_DIR:-$R/study}
+study_dir() { if [ "$1" = "$OWN_JUDGE" ]; then echo "$OWN_STUDY"; else echo "$R/study-judge-$1"; fi; }
+train_stages() {
+  status=0
+  recipe data 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
+  if [ $status = 0 ]; then
+    recipe truth > "$OUT/truth.log" 2>&1 & truth=$!
+    judges=()
+    for frames in $JUDGES; do
+      [ "$frames" = real ] || continue
+      JUDGE_FRAMES=$frames STUDY_DIR=$(study_dir "$frames") recipe judge > "$(judge_log "$frames")" 2>&1 & judges+=($!)
+    done
+    recipe vae 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
+    if [ $status = 0 ]; then
+      for frames in $JUDGES; do
+        [ "$frames" = real ] && continue
+        JUDGE_FRAMES=$frames STUDY_DIR=$(study_dir "$frames") recipe judge > "$(judge_log "$frames")" 2>&1 & judges+=($!)
+      done
+      recipe latents train 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
+    fi
+    wait $truth || { echo "metaworld: truth failed ($OUT/truth.log)"; status=1; }
+    for pid in "${judges[@]}"; do wait "$pid" || { echo "metaworld: a judge failed ($OUT/judge*.log)"; status=1; }; done
+  fi
+}
+if [ "${1:-}" = transfer ]; then
+  R=${RUN:-runs/transfer}
+  bash bench/metaworld/transfer.sh 2>&1 | tee -a "$OUT/transfer.log"
+  status=${PIPESTATUS[0]}
+elif [ "${1:-}" = sweep ]; then
+  # On a bare machine the model is trained first (the datasets and weights do not outlive it).
+  train_stages
+  if [ $status = 0 ]; then
+    bash bench/metaworld/sweep.sh 2>&1 | tee -a "$OUT/sweep.log"
+    status=${PIPESTATUS[0]}
+  fi
+elif [ $# -gt 0 ]; then
+  recipe "$@" 2>&1 | tee -a "$OUT/recipe.log"
+  status=${PIPESTATUS[0]}
+else
+  # Every stage: fidelity and the judge's ceiling beside the study.
+  train_stages
+  if [ $status = 0 ]; then
+    fidelity=
+    [ "${SKIP_FIDELITY:-0}" = 1 ] || { recipe fidelity > "$OUT/fidelity.log" 2>&1 & fidelity=$!; }
+    recipe ceiling > "$OUT/ceiling.log" 2>&1 & ceiling=$!
+    recipe study 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
+    if [ $status = 0 ] && [ -n "${COMPARE_JUDGE:-}" ]; then
+      # The same world model judged by the other judge; its ceiling after the first (both write
+      # the held-out round trip).
+      wait $ceiling || { echo "metaworld: ceiling failed ($OUT/ceiling.log)"; status=1; }
+      JUDGE_FRAMES=$COMPARE_JUDGE recipe ceiling > "$OUT/ceiling-$COMPARE_JUDGE.log" 2>&1 & ceiling=$!
+      JUDGE_FRAMES=$COMPARE_JUDGE STUDY_DIR=$(study_dir "$COMPARE_JUDGE") recipe study 2>&1 | tee -a "$OUT/recipe.log"
+      [ "${PIPESTATUS[0]}" = 0 ] || status=1
+    fi
+    if [ $status = 0 ] && [ -n "${COMPARE_SOLVER:-}" ]; then
+      SOLVER=$COMPARE_SOLVER STUDY_DIR=$R/study-$COMPARE_SOLVER recipe study 2>&1 | tee -a "$OUT/recipe.log"
+      [ "${PIPESTATUS[0]}" = 0 ] || status=1
+    fi
+    for w in ${COMPARE_GUIDANCE:-}; do
+      [ $status = 0 ] || break
+      GUIDANCE=$w STUDY_DIR=$R/study-g$w recipe study 2>&1 | tee -a "$OUT/recipe.log"
+      [ "${PIPESTATUS[0]}" = 0 ] || status=1
+    done
+    if [ $status = 0 ] && [ "${SKIP_PROBE:-0}" != 1 ]; then
+      recipe probe 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
+    fi
+    [ -z "$fidelity" ] || wait $fidelity || { echo "metaworld: fidelity failed ($OUT/fidelity.log)"; status=1; }
+    wait $ceiling || { echo "metaworld: ceiling failed ($OUT/ceiling*.log)"; status=1; }
+  fi
+fi
+# What the run measured comes back as one archive (small files only; the datasets, latents,
+# weights and videos stay on the machine).
+(cd $R && find . -maxdepth 3 -type f \( -name '*.json' -o -name '*.jsonl' -o -name '*.csv' -o -name '*.svg' -o -name '*.log' \
+  -o -name '*.toml' -o -name '*.png' -o -name '*.tsv' \) -not -path '*/videos/*' -not -path './data/*' -not -path './latents/*' -size -3M -print0 |
+  tar -czf "$OUT/run.tar.gz" --null -T -)
+exit "$status"

@@ -18,13 +18,14 @@ const ROOT: &str = env!("CARGO_MANIFEST_DIR");
 /// when it started; fails before any data with FAIL=1.
 const STUB_RECIPE: &str = r#"
 [ "${FAIL:-0}" = 1 ] && { echo "stub: failing"; exit 1; }
+RUN=${RUN:-runs/metaworld}
 [ -f "$RUN/data/val/meta/info.json" ] && echo "$RUN found its data" >> "$MADE"
 for split in train val; do
   [ -f "$RUN/data/$split/meta/info.json" ] && continue
   mkdir -p "$RUN/data/$split.tmp/meta"; sleep 1; echo "{}" > "$RUN/data/$split.tmp/meta/info.json"
   mv "$RUN/data/$split.tmp" "$RUN/data/$split"; echo "$RUN made $split" >> "$MADE"
 done
-echo "stub: $RUN on GPU $CUDA_VISIBLE_DEVICES with DECOY=${DECOY:-} VAE_SEED=${VAE_SEED:-}"
+echo "stub: $RUN on GPU ${CUDA_VISIBLE_DEVICES:-} with DECOY=${DECOY:-} VAE_SEED=${VAE_SEED:-} JUDGE_FRAMES=${JUDGE_FRAMES:-} stages $*"
 "#;
 
 fn write_executable(path: &Path, text: &str) {
@@ -34,6 +35,10 @@ fn write_executable(path: &Path, text: &str) {
 
 /// variants.sh copied into `dir` beside the stub recipe, run there with a stub nvidia-smi of 4 GPUs.
 fn variants(dir: &Path, args: &[&str]) -> Output {
+    variants_with(dir, args, &[])
+}
+
+fn variants_with(dir: &Path, args: &[&str], vars: &[(&str, &str)]) -> Output {
     fs::create_dir_all(dir.join("scripts/gpu")).unwrap();
     fs::create_dir_all(dir.join("bin")).unwrap();
     fs::copy(Path::new(ROOT).join("scripts/gpu/variants.sh"), dir.join("scripts/gpu/variants.sh")).unwrap();
@@ -47,6 +52,9 @@ fn variants(dir: &Path, args: &[&str]) -> Output {
         .env("PATH", path)
         .env("OUT", dir.join("out"))
         .env("MADE", dir.join("made.txt"))
+        .env_remove("STAGES")
+        .env_remove("JUDGE_FRAMES")
+        .envs(vars.iter().copied())
         .output()
         .unwrap()
 }
@@ -74,7 +82,7 @@ fn variants_with_the_same_data_variables_share_one_dataset() {
     assert_eq!(fs::read_link(d.join("runs/b/data")).unwrap(), d.join("runs/a/data"));
     assert!(!fs::symlink_metadata(d.join("runs/c/data")).unwrap().file_type().is_symlink());
     let b_log = fs::read_to_string(d.join("out/b/log")).unwrap();
-    assert!(b_log.contains("stub: runs/b on GPU 1 with DECOY=3 VAE_SEED=1"), "{b_log}");
+    assert!(b_log.contains("stub: runs/b on GPU 1 with DECOY=3 VAE_SEED=1 JUDGE_FRAMES= stages"), "{b_log}");
 
     // A lead that fails before its data takes the variants waiting on them down with it.
     let dir = common::temp_dir("gpu-variants-failed");
@@ -85,15 +93,30 @@ fn variants_with_the_same_data_variables_share_one_dataset() {
     let b_log = fs::read_to_string(d.join("out/b/log")).unwrap();
     assert!(b_log.contains("a ended without its data"), "{b_log}");
     assert!(!d.join("made.txt").exists());
+
+    // Some stages only: one judge of real frames made first for all (the recipe's own would need
+    // each variant's VAE), which the variants use unless they name theirs.
+    let dir = common::temp_dir("gpu-variants-stages");
+    let d = dir.path();
+    let out = variants_with(d, &["a", "VAE_SEED=1", "b", "JUDGE_FRAMES=reconstructed"], &[("STAGES", "vae ceiling")]);
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
+    let shared = fs::read_to_string(d.join("out/shared.log")).unwrap();
+    assert!(shared.contains("stub: runs/metaworld on GPU  with DECOY= VAE_SEED= JUDGE_FRAMES=real stages data judge"), "{shared}");
+    let a_log = fs::read_to_string(d.join("out/a/log")).unwrap();
+    assert!(a_log.contains("stub: runs/a on GPU 0 with DECOY= VAE_SEED=1 JUDGE_FRAMES=real stages vae ceiling"), "{a_log}");
+    let b_log = fs::read_to_string(d.join("out/b/log")).unwrap();
+    assert!(b_log.contains("JUDGE_FRAMES=reconstructed stages vae ceiling"), "{b_log}");
+    assert_eq!(fs::read_link(d.join("runs/a/judge.pt")).unwrap(), d.join("runs/metaworld/judge.pt"));
 }
 
 /// A stub of bench/metaworld/recipe.sh: records each call's stages with the judge and study folder
 /// it would use (recipe.sh's defaults), and leaves a study.json naming the judge in that folder.
 const STUB_STAGES: &str = r#"
-study=${STUDY_DIR:-$RUN/study}
-echo "$* judge=${JUDGE_FRAMES:-real} study=$study" >> "$CALLS"
+study=${STUDY_DIR:-$RUN/study} judge=${JUDGE_FRAMES:-reconstructed}
+echo "$* judge=$judge study=$study" >> "$CALLS"
 for s in "$@"; do
-  if [ "$s" = study ]; then mkdir -p "$study"; echo "{\"judge\": \"${JUDGE_FRAMES:-real}\"}" > "$study/study.json"; fi
+  if [ "$s" = study ]; then mkdir -p "$study"; echo "{\"judge\": \"$judge\"}" > "$study/study.json"; fi
 done
 "#;
 
@@ -127,8 +150,14 @@ fn stages(dir: &Path, vars: &[(&str, &str)]) -> (Output, Vec<String>) {
 fn each_judge_has_its_own_study_folder() {
     let dir = common::temp_dir("gpu-stages");
     let d = dir.path();
-    for (own, other) in [("real", "reconstructed"), ("reconstructed", "real")] {
-        let (out, calls) = stages(d, &[("JUDGE_FRAMES", own), ("COMPARE_JUDGE", other)]);
+    // The recipe's own judge named, and left to its default (the stub's, recipe.sh's).
+    let recipe = fs::read_to_string(Path::new(ROOT).join("bench/metaworld/recipe.sh")).unwrap();
+    assert!(recipe.contains(r#"JUDGE_FRAMES="${JUDGE_FRAMES:-reconstructed}""#), "recipe.sh's default judge is not the stub's");
+    for (own, other, vars) in [
+        ("real", "reconstructed", &[("JUDGE_FRAMES", "real"), ("COMPARE_JUDGE", "reconstructed")][..]),
+        ("reconstructed", "real", &[("COMPARE_JUDGE", "real")][..]),
+    ] {
+        let (out, calls) = stages(d, vars);
         let log = format!("{}\n{}\n{calls:#?}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
         assert!(out.status.success(), "{log}");
         let second = format!("runs/x/study-judge-{other}");
@@ -148,7 +177,7 @@ fn each_judge_has_its_own_study_folder() {
         assert!(vae < reconstructed, "{log}");
         fs::remove_dir_all(d.join("runs")).unwrap();
     }
-    let (out, calls) = stages(d, &[("JUDGE_FRAMES", "real"), ("COMPARE_JUDGE", "real")]);
+    let (out, calls) = stages(d, &[("COMPARE_JUDGE", "reconstructed")]);
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("is the study's own judge"));
     assert!(calls.is_empty(), "{calls:?}");

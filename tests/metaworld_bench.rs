@@ -63,7 +63,7 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
     let runs = dir.join("run");
     let log = run(
         toy("recipe.sh", &runs)
-            .envs([("VAL_EPISODES", "1"), ("VAE_EPISODES", "6")])
+            .envs([("VAL_EPISODES", "1"), ("VAE_EPISODES", "6"), ("JUDGE_RECONSTRUCT_EPISODES", "4")])
             .envs(TOY_STUDY)
             .env("PROBE_VARIANTS", "wrong-0cm,wrong-6cm")
             // The DiT trained with action dropout and its own history noise, every world-model
@@ -87,10 +87,10 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
     // study found it cached.
     let study_log = log.split("recipe: study (").nth(1).and_then(|rest| rest.split("recipe: ").next()).expect("the study's log");
     assert!(!study_log.contains("judge on simulator frames"), "{study_log}");
-    assert!(log.split("recipe: judged (").nth(1).is_some_and(|rest| rest.contains("judge on simulator frames")), "{log}");
+    assert!(log.split("recipe: judged-reconstructed (").nth(1).is_some_and(|rest| rest.contains("judge on simulator frames")), "{log}");
 
     let timings = std::fs::read_to_string(runs.join("timings.tsv")).unwrap();
-    for stage in ["data-train", "data-val", "vae", "latents", "train", "fidelity", "truth", "judge", "judged", "ceiling", "study", "probe"] {
+    for stage in ["data-train", "data-val", "vae", "latents", "train", "fidelity", "truth", "judge-reconstructed", "judged-reconstructed", "ceiling", "study", "probe"] {
         assert!(timings.lines().any(|l| l.split('\t').next() == Some(stage)), "no {stage} in timings.tsv:\n{timings}\n{log}");
     }
 
@@ -130,14 +130,22 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
     let config = std::fs::read_to_string(runs.join("config.toml")).unwrap();
     assert!(config.contains("action_dropout = 0.5"), "{config}");
 
-    let judge = json(&runs.join("judge.json"));
+    // The recipe's judge learns from the simulator's frames and from the VAE's round trips of
+    // training frames; it is scored on real held-out frames.
+    let judge = json(&runs.join("judge-reconstructed.json"));
     for task in ["drawer-open-v3", "button-press-topdown-v3"] {
-        let accuracy = judge["tasks"][task]["held_out_frames"]["accuracy"].as_f64().unwrap_or_else(|| panic!("{judge}"));
+        let t = &judge["tasks"][task];
+        let accuracy = t["held_out_frames"]["accuracy"].as_f64().unwrap_or_else(|| panic!("{judge}"));
         assert!((0.0..=1.0).contains(&accuracy), "{judge}");
+        // The first four training episodes hold both tasks (interleaved by seed): two each.
+        assert_eq!(t["train_reconstructed_frames"], 200, "{judge}");
+        assert_eq!(t["train_frames"], 500, "three real episodes and two reconstructed: {judge}");
+        assert_eq!(t["held_out_frames"]["n"], 100, "scored on the real held-out frames: {judge}");
     }
 
     // The judge on the held-out frames through the VAE (bwm reconstruct) beside the real ones.
-    let ceiling = json(&runs.join("ceiling/judge.json"));
+    let ceiling = json(&runs.join("ceiling/judge-reconstructed.json"));
+    assert_eq!(ceiling["judge"].as_str().map(|j| j.ends_with("judge-reconstructed.pt")), Some(true), "{ceiling}");
     for task in ["drawer-open-v3", "button-press-topdown-v3"] {
         let t = &ceiling["tasks"][task];
         for part in ["real", "reconstructed"] {
@@ -216,28 +224,27 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
         assert!(names.iter().any(|n| n.ends_with(&format!("/{v}"))), "{v} missing: {names:?}");
     }
 
-    // The judge that also learns from the VAE's round trips of training frames, beside the first
-    // (its own file, report and ceiling; the first judge's left as they were).
-    let before = std::fs::read(runs.join("judge.pt")).unwrap();
+    // The judge of real frames only, beside the recipe's (its own file, report and ceiling; the
+    // recipe's judge left as it was).
+    let before = std::fs::read(runs.join("judge-reconstructed.pt")).unwrap();
     let first_judge = judged["key"]["judge"].clone();
     let log = run(
-        toy("recipe.sh", &runs).args(["judge", "ceiling"]).envs(TOY_STUDY).envs([("JUDGE_FRAMES", "reconstructed"), ("JUDGE_RECONSTRUCT_EPISODES", "4")]),
-        "recipe.sh judge ceiling (JUDGE_FRAMES=reconstructed)",
+        toy("recipe.sh", &runs).args(["judge", "ceiling"]).envs(TOY_STUDY).env("JUDGE_FRAMES", "real"),
+        "recipe.sh judge ceiling (JUDGE_FRAMES=real)",
     );
-    let second = json(&runs.join("judge-reconstructed.json"));
+    let second = json(&runs.join("judge.json"));
     for task in ["drawer-open-v3", "button-press-topdown-v3"] {
         let t = &second["tasks"][task];
-        // The first four training episodes hold both tasks (interleaved by seed): two each.
-        assert_eq!(t["train_reconstructed_frames"], 200, "{second}");
-        assert_eq!(t["train_frames"], 500, "three real episodes and two reconstructed: {second}");
-        assert_eq!(t["held_out_frames"]["n"], 100, "scored on the real held-out frames: {second}");
+        assert_eq!(t["train_reconstructed_frames"], 0, "{second}");
+        assert_eq!(t["train_frames"], 300, "three real episodes: {second}");
+        assert_eq!(t["held_out_frames"]["n"], 100, "{second}");
     }
-    let ceiling = json(&runs.join("ceiling/judge-reconstructed.json"));
-    assert_eq!(ceiling["judge"].as_str().map(|j| j.ends_with("judge-reconstructed.pt")), Some(true), "{ceiling}");
+    let ceiling = json(&runs.join("ceiling/judge.json"));
+    assert_eq!(ceiling["judge"].as_str().map(|j| j.ends_with("/judge.pt")), Some(true), "{ceiling}");
     assert_eq!(ceiling["tasks"]["drawer-open-v3"]["reconstructed"]["frames"]["n"], 100, "{ceiling}");
-    assert!(std::fs::read(runs.join("judge.pt")).unwrap() == before, "the first judge untouched");
+    assert!(std::fs::read(runs.join("judge-reconstructed.pt")).unwrap() == before, "the recipe's judge untouched");
     let timings = std::fs::read_to_string(runs.join("timings.tsv")).unwrap();
-    for stage in ["judge-reconstructed", "judged-reconstructed"] {
+    for stage in ["judge", "judged"] {
         assert!(timings.lines().any(|l| l.split('\t').next() == Some(stage)), "no {stage}: {timings}\n{log}");
     }
     // Its verdicts on the simulator's frames, cached for a study with it.

@@ -8,20 +8,21 @@ OUT="${OUT:-/tmp/out}"; mkdir -p "$OUT"
 recipe() { bash bench/metaworld/recipe.sh "$@"; }
 R=${RUN:-runs/metaworld}
 # The stages up to a trained model, the independent ones side by side: truth (MuJoCo, CPU) and
-# the judge (a small CNN) beside the VAE, latents and DiT; a judge that learns from the VAE's
-# round trips (JUDGE_FRAMES or COMPARE_JUDGE = reconstructed) beside the latents and DiT, once
-# the VAE is trained. Stages already done are skipped.
-JUDGES="${JUDGE_FRAMES:-real} ${COMPARE_JUDGE:-}"
+# a judge of real frames alone (JUDGE_FRAMES or COMPARE_JUDGE = real) beside the VAE, latents and
+# DiT; the judge that also learns from the VAE's round trips (recipe.sh's default) beside the
+# latents and DiT, once the VAE is trained. Stages already done are skipped.
+# Taken once here (recipe.sh's default): a command's own `JUDGE_FRAMES=... STUDY_DIR=$(study_dir
+# ...)` prefix is in effect while its later assignments expand (run 26's second judge and study
+# went to the first's folder).
+OWN_JUDGE=${JUDGE_FRAMES:-reconstructed}
+OWN_STUDY=${STUDY_DIR:-$R/study}
+JUDGES="$OWN_JUDGE ${COMPARE_JUDGE:-}"
 if [ -n "${COMPARE_JUDGE:-}" ]; then
   case "$COMPARE_JUDGE" in real|reconstructed) ;; *) echo "metaworld: COMPARE_JUDGE must be real or reconstructed" >&2; exit 2 ;; esac
-  [ "$COMPARE_JUDGE" != "${JUDGE_FRAMES:-real}" ] || { echo "metaworld: COMPARE_JUDGE=$COMPARE_JUDGE is the study's own judge (JUDGE_FRAMES)" >&2; exit 2; }
+  [ "$COMPARE_JUDGE" != "$OWN_JUDGE" ] || { echo "metaworld: COMPARE_JUDGE=$COMPARE_JUDGE is the study's own judge (JUDGE_FRAMES)" >&2; exit 2; }
 fi
 judge_log() { if [ "$1" = real ]; then echo "$OUT/judge.log"; else echo "$OUT/judge-$1.log"; fi; }
 # The study each judge is for (its judge stage leaves the judge on the simulator's frames there).
-# Taken once here: a command's own `JUDGE_FRAMES=... STUDY_DIR=$(study_dir ...)` prefix is in effect
-# while its later assignments expand (run 26's second judge and study went to the first's folder).
-OWN_JUDGE=${JUDGE_FRAMES:-real}
-OWN_STUDY=${STUDY_DIR:-$R/study}
 study_dir() { if [ "$1" = "$OWN_JUDGE" ]; then echo "$OWN_STUDY"; else echo "$R/study-judge-$1"; fi; }
 train_stages() {
   status=0

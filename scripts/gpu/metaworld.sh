@@ -18,9 +18,9 @@
 # (graded `wrong` variants, after the study). COMPARE_SOLVER=dpm++2m studies the same model a
 # second time with that sampler ($RUN/study-dpm++2m); COMPARE_GUIDANCE="2 3" once more per
 # action-guidance value ($RUN/study-g2, ...; the model trained with objective.action_dropout > 0);
-# COMPARE_JUDGE=reconstructed once more with the judge that also learned from this run's VAE's
-# round trips of training frames ($RUN/study-judge-reconstructed, its ceiling in
-# $RUN/ceiling/judge-reconstructed.json; JUDGE_FRAMES=reconstructed makes it the study's own).
+# COMPARE_JUDGE=real once more with the judge that learned from the simulator's frames alone
+# ($RUN/study-judge-real, its ceiling in $RUN/ceiling/judge.json; JUDGE_FRAMES=real makes it the
+# study's own, and COMPARE_JUDGE=reconstructed then adds the recipe's default judge).
 # `bash scripts/gpu/metaworld.sh transfer` runs bench/metaworld/transfer.sh (the base-versus-scratch
 # study of the LoRA issue; its variables apply) instead, its small outputs in $OUT/run.tar.gz;
 # `bash scripts/gpu/metaworld.sh sweep` runs bench/metaworld/sweep.sh (the real-time issue's sampler

@@ -9,8 +9,9 @@
 # same values of those, starting once they are written) with its variables, on GPU i mod the machine's GPU count for
 # the i-th variant, all at once; each trains its judge beside its VAE, as the recipe does (a judge
 # made first for all would hold every variant back by its 2 minutes). With STAGES (default: every
-# stage) picking stages, e.g. STAGES="vae ceiling" to compare VAEs alone, one judge is made first
-# for all and linked into each variant's folder. In "VAR=VALUE ...", a word that is not NAME=...
+# stage) picking stages, e.g. STAGES="vae ceiling" to compare VAEs alone, one judge of real frames
+# (JUDGE_FRAMES=real: the recipe's own learns from each variant's VAE) is made first for all and
+# linked into each variant's folder, and the variants use it unless they set JUDGE_FRAMES. In "VAR=VALUE ...", a word that is not NAME=...
 # continues the value before it ("TRAIN_SETS=a=1 b=2" is one variable). Each variant's log and
 # outputs go to $OUT/NAME (its run.tar.gz holds the run's small files). The host's cores are shared:
 # each variant's WORKERS (the data's and the study's processes) defaults to nproc / variants.
@@ -50,7 +51,7 @@ for k in "${keys[@]}"; do [ -n "$k" ] && own=$((own + 1)); done
 [ "$own" -lt ${#names[@]} ] || [ -n "${STAGES:-}" ] && shared+=(data)
 [ -n "${STAGES:-}" ] && shared+=(judge)
 if [ ${#shared[@]} -gt 0 ]; then
-  bash scripts/gpu/metaworld.sh "${shared[@]}" > "$OUT/shared.log" 2>&1 || { echo "variants: ${shared[*]} failed ($OUT/shared.log)"; exit 1; }
+  JUDGE_FRAMES=real bash scripts/gpu/metaworld.sh "${shared[@]}" > "$OUT/shared.log" 2>&1 || { echo "variants: ${shared[*]} failed ($OUT/shared.log)"; exit 1; }
 fi
 gpus=$(nvidia-smi -L | wc -l)
 workers=$(( $(nproc) / ${#names[@]} )); [ "$workers" -ge 1 ] || workers=1
@@ -84,7 +85,8 @@ for i in "${!names[@]}"; do
         sleep 5
       done
     fi
-    exec env CUDA_VISIBLE_DEVICES=$((i % gpus)) RUN="runs/$name" OUT="$OUT/$name" WORKERS="${WORKERS:-$workers}" "${assign[@]}" \
+    exec env CUDA_VISIBLE_DEVICES=$((i % gpus)) RUN="runs/$name" OUT="$OUT/$name" WORKERS="${WORKERS:-$workers}" \
+      ${STAGES:+JUDGE_FRAMES=real} "${assign[@]}" \
       bash scripts/gpu/metaworld.sh $stages
   ) > "$OUT/$name/log" 2>&1 &
   pids+=($!)

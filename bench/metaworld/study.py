@@ -30,7 +30,9 @@ the judge's probability on its frames by both outcomes), DIR/study.csv,
 DIR/study.svg (estimated against true rates) and each process's evaluate output in DIR/eval-*/.
 Everything after `--` goes to `bwm evaluate` (the world model's flags). With --rescore, a finished
 study in DIR is scored again from its eval-*/episodes.jsonl and judged.json (after a change to the
-scoring), without the world model, the judge or `--`. With --judged-only, the judge on the
+scoring), without the world model, the judge or `--`; a study cut before its study.json (a machine
+taken back) is scored over the episodes it finished, each rate against the truth of the same
+episodes, and says so (study.json "cut"). With --judged-only, the judge on the
 simulator's frames alone (DIR/judged.json, cached for the study that follows): the recipe runs it
 beside training, where the study would otherwise begin with it.
 """
@@ -309,21 +311,23 @@ def summarize(truth: dict, estimates: dict, judged: dict, tasks: list[str], vari
     for t in tasks:
         for v in variants:
             est = estimates[t][v]
-            first = [f for f, _ in truth[t][v]]
-            # Episode k of a task is the k-th held-out placement and policy seed in both.
+            # Episode k of a task is the k-th held-out placement and policy seed in both; a rate is
+            # scored over the episodes the world model finished (all of them, unless a study was cut).
             by_episode = {e["episode"]: bool(e["success"]) for e in est}
             probability_of = {e["episode"]: e.get("success_probability") for e in est}
-            paired = [(f, by_episode[k]) for k, f in enumerate(first) if k in by_episode]
+            done = [k for k in range(len(truth[t][v])) if k in by_episode]
+            first = [truth[t][v][k][0] for k in done]
+            paired = [(f, by_episode[k]) for k, f in zip(done, first)]
             pooled_first += [p[0] for p in paired]
             pooled_true += [p[0] is not None for p in paired]
             pooled_est += [p[1] for p in paired]
             near, succeeded, drawn = approach.setdefault(t, ([], [], []))
-            near += [d for k, (_, d) in enumerate(truth[t][v]) if k in by_episode]
+            near += [truth[t][v][k][1] for k in done]
             succeeded += [p[0] is not None for p in paired]
             drawn += [p[1] for p in paired]
             row = {"task": t, "variant": v, "episodes": len(first), "true": float(np.mean([f is not None for f in first])),
                    "estimated": float(np.mean([e["success"] for e in est])), "errors": sum(e["error"] is not None for e in est),
-                   "judged_simulator": float(np.mean([p >= THRESHOLD for p in judged[t][v]])),
+                   "judged_simulator": float(np.mean([judged[t][v][k] >= THRESHOLD for k in done])),
                    "per_episode": episode_agreement([p[0] is not None for p in paired], [p[1] for p in paired]),
                    "by_success_chunk": by_success_chunk([p[0] for p in paired], [p[1] for p in paired], chunk)}
             if replayed is not None:
@@ -505,20 +509,31 @@ def run_evaluations(groups, a, ports, judge_url, episodes) -> dict:
     return read_estimates([o for _, _, _, o in procs])
 
 
-def read_estimates(dirs: list[str]) -> dict:
-    """{task: {variant: [record]}} from the episodes.jsonl that `bwm evaluate` wrote in each of `dirs`."""
+def read_estimates(dirs: list[str], cut: bool = False) -> dict:
+    """{task: {variant: [record]}} from the episodes.jsonl that `bwm evaluate` wrote in each of `dirs`.
+    `cut`: the study was stopped, so a process may have written no file yet, or half of its last line."""
     estimates: dict = {}
     for o in dirs:
         path = os.path.join(o, "episodes.jsonl")
         if not os.path.isfile(path):
+            if cut:
+                continue
             raise SystemExit(f"study: no {path} (was the study run in this folder?)")
         with open(path) as f:
-            for line in f:
+            lines = f.read().split("\n")
+        for i, line in enumerate(lines):
+            if not line.strip():
+                continue
+            try:
                 r = json.loads(line)
-                mine = estimates.setdefault(r["task"], {}).setdefault(r["policy"], [])
-                if any(e["episode"] == r["episode"] for e in mine):
-                    raise SystemExit(f"study: episode {r['episode']} of {r['policy']}/{r['task']} appears twice in {', '.join(dirs)}")
-                mine.append(r)
+            except json.JSONDecodeError:
+                if cut and i == len(lines) - 1:
+                    continue
+                raise SystemExit(f"study: line {i + 1} of {path} is not JSON")
+            mine = estimates.setdefault(r["task"], {}).setdefault(r["policy"], [])
+            if any(e["episode"] == r["episode"] for e in mine):
+                raise SystemExit(f"study: episode {r['episode']} of {r['policy']}/{r['task']} appears twice in {', '.join(dirs)}")
+            mine.append(r)
     return estimates
 
 
@@ -594,19 +609,34 @@ def main(argv=None) -> None:
     if a.rescore:
         # Everything checked before the truth is measured again (minutes) or its cache replaced.
         evals = sorted(glob.glob(os.path.join(a.out, "eval-*")))
-        if not evals or not os.path.isfile(judged_path) or not os.path.isfile(os.path.join(a.out, "study.json")):
-            raise SystemExit(f"study: --rescore needs a finished study in {a.out} (eval-*/, judged.json, study.json)")
-        with open(os.path.join(a.out, "study.json")) as f:
-            before = json.load(f)
+        if not evals or not os.path.isfile(judged_path):
+            raise SystemExit(f"study: --rescore needs a study in {a.out} (eval-*/, judged.json)")
+        study_path = os.path.join(a.out, "study.json")
+        cut = not os.path.isfile(study_path)
+        before = {}
+        if not cut:
+            with open(study_path) as f:
+                before = json.load(f)
         with open(judged_path) as f:
             found = json.load(f)
         # The judge's file is not needed again: its verdicts are kept with the episodes they judged.
         if {k: v for k, v in found["key"].items() if k not in ("judge", "outcome")} != episodes_key:
             raise SystemExit(f"study: {judged_path} holds other episodes than --data/--episodes/--variants ask for")
-        estimates = read_estimates(evals)
+        estimates = read_estimates(evals, cut)
         missing = [f"{v}/{t}" for t in tasks for v in variants if v not in estimates.get(t, {})]
-        if missing:
+        finished = sum(len(rs) for per in estimates.values() for rs in per.values())
+        planned = len(tasks) * len(variants) * a.episodes
+        if missing and not cut:
             raise SystemExit(f"study: {a.out}/eval-*/ hold no episodes of {', '.join(missing)}")
+        if cut:
+            # Scored over what it finished: the variants with episodes in every task (a mean over tasks needs them all).
+            variants = [v for v in variants if all(v in estimates.get(t, {}) for t in tasks)]
+            estimates = {t: {v: rs for v, rs in per.items() if v in variants} for t, per in estimates.items()}
+            if not variants:
+                raise SystemExit(f"study: the cut study in {a.out} finished no variant in every task")
+            scored = sum(len(rs) for per in estimates.values() for rs in per.values())
+            print(f"study: {a.out} was cut before its study.json: {finished} of {planned} world-model episodes finished, "
+                  f"{scored} scored" + (f" (the variants without episodes in every task left out: {', '.join(missing)})" if missing else ""))
     def judge_the_simulator():
         return cached(judged_path, "judged", {**episodes_key, "judge": file_digest(a.judge)},
                       lambda: judge_simulator(episodes, variants, a.horizon, a.chunk, a.resolution, a.workers, a.judge))
@@ -624,6 +654,9 @@ def main(argv=None) -> None:
         summary = summarize(truth, estimates, found["judged"], tasks, variants, a.chunk, replayed)
         for k in ("episodes_per_rate", "horizon", "world_model_flags", "episodes_in_flight"):
             summary[k] = before.get(k)
+        if cut:
+            summary["cut"] = {"episodes_finished": finished, "episodes_scored": scored, "episodes_planned": planned,
+                              "rates_without_episodes": missing}
         write_summary(a.out, summary, tasks, a.chunk)
         return
     judged = judge_the_simulator()

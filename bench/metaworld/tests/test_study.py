@@ -130,6 +130,65 @@ def test_evaluate_processes_share_the_cores_only_off_the_gpu():
     assert study.evaluate_env(["--device", "cuda"], 2, {"OMP_NUM_THREADS": "3"}) == {"OMP_NUM_THREADS": "3"}
     assert "OMP_NUM_THREADS" not in base
 
+def test_a_cut_study_is_scored_over_the_episodes_it_finished():
+    import json
+    import tempfile
+    tasks, variants = ["drawer-open-v3", "button-press-topdown-v3"], ["expert", "wrong"]
+    with tempfile.TemporaryDirectory() as d:
+        data, out = os.path.join(d, "val"), os.path.join(d, "study")
+        os.makedirs(os.path.join(data, "meta"))
+        with open(os.path.join(data, "meta", "episodes.jsonl"), "w") as f:
+            for i in range(6):
+                f.write(json.dumps({"episode_index": i, "tasks": [tasks[i % 2]], "seed": 100000 + i}) + "\n")
+        key = {"episodes": {"drawer-open-v3": [100000, 100002, 100004], "button-press-topdown-v3": [100001, 100003, 100005]},
+               "horizon": 48, "chunk": 24, "resolution": 64, "variants": variants}
+        # The expert succeeds in all three episodes of each task, `wrong` in none.
+        truth = {t: {"expert": [[40, 0.5]] * 3, "wrong": [[None, 6.0]] * 3} for t in tasks}
+        judged = {t: {"expert": [0.9] * 3, "wrong": [0.1] * 3} for t in tasks}
+        os.makedirs(os.path.join(out, "eval-0"))
+        os.makedirs(os.path.join(out, "eval-1"))  # a process that wrote nothing before the cut
+        with open(os.path.join(out, "truth.json"), "w") as f:
+            json.dump({"key": {**key, "outcome": "first success step, closest approach (cm)"}, "truth": truth}, f)
+        with open(os.path.join(out, "judged.json"), "w") as f:
+            json.dump({"key": {**key, "judge": "0" * 64}, "judged": judged}, f)
+        record = lambda t, v, k, ok: json.dumps({"task": t, "policy": v, "episode": k, "success": ok, "error": None})
+        with open(os.path.join(out, "eval-0", "episodes.jsonl"), "w") as f:
+            # The expert's first two drawer episodes and one button episode; the drawer's `wrong`
+            # once (drawn open); the button's `wrong` never; the last line half written.
+            f.write("\n".join([record(tasks[0], "expert", 0, True), record(tasks[0], "expert", 1, False),
+                               record(tasks[1], "expert", 2, True), record(tasks[0], "wrong", 1, True)]) + "\n")
+            f.write(record(tasks[1], "wrong", 0, False)[:20])
+        args = ["--data", data, "--out", out, "--tasks", ",".join(tasks), "--variants", ",".join(variants), "--episodes", "3",
+                "--horizon", "48", "--resolution", "64", "--workers", "1", "--rescore"]
+        study.main(args)
+        with open(os.path.join(out, "study.json")) as f:
+            s = json.load(f)
+        # `wrong` left out (no button episode finished), its drawer episode with it.
+        assert s["cut"] == {"episodes_finished": 4, "episodes_scored": 3, "episodes_planned": 12,
+                            "rates_without_episodes": ["wrong/button-press-topdown-v3"]}, s["cut"]
+        rows = {(r["task"], r["variant"]): r for r in s["rates"]}
+        assert set(rows) == {(t, "expert") for t in tasks}, rows
+        drawer = rows[(tasks[0], "expert")]
+        assert (drawer["episodes"], drawer["true"], drawer["estimated"], drawer["judged_simulator"]) == (2, 1.0, 0.5, 1.0), drawer
+        assert drawer["per_episode"]["missed"] == 1 and s["per_episode"]["n"] == 3, s["per_episode"]
+        # Once scored it is a finished study: its processes' files must be whole.
+        try:
+            study.main(args)
+        except SystemExit as e:
+            assert str(e) == f"study: line 5 of {os.path.join(out, 'eval-0', 'episodes.jsonl')} is not JSON", e
+        else:
+            raise AssertionError("a finished study scored with a half-written episode")
+        # A cut study that finished no episode is refused, not scored empty.
+        os.remove(os.path.join(out, "study.json"))
+        os.remove(os.path.join(out, "eval-0", "episodes.jsonl"))
+        try:
+            study.main(args)
+        except SystemExit as e:
+            assert "finished no variant in every task" in str(e), e
+        else:
+            raise AssertionError("scored a cut study without episodes")
+
+
 if __name__ == "__main__":
     for name, fn in list(globals().items()):
         if name.startswith("test_"):

@@ -7,8 +7,8 @@
 # data depend on: TASKS, TRAIN_EPISODES, VAL_EPISODES, SPREAD, MISS_CM, MISS_BOUNDARY, MISS_WEIGHT,
 # DECOY, FRAMES or RESOLUTION; then it makes its own, or uses an earlier variant's made with the
 # same values of those, starting once they are written) with its variables, on GPU i mod the machine's GPU count for
-# the i-th variant, all at once; each trains its judge beside its VAE, as the recipe does (a judge
-# made first for all would hold every variant back by its 2 minutes). With STAGES (default: every
+# the i-th variant, all at once; each trains its own judge, as the recipe does (it learns from the
+# variant's VAE, so it trains after it, beside the latents and the DiT). With STAGES (default: every
 # stage) picking stages, e.g. STAGES="vae ceiling" to compare VAEs alone, one judge of real frames
 # (JUDGE_FRAMES=real: the recipe's own learns from each variant's VAE) is made first for all and
 # linked into each variant's folder, and the variants use it unless they set JUDGE_FRAMES. In "VAR=VALUE ...", a word that is not NAME=...

@@ -570,7 +570,8 @@ def main(argv=None) -> None:
                     help="judge the simulator's frames of the episodes (or find them cached) in DIR/judged.json and stop")
     ap.add_argument("--rescore", action="store_true",
                     help="score the world-model episodes already in DIR/eval-*/ again (the truth measured again when its "
-                         "cache is of another kind), without running the world model or the judge")
+                         "cache is of another kind), without running the world model or the judge; a study cut before its "
+                         "study.json is scored over the episodes it finished")
     ap.add_argument("--bwm", default=os.path.join(os.environ.get("CARGO_TARGET_DIR", "target"), "release", "bwm"))
     a = ap.parse_args(argv)
     a.wm = wm

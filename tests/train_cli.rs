@@ -344,3 +344,37 @@ fn a_lora_run_exports_and_rolls_out_through_the_cli() {
     let (ok, text) = roll(&["--checkpoint", base.to_str().unwrap(), "--lora", dir.join("nope").to_str().unwrap()]);
     assert!(!ok && text.contains("--lora"), "{text}");
 }
+
+#[test]
+fn an_action_encoder_with_fourier_features_trains_exports_and_rolls_out() {
+    let dir = temp_dir("fourier-cli");
+    write_cache(&dir.join("cache"));
+    let config = write_config(&dir, "run.toml", &dir.join("run"), 1, 1);
+    let out = Command::new(bwm()).args(["train", "--config"]).arg(&config).args(["--set", "model.action.fourier_bands=3"]).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let ckpt = dir.join("run/checkpoints/step-00000001");
+    let saved = std::fs::read_to_string(ckpt.join("config.toml")).unwrap();
+    assert!(saved.contains("fourier_bands = 3"), "{saved}");
+    // 14-D actions, each with 3 octaves of sines and cosines: 14 * 7 inputs.
+    let weights = final_weights(&dir.join("run"));
+    let first = weights.iter().find(|(n, _)| n.ends_with("action_mlp1.0.weight")).expect("action_mlp1.0.weight");
+    assert_eq!(first.1.size()[1], 14 * 7, "{}", first.0);
+
+    let exported = dir.join("export");
+    let out = Command::new(bwm()).args(["export", "--checkpoint"]).arg(&ckpt).args(["--layout", "diffusers", "--out"]).arg(&exported).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let json = |p: &str| -> serde_json::Value { serde_json::from_slice(&std::fs::read(exported.join(p)).unwrap()).unwrap() };
+    assert_eq!(json("config.json")["action"]["fourier_bands"], 3);
+    assert_eq!(json("action_encoder/config.json")["fourier_bands"], 3);
+    assert!(std::fs::read_to_string(exported.join("README.md")).unwrap().contains("Fourier features over 3 octaves"));
+
+    for model in [&ckpt, &exported] {
+        let out = Command::new(bwm())
+            .args(["bench-rollout", "--checkpoint"])
+            .arg(model)
+            .args(["--random-vae", "--device", "cpu", "--history", "4", "--future", "4", "--sample-steps", "1", "--height", "32", "--width", "64", "--chunks", "1"])
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "{}: {}", model.display(), String::from_utf8_lossy(&out.stderr));
+    }
+}

@@ -119,9 +119,10 @@ impl DitConfig {
     }
 }
 
-/// The BWM action interface (`WanVideoActionEncoder`, ti2v2 path).
+/// The BWM action interface (`WanVideoActionEncoder`, ti2v2 path); keys left out take the
+/// defaults (BWM's 14-D actions).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[serde(deny_unknown_fields, default)]
 pub struct ActionConfig {
     /// d_a: 14 for two arms' absolute end-effector poses (xyz, euler, gripper per arm).
     pub action_dim: i64,
@@ -130,11 +131,23 @@ pub struct ActionConfig {
     pub prepend: i64,
     /// G: actions per latent frame (the VAE's temporal stride).
     pub group: i64,
+    /// B: when above 0, each normalized action value a also enters the encoder as sin(2^k*pi*a)
+    /// and cos(2^k*pi*a) for k < B (Fourier features, Tancik et al. 2020), so that the
+    /// encoder can resolve fine differences of a command; 0 is BWM's encoder.
+    #[serde(skip_serializing_if = "is_zero")]
+    pub fourier_bands: i64,
 }
+
+fn is_zero(v: &i64) -> bool {
+    *v == 0
+}
+
+/// The most octaves: at k = 11, sin(2^k*pi*a) turns over every 0.001 of a normalized command.
+pub const MAX_FOURIER_BANDS: i64 = 12;
 
 impl Default for ActionConfig {
     fn default() -> Self {
-        Self { action_dim: 14, prepend: 3, group: 4 }
+        Self { action_dim: 14, prepend: 3, group: 4, fourier_bands: 0 }
     }
 }
 
@@ -147,7 +160,17 @@ impl ActionConfig {
             "action.prepend must be in 0..group, got {}",
             self.prepend
         );
+        ensure!(
+            (0..=MAX_FOURIER_BANDS).contains(&self.fourier_bands),
+            "action.fourier_bands must be in 0..={MAX_FOURIER_BANDS}, got {}",
+            self.fourier_bands
+        );
         Ok(())
+    }
+
+    /// Values per frame that the encoder's first layers see: d_a, times 1 + 2B with Fourier features.
+    pub fn encoded_dim(&self) -> i64 {
+        self.action_dim * (1 + 2 * self.fourier_bands)
     }
 
     /// Latent frames the actions of `frames` pixel frames describe; an error unless
@@ -214,5 +237,22 @@ bogus = 1"#;
         assert_eq!(a.latent_frames(1).unwrap(), 1);
         let e = a.latent_frames(80).unwrap_err().to_string();
         assert!(e.contains("4k+1"), "{e}");
+    }
+
+    #[test]
+    fn fourier_bands_default_to_none_and_are_bounded() {
+        let plain: ActionConfig = toml::from_str("action_dim = 4\nprepend = 3\ngroup = 4").unwrap();
+        assert_eq!((plain.fourier_bands, plain.encoded_dim()), (0, 4));
+        let only: ActionConfig = toml::from_str("fourier_bands = 2").unwrap();
+        assert_eq!(only, ActionConfig { fourier_bands: 2, ..ActionConfig::default() });
+        assert!(!toml::to_string(&plain).unwrap().contains("fourier"), "BWM's encoder writes its config as before");
+        let f: ActionConfig = toml::from_str("action_dim = 4\nprepend = 3\ngroup = 4\nfourier_bands = 6").unwrap();
+        f.validate().unwrap();
+        assert_eq!(f.encoded_dim(), 4 * 13);
+        assert_eq!(toml::from_str::<ActionConfig>(&toml::to_string(&f).unwrap()).unwrap(), f);
+        for bad in [-1, MAX_FOURIER_BANDS + 1] {
+            let e = ActionConfig { fourier_bands: bad, ..f.clone() }.validate().unwrap_err().to_string();
+            assert!(e.contains("action.fourier_bands"), "{e}");
+        }
     }
 }

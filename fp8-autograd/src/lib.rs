@@ -1,0 +1,96 @@
+//! A linear layer trained in FP8: `linear(x, w, b)` is x W^T + b whose forward product and both
+//! backward products (the gradients of x and of W) run through libtorch's `_scaled_mm` in float8,
+//! as torchao's float8 "tensorwise" training recipe does: x and W in e4m3, the incoming gradient in
+//! e5m2, each scaled from its own absolute maximum on every call. The weights themselves (and any
+//! fp32 masters and optimizer state the trainer keeps) are untouched; only the products are FP8.
+//! libtorch's autograd cannot be given a custom backward from tch, so the function is C++
+//! (src/fp8_linear.cpp).
+
+use std::ffi::{c_char, CStr};
+
+use anyhow::{bail, ensure, Result};
+use tch::Tensor;
+use torch_sys::C_tensor;
+
+extern "C" {
+    fn bwm_fp8_linear(x: *const C_tensor, w: *const C_tensor, b: *const C_tensor, out: *mut *mut C_tensor) -> *const c_char;
+}
+
+/// x [..., in] -> x W^T + b [..., out] in x's dtype, differentiable in x, W and b. W [out, in]
+/// needs both dimensions multiples of 16 (CUDA's FP8 matmuls); x's rows may be any number.
+pub fn linear(x: &Tensor, w: &Tensor, b: &Tensor) -> Result<Tensor> {
+    let ws = w.size();
+    ensure!(ws.len() == 2, "an FP8 linear's weight must be [out, in], got {ws:?}");
+    ensure!(ws[0] % 16 == 0 && ws[1] % 16 == 0, "FP8 matmuls need both weight dimensions to be multiples of 16, got {ws:?}");
+    ensure!(b.size() == [ws[0]], "the bias must be [{}], got {:?}", ws[0], b.size());
+    let shape = x.size();
+    ensure!(shape.last() == Some(&ws[1]), "the input's last dimension must be {}, got {shape:?}", ws[1]);
+    let x2 = x.reshape([-1, ws[1]]);
+    let mut out: *mut C_tensor = std::ptr::null_mut();
+    // SAFETY: the pointers are live tch tensors (at::Tensor*), and `out` receives a new
+    // at::Tensor* that `Tensor::from_ptr` takes ownership of.
+    let err = unsafe { bwm_fp8_linear(x2.as_ptr(), w.as_ptr(), b.as_ptr(), &mut out) };
+    if !err.is_null() {
+        bail!("FP8 linear: {}", unsafe { CStr::from_ptr(err) }.to_string_lossy());
+    }
+    let y = unsafe { Tensor::from_ptr(out) };
+    let mut out_shape = shape[..shape.len() - 1].to_vec();
+    out_shape.push(ws[0]);
+    Ok(y.view(out_shape.as_slice()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tch::{Device, Kind};
+
+    fn rel_err(a: &Tensor, b: &Tensor) -> f64 {
+        let (a, b) = (a.to_kind(Kind::Float), b.to_kind(Kind::Float));
+        (&a - &b).norm().double_value(&[]) / b.norm().double_value(&[])
+    }
+
+    /// Forward and both gradients against the same products in fp32, for fp32 and bf16 inputs:
+    /// FP8's 3 (e4m3) and 2 (e5m2) mantissa bits leave a few percent of relative error, not more.
+    #[test]
+    fn the_products_and_gradients_follow_fp32() {
+        for kind in [Kind::Float, Kind::BFloat16] {
+            tch::manual_seed(0);
+            // 37 rows: not a multiple of 16, so the padding is exercised.
+            let leaf = |t: Tensor| t.to_kind(kind).set_requires_grad(true);
+            let x = leaf(Tensor::randn([37, 64], (Kind::Float, Device::Cpu)));
+            let w = leaf(Tensor::randn([32, 64], (Kind::Float, Device::Cpu)) * 0.1);
+            let b = leaf(Tensor::randn([32], (Kind::Float, Device::Cpu)));
+            let up = Tensor::randn([37, 32], (Kind::Float, Device::Cpu));
+
+            let y = linear(&x, &w, &b).unwrap();
+            assert_eq!((y.size(), y.kind()), (vec![37, 32], kind));
+            (y.to_kind(Kind::Float) * &up).sum(Kind::Float).backward();
+            let got = [y.detach(), x.grad().copy(), w.grad().copy(), b.grad().copy()];
+            assert!(got[1..].iter().all(|g| g.kind() == kind), "gradients in the parameters' dtype");
+
+            let leaf32 = |t: &Tensor| t.detach().to_kind(Kind::Float).set_requires_grad(true);
+            let (x32, w32, b32) = (leaf32(&x), leaf32(&w), leaf32(&b));
+            let reference = x32.linear(&w32, Some(&b32));
+            (&reference * &up).sum(Kind::Float).backward();
+            let want = [reference.detach(), x32.grad(), w32.grad(), b32.grad()];
+            for ((name, tol), (g, r)) in [("y", 0.08), ("dx", 0.12), ("dW", 0.12), ("db", 0.01)].into_iter().zip(got.iter().zip(&want)) {
+                let e = rel_err(g, r);
+                assert!(e < tol, "{kind:?} {name}: relative error {e:.4} (tolerance {tol})");
+            }
+            // And not the same numbers: the products really went through float8.
+            assert!(rel_err(&got[0], &want[0]) > 1e-3, "{kind:?}");
+        }
+    }
+
+    #[test]
+    fn leading_dimensions_are_kept_and_bad_shapes_refused() {
+        let x = Tensor::randn([2, 3, 32], (Kind::Float, Device::Cpu));
+        let w = Tensor::randn([16, 32], (Kind::Float, Device::Cpu));
+        let b = Tensor::zeros([16], (Kind::Float, Device::Cpu));
+        assert_eq!(linear(&x, &w, &b).unwrap().size(), [2, 3, 16]);
+        let e = linear(&x, &Tensor::randn([16, 24], (Kind::Float, Device::Cpu)), &b).unwrap_err().to_string();
+        assert!(e.contains("multiples of 16"), "{e}");
+        let e = linear(&Tensor::randn([2, 16], (Kind::Float, Device::Cpu)), &w, &b).unwrap_err().to_string();
+        assert!(e.contains("last dimension must be 32"), "{e}");
+    }
+}

@@ -378,3 +378,31 @@ fn an_action_encoder_with_fourier_features_trains_exports_and_rolls_out() {
         assert!(out.status.success(), "{}: {}", model.display(), String::from_utf8_lossy(&out.stderr));
     }
 }
+
+#[test]
+fn fp8_training_follows_the_exact_run_closely_but_not_exactly() {
+    let dir = temp_dir("fp8-train");
+    write_cache(&dir.join("cache"));
+    let losses = |name: &str, sets: &[&str]| -> Vec<f64> {
+        let config = write_config(&dir, &format!("{name}.toml"), &dir.join(name), 4, 1);
+        let mut cmd = Command::new(bwm());
+        cmd.args(["train", "--config"]).arg(&config);
+        for s in sets {
+            cmd.args(["--set", s]);
+        }
+        let out = cmd.output().unwrap();
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        let metrics = std::fs::read_to_string(dir.join(name).join("metrics.jsonl")).unwrap();
+        metrics.lines().map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()["loss"].as_f64().unwrap()).collect()
+    };
+    let exact = losses("exact", &[]);
+    let fp8 = losses("fp8", &["train.fp8=true"]);
+    assert_eq!((exact.len(), fp8.len()), (4, 4));
+    for (step, (e, f)) in exact.iter().zip(&fp8).enumerate() {
+        assert!(f.is_finite() && ((f - e) / e).abs() < 0.05, "step {}: FP8 loss {f} against {e}", step + 1);
+    }
+    assert_ne!(exact, fp8, "the FP8 run's products went through float8");
+    let (we, wf) = (final_weights(&dir.join("exact")), final_weights(&dir.join("fp8")));
+    let moved = we.iter().zip(&wf).filter(|((_, a), (_, b))| !a.equal(b)).count();
+    assert!(moved > 0, "FP8 gradients moved the block weights differently");
+}

@@ -104,35 +104,6 @@ impl Fp8Weight {
     }
 }
 
-/// Quantizes the linear layers of every DiT block (self- and cross-attention q, k, v, o and the
-/// FFN) to FP8; the embeddings, time projection and head keep their dtype, as torchao's float8
-/// recipe leaves the first and last layers. Returns how many layers were quantized.
-pub fn quantize_dit_blocks(dit: &mut crate::dit::WanDit, scaling: Fp8Scaling) -> Result<usize> {
-    let mut n = 0;
-    for (i, block) in dit.blocks.iter_mut().enumerate() {
-        let linears = [
-            ("self_attn.q", &mut block.self_attn.q),
-            ("self_attn.k", &mut block.self_attn.k),
-            ("self_attn.v", &mut block.self_attn.v),
-            ("self_attn.o", &mut block.self_attn.o),
-            ("cross_attn.q", &mut block.cross_attn.q),
-            ("cross_attn.k", &mut block.cross_attn.k),
-            ("cross_attn.v", &mut block.cross_attn.v),
-            ("cross_attn.o", &mut block.cross_attn.o),
-            ("ffn.0", &mut block.ffn.l0),
-            ("ffn.2", &mut block.ffn.l2),
-        ];
-        for (name, linear) in linears {
-            ensure!(linear.lora.is_none(), "blocks.{i}.{name} carries a LoRA adapter; merge it before quantizing to FP8");
-            let weight = tch::no_grad(|| Fp8Weight::new(&linear.weight, scaling))
-                .map_err(|e| e.context(format!("blocks.{i}.{name}")))?;
-            linear.fp8 = Some(weight);
-            n += 1;
-        }
-    }
-    Ok(n)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;

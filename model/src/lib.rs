@@ -6,6 +6,7 @@ pub mod bwm;
 pub mod config;
 pub mod dit;
 pub mod fp8;
+pub mod fp8_dit;
 pub mod keyed_rng;
 pub mod lora;
 pub mod nn;

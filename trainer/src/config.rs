@@ -308,6 +308,12 @@ pub struct TrainSection {
     /// Non-finite losses or gradients skip the update; this many in a row abort the run.
     #[serde(default = "default_max_nonfinite")]
     pub max_nonfinite_in_row: u32,
+    /// The DiT blocks' linear layers run their forward and backward products in FP8 (per-tensor
+    /// dynamic scales, e4m3 forward, e5m2 gradients, as torchao's float8 training recipe); the
+    /// weights, fp32 masters, optimizer and norms stay as they are. Needs FP8 matmuls on the device
+    /// (Hopper or newer on CUDA; any CPU) and no LoRA.
+    #[serde(default)]
+    pub fp8: bool,
 }
 
 fn one() -> usize {

@@ -216,6 +216,9 @@ impl Trainer {
         let clip_encoder = clip_encoder(&cfg, &cache, device)?;
         let mut model = build_model(&cfg, &model_cfg, device)?;
         model.dit.residual = cfg.model.residual.kind(cfg.model.dtype.kind());
+        if cfg.train.fp8 {
+            bwm_model::fp8_dit::train_dit_blocks_in_fp8(&mut model.dit).context("train.fp8")?;
+        }
         let named = model.store.named_parameters();
         let sharding = Sharding { rank: comm.rank(), world: comm.world_size(), sharded: cfg.train.shard_optimizer };
         let mut opt = AdamW::new(&named, &cfg.trainable_patterns(), &cfg.train.frozen, &cfg.optim, cfg.train.steps, sharding)?;

@@ -1,0 +1,89 @@
+//! FP8 applied to the DiT from outside the model code, as the trainer and the inference loader
+//! choose: the blocks' linear layers quantized for inference (`fp8::Fp8Weight`), or trained with
+//! their products in FP8 (`bwm_fp8_autograd`).
+
+use anyhow::{ensure, Result};
+use tch::Tensor;
+
+use crate::dit::WanDit;
+use crate::fp8::{Fp8Scaling, Fp8Weight};
+use crate::nn::Linear;
+
+/// The linear layers of every DiT block (self- and cross-attention q, k, v, o and the FFN) by
+/// name: the embeddings, time projection and head are left out, as torchao's float8 recipe leaves
+/// the first and last layers.
+fn block_linears(dit: &mut WanDit) -> Vec<(String, &mut Linear)> {
+    let mut out = Vec::new();
+    for (i, block) in dit.blocks.iter_mut().enumerate() {
+        let linears = [
+            ("self_attn.q", &mut block.self_attn.q),
+            ("self_attn.k", &mut block.self_attn.k),
+            ("self_attn.v", &mut block.self_attn.v),
+            ("self_attn.o", &mut block.self_attn.o),
+            ("cross_attn.q", &mut block.cross_attn.q),
+            ("cross_attn.k", &mut block.cross_attn.k),
+            ("cross_attn.v", &mut block.cross_attn.v),
+            ("cross_attn.o", &mut block.cross_attn.o),
+            ("ffn.0", &mut block.ffn.l0),
+            ("ffn.2", &mut block.ffn.l2),
+        ];
+        out.extend(linears.into_iter().map(|(name, l)| (format!("blocks.{i}.{name}"), l)));
+    }
+    out
+}
+
+/// Quantizes the DiT blocks' linear layers (`block_linears`) to FP8 for inference. Returns how
+/// many layers were quantized.
+pub fn quantize_dit_blocks(dit: &mut WanDit, scaling: Fp8Scaling) -> Result<usize> {
+    let mut n = 0;
+    for (name, linear) in block_linears(dit) {
+        ensure!(linear.lora.is_none(), "{name} carries a LoRA adapter; merge it before quantizing to FP8");
+        let weight = tch::no_grad(|| Fp8Weight::new(&linear.weight, scaling)).map_err(|e| e.context(name))?;
+        linear.fp8 = Some(weight);
+        n += 1;
+    }
+    Ok(n)
+}
+
+/// Trains the DiT blocks' linear layers (`block_linears`) with their three products in FP8
+/// (`bwm_fp8_autograd`: per-tensor dynamic scales, e4m3 forward, e5m2 gradients); the weights,
+/// and whatever masters and optimizer state the trainer keeps, stay as they are. Checks every
+/// layer's shape and, with one small product, that the device has FP8 matmuls. Returns how many
+/// layers train so.
+pub fn train_dit_blocks_in_fp8(dit: &mut WanDit) -> Result<usize> {
+    let mut n = 0;
+    for (name, linear) in block_linears(dit) {
+        ensure!(linear.lora.is_none(), "{name} carries a LoRA adapter; FP8 training covers full weights only");
+        let probe = tch::no_grad(|| {
+            let w = &linear.weight;
+            let x = Tensor::zeros([1, w.size()[1]], (w.kind(), w.device()));
+            bwm_fp8_autograd::linear(&x, w, &linear.bias).map(drop)
+        });
+        probe.map_err(|e| e.context(format!("{name} cannot train in FP8 on {:?}", linear.weight.device())))?;
+        linear.fp8_training = true;
+        n += 1;
+    }
+    Ok(n)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::DitConfig;
+    use crate::vb::{with_seed, ParamStore};
+    use tch::{Device, Kind};
+
+    fn tiny() -> WanDit {
+        with_seed(0, || WanDit::new(&ParamStore::random(Kind::Float, Device::Cpu).root(), &DitConfig::tiny())).unwrap()
+    }
+
+    #[test]
+    fn every_block_linear_is_named_and_switched() {
+        let mut dit = tiny();
+        let names: Vec<String> = block_linears(&mut dit).into_iter().map(|(n, _)| n).collect();
+        assert_eq!(names.len(), 10 * dit.blocks.len());
+        assert_eq!((names[0].as_str(), names[9].as_str()), ("blocks.0.self_attn.q", "blocks.0.ffn.2"));
+        assert_eq!(train_dit_blocks_in_fp8(&mut dit).unwrap(), names.len());
+        assert!(block_linears(&mut dit).iter().all(|(_, l)| l.fp8_training && l.fp8.is_none()));
+    }
+}

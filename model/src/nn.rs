@@ -18,7 +18,7 @@ pub struct Linear {
     /// gradient flows through it).
     pub fp8: Option<Fp8Weight>,
     /// The forward and backward products in FP8 from `weight` itself on each call (training;
-    /// `fp8::train_dit_blocks_in_fp8` sets it after checking the shapes and the device).
+    /// `fp8_dit::train_dit_blocks_in_fp8` sets it after checking the shapes and the device).
     pub fp8_training: bool,
 }
 
@@ -37,7 +37,7 @@ impl Linear {
         let y = match &self.fp8 {
             Some(w) => w.linear(&x, &self.bias, self.weight.kind()),
             None if self.fp8_training => bwm_fp8_autograd::linear(&x, &self.weight, &self.bias)
-                .expect("an FP8 training linear failed after fp8::train_dit_blocks_in_fp8 checked its shapes and device"),
+                .expect("an FP8 training linear failed after fp8_dit::train_dit_blocks_in_fp8 checked its shapes and device"),
             None => x.linear(&self.weight, Some(&self.bias)),
         };
         match &self.lora {

@@ -51,8 +51,9 @@ pub fn quantize_dit_blocks(dit: &mut WanDit, scaling: Fp8Scaling) -> Result<usiz
 /// layer's shape and, with one small product, that the device has FP8 matmuls. Returns how many
 /// layers train so.
 pub fn train_dit_blocks_in_fp8(dit: &mut WanDit) -> Result<usize> {
-    let mut n = 0;
-    for (name, linear) in block_linears(dit) {
+    let mut linears = block_linears(dit);
+    // Every layer checked before any is switched: an error leaves the model as it was.
+    for (name, linear) in &linears {
         ensure!(linear.lora.is_none(), "{name} carries a LoRA adapter; FP8 training covers full weights only");
         let probe = tch::no_grad(|| {
             let w = &linear.weight;
@@ -60,30 +61,48 @@ pub fn train_dit_blocks_in_fp8(dit: &mut WanDit) -> Result<usize> {
             bwm_fp8_autograd::linear(&x, w, &linear.bias).map(drop)
         });
         probe.map_err(|e| e.context(format!("{name} cannot train in FP8 on {:?}", linear.weight.device())))?;
-        linear.fp8_training = true;
-        n += 1;
     }
-    Ok(n)
+    for (_, linear) in &mut linears {
+        linear.fp8_training = true;
+    }
+    Ok(linears.len())
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::config::DitConfig;
+    use crate::lora::LoraConfig;
     use crate::vb::{with_seed, ParamStore};
     use tch::{Device, Kind};
 
-    fn tiny() -> WanDit {
-        with_seed(0, || WanDit::new(&ParamStore::random(Kind::Float, Device::Cpu).root(), &DitConfig::tiny())).unwrap()
+    fn tiny(lora: Option<LoraConfig>) -> WanDit {
+        with_seed(0, || {
+            let store = ParamStore::random(Kind::Float, Device::Cpu);
+            if let Some(cfg) = lora {
+                store.enable_lora(cfg, 0).unwrap();
+            }
+            WanDit::new(&store.root(), &DitConfig::tiny())
+        })
+        .unwrap()
     }
 
     #[test]
     fn every_block_linear_is_named_and_switched() {
-        let mut dit = tiny();
+        let mut dit = tiny(None);
         let names: Vec<String> = block_linears(&mut dit).into_iter().map(|(n, _)| n).collect();
         assert_eq!(names.len(), 10 * dit.blocks.len());
         assert_eq!((names[0].as_str(), names[9].as_str()), ("blocks.0.self_attn.q", "blocks.0.ffn.2"));
         assert_eq!(train_dit_blocks_in_fp8(&mut dit).unwrap(), names.len());
         assert!(block_linears(&mut dit).iter().all(|(_, l)| l.fp8_training && l.fp8.is_none()));
+    }
+
+    #[test]
+    fn layers_with_lora_adapters_are_refused() {
+        let lora = LoraConfig { rank: 2, alpha: None, dropout: 0.0, targets: vec!["blocks.*.ffn.*".into()] };
+        let mut dit = tiny(Some(lora));
+        let e = train_dit_blocks_in_fp8(&mut dit).unwrap_err().to_string();
+        assert!(e.contains("blocks.0.ffn.0 carries a LoRA adapter"), "{e}");
+        assert!(block_linears(&mut dit).iter().all(|(_, l)| !l.fp8_training), "no layer switched");
     }
 }

@@ -338,6 +338,8 @@ def summarize(truth: dict, estimates: dict, judged: dict, tasks: list[str], vari
                 again = [(f is not None, d, cm, probability_of[k]) for k, d, f, cm in row["replayed_episodes"]]
                 row["replayed"] = float(np.mean([a[0] for a in again]))
                 row["per_episode_replayed"] = episode_agreement([a[0] for a in again], [a[1] for a in again])
+                # Where this variant's hands went and what each world drew there (run 27's table).
+                row["by_approach_replayed"] = by_approach([a[2] for a in again], [a[0] for a in again], [a[1] for a in again])
                 replayed_by_task[t] += again
             rows.append(row)
     per_task = {}

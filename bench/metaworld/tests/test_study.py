@@ -59,6 +59,7 @@ def test_replayed_actions_split_the_world_models_error_from_the_policies():
     assert s["replayed"]["by_approach"] == {"t": {"0-2 cm": {"episodes": 2, "true": 2, "drawn": 2},
                                                   "6-8 cm": {"episodes": 1, "true": 0, "drawn": 1},
                                                   "10+ cm": {"episodes": 1, "true": 0, "drawn": 0}}}, s["replayed"]
+    assert row["by_approach_replayed"] == s["replayed"]["by_approach"]["t"], row  # one variant: the task's
     assert s["replayed"]["replayed_vs_true"]["mae"] == 0.25 and s["replayed"]["estimated_vs_replayed"]["mae"] == 0.25
     # The judge's probabilities on the world model's frames, by the replay's outcome and its own.
     bands = s["replayed"]["by_probability"]["t"]
@@ -67,7 +68,7 @@ def test_replayed_actions_split_the_world_models_error_from_the_policies():
     assert sum(bands["missed"].values()) == 0, bands
     # Without replays (records without actions) nothing of it appears.
     plain = study.summarize(truth, estimates, judged, ["t"], ["a"], chunk=24)
-    assert "replayed" not in plain and "replayed" not in plain["rates"][0]
+    assert "replayed" not in plain and "replayed" not in plain["rates"][0] and "by_approach_replayed" not in plain["rates"][0]
     assert study.replay_world_model({"t": {"a": [{"episode": 0, "success": True}]}}, {"t": [(0, 1)]}, 64, 1) is None
 
 

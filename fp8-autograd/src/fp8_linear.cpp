@@ -43,7 +43,6 @@ struct Fp8Linear : public torch::autograd::Function<Fp8Linear> {
     auto wq = quantize(w, at::kFloat8_e4m3fn, E4M3_MAX);
     auto y = at::_scaled_mm(xq.q, wq.q.t(), xq.scale, wq.scale, std::nullopt, std::nullopt, x.scalar_type(), true);
     ctx->save_for_backward({xq.q, xq.scale, wq.q, wq.scale});
-    ctx->saved_data["rows"] = m;
     ctx->saved_data["w_dtype"] = static_cast<int64_t>(w.scalar_type());
     return y.narrow(0, 0, m) + b.to(x.scalar_type());
   }
@@ -51,9 +50,9 @@ struct Fp8Linear : public torch::autograd::Function<Fp8Linear> {
   static torch::autograd::variable_list backward(torch::autograd::AutogradContext* ctx, torch::autograd::variable_list grads) {
     auto saved = ctx->get_saved_variables();
     const auto &xq = saved[0], &x_scale = saved[1], &wq = saved[2], &w_scale = saved[3];
-    const int64_t m = ctx->saved_data["rows"].toInt();
     const auto w_dtype = static_cast<at::ScalarType>(ctx->saved_data["w_dtype"].toInt());
     auto g = grads[0].contiguous();
+    const int64_t m = g.size(0);  // x's rows before padding
     auto gb = g.sum(0).to(w_dtype);
     if (padded(m) != m) g = at::constant_pad_nd(g, {0, 0, 0, padded(m) - m});
     auto gq = quantize(g, at::kFloat8_e5m2, E5M2_MAX);

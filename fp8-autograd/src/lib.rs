@@ -16,13 +16,21 @@ extern "C" {
     fn bwm_fp8_linear(x: *const C_tensor, w: *const C_tensor, b: *const C_tensor, out: *mut *mut C_tensor) -> *const c_char;
 }
 
-/// x [..., in] -> x W^T + b [..., out] in x's dtype, differentiable in x, W and b. W [out, in]
-/// needs both dimensions multiples of 16 (CUDA's FP8 matmuls); x's rows may be any number.
-pub fn linear(x: &Tensor, w: &Tensor, b: &Tensor) -> Result<Tensor> {
+/// Whether `linear` takes this weight [out, in] and bias [out]: both weight dimensions multiples
+/// of 16 (CUDA's FP8 matmuls).
+pub fn check_weight(w: &Tensor, b: &Tensor) -> Result<()> {
     let ws = w.size();
     ensure!(ws.len() == 2, "an FP8 linear's weight must be [out, in], got {ws:?}");
     ensure!(ws[0] % 16 == 0 && ws[1] % 16 == 0, "FP8 matmuls need both weight dimensions to be multiples of 16, got {ws:?}");
     ensure!(b.size() == [ws[0]], "the bias must be [{}], got {:?}", ws[0], b.size());
+    Ok(())
+}
+
+/// x [..., in] -> x W^T + b [..., out] in x's dtype, differentiable in x, W and b. W [out, in]
+/// needs both dimensions multiples of 16 (CUDA's FP8 matmuls); x's rows may be any number.
+pub fn linear(x: &Tensor, w: &Tensor, b: &Tensor) -> Result<Tensor> {
+    check_weight(w, b)?;
+    let ws = w.size();
     let shape = x.size();
     ensure!(shape.last() == Some(&ws[1]), "the input's last dimension must be {}, got {shape:?}", ws[1]);
     let x2 = x.reshape([-1, ws[1]]);

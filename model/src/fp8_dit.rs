@@ -48,19 +48,20 @@ pub fn quantize_dit_blocks(dit: &mut WanDit, scaling: Fp8Scaling) -> Result<usiz
 /// Trains the DiT blocks' linear layers (`block_linears`) with their three products in FP8
 /// (`bwm_fp8_autograd`: per-tensor dynamic scales, e4m3 forward, e5m2 gradients); the weights,
 /// and whatever masters and optimizer state the trainer keeps, stay as they are. Checks every
-/// layer's shape and, with one small product, that the device has FP8 matmuls. Returns how many
-/// layers train so.
+/// layer's shape and, with one small product, that the device has FP8 matmuls; an error leaves
+/// the model as it was. Returns how many layers train so.
 pub fn train_dit_blocks_in_fp8(dit: &mut WanDit) -> Result<usize> {
     let mut linears = block_linears(dit);
-    // Every layer checked before any is switched: an error leaves the model as it was.
     for (name, linear) in &linears {
         ensure!(linear.lora.is_none(), "{name} carries a LoRA adapter; FP8 training covers full weights only");
-        let probe = tch::no_grad(|| {
-            let w = &linear.weight;
-            let x = Tensor::zeros([1, w.size()[1]], (w.kind(), w.device()));
-            bwm_fp8_autograd::linear(&x, w, &linear.bias).map(drop)
-        });
-        probe.map_err(|e| e.context(format!("{name} cannot train in FP8 on {:?}", linear.weight.device())))?;
+        bwm_fp8_autograd::check_weight(&linear.weight, &linear.bias).map_err(|e| e.context(format!("{name} cannot train in FP8")))?;
+    }
+    // The blocks share one device and dtype: one product says whether it has FP8 matmuls.
+    if let Some((name, linear)) = linears.first() {
+        let w = &linear.weight;
+        let x = Tensor::zeros([1, w.size()[1]], (w.kind(), w.device()));
+        tch::no_grad(|| bwm_fp8_autograd::linear(&x, w, &linear.bias).map(drop))
+            .map_err(|e| e.context(format!("{name} cannot train in FP8 on {:?}", w.device())))?;
     }
     for (_, linear) in &mut linears {
         linear.fp8_training = true;

@@ -184,6 +184,17 @@ fn set_train(path: &Path, setting: &str) {
     std::fs::write(path, text).unwrap();
 }
 
+/// `bwm train --config CONFIG --set S ...`, which must succeed.
+fn train(config: &Path, sets: &[&str]) {
+    let mut cmd = Command::new(bwm());
+    cmd.args(["train", "--config"]).arg(config);
+    for s in sets {
+        cmd.args(["--set", s]);
+    }
+    let out = cmd.output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+}
+
 #[test]
 fn two_ranks_train_the_weights_of_one_and_resume_across_world_sizes() {
     let dir = temp_dir("train-dist");
@@ -285,15 +296,6 @@ fn bench_train_breakdown_accounts_for_the_step() {
 fn a_lora_run_exports_and_rolls_out_through_the_cli() {
     let dir = temp_dir("lora-cli");
     write_cache(&dir.join("cache"));
-    let train = |config: &std::path::Path, sets: &[&str]| {
-        let mut cmd = Command::new(bwm());
-        cmd.args(["train", "--config"]).arg(config);
-        for s in sets {
-            cmd.args(["--set", s]);
-        }
-        let out = cmd.output().unwrap();
-        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    };
     // The base: one step of full training, exported as a user would download a base model.
     train(&write_config(&dir, "base.toml", &dir.join("base-run"), 1, 1), &[]);
     let base = dir.join("base-export");
@@ -349,9 +351,7 @@ fn a_lora_run_exports_and_rolls_out_through_the_cli() {
 fn an_action_encoder_with_fourier_features_trains_exports_and_rolls_out() {
     let dir = temp_dir("fourier-cli");
     write_cache(&dir.join("cache"));
-    let config = write_config(&dir, "run.toml", &dir.join("run"), 1, 1);
-    let out = Command::new(bwm()).args(["train", "--config"]).arg(&config).args(["--set", "model.action.fourier_bands=3"]).output().unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    train(&write_config(&dir, "run.toml", &dir.join("run"), 1, 1), &["model.action.fourier_bands=3"]);
     let ckpt = dir.join("run/checkpoints/step-00000001");
     let saved = std::fs::read_to_string(ckpt.join("config.toml")).unwrap();
     assert!(saved.contains("fourier_bands = 3"), "{saved}");
@@ -384,14 +384,7 @@ fn fp8_training_follows_the_exact_run_closely_but_not_exactly() {
     let dir = temp_dir("fp8-train");
     write_cache(&dir.join("cache"));
     let losses = |name: &str, sets: &[&str]| -> Vec<f64> {
-        let config = write_config(&dir, &format!("{name}.toml"), &dir.join(name), 4, 1);
-        let mut cmd = Command::new(bwm());
-        cmd.args(["train", "--config"]).arg(&config);
-        for s in sets {
-            cmd.args(["--set", s]);
-        }
-        let out = cmd.output().unwrap();
-        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        train(&write_config(&dir, &format!("{name}.toml"), &dir.join(name), 4, 1), sets);
         let metrics = std::fs::read_to_string(dir.join(name).join("metrics.jsonl")).unwrap();
         metrics.lines().map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()["loss"].as_f64().unwrap()).collect()
     };

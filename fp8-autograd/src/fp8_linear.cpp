@@ -6,6 +6,7 @@
 #include <torch/torch.h>
 
 #include <cfloat>
+#include <limits>
 #include <string>
 
 namespace {
@@ -18,33 +19,47 @@ struct Quantized {
   at::Tensor scale;  // f32 scalar: t ~= q * scale
 };
 
-// The multiplier is rounded to t's dtype first and the scale is its exact inverse; the clamp keeps
-// a product rounded past the format's largest value from becoming NaN (the casts do not saturate).
+// Two passes over t: its largest magnitude (the infinity norm, one reduction without a temporary),
+// then the product with the multiplier written straight into float8. The casts do not saturate,
+// so the multiplier aims a little under the format's largest value: rounded to t's dtype (2^-8
+// relative for bf16) and the product rounded again, |t| * multiplier stays under fmax. The scale is
+// the multiplier's exact inverse.
 Quantized quantize(const at::Tensor& t, at::ScalarType fp8, double fmax) {
-  auto amax = t.abs().max().to(at::kFloat);
-  auto multiplier = (fmax / amax.clamp_min(1e-12)).clamp_max(FLT_MAX).to(t.scalar_type());
-  auto scale = multiplier.to(at::kFloat).reciprocal();
-  return {(t * multiplier).clamp(-fmax, fmax).to(fp8), scale};
+  constexpr double HEADROOM = 1.0 - 1.0 / 64;
+  auto amax = at::linalg_vector_norm(t, std::numeric_limits<double>::infinity()).to(at::kFloat);
+  auto multiplier = (fmax * HEADROOM / amax.clamp_min(1e-12)).clamp_max(FLT_MAX).to(t.scalar_type());
+  auto q = at::empty(t.sizes(), t.options().dtype(fp8));
+  at::mul_out(q, t, multiplier);
+  return {q, multiplier.to(at::kFloat).reciprocal()};
 }
 
-// _scaled_mm's second operand must be column-major.
-at::Tensor column_major(const at::Tensor& t) { return t.t().contiguous().t(); }
-
-// CUDA's FP8 matmuls need every dimension a multiple of 16: rows of zeros added to x (and so to the
-// gradient) change neither amax nor the other rows' products.
+// [rows, cols] -> its transpose [cols, padded(rows)] row-major, the padding columns zero: the
+// operands of the weight's gradient, whose inner dimension (x's rows) CUDA's FP8 matmuls need a
+// multiple of 16 (zero rows of x and of the gradient add nothing to g^T x).
 int64_t padded(int64_t m) { return (m + 15) / 16 * 16; }
+at::Tensor transposed_padded(const at::Tensor& q) {
+  const int64_t m = q.size(0), mp = padded(m);
+  if (mp == m) return q.t().contiguous();
+  auto t = at::empty({q.size(1), mp}, q.options());
+  t.narrow(1, 0, m).copy_(q.t());
+  t.narrow(1, m, mp - m).zero_();
+  return t;
+}
+
+// _scaled_mm adds a bias of the output's dtype in its epilogue for bf16 and fp16 outputs only.
+bool bias_in_product(const at::Tensor& x) { return x.scalar_type() == at::kBFloat16 || x.scalar_type() == at::kHalf; }
 
 struct Fp8Linear : public torch::autograd::Function<Fp8Linear> {
   static at::Tensor forward(torch::autograd::AutogradContext* ctx, const at::Tensor& x, const at::Tensor& w, const at::Tensor& b) {
-    const int64_t m = x.size(0);
-    auto xp = x.contiguous();
-    if (padded(m) != m) xp = at::constant_pad_nd(xp, {0, 0, 0, padded(m) - m});
-    auto xq = quantize(xp, at::kFloat8_e4m3fn, E4M3_MAX);
+    auto xq = quantize(x.contiguous(), at::kFloat8_e4m3fn, E4M3_MAX);
     auto wq = quantize(w, at::kFloat8_e4m3fn, E4M3_MAX);
-    auto y = at::_scaled_mm(xq.q, wq.q.t(), xq.scale, wq.scale, std::nullopt, std::nullopt, x.scalar_type(), true);
     ctx->save_for_backward({xq.q, xq.scale, wq.q, wq.scale});
     ctx->saved_data["w_dtype"] = static_cast<int64_t>(w.scalar_type());
-    return y.narrow(0, 0, m) + b.to(x.scalar_type());
+    // y [m, out] = x [m, in] W^T; the second operand column-major, as _scaled_mm needs it.
+    if (bias_in_product(x)) {
+      return at::_scaled_mm(xq.q, wq.q.t(), xq.scale, wq.scale, b.to(x.scalar_type()), std::nullopt, x.scalar_type(), true);
+    }
+    return at::_scaled_mm(xq.q, wq.q.t(), xq.scale, wq.scale, std::nullopt, std::nullopt, x.scalar_type(), true) + b.to(x.scalar_type());
   }
 
   static torch::autograd::variable_list backward(torch::autograd::AutogradContext* ctx, torch::autograd::variable_list grads) {
@@ -52,14 +67,13 @@ struct Fp8Linear : public torch::autograd::Function<Fp8Linear> {
     const auto &xq = saved[0], &x_scale = saved[1], &wq = saved[2], &w_scale = saved[3];
     const auto w_dtype = static_cast<at::ScalarType>(ctx->saved_data["w_dtype"].toInt());
     auto g = grads[0].contiguous();
-    const int64_t m = g.size(0);  // x's rows before padding
     auto gb = g.sum(0).to(w_dtype);
-    if (padded(m) != m) g = at::constant_pad_nd(g, {0, 0, 0, padded(m) - m});
     auto gq = quantize(g, at::kFloat8_e5m2, E5M2_MAX);
-    // dL/dx [m, in] = g [m, out] W [out, in]; dL/dW [out, in] = g^T [out, m] x [m, in].
-    auto gx = at::_scaled_mm(gq.q, column_major(wq), gq.scale, w_scale, std::nullopt, std::nullopt, g.scalar_type(), false);
-    auto gw = at::_scaled_mm(gq.q.t().contiguous(), column_major(xq), gq.scale, x_scale, std::nullopt, std::nullopt, w_dtype, false);
-    return {gx.narrow(0, 0, m), gw, gb};
+    // dL/dx [m, in] = g [m, out] W [out, in] (W column-major: its transpose row-major);
+    // dL/dW [out, in] = g^T [out, m] x [m, in] (x column-major).
+    auto gx = at::_scaled_mm(gq.q, wq.t().contiguous().t(), gq.scale, w_scale, std::nullopt, std::nullopt, g.scalar_type(), false);
+    auto gw = at::_scaled_mm(transposed_padded(gq.q), transposed_padded(xq).t(), gq.scale, x_scale, std::nullopt, std::nullopt, w_dtype, false);
+    return {gx, gw, gb};
   }
 };
 

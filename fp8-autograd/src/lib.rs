@@ -90,6 +90,24 @@ mod tests {
         }
     }
 
+    /// The casts to float8 do not saturate (a value past the format's largest becomes NaN), so the
+    /// scale must keep every scaled value in range whatever the input's largest magnitude.
+    #[test]
+    fn no_scale_sends_a_value_past_the_format() {
+        let w = (Tensor::randn([16, 32], (Kind::Float, Device::Cpu)) * 0.1).to_kind(Kind::BFloat16).set_requires_grad(true);
+        let b = Tensor::zeros([16], (Kind::BFloat16, Device::Cpu));
+        for k in 0..200 {
+            let magnitude = 10f64.powf(-4.0 + 8.0 * k as f64 / 199.0);
+            let x = (Tensor::randn([5, 32], (Kind::Float, Device::Cpu)) * magnitude).to_kind(Kind::BFloat16).set_requires_grad(true);
+            let y = linear(&x, &w, &b).unwrap();
+            (y.to_kind(Kind::Float) * magnitude.recip()).sum(Kind::Float).backward();
+            for (name, t) in [("y", y.detach()), ("dx", x.grad()), ("dW", w.grad())] {
+                assert!(t.isfinite().all().int64_value(&[]) == 1, "{name} not finite at input magnitude {magnitude:e}");
+            }
+            let _ = w.grad().zero_();
+        }
+    }
+
     #[test]
     fn leading_dimensions_are_kept_and_bad_shapes_refused() {
         let x = Tensor::randn([2, 3, 32], (Kind::Float, Device::Cpu));

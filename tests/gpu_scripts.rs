@@ -134,6 +134,7 @@ fn stages(dir: &Path, vars: &[(&str, &str)]) -> (Output, Vec<String>) {
         .env_remove("JUDGE_FRAMES")
         .env_remove("STUDY_DIR")
         .env_remove("COMPARE_JUDGE")
+        .env_remove("TEACHER")
         .env("RUN", "runs/x")
         .env("OUT", dir.join("out"))
         .env("CALLS", &calls)
@@ -181,6 +182,23 @@ fn each_judge_has_its_own_study_folder() {
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("is the study's own judge"));
     assert!(calls.is_empty(), "{calls:?}");
+}
+
+#[test]
+fn the_teacher_stage_follows_the_study_when_asked() {
+    let dir = common::temp_dir("gpu-teacher");
+    let d = dir.path();
+    for (vars, asked) in [(&[][..], false), (&[("TEACHER", "1")][..], true)] {
+        let (out, calls) = stages(d, vars);
+        let log = format!("{}\n{}\n{calls:#?}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+        assert!(out.status.success(), "{log}");
+        let study = calls.iter().position(|c| c.starts_with("study ")).expect("a study stage");
+        match calls.iter().position(|c| c.starts_with("teacher ")) {
+            Some(teacher) => assert!(asked && teacher > study, "{log}"),
+            None => assert!(!asked, "{log}"),
+        }
+        fs::remove_dir_all(d.join("runs")).unwrap();
+    }
 }
 
 /// Removes detached.sh's folder of a name when the test ends, also on failure.

@@ -1,8 +1,8 @@
 //! The Meta-World benchmark (bench/metaworld) end to end on CPU at toy sizes, through the same
 //! recipe the GPU run uses: generate.py writes training and held-out datasets from MuJoCo, then
 //! `bwm train-vae`, `bwm prepare`, `bwm train`, `bwm fidelity`, the truth of the policy variants in
-//! the simulator, judge.py and study.py (policy_server.py + judge over `bwm evaluate`, and the judge
-//! on the simulator's own frames of the same episodes). The numbers
+//! the simulator, judge.py, study.py (policy_server.py + judge over `bwm evaluate`, and the judge
+//! on the simulator's own frames of the same episodes) and teacher.py (over `bwm serve`). The numbers
 //! of a toy model mean nothing; the test checks that every stage runs on the real path and writes
 //! what it promises, that the datasets keep the generator's contract (bench/metaworld/tests/
 //! check_dataset.py) and that generation is deterministic whatever the worker count.
@@ -90,7 +90,7 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
     assert!(log.split("recipe: judged-reconstructed (").nth(1).is_some_and(|rest| rest.contains("judge on simulator frames")), "{log}");
 
     let timings = std::fs::read_to_string(runs.join("timings.tsv")).unwrap();
-    for stage in ["data-train", "data-val", "vae", "latents", "train", "fidelity", "truth", "judge-reconstructed", "judged-reconstructed", "ceiling", "study", "probe"] {
+    for stage in ["data-train", "data-val", "vae", "latents", "train", "fidelity", "truth", "judge-reconstructed", "judged-reconstructed", "ceiling", "study", "teacher", "probe"] {
         assert!(timings.lines().any(|l| l.split('\t').next() == Some(stage)), "no {stage} in timings.tsv:\n{timings}\n{log}");
     }
 
@@ -215,6 +215,28 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
     assert_eq!(rescored["by_approach"], study["by_approach"], "{rescored}");
     assert_eq!(rescored["replayed"], study["replayed"], "{rescored}");
     assert_eq!(rescored["world_model_flags"], study["world_model_flags"], "{rescored}");
+
+    // Teacher forcing: the study's variants and episodes in the simulator, each of their two
+    // chunks (48 frames of 24) drawn by the served world model from the real history and judged
+    // beside the simulator's; the episode's truth the same as the study's.
+    let teacher = json(&runs.join("teacher/teacher.json"));
+    let rates = teacher["rates"].as_array().unwrap();
+    assert_eq!(rates.len(), 4, "2 variants x 2 tasks: {teacher}");
+    for r in rates {
+        let (task, variant) = (r["task"].as_str().unwrap(), r["variant"].as_str().unwrap());
+        let in_study = study["rates"].as_array().unwrap().iter().find(|s| s["task"] == task && s["variant"] == variant).expect("the study's rate");
+        assert_eq!(r["true"], in_study["true"], "{r}");
+        assert!(r["teacher_forced"].as_f64().is_some_and(|v| (0.0..=1.0).contains(&v)), "{r}");
+        let episodes = teacher["episodes"][task][variant].as_array().unwrap();
+        assert_eq!(episodes.len(), 1, "{r}");
+        for side in ["real", "drawn"] {
+            let p: Vec<f64> = episodes[0][side].as_array().unwrap().iter().filter_map(Value::as_f64).collect();
+            assert!(p.len() == 2 && p.iter().all(|v| (0.0..=1.0).contains(v)), "{side}: {}", episodes[0]);
+        }
+    }
+    let chunks: u64 = ["invented", "missed", "both_success", "both_fail"].iter().map(|k| teacher["chunks"][k].as_u64().unwrap()).sum();
+    assert_eq!(chunks, 8, "{teacher}");
+    assert_eq!(teacher["all"]["teacher_forced"]["n"], 4, "{teacher}");
 
     // The probe: the graded `wrong` variants through the same study, in their own folder.
     let probe = json(&runs.join("probe/study.json"));
@@ -341,6 +363,11 @@ fn the_outcome_boundary_is_measured_in_the_simulator() {
 #[test]
 fn the_study_scores_rates_and_episodes() {
     run(Command::new(python()).arg(Path::new(ROOT).join("bench/metaworld/tests/test_study.py")), "test_study.py");
+}
+
+#[test]
+fn teacher_forcing_lays_chunks_out_and_scores_them() {
+    run(Command::new(python()).arg(Path::new(ROOT).join("bench/metaworld/tests/test_teacher.py")), "test_teacher.py");
 }
 
 #[test]

@@ -18,6 +18,10 @@
 #   study    bench/metaworld/study.py: every policy variant through `bwm evaluate` against its true
 #            success rate in the simulator, and the judge on the simulator's own frames of the same
 #            episodes: $RUN/study/ (study.json, study.csv, study.svg, judged.json)
+#   teacher  bench/metaworld/teacher.py: each chunk of the study's episodes drawn by the world model
+#            from the simulator's own history frames and judged beside the simulator's chunk: does
+#            the model draw a command's outcome wrongly from real frames, or only from its own?
+#            $RUN/teacher/teacher.json
 #   probe    the same study over graded `wrong-<d>cm` variants (the expert with its targets moved d
 #            cm along the task's `wrong` offset): does the model's contact follow a shifted
 #            command as the simulator's does? $RUN/probe/ (same files as study/)
@@ -91,14 +95,15 @@ FIDELITY_DIR="${FIDELITY_DIR:-$RUN/fidelity}"  # where the fidelity report goes
 FIDELITY_EPISODES="${FIDELITY_EPISODES:-}" # comma-separated positions in data/val (default: all)
 FIDELITY_IN_FLIGHT="${FIDELITY_IN_FLIGHT:-8}" # episodes rolled out at once (one batch per chunk)
 PROBE_VARIANTS="${PROBE_VARIANTS:-wrong-0cm,wrong-1cm,wrong-2cm,wrong-3cm,wrong-4cm,wrong-5cm,wrong-6cm}"
+TEACHER_VARIANTS="${TEACHER_VARIANTS:-$STUDY_VARIANTS}"  # the teacher stage's variants (default: the study's)
 STAGES=()
 for arg in "$@"; do
   case "$arg" in
-    data|vae|latents|train|fidelity|truth|judge|ceiling|study|probe) STAGES+=("$arg") ;;
-    *) echo "recipe: unknown stage '$arg' (stages: data vae latents train fidelity truth judge ceiling study probe)" >&2; exit 2 ;;
+    data|vae|latents|train|fidelity|truth|judge|ceiling|study|teacher|probe) STAGES+=("$arg") ;;
+    *) echo "recipe: unknown stage '$arg' (stages: data vae latents train fidelity truth judge ceiling study teacher probe)" >&2; exit 2 ;;
   esac
 done
-[ ${#STAGES[@]} -gt 0 ] || STAGES=(data vae latents train fidelity truth judge ceiling study probe)
+[ ${#STAGES[@]} -gt 0 ] || STAGES=(data vae latents train fidelity truth judge ceiling study teacher probe)
 [ -x "$BWM" ] || { echo "recipe: no bwm binary at $BWM (make build, or set BWM)" >&2; exit 1; }
 mkdir -p "$RUN"
 wants() { [[ " ${STAGES[*]} " == *" $1 "* ]]; }
@@ -205,6 +210,14 @@ if wants study; then
   world_model
   timed study "$PYTHON" bench/metaworld/study.py "${STUDY_ARGS[@]}" --judge "$JUDGE" --bwm "$BWM" \
     --jobs "$STUDY_JOBS" --episodes-in-flight "$STUDY_IN_FLIGHT" -- "${WM[@]}"
+fi
+
+if wants teacher; then
+  world_model
+  if [ -f "$RUN/teacher/teacher.json" ]; then echo "recipe: $RUN/teacher/teacher.json exists"; else
+  timed teacher "$PYTHON" bench/metaworld/teacher.py "${COMMON_STUDY_ARGS[@]}" ${TEACHER_VARIANTS:+--variants "$TEACHER_VARIANTS"} \
+    --out "$RUN/teacher" --judge "$JUDGE" --judge-device "$DEVICE" --bwm "$BWM" -- "${WM[@]}"
+  fi
 fi
 
 if wants probe; then

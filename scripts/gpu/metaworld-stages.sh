@@ -85,6 +85,9 @@ else
       GUIDANCE=$w STUDY_DIR=$R/study-g$w recipe study 2>&1 | tee -a "$OUT/recipe.log"
       [ "${PIPESTATUS[0]}" = 0 ] || status=1
     done
+    if [ $status = 0 ] && [ "${TEACHER:-0}" = 1 ]; then
+      recipe teacher 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
+    fi
     if [ $status = 0 ] && [ "${SKIP_PROBE:-0}" != 1 ]; then
       recipe probe 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
     fi

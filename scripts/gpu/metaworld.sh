@@ -15,7 +15,9 @@
 # 5-6 more, the fidelity stage about 20 (beside the studies) and the probe about 4: four calls,
 # the last started before minute 30 (run 12 of docs/fidelity.md). SKIP_FIDELITY=1 leaves out
 # the fidelity stage (which otherwise runs beside the study and slows it); SKIP_PROBE=1 the probe
-# (graded `wrong` variants, after the study). COMPARE_SOLVER=dpm++2m studies the same model a
+# (graded `wrong` variants, after the study); TEACHER=1 adds the teacher stage after the study
+# (each chunk drawn from the simulator's real history: $RUN/teacher/teacher.json; TEACHER_VARIANTS
+# picks variants). COMPARE_SOLVER=dpm++2m studies the same model a
 # second time with that sampler ($RUN/study-dpm++2m); COMPARE_GUIDANCE="2 3" once more per
 # action-guidance value ($RUN/study-g2, ...; the model trained with objective.action_dropout > 0);
 # COMPARE_JUDGE=real once more with the judge that learned from the simulator's frames alone

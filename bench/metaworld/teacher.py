@@ -1,0 +1,231 @@
+"""The world model's outcome of one chunk at a time from the simulator's own history (teacher
+forcing): where the closed-loop study (study.py) lets the world model run each episode on its own
+frames, here every chunk starts from the real frames. Each policy variant runs in the simulator on
+the held-out placements (as the truth does, every frame kept); then, for each chunk of K frames,
+the world model served by `bwm serve` is given x0, the H real frames before the chunk and the
+commands the policy issued, and the judge decides success on the K frames it draws and on the K
+frames the simulator rendered. A model whose one-chunk outcomes follow the simulator's while its
+closed-loop estimates do not invents over the chunks, from its own frames; one whose one-chunk
+outcomes are already wrong draws the wrong outcome of a command from real frames.
+
+    python teacher.py --data VAL_DATASET --judge judge.pt --episodes 50 --out DIR \\
+        -- --checkpoint CKPT --vae VAE --stats STAT.json --stats-group observation.state \\
+           --history 8 --future 24 --sample-steps 4 --device cuda
+
+Episodes, seeds and variants are study.py's. The chunks follow `bwm evaluate`'s layout: the first
+from x0 alone, chunk c from x0 and frames 24c-7 .. 24c, drawing frames 24c+1 .. 24c+24; x0's action
+is the initial commanded state, every later frame's the command that led to it. Writes
+DIR/teacher.json: per variant the true rate, the rate the judge gives the simulator's chunks and
+the teacher-forced rate (an episode counts as a success when the judge passes any of its drawn
+chunks), Pearson r / Spearman / MAE of both against the truth (per task and over all), the chunks
+drawn succeeding where the simulator's did not (invented) and the other way (missed), and per
+episode each chunk's two probabilities. Everything after `--` goes to `bwm serve`.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing
+import os
+import re
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, HERE)
+
+import msgpack_numpy  # noqa: E402
+import study  # noqa: E402
+
+
+def chunk_layout(horizon: int, chunk: int, history: int) -> list[tuple[list[int], list[int]]]:
+    """Per chunk: (the frame indices given to the world model, the frame indices it draws), as
+    `bwm evaluate` rolls an episode out: x0 then up to `history` frames before the chunk."""
+    out, t0 = [], 0
+    while t0 < horizon:
+        given = [0] + list(range(max(1, t0 - history + 1), t0 + 1))
+        out.append((given, list(range(t0 + 1, min(t0 + chunk, horizon) + 1))))
+        t0 += chunk
+    return out
+
+
+def frame_actions(task: str, commands: np.ndarray) -> np.ndarray:
+    """float32 [T + 1, 4]: frame 0's action is the initial commanded state (the dataset's
+    observation.state at x0), frame t's the command issued before it."""
+    import mw
+
+    return np.concatenate([mw.initial_state(task)[None], np.asarray(commands, np.float32).reshape(-1, 4)]).astype(np.float32)
+
+
+def _record_job(job):
+    task, variant, seeds, horizon, chunk, resolution = job
+    import policies
+
+    return task, variant, [(seed, e.first, e.frames, e.commands)
+                           for seed in seeds for e in [policies.run_episode(task, variant, seed, horizon, chunk, resolution, record=True)]]
+
+
+class WorldModel:
+    """`bwm serve` on a free port for the run's lifetime; `chunk` asks it for one chunk."""
+
+    def __init__(self, bwm: str, flags: list[str], log: str):
+        self.log = open(log, "w")
+        self.proc = subprocess.Popen([bwm, "serve", *flags, "--port", "0"], stdout=self.log, stderr=subprocess.STDOUT)
+        start = time.time()
+        while True:
+            with open(log) as f:
+                m = re.search(r"serve: listening on (http://\S+)", f.read())
+            if m:
+                self.url = m.group(1) + "/v1/chunk"
+                return
+            if self.proc.poll() is not None:
+                raise SystemExit(f"teacher: bwm serve exited ({self.proc.returncode}) before listening; its log {log}:\n{study.tail(log)}")
+            if time.time() - start > 300:
+                self.close()
+                raise SystemExit(f"teacher: bwm serve did not listen within 300 s; its log {log}:\n{study.tail(log)}")
+            time.sleep(0.2)
+
+    def chunk(self, frames: np.ndarray, actions: np.ndarray, seed: int) -> np.ndarray:
+        body = msgpack_numpy.packb({"frames": frames, "actions": actions, "normalized": False, "seed": seed})
+        request = urllib.request.Request(self.url, data=body, headers={"Content-Type": "application/msgpack"})
+        try:
+            with urllib.request.urlopen(request, timeout=600) as r:
+                return msgpack_numpy.unpackb(r.read())["frames"]
+        except urllib.error.HTTPError as e:
+            raise SystemExit(f"teacher: bwm serve answered {e.code}: {e.read().decode(errors='replace')}") from None
+
+    def close(self) -> None:
+        self.proc.terminate()
+        try:
+            self.proc.wait(30)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+        self.log.close()
+
+
+def teacher_forced(task, variant, recorded, wm: WorldModel, judge, layout, positions: dict) -> list[dict]:
+    """Per recorded episode: its first success step and, per chunk, the judge's probability on
+    the simulator's frames and on the world model's drawn from them."""
+    out = []
+    for seed, first, frames, commands in recorded:
+        actions = frame_actions(task, commands)
+        real, drawn = [], []
+        for c, (given, target) in enumerate(layout):
+            generated = wm.chunk(frames[given], actions[given + target], seed=positions[seed] * 1000 + c)
+            ask = {"task": task, "prompt": task}
+            real.append(round(float(judge.judge(dict(ask, frames=frames[target]))["success_probability"]), 4))
+            drawn.append(round(float(judge.judge(dict(ask, frames=generated[: len(target)]))["success_probability"]), 4))
+        out.append({"seed": seed, "first": first, "real": real, "drawn": drawn})
+    return out
+
+
+def summarize(results: dict, tasks: list[str], variants: list[str]) -> dict:
+    """Rates and agreement from {task: {variant: [episode records]}}."""
+    rows, chunks = [], {"invented": 0, "missed": 0, "both_success": 0, "both_fail": 0}
+    for t in tasks:
+        for v in variants:
+            eps = results[t][v]
+            per = {"invented": 0, "missed": 0}
+            for e in eps:
+                for r, d in zip(e["real"], e["drawn"]):
+                    key = ("both_success" if r >= study.THRESHOLD else "invented") if d >= study.THRESHOLD else (
+                        "missed" if r >= study.THRESHOLD else "both_fail")
+                    chunks[key] += 1
+                    if key in per:
+                        per[key] += 1
+            n = len(eps)
+            rows.append({"task": t, "variant": v, "episodes": n,
+                         "true": sum(e["first"] is not None for e in eps) / n,
+                         "judged_simulator": sum(max(e["real"]) >= study.THRESHOLD for e in eps) / n,
+                         "teacher_forced": sum(max(e["drawn"]) >= study.THRESHOLD for e in eps) / n,
+                         "chunks_invented": per["invented"], "chunks_missed": per["missed"]})
+
+    def scores(rs):
+        names = [f"{r['variant']}/{r['task']}" for r in rs]
+        true = [r["true"] for r in rs]
+        return {"teacher_forced": study.agreement(names, [r["teacher_forced"] for r in rs], true),
+                "judged_simulator": study.agreement(names, [r["judged_simulator"] for r in rs], true)}
+
+    return {"rates": rows, "all": scores(rows), "per_task": {t: scores([r for r in rows if r["task"] == t]) for t in tasks},
+            "chunks": chunks}
+
+
+def main(argv=None) -> None:
+    if argv is None:
+        argv = sys.argv[1:]
+    serve_flags = []
+    if "--" in argv:
+        i = argv.index("--")
+        argv, serve_flags = argv[:i], argv[i + 1:]
+    import policies
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", required=True, help="held-out dataset from generate.py (study.py's)")
+    ap.add_argument("--judge", required=True, help="judge.pt from judge.py train")
+    ap.add_argument("--judge-device", default="auto", help="where the judge runs (auto, cpu, cuda)")
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--tasks", default=",".join(policies.VARIANTS))
+    ap.add_argument("--variants", help="comma-separated (default: every variant the tasks share)")
+    ap.add_argument("--episodes", type=int, default=50, help="per task and variant")
+    ap.add_argument("--horizon", type=int, default=120, help="frames after x0")
+    ap.add_argument("--chunk", type=int, default=24, help="frames per chunk (the world model's K and the policy's reply)")
+    ap.add_argument("--history", type=int, default=8, help="real frames before each chunk (the world model's H)")
+    ap.add_argument("--resolution", type=int, default=64)
+    ap.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="processes running the simulator")
+    ap.add_argument("--bwm", default=os.path.join(os.environ.get("CARGO_TARGET_DIR", "target"), "release", "bwm"))
+    a = ap.parse_args(argv)
+    if not serve_flags:
+        ap.error("the world model's flags for `bwm serve` go after --")
+    for name in ("episodes", "horizon", "chunk", "history", "workers"):
+        if getattr(a, name) < 1:
+            ap.error(f"--{name} must be at least 1")
+    tasks = a.tasks.split(",")
+    variants = a.variants.split(",") if a.variants else sorted(set.intersection(*(set(policies.VARIANTS[t]) for t in tasks)))
+    problem = policies.check_variants(tasks, variants)
+    if problem:
+        ap.error(problem)
+    episodes = study.episodes_by_task(a.data, tasks, a.episodes)
+    positions = {s: p for eps in episodes.values() for p, s in eps}
+    layout = chunk_layout(a.horizon, a.chunk, a.history)
+    os.makedirs(a.out, exist_ok=True)
+
+    from judge import Judge, pick_device
+
+    judge = Judge(a.judge, pick_device(a.judge_device), None)
+    wm = WorldModel(a.bwm, serve_flags, os.path.join(a.out, "serve.log"))
+    results: dict = {t: {} for t in tasks}
+    start = time.time()
+    try:
+        jobs = [(t, v, [s for _, s in episodes[t]], a.horizon, a.chunk, a.resolution) for t in tasks for v in variants]
+        with multiprocessing.get_context("spawn").Pool(min(a.workers, len(jobs))) as pool:
+            for n, (t, v, recorded) in enumerate(pool.imap_unordered(_record_job, jobs), 1):
+                results[t][v] = teacher_forced(t, v, recorded, wm, judge, layout, positions)
+                eps = results[t][v]
+                print(f"teacher: {t} {v}: true {np.mean([e['first'] is not None for e in eps]):.2f}, teacher-forced "
+                      f"{np.mean([max(e['drawn']) >= study.THRESHOLD for e in eps]):.2f} {n}/{len(jobs)} ({time.time() - start:.0f} s)",
+                      flush=True)
+    finally:
+        wm.close()
+    summary = summarize(results, tasks, variants)
+    report = {"settings": {"data": a.data, "judge": a.judge, "episodes": a.episodes, "horizon": a.horizon, "chunk": a.chunk,
+                           "history": a.history, "resolution": a.resolution, "serve": serve_flags, "threshold": study.THRESHOLD},
+              **summary, "episodes": results}
+    path = os.path.join(a.out, "teacher.json")
+    with open(path + ".tmp", "w") as f:
+        json.dump(report, f, indent=1)
+    os.replace(path + ".tmp", path)
+    for r in summary["rates"]:
+        print(f"teacher: {r['task']:26s} {r['variant']:10s} true {r['true']:.2f}  judged simulator {r['judged_simulator']:.2f}  "
+              f"teacher-forced {r['teacher_forced']:.2f}  chunks invented {r['chunks_invented']} missed {r['chunks_missed']}")
+    s = summary["all"]
+    print(f"teacher: over all {len(summary['rates'])} rates: teacher-forced r {study.fmt(s['teacher_forced']['pearson_r'])}, "
+          f"judge on the simulator's chunks r {study.fmt(s['judged_simulator']['pearson_r'])}; {path}")
+
+
+if __name__ == "__main__":
+    main()

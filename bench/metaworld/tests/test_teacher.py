@@ -1,0 +1,63 @@
+"""teacher.py's chunk layout, the actions it gives the world model, and its scoring, on hand-made
+episodes (the recipe's toy run, tests/metaworld_bench.rs, runs it against a served world model)."""
+
+import os
+import sys
+
+import numpy as np
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+import mw  # noqa: E402
+import teacher  # noqa: E402
+
+
+def test_chunks_follow_the_evaluate_loops_layout():
+    layout = teacher.chunk_layout(horizon=60, chunk=24, history=8)
+    # x0 alone first; then x0 and the 8 frames before each chunk; the last chunk cut at the horizon.
+    assert layout[0] == ([0], list(range(1, 25)))
+    assert layout[1] == ([0] + list(range(17, 25)), list(range(25, 49)))
+    assert layout[2] == ([0] + list(range(41, 49)), list(range(49, 61)))
+    assert len(layout) == 3
+    # A history longer than the frames so far starts at frame 1, never repeating x0.
+    assert teacher.chunk_layout(horizon=10, chunk=4, history=8)[1] == ([0, 1, 2, 3, 4], [5, 6, 7, 8])
+
+
+def test_x0_acts_with_the_initial_state_and_each_frame_with_its_command():
+    commands = np.arange(12, dtype=np.float32).reshape(3, 4)
+    actions = teacher.frame_actions("drawer-open-v3", commands)
+    assert actions.shape == (4, 4) and actions.dtype == np.float32
+    assert np.array_equal(actions[0], mw.initial_state("drawer-open-v3"))
+    assert np.array_equal(actions[1:], commands)
+
+
+def test_rates_count_an_episode_drawn_succeeding_in_any_chunk():
+    episode = lambda first, real, drawn: {"seed": 0, "first": first, "real": real, "drawn": drawn}
+    results = {"t": {
+        # Both succeed; the model draws it a chunk late (chunk 0 missed, chunk 1 agrees).
+        "a": [episode(20, [0.9, 0.9], [0.1, 0.8]), episode(30, [0.2, 0.9], [0.1, 0.9])],
+        # Neither succeeds in the simulator; the model invents an opening in one chunk of one.
+        "b": [episode(None, [0.1, 0.1], [0.1, 0.7]), episode(None, [0.0, 0.2], [0.3, 0.4])],
+    }}
+    s = teacher.summarize(results, ["t"], ["a", "b"])
+    a, b = s["rates"]
+    assert (a["true"], a["judged_simulator"], a["teacher_forced"], a["chunks_missed"], a["chunks_invented"]) == (1.0, 1.0, 1.0, 1, 0), a
+    assert (b["true"], b["judged_simulator"], b["teacher_forced"], b["chunks_missed"], b["chunks_invented"]) == (0.0, 0.0, 0.5, 0, 1), b
+    assert s["chunks"] == {"invented": 1, "missed": 1, "both_success": 2, "both_fail": 4}, s["chunks"]
+    assert s["all"]["teacher_forced"]["mae"] == 0.25 and s["all"]["judged_simulator"]["mae"] == 0.0, s["all"]
+    assert s["per_task"]["t"]["teacher_forced"]["best_ranked_first"], s["per_task"]
+
+
+def test_the_world_models_flags_are_required():
+    try:
+        teacher.main(["--data", "x", "--judge", "y", "--out", "z"])
+    except SystemExit as e:
+        assert e.code == 2, e
+    else:
+        raise AssertionError("ran without the world model's flags")
+
+
+if __name__ == "__main__":
+    for name, fn in list(globals().items()):
+        if name.startswith("test_"):
+            fn()
+            print(f"{name}: ok")

@@ -547,15 +547,12 @@ def count_lines(path: str) -> int:
         return 0
 
 
-def main(argv=None) -> None:
-    argv = sys.argv[1:] if argv is None else argv
-    wm = argv[argv.index("--") + 1 :] if "--" in argv else []
-    argv = argv[: argv.index("--")] if "--" in argv else argv
+def add_episode_arguments(ap: argparse.ArgumentParser) -> None:
+    """The options naming the held-out episodes, the variants and how they run (study.py's and
+    teacher.py's)."""
     import policies
 
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", required=True, help="held-out dataset from generate.py (seeds never trained on)")
-    ap.add_argument("--judge", help="judge.pt from judge.py train")
     ap.add_argument("--out", required=True)
     ap.add_argument("--tasks", default=",".join(policies.VARIANTS))
     ap.add_argument("--variants", help="comma-separated (default: every variant the tasks share)")
@@ -563,20 +560,15 @@ def main(argv=None) -> None:
     ap.add_argument("--horizon", type=int, default=120, help="frames after x0, in the simulator and the world model")
     ap.add_argument("--chunk", type=int, default=24, help="actions per policy reply (the world model's K)")
     ap.add_argument("--resolution", type=int, default=64)
-    ap.add_argument("--jobs", type=int, default=4, help="bwm evaluate processes at once (variants split among them)")
-    ap.add_argument("--episodes-in-flight", type=int, default=1,
-                    help="episodes each bwm evaluate process runs at once, its chunks generated as one batch")
-    ap.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="processes measuring the truth")
-    ap.add_argument("--truth-only", action="store_true", help="measure (or find cached) the true rates in DIR/truth.json and stop")
-    ap.add_argument("--judged-only", action="store_true",
-                    help="judge the simulator's frames of the episodes (or find them cached) in DIR/judged.json and stop")
-    ap.add_argument("--rescore", action="store_true",
-                    help="score the world-model episodes already in DIR/eval-*/ again (the truth measured again when its "
-                         "cache is of another kind), without running the world model or the judge; a study cut before its "
-                         "study.json is scored over the episodes it finished")
+    ap.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="processes running the simulator")
     ap.add_argument("--bwm", default=os.path.join(os.environ.get("CARGO_TARGET_DIR", "target"), "release", "bwm"))
-    a = ap.parse_args(argv)
-    a.wm = wm
+
+
+def tasks_and_variants(ap: argparse.ArgumentParser, a) -> tuple[list[str], list[str]]:
+    """--tasks and --variants checked (every named variant exists for every task; by default the
+    variants the tasks share, in policies.py's order)."""
+    import policies
+
     tasks = a.tasks.split(",")
     for t in tasks:
         if t not in policies.VARIANTS:
@@ -586,6 +578,31 @@ def main(argv=None) -> None:
     problem = policies.check_variants(tasks, variants)
     if problem:
         ap.error(f"{problem} (shared named variants: {', '.join(shared)})")
+    return tasks, variants
+
+
+def main(argv=None) -> None:
+    argv = sys.argv[1:] if argv is None else argv
+    wm = argv[argv.index("--") + 1 :] if "--" in argv else []
+    argv = argv[: argv.index("--")] if "--" in argv else argv
+    import policies
+
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--judge", help="judge.pt from judge.py train")
+    add_episode_arguments(ap)
+    ap.add_argument("--jobs", type=int, default=4, help="bwm evaluate processes at once (variants split among them)")
+    ap.add_argument("--episodes-in-flight", type=int, default=1,
+                    help="episodes each bwm evaluate process runs at once, its chunks generated as one batch")
+    ap.add_argument("--truth-only", action="store_true", help="measure (or find cached) the true rates in DIR/truth.json and stop")
+    ap.add_argument("--judged-only", action="store_true",
+                    help="judge the simulator's frames of the episodes (or find them cached) in DIR/judged.json and stop")
+    ap.add_argument("--rescore", action="store_true",
+                    help="score the world-model episodes already in DIR/eval-*/ again (the truth measured again when its "
+                         "cache is of another kind), without running the world model or the judge; a study cut before its "
+                         "study.json is scored over the episodes it finished")
+    a = ap.parse_args(argv)
+    a.wm = wm
+    tasks, variants = tasks_and_variants(ap, a)
     if a.episodes < 1 or a.jobs < 1 or a.workers < 1:
         ap.error("--episodes, --jobs and --workers must be at least 1")
     if sum([a.truth_only, a.judged_only, a.rescore]) > 1:

@@ -162,33 +162,22 @@ def main(argv=None) -> None:
     if "--" in argv:
         i = argv.index("--")
         argv, serve_flags = argv[:i], argv[i + 1:]
-    import policies
-
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", required=True, help="held-out dataset from generate.py (study.py's)")
     ap.add_argument("--judge", required=True, help="judge.pt from judge.py train")
     ap.add_argument("--judge-device", default="auto", help="where the judge runs (auto, cpu, cuda)")
-    ap.add_argument("--out", required=True)
-    ap.add_argument("--tasks", default=",".join(policies.VARIANTS))
-    ap.add_argument("--variants", help="comma-separated (default: every variant the tasks share)")
-    ap.add_argument("--episodes", type=int, default=50, help="per task and variant")
-    ap.add_argument("--horizon", type=int, default=120, help="frames after x0")
-    ap.add_argument("--chunk", type=int, default=24, help="frames per chunk (the world model's K and the policy's reply)")
     ap.add_argument("--history", type=int, default=8, help="real frames before each chunk (the world model's H)")
-    ap.add_argument("--resolution", type=int, default=64)
-    ap.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="processes running the simulator")
-    ap.add_argument("--bwm", default=os.path.join(os.environ.get("CARGO_TARGET_DIR", "target"), "release", "bwm"))
+    study.add_episode_arguments(ap)
     a = ap.parse_args(argv)
     if not serve_flags:
         ap.error("the world model's flags for `bwm serve` go after --")
     for name in ("episodes", "horizon", "chunk", "history", "workers"):
         if getattr(a, name) < 1:
             ap.error(f"--{name} must be at least 1")
-    tasks = a.tasks.split(",")
-    variants = a.variants.split(",") if a.variants else sorted(set.intersection(*(set(policies.VARIANTS[t]) for t in tasks)))
-    problem = policies.check_variants(tasks, variants)
-    if problem:
-        ap.error(problem)
+    tasks, variants = study.tasks_and_variants(ap, a)
+    if not os.path.isfile(a.judge):
+        ap.error(f"no judge at {a.judge} (judge.py train writes it)")
+    if not os.access(a.bwm, os.X_OK):
+        ap.error(f"no bwm binary at {a.bwm} (make build, or pass --bwm)")
     episodes = study.episodes_by_task(a.data, tasks, a.episodes)
     positions = {s: p for eps in episodes.values() for p, s in eps}
     layout = chunk_layout(a.horizon, a.chunk, a.history)

@@ -116,7 +116,7 @@ def teacher_forced(task, variant, recorded, wm: WorldModel, judge, layout, posit
         actions = frame_actions(task, commands)
         real, drawn = [], []
         for c, (given, target) in enumerate(layout):
-            generated = wm.chunk(frames[given], actions[given + target], seed=positions[seed] * 1000 + c)
+            generated = wm.chunk(frames[given], actions[given + target], seed=positions[task, seed] * 1000 + c)
             ask = {"task": task, "prompt": task}
             real.append(round(float(judge.judge(dict(ask, frames=frames[target]))["success_probability"]), 4))
             drawn.append(round(float(judge.judge(dict(ask, frames=generated[: len(target)]))["success_probability"]), 4))
@@ -179,7 +179,7 @@ def main(argv=None) -> None:
     if not os.access(a.bwm, os.X_OK):
         ap.error(f"no bwm binary at {a.bwm} (make build, or pass --bwm)")
     episodes = study.episodes_by_task(a.data, tasks, a.episodes)
-    positions = {s: p for eps in episodes.values() for p, s in eps}
+    positions = {(t, s): p for t, eps in episodes.items() for p, s in eps}
     layout = chunk_layout(a.horizon, a.chunk, a.history)
     os.makedirs(a.out, exist_ok=True)
 

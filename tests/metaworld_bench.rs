@@ -263,6 +263,7 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
     }
     let ceiling = json(&runs.join("ceiling/judge.json"));
     assert_eq!(ceiling["judge"].as_str().map(|j| j.ends_with("/judge.pt")), Some(true), "{ceiling}");
+    assert!(log.contains("ceiling/val.safetensors exists"), "the held-out round trip made again:\n{log}");
     assert_eq!(ceiling["tasks"]["drawer-open-v3"]["reconstructed"]["frames"]["n"], 100, "{ceiling}");
     assert!(std::fs::read(runs.join("judge-reconstructed.pt")).unwrap() == before, "the recipe's judge untouched");
     let timings = std::fs::read_to_string(runs.join("timings.tsv")).unwrap();

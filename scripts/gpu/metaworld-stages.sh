@@ -69,8 +69,8 @@ else
     recipe ceiling > "$OUT/ceiling.log" 2>&1 & ceiling=$!
     recipe study 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
     if [ $status = 0 ] && [ -n "${COMPARE_JUDGE:-}" ]; then
-      # The same world model judged by the other judge; its ceiling after the first (both write
-      # the held-out round trip).
+      # The same world model judged by the other judge; its ceiling after the first (whose
+      # round trip of the held-out frames it reuses).
       wait $ceiling || { echo "metaworld: ceiling failed ($OUT/ceiling.log)"; status=1; }
       JUDGE_FRAMES=$COMPARE_JUDGE recipe ceiling > "$OUT/ceiling-$COMPARE_JUDGE.log" 2>&1 & ceiling=$!
       JUDGE_FRAMES=$COMPARE_JUDGE STUDY_DIR=$(study_dir "$COMPARE_JUDGE") recipe study 2>&1 | tee -a "$OUT/recipe.log"

@@ -219,9 +219,11 @@ fi
 
 if wants teacher; then
   world_model
-  if [ -f "$RUN/teacher/teacher.json" ]; then echo "recipe: $RUN/teacher/teacher.json exists"; else
-  timed teacher "$PYTHON" bench/metaworld/teacher.py "${COMMON_STUDY_ARGS[@]}" ${TEACHER_VARIANTS:+--variants "$TEACHER_VARIANTS"} \
-    --out "$RUN/teacher" --judge "$JUDGE" --judge-device "$DEVICE" --bwm "$BWM" -- "${WM[@]}"
+  if [ -f "$RUN/teacher/teacher.json" ]; then
+    echo "recipe: $RUN/teacher/teacher.json exists"
+  else
+    timed teacher "$PYTHON" bench/metaworld/teacher.py "${COMMON_STUDY_ARGS[@]}" ${TEACHER_VARIANTS:+--variants "$TEACHER_VARIANTS"} \
+      --out "$RUN/teacher" --judge "$JUDGE" --judge-device "$DEVICE" --bwm "$BWM" -- "${WM[@]}"
   fi
 fi
 

@@ -18,8 +18,8 @@ is the initial commanded state, every later frame's the command that led to it. 
 DIR/teacher.json: per variant the true rate, the rate the judge gives the simulator's chunks and
 the teacher-forced rate (an episode counts as a success when the judge passes any of its drawn
 chunks), Pearson r / Spearman / MAE of both against the truth (per task and over all), the chunks
-drawn succeeding where the simulator's did not (invented) and the other way (missed), and per
-episode each chunk's two probabilities. Everything after `--` goes to `bwm serve`.
+drawn succeeding where the simulator's did not (invented) and the other way (missed), over
+all chunks their agreement and Cohen's kappa, and per episode each chunk's two probabilities. Everything after `--` goes to `bwm serve`.
 """
 from __future__ import annotations
 
@@ -126,18 +126,16 @@ def teacher_forced(task, variant, recorded, wm: WorldModel, judge, layout, posit
 
 def summarize(results: dict, tasks: list[str], variants: list[str]) -> dict:
     """Rates and agreement from {task: {variant: [episode records]}}."""
-    rows, chunks = [], {"invented": 0, "missed": 0, "both_success": 0, "both_fail": 0}
+    rows, real_chunks, drawn_chunks = [], [], []
     for t in tasks:
         for v in variants:
             eps = results[t][v]
-            per = {"invented": 0, "missed": 0}
-            for e in eps:
-                for r, d in zip(e["real"], e["drawn"]):
-                    key = ("both_success" if r >= study.THRESHOLD else "invented") if d >= study.THRESHOLD else (
-                        "missed" if r >= study.THRESHOLD else "both_fail")
-                    chunks[key] += 1
-                    if key in per:
-                        per[key] += 1
+            # Each chunk as an episode of study.episode_agreement: the simulator's verdict, the world model's.
+            real = [r >= study.THRESHOLD for e in eps for r in e["real"]]
+            drawn = [d >= study.THRESHOLD for e in eps for d in e["drawn"]]
+            per = study.episode_agreement(real, drawn)
+            real_chunks += real
+            drawn_chunks += drawn
             n = len(eps)
             rows.append({"task": t, "variant": v, "episodes": n,
                          "true": sum(e["first"] is not None for e in eps) / n,
@@ -152,7 +150,7 @@ def summarize(results: dict, tasks: list[str], variants: list[str]) -> dict:
                 "judged_simulator": study.agreement(names, [r["judged_simulator"] for r in rs], true)}
 
     return {"rates": rows, "all": scores(rows), "per_task": {t: scores([r for r in rows if r["task"] == t]) for t in tasks},
-            "chunks": chunks}
+            "chunks": study.episode_agreement(real_chunks, drawn_chunks)}
 
 
 def main(argv=None) -> None:

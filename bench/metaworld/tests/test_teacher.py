@@ -42,7 +42,9 @@ def test_rates_count_an_episode_drawn_succeeding_in_any_chunk():
     a, b = s["rates"]
     assert (a["true"], a["judged_simulator"], a["teacher_forced"], a["chunks_missed"], a["chunks_invented"]) == (1.0, 1.0, 1.0, 1, 0), a
     assert (b["true"], b["judged_simulator"], b["teacher_forced"], b["chunks_missed"], b["chunks_invented"]) == (0.0, 0.0, 0.5, 0, 1), b
-    assert s["chunks"] == {"invented": 1, "missed": 1, "both_success": 2, "both_fail": 4}, s["chunks"]
+    counts = {k: s["chunks"][k] for k in ("invented", "missed", "both_success", "both_fail")}
+    assert counts == {"invented": 1, "missed": 1, "both_success": 2, "both_fail": 4}, s["chunks"]
+    assert s["chunks"]["n"] == 8 and s["chunks"]["agreement"] == 6 / 8, s["chunks"]
     assert s["all"]["teacher_forced"]["mae"] == 0.25 and s["all"]["judged_simulator"]["mae"] == 0.0, s["all"]
     assert s["per_task"]["t"]["teacher_forced"]["best_ranked_first"], s["per_task"]
 

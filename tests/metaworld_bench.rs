@@ -282,6 +282,22 @@ fn the_judge_learns_from_reconstructed_frames() {
 }
 
 #[test]
+fn the_recipes_degraded_share_reaches_the_generator() {
+    // DEGRADED=0 makes every episode the expert's, 1 none: each split's episodes.jsonl says which.
+    for (share, experts) in [("0", true), ("1", false)] {
+        let dir = temp_dir("metaworld-degraded");
+        let runs = dir.join("run");
+        run(toy("recipe.sh", &runs).arg("data").envs([("DEGRADED", share), ("TRAIN_EPISODES", "2"), ("VAL_EPISODES", "1")]), "recipe.sh data");
+        for split in ["train", "val"] {
+            let text = std::fs::read_to_string(runs.join(format!("data/{split}/meta/episodes.jsonl"))).unwrap();
+            let behaviours: Vec<String> = text.lines().map(|l| serde_json::from_str::<Value>(l).unwrap()["behaviour"].as_str().unwrap().to_string()).collect();
+            assert_eq!(behaviours.len(), if split == "train" { 4 } else { 2 }, "{text}");
+            assert!(behaviours.iter().all(|b| (b == "expert") == experts), "DEGRADED={share}, {split}: {behaviours:?}");
+        }
+    }
+}
+
+#[test]
 fn the_generator_spreads_its_experts_as_asked() {
     run(Command::new(python()).arg(Path::new(ROOT).join("bench/metaworld/tests/test_generate.py")), "test_generate.py");
 }

@@ -43,6 +43,7 @@ SPREAD="${SPREAD:-narrow}"                # the experts' noise and speed in the 
 MISS_CM="${MISS_CM:-}"                    # LOW,HIGH: how far off the data's `miss` episodes steer (generate.py --miss-cm; default 2,12)
 MISS_BOUNDARY="${MISS_BOUNDARY:-}"        # instead: misses around where the outcome flips in their direction (generate.py --miss-boundary; bench/metaworld/boundary.json)
 MISS_WEIGHT="${MISS_WEIGHT:-3}"           # weight of `miss` episodes among the degraded (generate.py --miss-weight; the others weigh 1)
+DEGRADED="${DEGRADED:-0.4}"               # share of episodes degraded (generate.py --degraded-fraction)
 DECOY="${DECOY:-0}"                       # weight of `decoy` episodes among the degraded (generate.py --decoy-weight; 0: none)
 FRAMES="${FRAMES:-120}"
 RESOLUTION="${RESOLUTION:-128}"          # frames are RESOLUTION x RESOLUTION pixels (8x8 latent cells at 128)
@@ -121,7 +122,7 @@ if wants data; then
     if [ $split = train ]; then n=$TRAIN_EPISODES; s=0; else n=$VAL_EPISODES; s=100000; fi
     timed "data-$split" "$PYTHON" bench/metaworld/generate.py --tasks "$TASKS" --episodes "$n" --seed-start "$s" \
       --frames "$FRAMES" --resolution "$RESOLUTION" --spread "$SPREAD" ${MISS_CM:+--miss-cm "$MISS_CM"} ${MISS_BOUNDARY:+--miss-boundary "$MISS_BOUNDARY"} \
-      --miss-weight "$MISS_WEIGHT" --decoy-weight "$DECOY" --workers "$WORKERS" --out "$RUN/data/$split"
+      --miss-weight "$MISS_WEIGHT" --decoy-weight "$DECOY" --degraded-fraction "$DEGRADED" --workers "$WORKERS" --out "$RUN/data/$split"
   done
 fi
 

@@ -1,18 +1,4 @@
-// Compiles src/sdp.cpp against the headers of the libtorch torch-sys links (its lib folder's
-// sibling `include`): the backend switches are methods of at::Context, which neither tch nor
-// torch-sys's C API exposes.
+// The backend switches are methods of at::Context, which neither tch nor torch-sys's C API exposes.
 fn main() {
-    println!("cargo:rerun-if-changed=src/sdp.cpp");
-    println!("cargo:rerun-if-env-changed=DEP_TCH_LIBTORCH_LIB");
-    let lib = std::env::var("DEP_TCH_LIBTORCH_LIB").expect("torch-sys did not report its libtorch (DEP_TCH_LIBTORCH_LIB)");
-    let root = std::path::Path::new(&lib).parent().expect("libtorch lib folder has a parent").to_path_buf();
-    cc::Build::new()
-        .cpp(true)
-        .file("src/sdp.cpp")
-        .include(root.join("include"))
-        .include(root.join("include/torch/csrc/api/include"))
-        .flag("-std=c++17")
-        .flag("-D_GLIBCXX_USE_CXX11_ABI=1")
-        .warnings(false)
-        .compile("bwm_sdp");
+    bwm_libtorch_cc::compile("src/sdp.cpp", "bwm_sdp");
 }

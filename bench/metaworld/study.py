@@ -547,6 +547,25 @@ def count_lines(path: str) -> int:
         return 0
 
 
+def at_least_one(text: str) -> int:
+    """An argparse type: an integer of at least 1."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"takes a whole number, got {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {n}")
+    return n
+
+
+def split_flags(argv: list[str]) -> tuple[list[str], list[str]]:
+    """The arguments before `--` and the world model's flags after it (none without `--`)."""
+    if "--" not in argv:
+        return argv, []
+    i = argv.index("--")
+    return argv[:i], argv[i + 1:]
+
+
 def add_episode_arguments(ap: argparse.ArgumentParser) -> None:
     """The options naming the held-out episodes, the variants and how they run (study.py's and
     teacher.py's)."""
@@ -556,11 +575,11 @@ def add_episode_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--out", required=True)
     ap.add_argument("--tasks", default=",".join(policies.VARIANTS))
     ap.add_argument("--variants", help="comma-separated (default: every variant the tasks share)")
-    ap.add_argument("--episodes", type=int, default=50, help="per task and variant")
-    ap.add_argument("--horizon", type=int, default=120, help="frames after x0, in the simulator and the world model")
-    ap.add_argument("--chunk", type=int, default=24, help="actions per policy reply (the world model's K)")
-    ap.add_argument("--resolution", type=int, default=64)
-    ap.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="processes running the simulator")
+    ap.add_argument("--episodes", type=at_least_one, default=50, help="per task and variant")
+    ap.add_argument("--horizon", type=at_least_one, default=120, help="frames after x0, in the simulator and the world model")
+    ap.add_argument("--chunk", type=at_least_one, default=24, help="actions per policy reply (the world model's K)")
+    ap.add_argument("--resolution", type=at_least_one, default=64)
+    ap.add_argument("--workers", type=at_least_one, default=os.cpu_count() or 1, help="processes running the simulator")
     ap.add_argument("--bwm", default=os.path.join(os.environ.get("CARGO_TARGET_DIR", "target"), "release", "bwm"))
 
 
@@ -582,16 +601,14 @@ def tasks_and_variants(ap: argparse.ArgumentParser, a) -> tuple[list[str], list[
 
 
 def main(argv=None) -> None:
-    argv = sys.argv[1:] if argv is None else argv
-    wm = argv[argv.index("--") + 1 :] if "--" in argv else []
-    argv = argv[: argv.index("--")] if "--" in argv else argv
+    argv, wm = split_flags(sys.argv[1:] if argv is None else argv)
     import policies
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--judge", help="judge.pt from judge.py train")
     add_episode_arguments(ap)
-    ap.add_argument("--jobs", type=int, default=4, help="bwm evaluate processes at once (variants split among them)")
-    ap.add_argument("--episodes-in-flight", type=int, default=1,
+    ap.add_argument("--jobs", type=at_least_one, default=4, help="bwm evaluate processes at once (variants split among them)")
+    ap.add_argument("--episodes-in-flight", type=at_least_one, default=1,
                     help="episodes each bwm evaluate process runs at once, its chunks generated as one batch")
     ap.add_argument("--truth-only", action="store_true", help="measure (or find cached) the true rates in DIR/truth.json and stop")
     ap.add_argument("--judged-only", action="store_true",
@@ -603,8 +620,6 @@ def main(argv=None) -> None:
     a = ap.parse_args(argv)
     a.wm = wm
     tasks, variants = tasks_and_variants(ap, a)
-    if a.episodes < 1 or a.jobs < 1 or a.workers < 1:
-        ap.error("--episodes, --jobs and --workers must be at least 1")
     if sum([a.truth_only, a.judged_only, a.rescore]) > 1:
         ap.error("--truth-only, --judged-only and --rescore exclude each other")
     if a.truth_only or a.rescore:

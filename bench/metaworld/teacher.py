@@ -33,6 +33,7 @@ import sys
 import time
 import urllib.error
 import urllib.request
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -108,11 +109,14 @@ class WorldModel:
         self.log.close()
 
 
-def teacher_forced(task, variant, recorded, wm: WorldModel, judge, layout, positions: dict) -> list[dict]:
-    """Per recorded episode: its first success step and, per chunk, the judge's probability on
-    the simulator's frames and on the world model's drawn from them."""
-    out = []
-    for seed, first, frames, commands in recorded:
+def teacher_forced(task, variant, recorded, wm: WorldModel, judge, layout, positions: dict, requests: int = 1) -> list[dict]:
+    """Per recorded episode (in their order): its first success step and, per chunk, the judge's
+    probability on the simulator's frames and on the world model's drawn from them. `requests`
+    episodes at once, so that the server generates while the judge scores another's chunk; each
+    chunk's sampling seed is its own, so the order the server takes them in changes nothing."""
+
+    def episode(record):
+        seed, first, frames, commands = record
         actions = frame_actions(task, commands)
         real, drawn = [], []
         for c, (given, target) in enumerate(layout):
@@ -120,8 +124,10 @@ def teacher_forced(task, variant, recorded, wm: WorldModel, judge, layout, posit
             ask = {"task": task, "prompt": task}
             real.append(round(float(judge.judge(dict(ask, frames=frames[target]))["success_probability"]), 4))
             drawn.append(round(float(judge.judge(dict(ask, frames=generated[: len(target)]))["success_probability"]), 4))
-        out.append({"seed": seed, "first": first, "real": real, "drawn": drawn})
-    return out
+        return {"seed": seed, "first": first, "real": real, "drawn": drawn}
+
+    with ThreadPoolExecutor(requests) as pool:
+        return list(pool.map(episode, recorded))
 
 
 def summarize(results: dict, tasks: list[str], variants: list[str]) -> dict:
@@ -154,23 +160,17 @@ def summarize(results: dict, tasks: list[str], variants: list[str]) -> dict:
 
 
 def main(argv=None) -> None:
-    if argv is None:
-        argv = sys.argv[1:]
-    serve_flags = []
-    if "--" in argv:
-        i = argv.index("--")
-        argv, serve_flags = argv[:i], argv[i + 1:]
+    argv, serve_flags = study.split_flags(sys.argv[1:] if argv is None else argv)
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--judge", required=True, help="judge.pt from judge.py train")
     ap.add_argument("--judge-device", default="auto", help="where the judge runs (auto, cpu, cuda)")
-    ap.add_argument("--history", type=int, default=8, help="real frames before each chunk (the world model's H)")
+    ap.add_argument("--history", type=study.at_least_one, default=8, help="real frames before each chunk (the world model's H)")
+    ap.add_argument("--requests", type=study.at_least_one, default=3,
+                    help="chunks asked of bwm serve at once (at most its --queue + 1; the default queue is 4)")
     study.add_episode_arguments(ap)
     a = ap.parse_args(argv)
     if not serve_flags:
         ap.error("the world model's flags for `bwm serve` go after --")
-    for name in ("episodes", "horizon", "chunk", "history", "workers"):
-        if getattr(a, name) < 1:
-            ap.error(f"--{name} must be at least 1")
     tasks, variants = study.tasks_and_variants(ap, a)
     if not os.path.isfile(a.judge):
         ap.error(f"no judge at {a.judge} (judge.py train writes it)")
@@ -191,7 +191,7 @@ def main(argv=None) -> None:
         jobs = [(t, v, [s for _, s in episodes[t]], a.horizon, a.chunk, a.resolution) for t in tasks for v in variants]
         with multiprocessing.get_context("spawn").Pool(min(a.workers, len(jobs))) as pool:
             for n, (t, v, recorded) in enumerate(pool.imap_unordered(_record_job, jobs), 1):
-                results[t][v] = teacher_forced(t, v, recorded, wm, judge, layout, positions)
+                results[t][v] = teacher_forced(t, v, recorded, wm, judge, layout, positions, a.requests)
                 eps = results[t][v]
                 print(f"teacher: {t} {v}: true {np.mean([e['first'] is not None for e in eps]):.2f}, teacher-forced "
                       f"{np.mean([max(e['drawn']) >= study.THRESHOLD for e in eps]):.2f} {n}/{len(jobs)} ({time.time() - start:.0f} s)",

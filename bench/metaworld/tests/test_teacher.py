@@ -1,6 +1,8 @@
 """teacher.py's chunk layout, the actions it gives the world model, and its scoring, on hand-made
 episodes (the recipe's toy run, tests/metaworld_bench.rs, runs it against a served world model)."""
 
+import contextlib
+import io
 import os
 import sys
 
@@ -8,6 +10,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 import mw  # noqa: E402
+import study  # noqa: E402
 import teacher  # noqa: E402
 
 
@@ -49,6 +52,29 @@ def test_rates_count_an_episode_drawn_succeeding_in_any_chunk():
     assert s["per_task"]["t"]["teacher_forced"]["best_ranked_first"], s["per_task"]
 
 
+def test_episodes_asked_at_once_come_back_in_their_order_with_their_own_seeds():
+    class Served:
+        def __init__(self):
+            self.seeds = []
+
+        def chunk(self, frames, actions, seed):
+            self.seeds.append(seed)
+            # The chunk drawn: the last given frame held (the fake judge reads its value).
+            return np.repeat(frames[-1:], 24, axis=0)
+
+    class Judge:
+        def judge(self, ask):
+            return {"success_probability": float(ask["frames"].mean()) / 255}
+
+    layout = teacher.chunk_layout(horizon=48, chunk=24, history=8)
+    recorded = [(seed, None, np.full((49, 2, 2, 3), 10 * k, np.uint8), np.zeros((48, 4), np.float32)) for k, seed in enumerate([7, 3, 9, 1, 5])]
+    positions = {("drawer-open-v3", seed): p for p, seed in enumerate([7, 3, 9, 1, 5])}
+    served = Served()
+    out = teacher.teacher_forced("drawer-open-v3", "expert", recorded, served, Judge(), layout, positions, requests=3)
+    assert [e["seed"] for e in out] == [7, 3, 9, 1, 5], out
+    assert [e["drawn"] for e in out] == [[round(10 * k / 255, 4)] * 2 for k in range(5)], out
+    assert sorted(served.seeds) == sorted(p * 1000 + c for p in range(5) for c in range(2)), served.seeds
+
 def test_the_world_models_flags_are_required():
     try:
         teacher.main(["--data", "x", "--judge", "y", "--out", "z"])
@@ -57,6 +83,21 @@ def test_the_world_models_flags_are_required():
     else:
         raise AssertionError("ran without the world model's flags")
 
+
+
+def test_counts_below_one_are_refused_by_name():
+    for flag in ("--chunk", "--history", "--episodes"):
+        err = io.StringIO()
+        try:
+            with contextlib.redirect_stderr(err):
+                teacher.main(["--data", "x", "--judge", "y", "--out", "z", flag, "0", "--", "--checkpoint", "c"])
+        except SystemExit as e:
+            assert e.code == 2, e
+        else:
+            raise AssertionError(f"ran with {flag} 0")
+        assert f"argument {flag}: must be at least 1, got 0" in err.getvalue(), err.getvalue()
+    assert study.split_flags(["--a", "1", "--", "--b", "--", "c"]) == (["--a", "1"], ["--b", "--", "c"])
+    assert study.split_flags(["--a"]) == (["--a"], [])
 
 if __name__ == "__main__":
     for name, fn in list(globals().items()):

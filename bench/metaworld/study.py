@@ -32,7 +32,8 @@ Everything after `--` goes to `bwm evaluate` (the world model's flags). With --r
 study in DIR is scored again from its eval-*/episodes.jsonl and judged.json (after a change to the
 scoring), without the world model, the judge or `--`; a study cut before its study.json (a machine
 taken back) is scored over the episodes it finished, each rate against the truth of the same
-episodes, and says so (study.json "cut"). With --judged-only, the judge on the
+episodes (a rate or a task without any left out, the mean over tasks only over the variants
+finished in every task scored), and says so (study.json "cut"). With --judged-only, the judge on the
 simulator's frames alone (DIR/judged.json, cached for the study that follows): the recipe runs it
 beside training, where the study would otherwise begin with it.
 """
@@ -309,7 +310,8 @@ def summarize(truth: dict, estimates: dict, judged: dict, tasks: list[str], vari
     # approach in cm, the judge's probability on the world model's frames).
     replayed_by_task: dict = {t: [] for t in tasks}
     for t in tasks:
-        for v in variants:
+        # A cut study may lack a variant in some task (study.json's "cut" names those rates).
+        for v in [v for v in variants if v in estimates[t]]:
             est = estimates[t][v]
             # Episode k of a task is the k-th held-out placement and policy seed in both; a rate is
             # scored over the episodes the world model finished (all of them, unless a study was cut).
@@ -348,7 +350,9 @@ def summarize(truth: dict, estimates: dict, judged: dict, tasks: list[str], vari
         per_task[t] = agreement([r["variant"] for r in mine], [r["estimated"] for r in mine], [r["true"] for r in mine])
     overall = agreement([f"{r['variant']}/{r['task']}" for r in rows], [r["estimated"] for r in rows], [r["true"] for r in rows])
     mean = lambda v, key: float(np.mean([r[key] for r in rows if r["variant"] == v]))
-    by_variant = agreement(variants, [mean(v, "estimated") for v in variants], [mean(v, "true") for v in variants])
+    # A mean over tasks needs the variant in every task.
+    complete = [v for v in variants if all(v in estimates[t] for t in tasks)]
+    by_variant = agreement(complete, [mean(v, "estimated") for v in complete], [mean(v, "true") for v in complete]) if complete else None
     judge_alone = agreement([f"{r['variant']}/{r['task']}" for r in rows], [r["judged_simulator"] for r in rows], [r["true"] for r in rows])
     out = {"rates": rows, "per_task": per_task, "all": overall, "variants_mean_over_tasks": by_variant,
            "judge_on_simulator_frames": judge_alone, "per_episode": episode_agreement(pooled_true, pooled_est),
@@ -664,14 +668,16 @@ def main(argv=None) -> None:
         if missing and not cut:
             raise SystemExit(f"study: {a.out}/eval-*/ hold no episodes of {', '.join(missing)}")
         if cut:
-            # Scored over what it finished: the variants with episodes in every task (a mean over tasks needs them all).
-            variants = [v for v in variants if all(v in estimates.get(t, {}) for t in tasks)]
-            estimates = {t: {v: rs for v, rs in per.items() if v in variants} for t, per in estimates.items()}
-            if not variants:
-                raise SystemExit(f"study: the cut study in {a.out} finished no variant in every task")
+            # Scored over what it finished: every rate with episodes (the mean over tasks only over
+            # the variants with episodes in every task).
+            variants = [v for v in variants if any(v in estimates.get(t, {}) for t in tasks)]
+            estimates = {t: {v: rs for v, rs in estimates.get(t, {}).items() if v in variants} for t in tasks}
+            tasks = [t for t in tasks if estimates[t]]
+            if not tasks:
+                raise SystemExit(f"study: the cut study in {a.out} finished no world-model episode")
             scored = sum(len(rs) for per in estimates.values() for rs in per.values())
             print(f"study: {a.out} was cut before its study.json: {finished} of {planned} world-model episodes finished, "
-                  f"{scored} scored" + (f" (the variants without episodes in every task left out: {', '.join(missing)})" if missing else ""))
+                  f"{scored} scored" + (f" (rates without episodes, left out: {', '.join(missing)})" if missing else ""))
     def judge_the_simulator():
         return cached(judged_path, "judged", {**episodes_key, "judge": file_digest(a.judge)},
                       lambda: judge_simulator(episodes, variants, a.horizon, a.chunk, a.resolution, a.workers, a.judge))
@@ -760,6 +766,8 @@ def write_summary(out: str, summary: dict, tasks: list[str], chunk: int) -> None
               f"{e['agreement']:12.2f} {fmt(e['kappa']):>6s} {fmt(r.get('replayed')):>8s}")
     for name, g in [*summary["per_task"].items(), ("all variants x tasks", summary["all"]), ("variants (mean over tasks)", summary["variants_mean_over_tasks"]),
                     ("the judge alone, on the simulator's frames", summary["judge_on_simulator_frames"])]:
+        if g is None:
+            continue
         print(f"{name}: Pearson r {fmt(g['pearson_r'])}, Spearman {fmt(g['spearman_rho'])}, MAE {fmt(g['mae'])}, "
               f"best {'/'.join(g['best_true'])} ranked first: {g['best_ranked_first']}")
     e = summary["per_episode"]

@@ -164,14 +164,19 @@ def test_a_cut_study_is_scored_over_the_episodes_it_finished():
         study.main(args)
         with open(os.path.join(out, "study.json")) as f:
             s = json.load(f)
-        # `wrong` left out (no button episode finished), its drawer episode with it.
-        assert s["cut"] == {"episodes_finished": 4, "episodes_scored": 3, "episodes_planned": 12,
+        # Every rate with episodes scored: the button's `wrong` (none finished) left out, the
+        # drawer's kept; the mean over tasks only over the variant finished in both.
+        assert s["cut"] == {"episodes_finished": 4, "episodes_scored": 4, "episodes_planned": 12,
                             "rates_without_episodes": ["wrong/button-press-topdown-v3"]}, s["cut"]
         rows = {(r["task"], r["variant"]): r for r in s["rates"]}
-        assert set(rows) == {(t, "expert") for t in tasks}, rows
+        assert set(rows) == {(t, "expert") for t in tasks} | {(tasks[0], "wrong")}, rows
         drawer = rows[(tasks[0], "expert")]
         assert (drawer["episodes"], drawer["true"], drawer["estimated"], drawer["judged_simulator"]) == (2, 1.0, 0.5, 1.0), drawer
-        assert drawer["per_episode"]["missed"] == 1 and s["per_episode"]["n"] == 3, s["per_episode"]
+        assert drawer["per_episode"]["missed"] == 1 and s["per_episode"]["n"] == 4, s["per_episode"]
+        wrong = rows[(tasks[0], "wrong")]
+        assert (wrong["episodes"], wrong["true"], wrong["estimated"]) == (1, 0.0, 1.0), wrong
+        assert s["per_episode"]["invented"] == 1 and s["all"]["n"] == 3, s
+        assert s["variants_mean_over_tasks"]["n"] == 1, s["variants_mean_over_tasks"]
         # Once scored it is a finished study: its processes' files must be whole.
         try:
             study.main(args)
@@ -179,13 +184,22 @@ def test_a_cut_study_is_scored_over_the_episodes_it_finished():
             assert str(e) == f"study: line 5 of {os.path.join(out, 'eval-0', 'episodes.jsonl')} is not JSON", e
         else:
             raise AssertionError("a finished study scored with a half-written episode")
+        # A task without any finished episode is left out of the scores, not scored empty.
+        os.remove(os.path.join(out, "study.json"))
+        with open(os.path.join(out, "eval-0", "episodes.jsonl"), "w") as f:
+            f.write(record(tasks[0], "expert", 0, True) + "\n" + record(tasks[0], "wrong", 1, False) + "\n")
+        study.main(args)
+        with open(os.path.join(out, "study.json")) as f:
+            s = json.load(f)
+        assert list(s["per_task"]) == [tasks[0]] and s["all"]["n"] == 2 and s["variants_mean_over_tasks"]["n"] == 2, s
+        assert len(s["cut"]["rates_without_episodes"]) == 2, s["cut"]
         # A cut study that finished no episode is refused, not scored empty.
         os.remove(os.path.join(out, "study.json"))
         os.remove(os.path.join(out, "eval-0", "episodes.jsonl"))
         try:
             study.main(args)
         except SystemExit as e:
-            assert "finished no variant in every task" in str(e), e
+            assert "finished no world-model episode" in str(e), e
         else:
             raise AssertionError("scored a cut study without episodes")
 

@@ -66,10 +66,10 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
             .envs([("VAL_EPISODES", "1"), ("VAE_EPISODES", "6"), ("JUDGE_RECONSTRUCT_EPISODES", "4")])
             .envs(TOY_STUDY)
             .env("PROBE_VARIANTS", "wrong-0cm,wrong-6cm")
-            // The DiT trained with action dropout and its own history noise, every world-model
+            // The DiT trained with action dropout, its own history noise and grid shift, every world-model
             // stage guided by the actions; the data's near misses drawn around the measured
             // outcome boundary and weighted up, and decoys among its degraded episodes.
-            .env("TRAIN_SETS", format!("{TOY_DIT} objective.action_dropout=0.5 objective.history_sigma=0.1"))
+            .env("TRAIN_SETS", format!("{TOY_DIT} objective.action_dropout=0.5 objective.history_sigma=0.1 objective.shift=3.0"))
             .env("GUIDANCE", "1.5")
             .env("MISS_BOUNDARY", Path::new(ROOT).join("bench/metaworld/boundary.json"))
             .env("MISS_WEIGHT", "9")
@@ -127,6 +127,7 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
     assert_eq!(fidelity["episodes"], 2, "{fidelity}");
     assert_eq!(fidelity["guidance"], 1.5, "{fidelity}");
     assert_eq!(fidelity["history_sigma"], 0.1, "sampling follows the trained history noise: {fidelity}");
+    assert_eq!(fidelity["shift"], 3.0, "sampling follows the trained grid shift: {fidelity}");
     let config = std::fs::read_to_string(runs.join("config.toml")).unwrap();
     assert!(config.contains("action_dropout = 0.5"), "{config}");
 

@@ -118,6 +118,7 @@ fn serve_round_trips_rejects_bad_requests_and_sheds_load() {
     assert_eq!((h["queue_capacity"].as_u64(), h["queue_depth"].as_u64(), h["future"].as_u64()), (Some(1), Some(0), Some(4)), "{h}");
     assert_eq!(h["solver"], "euler", "{h}");
     assert!((h["history_sigma"].as_f64().unwrap() - 0.2083).abs() < 1e-3, "random weights record no history noise: the release's level: {h}");
+    assert_eq!(h["shift"], 5.0, "random weights record no shift: Wan's: {h}");
     assert!(h["model"].as_str().unwrap().contains("tiny"), "{h}");
 
     // The documented Python client: 3 given frames (x0 + 2 history) and 3 + 4 actions.

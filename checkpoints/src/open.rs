@@ -430,12 +430,20 @@ pub struct TrainingRecord {
     /// `objective.history_sigma`: the noise level of the history latents in training, which
     /// sampling should match; None where the run kept the default or the weights do not say.
     pub history_sigma: Option<f64>,
+    /// `objective.shift`: the flow-matching shift of the training grid, which sampling should
+    /// match; None where the run kept the default or the weights do not say.
+    pub shift: Option<f64>,
 }
 
 pub fn training_record(opened: &OpenedWeights) -> Result<TrainingRecord> {
     if crate::run_dir::is_training_checkpoint(&opened.location) {
         let run = crate::run_info::CheckpointState::read(&opened.location)?.run;
-        return Ok(TrainingRecord { residual: run.residual, action_dropout: Some(run.action_dropout.unwrap_or(0.0)), history_sigma: run.history_sigma });
+        return Ok(TrainingRecord {
+            residual: run.residual,
+            action_dropout: Some(run.action_dropout.unwrap_or(0.0)),
+            history_sigma: run.history_sigma,
+            shift: run.shift,
+        });
     }
     let config = opened.repo_config.as_ref();
     let training = config.and_then(|c| c.training.as_ref());
@@ -443,6 +451,7 @@ pub fn training_record(opened: &OpenedWeights) -> Result<TrainingRecord> {
         residual: training.and_then(|t| t.get("residual")).and_then(|r| r.as_str()).map(String::from),
         action_dropout: training.and_then(|t| t.get("action_dropout")).and_then(|a| a.as_f64()),
         history_sigma: config.and_then(|c| c.schedule.as_ref()).and_then(|s| s.get("history_sigma")).and_then(|h| h.as_f64()),
+        shift: config.and_then(|c| c.schedule.as_ref()).and_then(|s| s.get("shift")).and_then(|h| h.as_f64()),
     })
 }
 

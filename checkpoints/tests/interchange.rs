@@ -100,17 +100,18 @@ fn export_then_load_gives_identical_tensors_in_every_layout() {
 }
 
 #[test]
-fn the_trained_residual_action_dropout_and_history_sigma_travel_from_the_run_to_the_export() {
+fn the_trained_residual_action_dropout_history_sigma_and_shift_travel_from_the_run_to_the_export() {
     let root = tmp_dir("residual");
     let model = random_model(&tiny(), 13);
     let ckpt = fake_run(&root, &model, &|c| {
-        run_toml("res", "tiny", None, c).replace("dtype = \"f32\"\n", "dtype = \"f32\"\nresidual = \"model\"\n") + "\n[objective]\naction_dropout = 0.1\nhistory_sigma = 0.05\n"
+        run_toml("res", "tiny", None, c).replace("dtype = \"f32\"\n", "dtype = \"f32\"\nresidual = \"model\"\n") + "\n[objective]\naction_dropout = 0.1\nhistory_sigma = 0.05\nshift = 2.0\n"
     });
     let record = |path: &Path| training_record(&open_any(path.to_str().unwrap()).unwrap()).unwrap();
     let residual = |path: &Path| record(path).residual;
     assert_eq!(residual(&ckpt).as_deref(), Some("model"), "the training checkpoint's run config");
     assert_eq!(record(&ckpt).action_dropout, Some(0.1));
     assert_eq!(record(&ckpt).history_sigma, Some(0.05));
+    assert_eq!(record(&ckpt).shift, Some(2.0));
     // The checkpoint folder itself loads as a model, under its run's config.
     let back = load_model(ckpt.to_str().unwrap(), None, Kind::Float, Device::Cpu).unwrap();
     assert_same(&trained(&back), &trained(&model), Kind::Float, "training checkpoint folder");
@@ -119,9 +120,10 @@ fn the_trained_residual_action_dropout_and_history_sigma_travel_from_the_run_to_
     assert_eq!(residual(&out).as_deref(), Some("model"), "the export's config.json");
     assert_eq!(record(&out).action_dropout, Some(0.1));
     assert_eq!(record(&out).history_sigma, Some(0.05), "the export's schedule");
+    assert_eq!(record(&out).shift, Some(2.0), "the export's schedule");
     // A run that does not set them (trained without action dropout), and weights that record nothing.
     let plain = fake_run(&root.join("plain"), &model, &|c| run_toml("plain", "tiny", None, c));
-    assert_eq!(record(&plain), bwm_checkpoints::open::TrainingRecord { residual: None, action_dropout: Some(0.0), history_sigma: None });
+    assert_eq!(record(&plain), bwm_checkpoints::open::TrainingRecord { residual: None, action_dropout: Some(0.0), history_sigma: None, shift: None });
     let file = root.join("bare.safetensors");
     write_tensors(&file, &trained(&model).into_iter().collect::<Vec<_>>(), &BTreeMap::new()).unwrap();
     assert_eq!(record(&file), Default::default());

@@ -59,8 +59,10 @@ pub struct WorldModelArgs {
     /// fidelity, docs/fidelity.md).
     #[arg(long, default_value_t = bwm_model::schedule::DEFAULT_SAMPLE_STEPS)]
     pub sample_steps: usize,
-    #[arg(long, default_value_t = bwm_model::schedule::DEFAULT_SHIFT)]
-    pub shift: f64,
+    /// The flow-matching shift of the sampler's grid (default: the shift the weights were trained
+    /// with, `objective.shift`, else Wan's 5).
+    #[arg(long)]
+    pub shift: Option<f64>,
     /// How the sampler steps: euler (the reference's) or dpm++2m (DPM-Solver++(2M), second
     /// order at one model evaluation per step).
     #[arg(long, default_value = "euler")]

@@ -49,7 +49,9 @@ pub struct WorldModelOptions {
     pub future: usize,
     /// Sampler steps per chunk.
     pub sample_steps: usize,
-    pub shift: f64,
+    /// The flow-matching shift of the sampler's grid; None: the shift the weights were trained
+    /// with (a training checkpoint's `objective.shift`, an export's schedule), else Wan's 5.
+    pub shift: Option<f64>,
     /// How the sampler steps: Euler (the reference's) or DPM-Solver++(2M).
     pub solver: Solver,
     /// Noise level of the history latents; None: the level the weights were trained with (a
@@ -79,7 +81,7 @@ impl Default for WorldModelOptions {
             history: 8,
             future: 72,
             sample_steps: bwm_model::schedule::DEFAULT_SAMPLE_STEPS,
-            shift: bwm_model::schedule::DEFAULT_SHIFT,
+            shift: None,
             solver: Solver::Euler,
             history_sigma: None,
             guidance: 1.0,
@@ -124,15 +126,15 @@ impl WorldModelOptions {
         options
     }
 
-    /// The rollout settings, for weights trained with history noise `trained_history_sigma` (None:
-    /// the default or not recorded).
-    pub fn spec(&self, trained_history_sigma: Option<f64>) -> Result<RolloutSpec> {
+    /// The rollout settings, for weights trained with history noise `trained_history_sigma` and
+    /// shift `trained_shift` (None: the default or not recorded).
+    pub fn spec(&self, trained_history_sigma: Option<f64>, trained_shift: Option<f64>) -> Result<RolloutSpec> {
         let sigma = self.history_sigma.or(trained_history_sigma).unwrap_or_else(default_history_sigma);
         let spec = RolloutSpec {
             history: self.history,
             future: self.future,
             steps: self.sample_steps,
-            shift: self.shift,
+            shift: self.shift.or(trained_shift).unwrap_or(bwm_model::schedule::DEFAULT_SHIFT),
             solver: self.solver,
             history_sigma: (sigma > 0.0).then_some(sigma),
             guidance: self.guidance,
@@ -143,7 +145,7 @@ impl WorldModelOptions {
     }
 
     pub fn load(&self) -> Result<WorldModel> {
-        self.spec(None)?; // wrong flags are named before any weights are opened
+        self.spec(None, None)?; // wrong flags are named before any weights are opened
         let device = parse_device(&self.device)?;
         let kind = match self.dtype.as_str() {
             "auto" if device.is_cuda() => Kind::BFloat16,
@@ -153,7 +155,7 @@ impl WorldModelOptions {
         let preset = self.model_preset.as_deref().map(ModelConfig::preset).transpose()?;
         ensure!(self.lora.is_none() || self.checkpoint.is_some(), "--lora needs --checkpoint: the base weights its adapters go onto");
         // The residual stream the weights were trained with, unless --residual says otherwise.
-        let (mut model, trained, trained_history_sigma) = match (&self.checkpoint, &self.random_weights) {
+        let (mut model, trained, trained_history_sigma, trained_shift) = match (&self.checkpoint, &self.random_weights) {
             (Some(ckpt), _) => {
                 let mut opened = open_any(ckpt).with_context(|| format!("--checkpoint {ckpt}"))?;
                 let record = training_record(&opened).with_context(|| format!("--checkpoint {ckpt}"))?;
@@ -162,12 +164,12 @@ impl WorldModelOptions {
                     opened = with_lora_adapters(opened, adapters).with_context(|| format!("--lora {}", adapters.display()))?;
                 }
                 let trained = record.residual.map(|r| r.parse::<Residual>().map_err(|e| anyhow::anyhow!("--checkpoint {ckpt}: model.residual {e}"))).transpose()?;
-                (build_model(opened, preset.as_ref(), kind, device).with_context(|| format!("--checkpoint {ckpt}"))?, trained, record.history_sigma)
+                (build_model(opened, preset.as_ref(), kind, device).with_context(|| format!("--checkpoint {ckpt}"))?, trained, record.history_sigma, record.shift)
             }
-            (None, Some(name)) => (BwmModel::random(&ModelConfig::preset(name)?, kind, device, self.seed as i64)?, None, None),
+            (None, Some(name)) => (BwmModel::random(&ModelConfig::preset(name)?, kind, device, self.seed as i64)?, None, None, None),
             (None, None) => bail!("pass --checkpoint (trained weights) or --random-weights PRESET"),
         };
-        let spec = self.spec(trained_history_sigma).context("the history noise the weights were trained with")?;
+        let spec = self.spec(trained_history_sigma, trained_shift).context("the history noise and shift the weights were trained with")?;
         model.dit.residual = self.residual.or(trained).unwrap_or_default().kind(kind);
         if let Some(scaling) = self.fp8 {
             quantize_dit_blocks(&mut model.dit, scaling).context("--fp8")?;
@@ -250,12 +252,20 @@ mod tests {
 
     #[test]
     fn history_noise_follows_the_flag_then_the_training_then_the_release() {
-        let sigma = |flag: Option<f64>, trained: Option<f64>| WorldModelOptions { history_sigma: flag, ..Default::default() }.spec(trained).unwrap().history_sigma;
+        let sigma = |flag: Option<f64>, trained: Option<f64>| WorldModelOptions { history_sigma: flag, ..Default::default() }.spec(trained, None).unwrap().history_sigma;
         assert_eq!(sigma(None, None), Some(default_history_sigma()), "weights that record nothing: the release's level");
         assert_eq!(sigma(None, Some(0.05)), Some(0.05), "the level the weights were trained with");
         assert_eq!(sigma(Some(0.1), Some(0.05)), Some(0.1), "--history-sigma overrides it");
         assert_eq!(sigma(Some(0.0), Some(0.05)), None, "--history-sigma 0 turns it off");
         assert_eq!(sigma(None, Some(0.0)), None, "weights trained on clean history sample on clean history");
+    }
+
+    #[test]
+    fn the_sampler_shift_follows_the_flag_then_the_training_then_wan() {
+        let shift = |flag: Option<f64>, trained: Option<f64>| WorldModelOptions { shift: flag, ..Default::default() }.spec(None, trained).unwrap().shift;
+        assert_eq!(shift(None, None), bwm_model::schedule::DEFAULT_SHIFT, "weights that record nothing: Wan's shift");
+        assert_eq!(shift(None, Some(2.0)), 2.0, "the shift the weights were trained with");
+        assert_eq!(shift(Some(3.0), Some(2.0)), 3.0, "--shift overrides it");
     }
 
     #[test]

@@ -68,7 +68,8 @@ pub struct WorldModelArgs {
     #[arg(long, default_value = "euler")]
     pub solver: bwm_model::schedule::Solver,
     /// Noise level of the history latents (default: the level the weights were trained with,
-    /// `objective.history_sigma`, else 0.2083); 0 turns it off.
+    /// `objective.history_sigma`, else their training grid's sigma 50 steps from clean, 0.2083 at
+    /// shift 5); 0 turns it off.
     #[arg(long)]
     pub history_sigma: Option<f64>,
     /// Classifier-free guidance by the actions: each step's velocity is v_null + w (v_actions -

@@ -681,6 +681,7 @@ mod tests {
             future: 4,
             sample_steps: 1,
             solver: "euler".into(),
+            shift: 5.0,
             guidance: 1.0,
             history_sigma: Some(0.2),
             stats: false,

@@ -8,7 +8,7 @@ use bwm_checkpoints::open::{build_model, open_any, training_record, with_lora_ad
 use bwm_data::ActionStats;
 use bwm_model::fp8::Fp8Scaling;
 use bwm_model::fp8_dit::quantize_dit_blocks;
-use bwm_model::rollout::{default_history_sigma, Rollout, RolloutSpec};
+use bwm_model::rollout::{history_sigma_for_shift, Rollout, RolloutSpec};
 use bwm_model::schedule::Solver;
 use bwm_model::vae::{VaeConfig, WanVae};
 use bwm_model::{BwmModel, ModelConfig};
@@ -55,8 +55,8 @@ pub struct WorldModelOptions {
     /// How the sampler steps: Euler (the reference's) or DPM-Solver++(2M).
     pub solver: Solver,
     /// Noise level of the history latents; None: the level the weights were trained with (a
-    /// training checkpoint's run config, an export's schedule), else the BWM release's 0.2083; 0
-    /// turns it off.
+    /// training checkpoint's run config, an export's schedule), else their training grid's sigma
+    /// 50 steps from clean (the BWM release's 0.2083 at shift 5); 0 turns it off.
     pub history_sigma: Option<f64>,
     /// Classifier-free guidance by the actions (1: off; see `sample_chunk`).
     pub guidance: f64,
@@ -127,9 +127,11 @@ impl WorldModelOptions {
     }
 
     /// The rollout settings, for weights trained with history noise `trained_history_sigma` and
-    /// shift `trained_shift` (None: the default or not recorded).
+    /// shift `trained_shift` (None: the default or not recorded). Unset history noise is the
+    /// level training gave it at that shift, whatever the sampler's `--shift`.
     pub fn spec(&self, trained_history_sigma: Option<f64>, trained_shift: Option<f64>) -> Result<RolloutSpec> {
-        let sigma = self.history_sigma.or(trained_history_sigma).unwrap_or_else(default_history_sigma);
+        let trained_grid = trained_shift.unwrap_or(bwm_model::schedule::DEFAULT_SHIFT);
+        let sigma = self.history_sigma.or(trained_history_sigma).unwrap_or_else(|| history_sigma_for_shift(trained_grid));
         let spec = RolloutSpec {
             history: self.history,
             future: self.future,
@@ -266,6 +268,12 @@ mod tests {
         assert_eq!(shift(None, None), bwm_model::schedule::DEFAULT_SHIFT, "weights that record nothing: Wan's shift");
         assert_eq!(shift(None, Some(2.0)), 2.0, "the shift the weights were trained with");
         assert_eq!(shift(Some(3.0), Some(2.0)), 3.0, "--shift overrides it");
+        // History noise left unset in training was the trained grid's, and sampling matches it.
+        let sigma = |flag: Option<f64>, trained: Option<f64>| WorldModelOptions { shift: flag, ..Default::default() }.spec(None, trained).unwrap().history_sigma;
+        let at_2 = bwm_model::rollout::history_sigma_for_shift(2.0);
+        assert!((at_2 - 2.0 * 0.05 / 1.05).abs() < 1e-9, "{at_2}");
+        assert_eq!(sigma(None, Some(2.0)), Some(at_2));
+        assert_eq!(sigma(Some(3.0), Some(2.0)), Some(at_2), "--shift moves the sampler's grid, not the trained history noise");
     }
 
     #[test]

@@ -19,7 +19,13 @@ use crate::vae::WanVae;
 
 /// The history-noise level the BWM release trains and samples with (`FlowSchedule::history_sigma`).
 pub fn default_history_sigma() -> f64 {
-    FlowSchedule::training(NUM_TRAIN_TIMESTEPS, DEFAULT_SHIFT).history_sigma()
+    history_sigma_for_shift(DEFAULT_SHIFT)
+}
+
+/// The history-noise level a run trains with when it does not set one: the training grid's sigma
+/// 50 steps from clean, which moves with the grid's shift.
+pub fn history_sigma_for_shift(shift: f64) -> f64 {
+    FlowSchedule::training(NUM_TRAIN_TIMESTEPS, shift).history_sigma()
 }
 
 #[derive(Debug, Clone, PartialEq)]

@@ -71,6 +71,22 @@ def _record_job(job):
                            for seed in seeds for e in [policies.run_episode(task, variant, seed, horizon, chunk, resolution, record=True)]]
 
 
+def post(url: str, body: bytes, patience: float = 600.0) -> bytes:
+    """The server's answer to a msgpack POST; asked again while it answers 503 (its queue full:
+    more requests at once than `bwm serve --queue` holds), for up to `patience` seconds."""
+    deadline = time.time() + patience
+    while True:
+        request = urllib.request.Request(url, data=body, headers={"Content-Type": "application/msgpack"})
+        try:
+            with urllib.request.urlopen(request, timeout=600) as r:
+                return r.read()
+        except urllib.error.HTTPError as e:
+            text = e.read().decode(errors="replace")
+            if e.code != 503 or time.time() >= deadline:
+                raise SystemExit(f"teacher: bwm serve answered {e.code}: {text}") from None
+        time.sleep(0.05)
+
+
 class WorldModel:
     """`bwm serve` on a free port for the run's lifetime; `chunk` asks it for one chunk."""
 
@@ -93,12 +109,7 @@ class WorldModel:
 
     def chunk(self, frames: np.ndarray, actions: np.ndarray, seed: int) -> np.ndarray:
         body = msgpack_numpy.packb({"frames": frames, "actions": actions, "normalized": False, "seed": seed})
-        request = urllib.request.Request(self.url, data=body, headers={"Content-Type": "application/msgpack"})
-        try:
-            with urllib.request.urlopen(request, timeout=600) as r:
-                return msgpack_numpy.unpackb(r.read())["frames"]
-        except urllib.error.HTTPError as e:
-            raise SystemExit(f"teacher: bwm serve answered {e.code}: {e.read().decode(errors='replace')}") from None
+        return msgpack_numpy.unpackb(post(self.url, body))["frames"]
 
     def close(self) -> None:
         self.proc.terminate()
@@ -166,7 +177,7 @@ def main(argv=None) -> None:
     ap.add_argument("--judge-device", default="auto", help="where the judge runs (auto, cpu, cuda)")
     ap.add_argument("--history", type=study.at_least_one, default=8, help="real frames before each chunk (the world model's H)")
     ap.add_argument("--requests", type=study.at_least_one, default=3,
-                    help="chunks asked of bwm serve at once (at most its --queue + 1; the default queue is 4)")
+                    help="chunks asked of bwm serve at once (more than its --queue + 1 wait their turn)")
     study.add_episode_arguments(ap)
     a = ap.parse_args(argv)
     if not serve_flags:

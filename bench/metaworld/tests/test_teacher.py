@@ -85,6 +85,47 @@ def test_the_world_models_flags_are_required():
 
 
 
+def test_a_full_queue_is_asked_again_and_other_refusals_end_the_run():
+    import http.server
+    import threading
+
+    answers = [(503, b"server busy"), (503, b"server busy"), (200, b"drawn"), (400, b"bad frames"), (503, b"server busy")]
+    seen = []
+
+    class Handler(http.server.BaseHTTPRequestHandler):
+        def do_POST(self):
+            seen.append(self.rfile.read(int(self.headers["Content-Length"])))
+            code, text = answers.pop(0)
+            self.send_response(code)
+            self.send_header("Content-Length", str(len(text)))
+            self.end_headers()
+            self.wfile.write(text)
+
+        def log_message(self, *args):
+            pass
+
+    server = http.server.HTTPServer(("127.0.0.1", 0), Handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        url = f"http://127.0.0.1:{server.server_port}/v1/chunk"
+        assert teacher.post(url, b"body") == b"drawn"
+        assert seen == [b"body"] * 3, seen
+        try:
+            teacher.post(url, b"body")
+        except SystemExit as e:
+            assert str(e) == "teacher: bwm serve answered 400: bad frames", e
+        else:
+            raise AssertionError("a 400 was not an error")
+        try:
+            teacher.post(url, b"body", patience=0)
+        except SystemExit as e:
+            assert str(e) == "teacher: bwm serve answered 503: server busy", e
+        else:
+            raise AssertionError("a full queue was waited on past the patience")
+    finally:
+        server.shutdown()
+        server.server_close()
+
 def test_counts_below_one_are_refused_by_name():
     for flag in ("--chunk", "--history", "--episodes"):
         err = io.StringIO()

@@ -136,7 +136,7 @@ impl WorldModelOptions {
             history: self.history,
             future: self.future,
             steps: self.sample_steps,
-            shift: self.shift.or(trained_shift).unwrap_or(bwm_model::schedule::DEFAULT_SHIFT),
+            shift: self.shift.unwrap_or(trained_grid),
             solver: self.solver,
             history_sigma: (sigma > 0.0).then_some(sigma),
             guidance: self.guidance,

@@ -299,6 +299,20 @@ fn the_recipes_degraded_share_reaches_the_generator() {
 }
 
 #[test]
+fn the_recipes_vae_graph_reaches_train_vae() {
+    // On the CPU the recipe leaves CUDA graphs off by default (the toy recipe trains its VAE so);
+    // asked for, they reach `bwm train-vae`, which refuses them there by name.
+    let dir = temp_dir("metaworld-vae-graph");
+    let runs = dir.join("run");
+    run(toy("recipe.sh", &runs).arg("data").envs([("TRAIN_EPISODES", "1"), ("VAL_EPISODES", "1")]), "recipe.sh data");
+    let out = toy("recipe.sh", &runs).arg("vae").env("VAE_GRAPH", "1").output().unwrap();
+    let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(!out.status.success(), "VAE_GRAPH=1 on the CPU must fail:\n{text}");
+    assert!(text.contains("CUDA graphs (--cuda-graph) need a CUDA device"), "{text}");
+    assert!(!runs.join("vae.safetensors").exists(), "no VAE may be written");
+}
+
+#[test]
 fn the_generator_spreads_its_experts_as_asked() {
     run(Command::new(python()).arg(Path::new(ROOT).join("bench/metaworld/tests/test_generate.py")), "test_generate.py");
 }

@@ -55,6 +55,9 @@ VAE_BATCH="${VAE_BATCH:-4}"
 VAE_LR="${VAE_LR:-1e-3}"
 VAE_DTYPE="${VAE_DTYPE:-f32}"             # bwm train-vae --dtype: f32, or bf16 with fp32 masters (slower here: docs/performance.md)
 VAE_LOSS="${VAE_LOSS:-mse}"                # bwm train-vae --recon-loss: mse or l1
+# 1: bwm train-vae --cuda-graph (the step replayed from a CUDA graph: 1.8x faster on an H200,
+# docs/performance.md); on by default on CUDA devices, off elsewhere (a CPU has no CUDA graphs).
+VAE_GRAPH="${VAE_GRAPH:-$([[ $DEVICE == cuda* ]] && echo 1 || echo 0)}"
 VAE_EVAL_EVERY="${VAE_EVAL_EVERY:-1000}"  # held-out reconstruction PSNR every N VAE steps (and at the end)
 # The VAE trains on clips as long as the DiT's (x0 + 8 + 24 = 33 frames): its causal convolutions
 # see the video's start in every 9-frame clip, and one trained on those decodes the later latents
@@ -130,7 +133,7 @@ if wants vae; then
   if [ -f "$RUN/vae.safetensors" ]; then echo "recipe: $RUN/vae.safetensors exists"; else
     timed vae "$BWM" train-vae --data "$VAE_DATA" --max-episodes "$VAE_EPISODES" --holdout-tail "$VAE_HOLDOUT_TAIL" \
       --resolution "${RESOLUTION}x$RESOLUTION" --dim "$VAE_DIM" --dec-dim "$VAE_DEC_DIM" --spatial-stride "$VAE_STRIDE" --clip-frames "$VAE_CLIP_FRAMES" --batch "$VAE_BATCH" --steps "$VAE_STEPS" --lr "$VAE_LR" \
-      --no-flip --eval-every "$VAE_EVAL_EVERY" --dtype "$VAE_DTYPE" --recon-loss "$VAE_LOSS" --seed "$VAE_SEED" --z-dim "$VAE_Z_DIM" --device "$DEVICE" --out "$RUN/vae.safetensors"
+      --no-flip --eval-every "$VAE_EVAL_EVERY" --dtype "$VAE_DTYPE" --recon-loss "$VAE_LOSS" --seed "$VAE_SEED" --z-dim "$VAE_Z_DIM" --device "$DEVICE" $([ "$VAE_GRAPH" = 1 ] && echo --cuda-graph) --out "$RUN/vae.safetensors"
   fi
 fi
 

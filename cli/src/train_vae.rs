@@ -84,6 +84,11 @@ pub struct TrainVaeArgs {
     /// towards blurring a small object into its surroundings).
     #[arg(long, default_value = "mse")]
     pub recon_loss: ReconLoss,
+    /// Record the training step (forward and backward) once as a CUDA graph and replay it after
+    /// two eager warm-up steps (CUDA only). The small VAE's step is bound by launching its
+    /// kernels, which a replay does in one launch; the results are the eager step's.
+    #[arg(long)]
+    pub cuda_graph: bool,
     /// Held-out PSNR every N steps (0: only at the end).
     #[arg(long, default_value_t = 0)]
     pub eval_every: u64,
@@ -147,6 +152,7 @@ fn train(a: &TrainVaeArgs, cfg: VaeConfig, data: FrameSets, device: tch::Device,
         crop: a.crop.as_deref().map(|c| parse_resolution(c, stride as u32).map(|(w, h)| (w as i64, h as i64))).transpose().context("--crop")?,
         dtype,
         recon_loss: a.recon_loss,
+        cuda_graph: a.cuda_graph,
     };
     let trained = train_vae(&data, &settings, &mut |line| println!("  {line}"))?;
     save_trained_vae(&trained, &a.out)?;

@@ -2,22 +2,53 @@
 //! API does. Such a crate depends on `torch-sys` (which reports its libtorch to dependents' build
 //! scripts as `DEP_TCH_LIBTORCH_LIB`) and lists this crate under `[build-dependencies]`.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 /// Compiles `source` (relative to the crate being built) into the static library `name`, against
 /// the headers beside the lib folder of the libtorch torch-sys links.
 pub fn compile(source: &str, name: &str) {
+    compile_with(source, name, None, &[]);
+}
+
+/// [`compile`] with one more include folder (e.g. CUDA's, from [`cuda_include`]) and preprocessor
+/// symbols defined.
+pub fn compile_with(source: &str, name: &str, include: Option<&Path>, defines: &[&str]) {
     println!("cargo:rerun-if-changed={source}");
     println!("cargo:rerun-if-env-changed=DEP_TCH_LIBTORCH_LIB");
     let lib = std::env::var("DEP_TCH_LIBTORCH_LIB").expect("torch-sys did not report its libtorch (DEP_TCH_LIBTORCH_LIB)");
     let root = Path::new(&lib).parent().expect("libtorch lib folder has a parent");
-    cc::Build::new()
+    let mut build = cc::Build::new();
+    build
         .cpp(true)
         .file(source)
         .include(root.join("include"))
         .include(root.join("include/torch/csrc/api/include"))
         .flag("-std=c++17")
         .flag("-D_GLIBCXX_USE_CXX11_ABI=1")
-        .warnings(false)
-        .compile(name);
+        .warnings(false);
+    if let Some(dir) = include {
+        build.include(dir);
+    }
+    for d in defines {
+        build.define(d, None);
+    }
+    build.compile(name);
+}
+
+/// The folder holding CUDA's runtime headers (`cuda_runtime_api.h` and the `crt/` headers it
+/// includes) for the libtorch in `lib`: `$CUDA_HOME/include`, else the wheels beside a PyPI torch
+/// (`nvidia/cu13/include` or, for CUDA 12, `nvidia/cuda_runtime/include`, when they hold `crt/`;
+/// else triton's copy, `triton/backends/nvidia/include`), else `/usr/local/cuda/include`.
+pub fn cuda_include(lib: &Path) -> Option<PathBuf> {
+    println!("cargo:rerun-if-env-changed=CUDA_HOME");
+    let site = lib.parent().and_then(Path::parent);
+    let wheels = site.into_iter().flat_map(|s| {
+        ["nvidia/cu13/include", "nvidia/cuda_runtime/include", "triton/backends/nvidia/include"].map(|p| s.join(p))
+    });
+    std::env::var_os("CUDA_HOME")
+        .map(|h| PathBuf::from(h).join("include"))
+        .into_iter()
+        .chain(wheels)
+        .chain([PathBuf::from("/usr/local/cuda/include")])
+        .find(|d| d.join("cuda_runtime_api.h").exists() && d.join("crt/host_config.h").exists())
 }

@@ -665,6 +665,13 @@ impl WanVae {
         self.encode_moments_checked(video)
     }
 
+    /// `encode_moments` of a video whose values the caller knows to be finite: only its shape is
+    /// checked, so nothing waits for the device (the work can be recorded in a CUDA graph).
+    pub fn encode_moments_of_finite(&self, video: &Tensor) -> Result<Tensor> {
+        self.check_video_shape(video)?;
+        self.encode_moments_checked(video)
+    }
+
     fn encode_moments_checked(&self, video: &Tensor) -> Result<Tensor> {
         let x = patchify(&video.to_kind(self.mean.kind()));
         let frames = x.size()[2];

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # What the GPU scripts need carried to a lent machine (device tool), prepared on this machine from
 # the repo root: .carry/bwm.xz (the bwm binary built with --no-default-features, stripped and
-# xz-compressed: the carry limit is 64 MiB), .whl (bench/metaworld's wheels for that machine's
+# xz-compressed: the carry limit is 64 MiB) and .carry/test-*.xz (the unit tests of cuda-graph/
+# and trainer/, which scripts/gpu/unit.sh runs where there is a GPU), .whl (bench/metaworld's wheels for that machine's
 # Python 3.12) and .gl (the GL loader debs MuJoCo's EGL rendering needs there). Each part is
 # skipped when present; --rebuild rebuilds and repacks the binary. Then, for example:
 #   run(carry=[".whl", ".gl", ".carry"], command="bash scripts/gpu/metaworld.sh data")
@@ -22,12 +23,21 @@ done
 export CARGO_TARGET_DIR="${CARGO_TARGET_DIR:-$HOME/.cache/bwm-gpu-target}"
 source scripts/env.sh
 
-if [ $rebuild = 1 ] || [ ! -f .carry/bwm.xz ]; then
+pack() { # $1 = executable, $2 = name under .carry: stripped and xz-compressed
+  strip -o ".carry/$2.tmp" "$1"
+  xz -T0 -6 -c ".carry/$2.tmp" > ".carry/$2.xz.tmp" && rm ".carry/$2.tmp" && mv ".carry/$2.xz.tmp" ".carry/$2.xz"
+}
+if [ $rebuild = 1 ] || [ ! -f .carry/bwm.xz ] || [ ! -f .carry/test-cuda-graph.xz ] || [ ! -f .carry/test-trainer.xz ]; then
   echo "carry: building bwm without FFmpeg/HDF5 into $CARGO_TARGET_DIR (several minutes cold)"
   cargo build --release -p bwm-cli --no-default-features
   mkdir -p .carry
-  strip -o .carry/bwm.tmp "$CARGO_TARGET_DIR/release/bwm"
-  xz -T0 -6 -c .carry/bwm.tmp > .carry/bwm.xz.tmp && rm .carry/bwm.tmp && mv .carry/bwm.xz.tmp .carry/bwm.xz
+  pack "$CARGO_TARGET_DIR/release/bwm" bwm
+  # The unit tests that need a GPU to check anything (scripts/gpu/unit.sh runs them there).
+  for crate in cuda-graph trainer; do
+    exe=$(cargo test --release --no-default-features -p "bwm-$crate" --lib --no-run --message-format=json 2>/dev/null |
+      "$BWM_VENV/bin/python" -c 'import json,sys; print([m["executable"] for m in map(json.loads, sys.stdin) if m.get("executable") and m["target"]["kind"] == ["lib"]][-1])')
+    pack "$exe" "test-$crate"
+  done
 fi
 
 # Pinned as bench/metaworld/requirements.txt and the virtualenv's safetensors; websockets as the

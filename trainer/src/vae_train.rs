@@ -16,6 +16,7 @@ use crate::image_metrics::psnr;
 use crate::keyed_rng::{self, Purpose};
 use crate::dist::LocalCollective;
 use crate::optim::{AdamW, Sharding};
+use bwm_cuda_graph::CudaGraph;
 
 pub struct VaeTrainSettings {
     pub cfg: VaeConfig,
@@ -38,7 +39,13 @@ pub struct VaeTrainSettings {
     /// DiT's recipe). Losses are computed in f32 either way; the file holds f32 weights.
     pub dtype: Kind,
     pub recon_loss: ReconLoss,
+    /// Record the step's forward and backward pass once as a CUDA graph and replay it (CUDA only):
+    /// the small VAE's step is bound by launching its thousands of kernels, not by the GPU.
+    pub cuda_graph: bool,
 }
+
+/// Eager steps on the graph's stream before the capture (see `CudaGraph::warm_up`).
+const GRAPH_WARM_UP_STEPS: u64 = 2;
 
 /// The reconstruction term of the loss. MSE is what PSNR measures; L1 (Wan's VAE training uses
 /// it) penalizes small errors as much as large ones, so it does not trade a small object's edges
@@ -153,6 +160,35 @@ pub fn train_vae(data: &FrameSets, s: &VaeTrainSettings, on_log: &mut dyn FnMut(
     let optim: OptimSection =
         toml::from_str(&format!("lr = {}\nweight_decay = 0.0\ngrad_clip = 1.0\nwarmup_steps = 20\nschedule = \"cosine\"\nmin_lr_ratio = 0.05", s.lr))?;
     let mut opt = AdamW::new(&store.named_parameters(), &["*".into()], &[], &optim, s.steps, Sharding::SINGLE)?;
+    ensure!(
+        !s.cuda_graph || s.device.is_cuda(),
+        "CUDA graphs (--cuda-graph) need a CUDA device; the VAE trains on {:?}",
+        s.device
+    );
+    // Checked once here, so that no step waits for the device to check its clips.
+    for (i, video) in data.train.iter().enumerate() {
+        ensure!(video.isfinite().all().int64_value(&[]) == 1, "training video {i} holds NaN or infinite values");
+    }
+    // The step's losses [mse, kl] after its backward pass.
+    let losses = |x: &Tensor, eps: &Tensor| -> Result<Tensor> {
+        let moments = vae.encode_moments_of_finite(x)?.to_kind(Kind::Float);
+        let (mu, logvar) = (moments.narrow(1, 0, z), moments.narrow(1, z, z).clamp(-30.0, 20.0));
+        ensure!(eps.size() == mu.size(), "the posterior noise is {:?}, the latents {:?}", eps.size(), mu.size());
+        let sample = &mu + (&logvar * 0.5).exp() * eps;
+        let recon = vae.decode(&sample)?.to_kind(Kind::Float);
+        let error = &recon - x;
+        let mse = error.square().mean(Kind::Float);
+        let kl = ((mu.square() + logvar.exp() - 1.0 - &logvar) * 0.5).mean(Kind::Float);
+        let reconstruction = match s.recon_loss {
+            ReconLoss::Mse => mse.shallow_clone(),
+            ReconLoss::L1 => error.abs().mean(Kind::Float),
+        };
+        (reconstruction + &kl * s.kl_weight).f_backward()?;
+        Ok(Tensor::stack(&[mse, kl], 0))
+    };
+    // The graph, the inputs it reads and the losses it writes.
+    let mut graph = if s.cuda_graph { Some(CudaGraph::new(s.device)?) } else { None };
+    let mut recorded: Option<(Tensor, Tensor, Tensor)> = None;
     let start = Instant::now();
     for step in 0..s.steps {
         let picks: Vec<(usize, i64)> = (0..s.batch)
@@ -168,20 +204,34 @@ pub fn train_vae(data: &FrameSets, s: &VaeTrainSettings, on_log: &mut dyn FnMut(
         if s.flip && keyed_rng::uniform(s.seed, step, Purpose::Augment) < 0.5 {
             x = x.flip([-1]);
         }
-        let moments = vae.encode_moments(&x)?.to_kind(Kind::Float);
-        let (mu, logvar) = (moments.narrow(1, 0, z), moments.narrow(1, z, z).clamp(-30.0, 20.0));
-        let eps = keyed_rng::normal(&mu.size(), s.seed, step, Purpose::Noise).to_device(s.device);
-        let sample = &mu + (&logvar * 0.5).exp() * eps;
-        let recon = vae.decode(&sample)?.to_kind(Kind::Float);
-        let error = &recon - &x;
-        let mse = error.square().mean(Kind::Float);
-        let kl = ((mu.square() + logvar.exp() - 1.0 - &logvar) * 0.5).mean(Kind::Float);
-        let reconstruction = match s.recon_loss {
-            ReconLoss::Mse => mse.shallow_clone(),
-            ReconLoss::L1 => error.abs().mean(Kind::Float),
+        let (xs, ss) = (x.size(), s.cfg.spatial_stride());
+        let eps_shape = [xs[0], z, 1 + (xs[2] - 1) / s.cfg.temporal_stride(), xs[3] / ss, xs[4] / ss];
+        let eps = keyed_rng::normal(&eps_shape, s.seed, step, Purpose::Noise).to_device(s.device);
+        let step_losses = match graph.as_mut() {
+            None => losses(&x, &eps)?,
+            Some(g) if step < GRAPH_WARM_UP_STEPS => g.warm_up(|| losses(&x, &eps)).context("a warm-up step on the CUDA graph's stream")?,
+            Some(g) => {
+                let (static_x, static_eps, out) = match recorded.take() {
+                    Some((sx, se, out)) => {
+                        tch::no_grad(|| {
+                            let _ = sx.shallow_clone().copy_(&x);
+                            let _ = se.shallow_clone().copy_(&eps);
+                        });
+                        (sx, se, out)
+                    }
+                    None => {
+                        let (sx, se) = (x.copy(), eps.copy());
+                        let out = g.capture(|| losses(&sx, &se)).context("recording the VAE's training step as a CUDA graph")?;
+                        (sx, se, out)
+                    }
+                };
+                g.replay()?;
+                let copy = out.shallow_clone();
+                recorded = Some((static_x, static_eps, out));
+                copy
+            }
         };
-        let loss = reconstruction + &kl * s.kl_weight;
-        loss.f_backward()?;
+        let (mse, kl) = (step_losses.get(0), step_losses.get(1));
         opt.collect_grads();
         let report = opt.step(1.0, &mut LocalCollective::new())?;
         let last = step + 1 == s.steps;
@@ -287,6 +337,7 @@ mod tests {
             crop: None,
             dtype: Kind::Float,
             recon_loss: ReconLoss::Mse,
+            cuda_graph: false,
         }
     }
 
@@ -327,6 +378,52 @@ mod tests {
         let x = data.holdout[0].unsqueeze(0);
         assert!(loaded.encode_moments(&x).unwrap().equal(&trained.vae.encode_moments(&x).unwrap()));
         assert!(train_vae(&data, &VaeTrainSettings { dtype: Kind::Half, ..tiny_settings(5) }, &mut |_| {}).is_err());
+    }
+
+    #[test]
+    fn a_cuda_graph_on_the_cpu_is_refused_by_name_and_a_nonfinite_frame_before_training() {
+        let video = Tensor::zeros([3, 5, 16, 16], (Kind::Float, Device::Cpu));
+        let data = FrameSets { train: vec![video.shallow_clone()], holdout: vec![video.shallow_clone()] };
+        let err = train_vae(&data, &VaeTrainSettings { cuda_graph: true, ..tiny_settings(5) }, &mut |_| {}).err().unwrap();
+        assert!(err.to_string().contains("--cuda-graph"), "{err}");
+        let bad = video.copy();
+        let _ = bad.get(0).get(2).get(3).get(4).fill_(f64::NAN);
+        let data = FrameSets { train: vec![video.shallow_clone(), bad], holdout: vec![video] };
+        let err = train_vae(&data, &tiny_settings(5), &mut |_| {}).err().unwrap();
+        assert!(err.to_string().contains("training video 1 holds NaN"), "{err}");
+    }
+
+    /// On a CUDA machine: training with the step replayed from a CUDA graph gives the eager
+    /// training's losses and weights (cuDNN's backward convolutions may sum in another order, so
+    /// closely, not bit for bit). Without CUDA there is nothing to compare and it says so.
+    #[test]
+    fn the_cuda_graph_replays_train_as_the_eager_steps_do() {
+        if !tch::Cuda::is_available() {
+            eprintln!("no CUDA device: the graph's training is compared on the GPU machines only");
+            return;
+        }
+        let video = |seed: i64| {
+            tch::manual_seed(seed);
+            Tensor::rand([3, 9, 32, 32], (Kind::Float, Device::Cpu)) * 2.0 - 1.0
+        };
+        let data = FrameSets { train: vec![video(1), video(2)], holdout: vec![video(3)] };
+        let train = |cuda_graph: bool| {
+            let s = VaeTrainSettings { device: Device::Cuda(0), batch: 2, steps: 6, flip: true, cuda_graph, ..tiny_settings(5) };
+            let mut log = Vec::new();
+            let t = train_vae(&data, &s, &mut |l| log.push(l.to_string())).unwrap();
+            (t, log)
+        };
+        let (eager, eager_log) = train(false);
+        let (graphed, graph_log) = train(true);
+        assert_eq!(eager_log.len(), graph_log.len());
+        // An update moves a weight by about lr; a replay that read stale inputs or lost the
+        // gradients would move some by several lr over the four replayed steps.
+        let lr = tiny_settings(5).lr;
+        for ((name, a), (_, b)) in eager.params.iter().zip(&graphed.params) {
+            let diff = (a - b).abs().max().double_value(&[]);
+            assert!(diff <= 0.5 * lr, "{name}: the graph's weights differ from the eager ones by {diff} (lr {lr})");
+        }
+        assert!((eager.report.holdout_psnr - graphed.report.holdout_psnr).abs() < 0.01, "{} vs {}", eager.report.holdout_psnr, graphed.report.holdout_psnr);
     }
 
     #[test]

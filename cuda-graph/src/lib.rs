@@ -1,0 +1,208 @@
+//! CUDA graphs for libtorch work of fixed shapes: what a closure launches is recorded once and
+//! replayed afterwards with one launch, so a step made of thousands of small kernels no longer
+//! pays the host's launch cost for each (at::cuda::CUDAGraph, as `torch.cuda.graph` in Python;
+//! tch has no binding, so src/graph.cpp is the shim).
+//!
+//! A replay reads the tensors the recorded work read, at the same addresses, and writes its
+//! outputs into the tensors the capture created: new inputs are copied into the tensors the
+//! capture read (`copy_`), and the outputs are read from what the closure returned. The recorded
+//! work must not read tensor values on the host (`double_value`, `int64_value`, copies to the
+//! CPU) nor take decisions from them, and nothing it reads may be reallocated between replays.
+
+use std::ffi::{c_char, c_int, CStr};
+use std::panic::{catch_unwind, AssertUnwindSafe};
+
+use anyhow::{anyhow, bail, Result};
+use tch::Device;
+
+#[repr(C)]
+struct RawGraph {
+    _private: [u8; 0],
+}
+
+extern "C" {
+    fn bwm_graph_error() -> *const c_char;
+    fn bwm_graph_new(device: c_int) -> *mut RawGraph;
+    fn bwm_graph_enter(g: *mut RawGraph) -> bool;
+    fn bwm_graph_leave(g: *mut RawGraph) -> bool;
+    fn bwm_graph_capture_begin(g: *mut RawGraph) -> bool;
+    fn bwm_graph_capture_end(g: *mut RawGraph) -> bool;
+    fn bwm_graph_capture_abort(g: *mut RawGraph);
+    fn bwm_graph_replay(g: *mut RawGraph) -> bool;
+    fn bwm_graph_free(g: *mut RawGraph);
+}
+
+fn shim_error(what: &str) -> anyhow::Error {
+    // SAFETY: the shim returns a pointer to its thread's NUL-terminated last error message.
+    let msg = unsafe { CStr::from_ptr(bwm_graph_error()) }.to_string_lossy().into_owned();
+    anyhow!("{what}: {msg}")
+}
+
+/// Runs `body`, turning a panic (tch's tensor methods panic on libtorch errors) into an error.
+fn run<T>(body: impl FnOnce() -> Result<T>) -> Result<T> {
+    catch_unwind(AssertUnwindSafe(body)).unwrap_or_else(|p| {
+        let msg = p.downcast_ref::<String>().cloned().or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string()));
+        Err(anyhow!("{}", msg.unwrap_or_else(|| "panicked".into())))
+    })
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum State {
+    Empty,
+    Recorded,
+    Failed,
+}
+
+/// One recorded piece of work on one CUDA device, with its own stream for warm-up runs and the
+/// capture, and its own memory pool (freed with it).
+pub struct CudaGraph {
+    raw: *mut RawGraph,
+    state: State,
+}
+
+impl CudaGraph {
+    /// An empty graph on `device`; an error on a CPU device or a libtorch without CUDA.
+    pub fn new(device: Device) -> Result<Self> {
+        let Device::Cuda(index) = device else { bail!("CUDA graphs need a CUDA device, not {device:?}") };
+        // SAFETY: the shim allocates a graph object (null and an error message on failure).
+        let raw = unsafe { bwm_graph_new(index as c_int) };
+        if raw.is_null() {
+            return Err(shim_error("creating a CUDA graph"));
+        }
+        Ok(Self { raw, state: State::Empty })
+    }
+
+    /// Runs `body` eagerly on the graph's stream and waits for it. Libraries set up their
+    /// per-stream state (cuBLAS workspaces, the autograd engine's streams) on first use, which a
+    /// capture cannot do: run the work once or twice this way before [`CudaGraph::capture`].
+    pub fn warm_up<T>(&mut self, body: impl FnOnce() -> Result<T>) -> Result<T> {
+        // SAFETY: `raw` is this graph's live object.
+        if !unsafe { bwm_graph_enter(self.raw) } {
+            return Err(shim_error("switching to the graph's stream"));
+        }
+        let out = run(body);
+        // SAFETY: as above; leaving restores the stream that was current before.
+        let left = unsafe { bwm_graph_leave(self.raw) };
+        let out = out?;
+        if !left {
+            return Err(shim_error("waiting for the graph's stream"));
+        }
+        Ok(out)
+    }
+
+    /// Records what `body` launches, without running it; [`CudaGraph::replay`] runs it. The
+    /// tensors `body` returns live in the graph's memory and hold each replay's results. A graph
+    /// records once; a failed capture leaves it unusable.
+    pub fn capture<T>(&mut self, body: impl FnOnce() -> Result<T>) -> Result<T> {
+        if self.state != State::Empty {
+            bail!("this CUDA graph has already been captured");
+        }
+        // SAFETY: `raw` is this graph's live object.
+        if !unsafe { bwm_graph_capture_begin(self.raw) } {
+            self.state = State::Failed;
+            return Err(shim_error("starting a CUDA graph capture"));
+        }
+        match run(body) {
+            Ok(out) => {
+                // SAFETY: as above, with the capture begun.
+                if !unsafe { bwm_graph_capture_end(self.raw) } {
+                    self.state = State::Failed;
+                    return Err(shim_error("ending the CUDA graph capture (did the recorded work read a value on the host?)"));
+                }
+                self.state = State::Recorded;
+                Ok(out)
+            }
+            Err(e) => {
+                // SAFETY: as above; ends the capture the failed body left open.
+                unsafe { bwm_graph_capture_abort(self.raw) };
+                self.state = State::Failed;
+                Err(e.context("recording a CUDA graph (the recorded work must not read values on the host)"))
+            }
+        }
+    }
+
+    /// Launches the recorded work on the current stream, in order with the work queued before it.
+    pub fn replay(&self) -> Result<()> {
+        if self.state != State::Recorded {
+            bail!("replaying a CUDA graph that holds no complete capture");
+        }
+        // SAFETY: `raw` is this graph's live object, with a complete capture.
+        if !unsafe { bwm_graph_replay(self.raw) } {
+            return Err(shim_error("replaying a CUDA graph"));
+        }
+        Ok(())
+    }
+}
+
+impl Drop for CudaGraph {
+    fn drop(&mut self) {
+        // SAFETY: `raw` came from `bwm_graph_new` and is freed once, here.
+        unsafe { bwm_graph_free(self.raw) };
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tch::{Kind, Tensor};
+
+    #[test]
+    fn a_cpu_device_is_refused_by_name() {
+        let err = CudaGraph::new(Device::Cpu).err().expect("a CPU graph must be refused").to_string();
+        assert!(err.contains("CUDA graphs need a CUDA device"), "{err}");
+    }
+
+    /// On a CUDA machine: the graph replays the recorded arithmetic and the backward pass on the
+    /// inputs copied in since, and matches the same work run eagerly. Without CUDA it has nothing
+    /// to check and says so.
+    #[test]
+    fn replays_forward_and_backward_on_new_inputs_as_the_eager_run_computes_them() {
+        if !tch::Cuda::is_available() {
+            eprintln!("no CUDA device: the replay is checked on the GPU machines only");
+            return;
+        }
+        let dev = Device::Cuda(0);
+        tch::manual_seed(0);
+        let w = Tensor::randn([64, 64], (Kind::Float, dev)).set_requires_grad(true);
+        let x = Tensor::zeros([8, 64], (Kind::Float, dev));
+        let step = |x: &Tensor| -> Result<Tensor> {
+            let loss = x.matmul(&w).tanh().square().mean(Kind::Float);
+            loss.f_backward()?;
+            Ok(loss)
+        };
+        let mut graph = CudaGraph::new(dev).unwrap();
+        let inputs: Vec<Tensor> = (0..3).map(|_| Tensor::randn([8, 64], (Kind::Float, dev))).collect();
+        let _ = x.shallow_clone().copy_(&inputs[0]);
+        let _ = graph.warm_up(|| step(&x)).unwrap();
+        let _ = w.grad().zero_();
+        let loss = graph.capture(|| step(&x)).unwrap();
+        for input in &inputs {
+            let _ = x.shallow_clone().copy_(input);
+            graph.replay().unwrap();
+            let (got_loss, got_grad) = (loss.copy(), w.grad().copy());
+            let _ = w.grad().zero_();
+            let want_loss = step(input).unwrap();
+            let want_grad = w.grad().copy();
+            let _ = w.grad().zero_();
+            assert!(got_loss.allclose(&want_loss, 1e-6, 1e-7, false), "loss {got_loss:?} vs {want_loss:?}");
+            assert!(got_grad.allclose(&want_grad, 1e-5, 1e-7, false), "the replayed gradient differs from the eager one");
+        }
+    }
+
+    #[test]
+    fn a_host_read_inside_the_capture_is_an_error_and_the_graph_cannot_replay() {
+        if !tch::Cuda::is_available() {
+            eprintln!("no CUDA device: the capture's failure is checked on the GPU machines only");
+            return;
+        }
+        let dev = Device::Cuda(0);
+        let x = Tensor::ones([4], (Kind::Float, dev));
+        let mut graph = CudaGraph::new(dev).unwrap();
+        let _ = graph.warm_up(|| Ok((&x * 2.0).sum(Kind::Float))).unwrap();
+        let err = graph.capture(|| Ok((&x * 2.0).sum(Kind::Float).double_value(&[]))).unwrap_err();
+        assert!(format!("{err:#}").contains("must not read values on the host"), "{err:#}");
+        assert!(graph.replay().is_err());
+        // The device still works after the failed capture.
+        assert_eq!((&x * 3.0).sum(Kind::Float).double_value(&[]), 12.0);
+    }
+}

@@ -12,7 +12,7 @@
 //! the same arithmetic as the reference's per-token embedding.
 
 use anyhow::{ensure, Result};
-use tch::{Kind, Tensor};
+use tch::{Device, Kind, Tensor};
 
 use crate::config::DitConfig;
 use crate::nn::{attention, layer_norm, modulate, AffineLayerNorm, Linear, RmsNorm};
@@ -180,6 +180,10 @@ pub struct WanDit {
     /// official Wan code) or the parameters' dtype (DiffSynth-Studio, which the BWM release trains
     /// with: half the memory traffic of the element-wise work). Set after building; fp32 by default.
     pub residual: Kind,
+    /// The rotations of the last token grid and device seen: computed on the host, so a forward
+    /// that made them each time would copy them to the device and wait for it every step (nor
+    /// could a CUDA graph record that).
+    rope: std::sync::Mutex<Option<((i64, i64, i64), Device, Rope)>>,
 }
 
 impl WanDit {
@@ -205,7 +209,21 @@ impl WanDit {
                 .collect::<Result<_, _>>()?,
             head: Head::new(&vb.pp("head"), cfg)?,
             residual: Kind::Float,
+            rope: Default::default(),
         })
+    }
+
+    /// The rotary embedding of `grid` on `device` (made once per grid and device in a row).
+    fn rope_for(&self, grid: (i64, i64, i64), device: Device) -> Rope {
+        let mut cached = self.rope.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+        match cached.as_ref() {
+            Some((g, d, rope)) if *g == grid && *d == device => rope.shallow_clone(),
+            _ => {
+                let rope = Rope::new(grid, self.cfg.rope_axes(), self.cfg.rope_theta, device);
+                *cached = Some((grid, device, rope.shallow_clone()));
+                rope
+            }
+        }
     }
 
     /// Token grid of latents [B, C, F, H, W], or an error saying what was expected.
@@ -304,7 +322,7 @@ impl WanDit {
             e = e + add.to_kind(Kind::Float);
         }
         let e0 = self.time_projection.forward_f32(&e.silu()).unflatten(2, [6, self.cfg.dim]);
-        let rope = Rope::new(grid, self.cfg.rope_axes(), self.cfg.rope_theta, latents.device());
+        let rope = self.rope_for(grid, latents.device());
         let context = context.to_kind(self.patch_embedding_weight.kind());
         Ok((x, Conditioning { e, e0, context, rope, grid }))
     }

@@ -39,6 +39,11 @@ impl Rope {
         Self { rotations: Tensor::complex(&cos, &sin).to_device(device) }
     }
 
+    /// The same rotations (the tensor shared, not copied).
+    pub fn shallow_clone(&self) -> Self {
+        Self { rotations: self.rotations.shallow_clone() }
+    }
+
     /// Rotates x [B, L, heads, head_dim] in fp32 and returns it in x's dtype: each pair
     /// (x0, x1) as the complex number x0 + i x1, times its rotation (one kernel each way).
     pub fn apply(&self, x: &Tensor) -> Tensor {

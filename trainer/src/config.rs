@@ -314,6 +314,11 @@ pub struct TrainSection {
     /// (Hopper or newer on CUDA; any CPU) and no LoRA.
     #[serde(default)]
     pub fp8: bool,
+    /// Record the step's forward and backward pass once as a CUDA graph and replay it (after two
+    /// eager warm-up steps): a small model's step is bound by launching its kernels, a replay is
+    /// one launch. One CUDA process, `grad_accum = 1`, `recompute = false`, no LoRA and no FP8.
+    #[serde(default)]
+    pub cuda_graph: bool,
 }
 
 fn one() -> usize {

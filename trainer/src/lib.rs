@@ -16,6 +16,7 @@ pub mod objective;
 pub mod optim;
 pub mod recompute;
 pub mod report;
+pub mod step_graph;
 pub mod tensorboard;
 pub mod trainer;
 pub mod vae_frames;

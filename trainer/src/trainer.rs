@@ -25,6 +25,7 @@ use crate::metrics::{Progress, StepMetrics};
 use crate::objective::Objective;
 use crate::optim::{AdamW, Sharding};
 use crate::recompute::{forward_backward, BlockGradSink, Recompute};
+use crate::step_graph::StepGraph;
 use crate::tensorboard::EventWriter;
 use crate::validation;
 
@@ -95,6 +96,8 @@ pub struct Trainer {
     pub history: Vec<StepMetrics>,
     /// Per DiT block, the indices in `opt.params` of its trained parameters.
     block_params: Vec<Vec<usize>>,
+    /// The step recorded as a CUDA graph (`train.cuda_graph`).
+    graph: Option<StepGraph>,
 }
 
 fn build_model(cfg: &RunConfig, model_cfg: &ModelConfig, device: Device) -> Result<BwmModel> {
@@ -219,6 +222,7 @@ impl Trainer {
         if cfg.train.fp8 {
             bwm_model::fp8_dit::train_dit_blocks_in_fp8(&mut model.dit).context("train.fp8")?;
         }
+        let graph = if cfg.train.cuda_graph { Some(StepGraph::new(&cfg, device, comm.world_size(), model.store.lora().is_some())?) } else { None };
         let named = model.store.named_parameters();
         let sharding = Sharding { rank: comm.rank(), world: comm.world_size(), sharded: cfg.train.shard_optimizer };
         let mut opt = AdamW::new(&named, &cfg.trainable_patterns(), &cfg.train.frozen, &cfg.optim, cfg.train.steps, sharding)?;
@@ -257,7 +261,7 @@ impl Trainer {
             Ok(Some(std::fs::OpenOptions::new().create(true).append(true).open(&path).with_context(|| format!("opening {}", path.display()))?))
         };
         let (metrics_file, loss_file) = (append("metrics.jsonl")?, append(crate::report::LOSSES_FILE)?);
-        Ok(Self { cfg, model, opt, objective, cache, clip_encoder, loader: Default::default(), train_clips, device, state, out_dir, checkpoints, events, metrics_file, loss_file, comm, history: Vec::new(), block_params })
+        Ok(Self { cfg, model, opt, objective, cache, clip_encoder, loader: Default::default(), train_clips, device, state, out_dir, checkpoints, events, metrics_file, loss_file, comm, history: Vec::new(), block_params, graph })
     }
 
     /// Trains to `train.steps`, checkpointing and validating as configured.
@@ -361,19 +365,25 @@ impl Trainer {
             tokens += mb as i64 * sample_tokens;
             // Attention is quadratic in the sequence: FLOPs add up per sample, not over the summed tokens.
             sample_flops += mb as f64 * flops::train_flops(&self.model.cfg, sample_tokens, batch.actions.size()[1]);
-            let objective = &self.objective;
-            let per_sample = std::cell::RefCell::new(None);
-            let loss_fn = |pred: &Tensor| {
-                let l = objective.per_sample_loss(pred, &prepared);
-                *per_sample.borrow_mut() = Some(l.detach());
-                l.mean(Kind::Float)
-            };
             let input = prepared.input.to_kind(self.model.store.kind());
-            let last_micro = micro + 1 == accum && world > 1 && cfg.train.overlap_grad_reduce;
-            let mut sink = BlockAccumulators { opt: &mut self.opt, blocks: &self.block_params, reduce: last_micro.then_some(self.comm.as_mut()) };
-            // The mean loss it returns is the mean of `per_sample`, read below.
-            let _ = forward_backward(&self.model, &input, &prepared.frame_timesteps, &batch.actions, batch.action_keep.as_ref(), recompute, &loss_fn, &mut sink)?;
-            sample_losses.push(per_sample.into_inner().context("the loss function did not run")?.to_kind(Kind::Float));
+            let per_sample = match self.graph.as_mut() {
+                Some(graph) => graph.step(&self.model, &self.objective, &input, &prepared, &batch.actions, batch.action_keep.as_ref())?,
+                None => {
+                    let objective = &self.objective;
+                    let per_sample = std::cell::RefCell::new(None);
+                    let loss_fn = |pred: &Tensor| {
+                        let l = objective.per_sample_loss(pred, &prepared);
+                        *per_sample.borrow_mut() = Some(l.detach());
+                        l.mean(Kind::Float)
+                    };
+                    let last_micro = micro + 1 == accum && world > 1 && cfg.train.overlap_grad_reduce;
+                    let mut sink = BlockAccumulators { opt: &mut self.opt, blocks: &self.block_params, reduce: last_micro.then_some(self.comm.as_mut()) };
+                    // The mean loss it returns is the mean of `per_sample`, read below.
+                    let _ = forward_backward(&self.model, &input, &prepared.frame_timesteps, &batch.actions, batch.action_keep.as_ref(), recompute, &loss_fn, &mut sink)?;
+                    per_sample.into_inner().context("the loss function did not run")?
+                }
+            };
+            sample_losses.push(per_sample.to_kind(Kind::Float));
             tids.extend(batch.tids);
             self.opt.collect_grads();
         }

@@ -12,8 +12,8 @@
 use std::ffi::{c_char, c_int, CStr};
 use std::panic::{catch_unwind, AssertUnwindSafe};
 
-use anyhow::{anyhow, bail, Result};
-use tch::Device;
+use anyhow::{anyhow, bail, ensure, Context, Result};
+use tch::{Device, Tensor};
 
 #[repr(C)]
 struct RawGraph {
@@ -141,10 +141,55 @@ impl Drop for CudaGraph {
     }
 }
 
+/// A step of fixed shapes run through a [`CudaGraph`]: eager on the graph's stream for the first
+/// `warm_ups` calls, recorded on the next and replayed from then on, each call's inputs copied
+/// into the tensors the recording read.
+pub struct GraphedStep {
+    graph: CudaGraph,
+    warm_ups_left: u32,
+    /// The tensors the recording reads and the one it writes.
+    recorded: Option<(Vec<Tensor>, Tensor)>,
+}
+
+impl GraphedStep {
+    pub fn new(device: Device, warm_ups: u32) -> Result<Self> {
+        Ok(Self { graph: CudaGraph::new(device)?, warm_ups_left: warm_ups, recorded: None })
+    }
+
+    /// `body` on `inputs` (every tensor it reads that changes from call to call, of the same
+    /// shapes each time; anything else it reads must stay where it is), or its recording
+    /// replayed on them: what `body` returned, copied out of the graph's memory once recorded.
+    pub fn run(&mut self, inputs: &[&Tensor], body: impl FnOnce(&[Tensor]) -> Result<Tensor>) -> Result<Tensor> {
+        if self.warm_ups_left > 0 {
+            self.warm_ups_left -= 1;
+            let inputs: Vec<Tensor> = inputs.iter().map(|t| t.shallow_clone()).collect();
+            return self.graph.warm_up(|| body(&inputs)).context("a warm-up run on the CUDA graph's stream");
+        }
+        match &self.recorded {
+            Some((statics, _)) => {
+                ensure!(statics.len() == inputs.len(), "a graphed step was given {} inputs, recorded with {}", inputs.len(), statics.len());
+                for (i, (dst, src)) in statics.iter().zip(inputs).enumerate() {
+                    ensure!(dst.size() == src.size(), "a graphed step's input {i} is {:?}, recorded as {:?}", src.size(), dst.size());
+                    tch::no_grad(|| dst.shallow_clone().copy_(src));
+                }
+            }
+            None => {
+                let statics: Vec<Tensor> = inputs.iter().map(|t| t.copy()).collect();
+                let out = self.graph.capture(|| body(&statics))?;
+                self.recorded = Some((statics, out));
+            }
+        }
+        self.graph.replay()?;
+        let (_, out) = self.recorded.as_ref().context("the recorded step is missing")?;
+        // A copy: the next replay overwrites the recorded output.
+        Ok(out.copy())
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
-    use tch::{Kind, Tensor};
+    use tch::Kind;
 
     #[test]
     fn a_cpu_device_is_refused_by_name() {
@@ -187,6 +232,28 @@ mod tests {
             assert!(got_loss.allclose(&want_loss, 1e-6, 1e-7, false), "loss {got_loss:?} vs {want_loss:?}");
             assert!(got_grad.allclose(&want_grad, 1e-5, 1e-7, false), "the replayed gradient differs from the eager one");
         }
+    }
+
+    #[test]
+    fn a_graphed_step_warms_up_records_and_replays_on_each_calls_inputs() {
+        if !tch::Cuda::is_available() {
+            eprintln!("no CUDA device: the graphed step is checked on the GPU machines only");
+            return;
+        }
+        let dev = Device::Cuda(0);
+        let w = Tensor::randn([64, 64], (Kind::Float, dev));
+        let mut step = GraphedStep::new(dev, 1).unwrap();
+        let mut outputs = Vec::new();
+        for _ in 0..4 {
+            let x = Tensor::randn([8, 64], (Kind::Float, dev));
+            let got = step.run(&[&x], |t| Ok(t[0].matmul(&w).tanh())).unwrap();
+            assert!(got.allclose(&x.matmul(&w).tanh(), 1e-5, 1e-6, false));
+            outputs.push(got);
+        }
+        // Each call's result is its own: the later replays did not overwrite the earlier ones.
+        assert!(!outputs[2].allclose(&outputs[3], 1e-3, 1e-3, false));
+        let err = step.run(&[&Tensor::zeros([4, 64], (Kind::Float, dev))], |t| Ok(t[0].shallow_clone())).unwrap_err();
+        assert!(err.to_string().contains("recorded as"), "{err}");
     }
 
     #[test]

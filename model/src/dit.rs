@@ -180,10 +180,11 @@ pub struct WanDit {
     /// official Wan code) or the parameters' dtype (DiffSynth-Studio, which the BWM release trains
     /// with: half the memory traffic of the element-wise work). Set after building; fp32 by default.
     pub residual: Kind,
-    /// The rotations of the last token grid and device seen: computed on the host, so a forward
-    /// that made them each time would copy them to the device and wait for it every step (nor
-    /// could a CUDA graph record that).
-    rope: std::sync::Mutex<Option<((i64, i64, i64), Device, Rope)>>,
+    /// The rotations of every token grid and device seen. They are computed on the host, so a
+    /// forward that made them each time would copy them to the device and wait for it every step
+    /// (nor could a CUDA graph record that); they are kept for the model's life, since a recorded
+    /// graph reads them at their address.
+    rope: std::sync::Mutex<Vec<((i64, i64, i64), Device, Rope)>>,
 }
 
 impl WanDit {
@@ -213,17 +214,15 @@ impl WanDit {
         })
     }
 
-    /// The rotary embedding of `grid` on `device` (made once per grid and device in a row).
+    /// The rotary embedding of `grid` on `device` (made once per grid and device).
     fn rope_for(&self, grid: (i64, i64, i64), device: Device) -> Rope {
-        let mut cached = self.rope.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
-        match cached.as_ref() {
-            Some((g, d, rope)) if *g == grid && *d == device => rope.shallow_clone(),
-            _ => {
-                let rope = Rope::new(grid, self.cfg.rope_axes(), self.cfg.rope_theta, device);
-                *cached = Some((grid, device, rope.shallow_clone()));
-                rope
-            }
+        let mut kept = self.rope.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+        if let Some((_, _, rope)) = kept.iter().find(|(g, d, _)| *g == grid && *d == device) {
+            return rope.shallow_clone();
         }
+        let rope = Rope::new(grid, self.cfg.rope_axes(), self.cfg.rope_theta, device);
+        kept.push((grid, device, rope.shallow_clone()));
+        rope
     }
 
     /// Token grid of latents [B, C, F, H, W], or an error saying what was expected.
@@ -351,5 +350,25 @@ impl WanDit {
             trace(&format!("block{i}_out"), &x);
         }
         Ok(self.finish(&x, &cond))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::vb::{with_seed, ParamStore};
+    use tch::Device;
+
+    #[test]
+    fn the_rotations_are_made_once_per_grid_and_kept() {
+        let dit = with_seed(0, || WanDit::new(&ParamStore::random(Kind::Float, Device::Cpu).root(), &DitConfig::tiny())).unwrap();
+        let first = dit.rope_for((3, 2, 2), Device::Cpu);
+        assert!(first.same_tensor(&dit.rope_for((3, 2, 2), Device::Cpu)), "the same grid reuses its rotations");
+        let other = dit.rope_for((2, 2, 2), Device::Cpu);
+        assert!(!other.same_tensor(&first));
+        assert!(first.same_tensor(&dit.rope_for((3, 2, 2), Device::Cpu)), "another grid does not evict the first");
+        let fresh = Rope::new((3, 2, 2), dit.cfg.rope_axes(), dit.cfg.rope_theta, Device::Cpu);
+        let x = Tensor::randn([1, 12, dit.cfg.num_heads, dit.cfg.dim / dit.cfg.num_heads], (Kind::Float, Device::Cpu));
+        assert!(first.apply(&x).equal(&fresh.apply(&x)), "the kept rotations are the grid's");
     }
 }

@@ -44,6 +44,11 @@ impl Rope {
         Self { rotations: self.rotations.shallow_clone() }
     }
 
+    /// Whether both hold the same tensor (not only equal values).
+    pub fn same_tensor(&self, other: &Rope) -> bool {
+        self.rotations.data_ptr() == other.rotations.data_ptr()
+    }
+
     /// Rotates x [B, L, heads, head_dim] in fp32 and returns it in x's dtype: each pair
     /// (x0, x1) as the complex number x0 + i x1, times its rotation (one kernel each way).
     pub fn apply(&self, x: &Tensor) -> Tensor {

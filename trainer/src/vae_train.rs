@@ -16,7 +16,7 @@ use crate::image_metrics::psnr;
 use crate::keyed_rng::{self, Purpose};
 use crate::dist::LocalCollective;
 use crate::optim::{AdamW, Sharding};
-use bwm_cuda_graph::CudaGraph;
+use bwm_cuda_graph::GraphedStep;
 
 pub struct VaeTrainSettings {
     pub cfg: VaeConfig,
@@ -45,7 +45,7 @@ pub struct VaeTrainSettings {
 }
 
 /// Eager steps on the graph's stream before the capture (see `CudaGraph::warm_up`).
-const GRAPH_WARM_UP_STEPS: u64 = 2;
+const GRAPH_WARM_UP_STEPS: u32 = 2;
 
 /// The reconstruction term of the loss. MSE is what PSNR measures; L1 (Wan's VAE training uses
 /// it) penalizes small errors as much as large ones, so it does not trade a small object's edges
@@ -186,9 +186,7 @@ pub fn train_vae(data: &FrameSets, s: &VaeTrainSettings, on_log: &mut dyn FnMut(
         (reconstruction + &kl * s.kl_weight).f_backward()?;
         Ok(Tensor::stack(&[mse, kl], 0))
     };
-    // The graph, the inputs it reads and the losses it writes.
-    let mut graph = if s.cuda_graph { Some(CudaGraph::new(s.device)?) } else { None };
-    let mut recorded: Option<(Tensor, Tensor, Tensor)> = None;
+    let mut graph = if s.cuda_graph { Some(GraphedStep::new(s.device, GRAPH_WARM_UP_STEPS)?) } else { None };
     let start = Instant::now();
     for step in 0..s.steps {
         let picks: Vec<(usize, i64)> = (0..s.batch)
@@ -209,27 +207,7 @@ pub fn train_vae(data: &FrameSets, s: &VaeTrainSettings, on_log: &mut dyn FnMut(
         let eps = keyed_rng::normal(&eps_shape, s.seed, step, Purpose::Noise).to_device(s.device);
         let step_losses = match graph.as_mut() {
             None => losses(&x, &eps)?,
-            Some(g) if step < GRAPH_WARM_UP_STEPS => g.warm_up(|| losses(&x, &eps)).context("a warm-up step on the CUDA graph's stream")?,
-            Some(g) => {
-                let (static_x, static_eps, out) = match recorded.take() {
-                    Some((sx, se, out)) => {
-                        tch::no_grad(|| {
-                            let _ = sx.shallow_clone().copy_(&x);
-                            let _ = se.shallow_clone().copy_(&eps);
-                        });
-                        (sx, se, out)
-                    }
-                    None => {
-                        let (sx, se) = (x.copy(), eps.copy());
-                        let out = g.capture(|| losses(&sx, &se)).context("recording the VAE's training step as a CUDA graph")?;
-                        (sx, se, out)
-                    }
-                };
-                g.replay()?;
-                let copy = out.shallow_clone();
-                recorded = Some((static_x, static_eps, out));
-                copy
-            }
+            Some(g) => g.run(&[&x, &eps], |t| losses(&t[0], &t[1])).context("the VAE's training step as a CUDA graph (--cuda-graph)")?,
         };
         let (mse, kl) = (step_losses.get(0), step_losses.get(1));
         opt.collect_grads();

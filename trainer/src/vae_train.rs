@@ -386,7 +386,8 @@ mod tests {
         };
         let data = FrameSets { train: vec![video(1), video(2)], holdout: vec![video(3)] };
         let train = |cuda_graph: bool| {
-            let s = VaeTrainSettings { device: Device::Cuda(0), batch: 2, steps: 6, flip: true, cuda_graph, ..tiny_settings(5) };
+            // A held-out measurement runs eagerly between two replays.
+            let s = VaeTrainSettings { device: Device::Cuda(0), batch: 2, steps: 6, flip: true, eval_every: 4, cuda_graph, ..tiny_settings(5) };
             let mut log = Vec::new();
             let t = train_vae(&data, &s, &mut |l| log.push(l.to_string())).unwrap();
             (t, log)

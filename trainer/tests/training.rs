@@ -283,7 +283,8 @@ fn the_cuda_graph_step_trains_as_the_eager_step() {
     let dir = tmp_dir("graph");
     let cache = write_cache(&dir.join("cache"), 4, 6);
     let run = |graph: bool| {
-        let extra = format!("[train]\nsteps = 6\nmicro_batch = 2\nrecompute = false\ncuda_graph = {graph}");
+        // A validation pass runs eagerly between two replays.
+        let extra = format!("[data]\nholdout_episodes = 1\n[train]\nsteps = 6\nmicro_batch = 2\nrecompute = false\ncuda_graph = {graph}\n[validation]\nevery = 4\nsample_steps = 2");
         let mut cfg = config(&cache, &dir.join(format!("run-{graph}")), &extra);
         cfg.run.device = "cuda".into();
         let mut t = trainer(cfg, Resume::No).unwrap();

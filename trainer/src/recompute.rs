@@ -61,6 +61,30 @@ impl BlockGradSink for GradsInParams {
     }
 }
 
+/// `forward_backward` of the mean of `per_sample_loss` (prediction -> losses `[B]`); returns the
+/// detached per-sample losses.
+#[allow(clippy::too_many_arguments)]
+pub fn forward_backward_per_sample(
+    model: &BwmModel,
+    latents: &Tensor,
+    frame_timesteps: &Tensor,
+    actions: &Tensor,
+    action_keep: Option<&Tensor>,
+    recompute: Recompute,
+    per_sample_loss: &dyn Fn(&Tensor) -> Tensor,
+    sink: &mut dyn BlockGradSink,
+) -> Result<Tensor> {
+    let per_sample = std::cell::RefCell::new(None);
+    let loss_fn = |pred: &Tensor| {
+        let l = per_sample_loss(pred);
+        *per_sample.borrow_mut() = Some(l.detach());
+        l.mean(Kind::Float)
+    };
+    // The mean loss it returns is the mean of the per-sample losses kept here.
+    let _ = forward_backward(model, latents, frame_timesteps, actions, action_keep, recompute, &loss_fn, sink)?;
+    per_sample.into_inner().context("the loss function did not run")
+}
+
 /// Runs forward and backward; returns the detached loss. `loss_fn` maps the model's prediction
 /// [B, C, F, H, W] to a scalar. Without recomputation (`Recompute::Off`) every gradient
 /// accumulates in `.grad` and `sink` is not called.

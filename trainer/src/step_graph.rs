@@ -1,29 +1,22 @@
 //! `train.cuda_graph`: the training step's forward and backward pass recorded once as a CUDA
-//! graph and replayed, its inputs copied into the tensors the recording reads. What it computes is
-//! `recompute::forward_backward` without recomputation: the gradients are left in the parameters'
-//! `.grad`, the optimizer's update stays eager.
+//! graph and replayed, its inputs copied into the tensors the recording reads. What it records is
+//! `recompute::forward_backward_per_sample` without recomputation: the gradients are left in the
+//! parameters' `.grad`, the optimizer's update stays eager.
 
 use anyhow::{ensure, Context, Result};
 use bwm_cuda_graph::GraphedStep;
 use bwm_model::bwm::BwmModel;
-use tch::{Device, Kind, Tensor};
+use tch::{Device, Tensor};
 
 use crate::config::RunConfig;
 use crate::objective::{Objective, Prepared};
+use crate::recompute::{forward_backward_per_sample, GradsInParams, Recompute};
 
 /// Eager steps on the graph's stream before the capture (see `CudaGraph::warm_up`).
 const WARM_UP_STEPS: u32 = 2;
 
 pub struct StepGraph {
     step: GraphedStep,
-}
-
-/// One micro-step: the per-sample losses `[B]`, the gradients added to the parameters' `.grad`.
-fn forward_backward(model: &BwmModel, objective: &Objective, input: &Tensor, prepared: &Prepared, actions: &Tensor, keep: Option<&Tensor>) -> Result<Tensor> {
-    let prediction = model.forward_keeping(input, &prepared.frame_timesteps, actions, keep)?;
-    let per_sample = objective.per_sample_loss(&prediction, prepared);
-    per_sample.mean(Kind::Float).f_backward()?;
-    Ok(per_sample.detach())
 }
 
 impl StepGraph {
@@ -54,7 +47,8 @@ impl StepGraph {
                     weights: t[3].shallow_clone(),
                     timestep_indices: indices,
                 };
-                forward_backward(model, objective, &t[0], &prepared, &t[4], t.get(5))
+                let loss = |pred: &Tensor| objective.per_sample_loss(pred, &prepared);
+                forward_backward_per_sample(model, &t[0], &prepared.frame_timesteps, &t[4], t.get(5), Recompute::Off, &loss, &mut GradsInParams::default())
             })
             .context("the training step as a CUDA graph (train.cuda_graph)")
     }

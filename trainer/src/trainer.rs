@@ -24,7 +24,7 @@ use crate::flops;
 use crate::metrics::{Progress, StepMetrics};
 use crate::objective::Objective;
 use crate::optim::{AdamW, Sharding};
-use crate::recompute::{forward_backward, BlockGradSink, Recompute};
+use crate::recompute::{forward_backward_per_sample, BlockGradSink, Recompute};
 use crate::step_graph::StepGraph;
 use crate::tensorboard::EventWriter;
 use crate::validation;
@@ -370,17 +370,10 @@ impl Trainer {
                 Some(graph) => graph.step(&self.model, &self.objective, &input, &prepared, &batch.actions, batch.action_keep.as_ref())?,
                 None => {
                     let objective = &self.objective;
-                    let per_sample = std::cell::RefCell::new(None);
-                    let loss_fn = |pred: &Tensor| {
-                        let l = objective.per_sample_loss(pred, &prepared);
-                        *per_sample.borrow_mut() = Some(l.detach());
-                        l.mean(Kind::Float)
-                    };
                     let last_micro = micro + 1 == accum && world > 1 && cfg.train.overlap_grad_reduce;
                     let mut sink = BlockAccumulators { opt: &mut self.opt, blocks: &self.block_params, reduce: last_micro.then_some(self.comm.as_mut()) };
-                    // The mean loss it returns is the mean of `per_sample`, read below.
-                    let _ = forward_backward(&self.model, &input, &prepared.frame_timesteps, &batch.actions, batch.action_keep.as_ref(), recompute, &loss_fn, &mut sink)?;
-                    per_sample.into_inner().context("the loss function did not run")?
+                    let loss = |pred: &Tensor| objective.per_sample_loss(pred, &prepared);
+                    forward_backward_per_sample(&self.model, &input, &prepared.frame_timesteps, &batch.actions, batch.action_keep.as_ref(), recompute, &loss, &mut sink)?
                 }
             };
             sample_losses.push(per_sample.to_kind(Kind::Float));

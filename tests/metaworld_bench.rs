@@ -299,9 +299,9 @@ fn the_recipes_degraded_share_reaches_the_generator() {
 }
 
 #[test]
-fn the_recipes_vae_graph_reaches_train_vae() {
-    // On the CPU the recipe leaves CUDA graphs off by default (the toy recipe trains its VAE so);
-    // asked for, they reach `bwm train-vae`, which refuses them there by name.
+fn the_recipes_vae_graph_and_candidates_reach_train_vae() {
+    // On the CPU the recipe leaves CUDA graphs off and trains one VAE by default (the toy recipe
+    // trains its VAE so); CUDA graphs asked for reach `bwm train-vae`, which refuses them there by name.
     let dir = temp_dir("metaworld-vae-graph");
     let runs = dir.join("run");
     run(toy("recipe.sh", &runs).arg("data").envs([("TRAIN_EPISODES", "1"), ("VAL_EPISODES", "1")]), "recipe.sh data");
@@ -310,6 +310,11 @@ fn the_recipes_vae_graph_reaches_train_vae() {
     assert!(!out.status.success(), "VAE_GRAPH=1 on the CPU must fail:\n{text}");
     assert!(text.contains("CUDA graphs (--cuda-graph) need a CUDA device"), "{text}");
     assert!(!runs.join("vae.safetensors").exists(), "no VAE may be written");
+    // VAE_CANDIDATES reaches it as --candidates: two VAEs from seeds VAE_SEED and VAE_SEED + 1.
+    let log = run(toy("recipe.sh", &runs).arg("vae").envs([("VAE_CANDIDATES", "2"), ("VAE_SEED", "4")]), "recipe.sh vae");
+    assert!(log.contains("candidate 1/2: seed 4") && log.contains("candidate 2/2: seed 5"), "{log}");
+    assert!(log.contains("the best of 2 seeds, seed "), "{log}");
+    assert!(runs.join("vae.safetensors").exists());
 }
 
 #[test]

@@ -9,7 +9,7 @@ use bwm_data::{open_dataset, CameraSelection, ResizeMode};
 use bwm_model::vae::VaeConfig;
 use bwm_trainer::devices::{parse_device, parse_kind};
 use bwm_trainer::vae_frames::FrameSelection;
-use bwm_trainer::vae_train::{save_trained_vae, train_vae, FrameSets, ReconLoss, VaeTrainSettings};
+use bwm_trainer::vae_train::{save_trained_vae, train_best_vae, FrameSets, ReconLoss, VaeTrainSettings};
 use clap::Args;
 
 #[derive(Args)]
@@ -72,8 +72,13 @@ pub struct TrainVaeArgs {
     /// frames (augmentation against memorizing positions); PSNR is measured on whole frames.
     #[arg(long)]
     pub crop: Option<String>,
+    /// Initial weights and clip order (the first candidate's with --candidates).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Train this many VAEs, from seeds --seed, --seed + 1, ..., one after another, and keep the
+    /// one with the best held-out reconstruction PSNR (the file records every candidate's).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..))]
+    pub candidates: u64,
     #[arg(long, default_value = "auto")]
     pub device: String,
     /// Weights and activations in f32, or bf16 with fp32 master weights in the optimizer (losses
@@ -154,11 +159,13 @@ fn train(a: &TrainVaeArgs, cfg: VaeConfig, data: FrameSets, device: tch::Device,
         recon_loss: a.recon_loss,
         cuda_graph: a.cuda_graph,
     };
-    let trained = train_vae(&data, &settings, &mut |line| println!("  {line}"))?;
+    let seeds: Vec<u64> = (a.seed..a.seed.saturating_add(a.candidates)).collect();
+    let trained = train_best_vae(&data, &settings, &seeds, &mut |line| println!("  {line}"))?;
     save_trained_vae(&trained, &a.out)?;
     let report = &trained.report;
+    let kept = if seeds.len() > 1 { format!("the best of {} seeds, seed {}: ", seeds.len(), report.seed) } else { String::new() };
     println!(
-        "train-vae: reconstruction PSNR {:.2} dB on held-out frames, {:.2} dB on training frames ({:.0} s); wrote {}",
+        "train-vae: {kept}reconstruction PSNR {:.2} dB on held-out frames, {:.2} dB on training frames ({:.0} s); wrote {}",
         report.holdout_psnr,
         report.train_psnr,
         report.seconds,

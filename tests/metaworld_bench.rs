@@ -310,9 +310,12 @@ fn the_recipes_vae_graph_and_candidates_reach_train_vae() {
     assert!(!out.status.success(), "VAE_GRAPH=1 on the CPU must fail:\n{text}");
     assert!(text.contains("CUDA graphs (--cuda-graph) need a CUDA device"), "{text}");
     assert!(!runs.join("vae.safetensors").exists(), "no VAE may be written");
-    // VAE_CANDIDATES reaches it as --candidates: two VAEs from seeds VAE_SEED and VAE_SEED + 1.
-    let log = run(toy("recipe.sh", &runs).arg("vae").envs([("VAE_CANDIDATES", "2"), ("VAE_SEED", "4")]), "recipe.sh vae");
+    // VAE_CANDIDATES and VAE_CHOOSE_AT reach it as --candidates and --choose-at: two VAEs from
+    // seeds VAE_SEED and VAE_SEED + 1 one step each, then the better on to the toy's second step.
+    let log = run(toy("recipe.sh", &runs).arg("vae").envs([("VAE_CANDIDATES", "2"), ("VAE_SEED", "4"), ("VAE_CHOOSE_AT", "1")]), "recipe.sh vae");
     assert!(log.contains("candidate 1/2: seed 4") && log.contains("candidate 2/2: seed 5"), "{log}");
+    assert!(log.contains("held-out reconstruction PSNR") && log.contains("dB at step 1"), "{log}");
+    assert!(log.contains(" goes on from step 1 to 2"), "{log}");
     assert!(log.contains("the best of 2 seeds, seed "), "{log}");
     assert!(runs.join("vae.safetensors").exists());
 }

@@ -71,9 +71,13 @@ VAE_DEC_DIM="${VAE_DEC_DIM:-32}"         # bwm train-vae --dec-dim: the decoder'
 VAE_SEED="${VAE_SEED:-0}"                # bwm train-vae --seed: initial weights and clip order
 # bwm train-vae --candidates: VAEs trained from seeds VAE_SEED, VAE_SEED + 1, ..., the best held-out
 # PSNR kept. One seed in four settled about 1 dB under the others in every run, and the world model
-# on its latents reached r 0.64-0.67 where the others reached 0.78-0.91 (docs/fidelity.md, run 31).
-# 2 on CUDA devices, where the graphed VAE steps make two about as fast as one eager; 1 elsewhere.
+# on its latents reached r 0.64-0.70 where the others reached 0.78-0.91 (docs/fidelity.md, run 31).
+# 2 on CUDA devices (with the graphed VAE steps, two cost less than one eager did), 1 elsewhere.
 VAE_CANDIDATES="${VAE_CANDIDATES:-$([[ $DEVICE == cuda* ]] && echo 2 || echo 1)}"
+# bwm train-vae --choose-at: the candidates' steps before the best goes on alone (the poor seed's
+# gap showed early in run 27's training losses: 2.8 dB under the others at step 200, 1.1 at 400,
+# 0.8 at 600; held out 1.1 at 1000); empty: every candidate trains in full.
+VAE_CHOOSE_AT="${VAE_CHOOSE_AT-400}"
 VAE_Z_DIM="${VAE_Z_DIM:-48}"             # bwm train-vae --z-dim: latent channels (the DiT's in_dim and out_dim follow)
 KEEP_FRAMES="${KEEP_FRAMES:-0}"          # 1: the latent cache also keeps pixel frames (training's validation scores against them; 23 GB at 128x128)
 TRAIN_STEPS="${TRAIN_STEPS:-}"            # default: configs/metaworld.toml's
@@ -138,7 +142,7 @@ if wants vae; then
   if [ -f "$RUN/vae.safetensors" ]; then echo "recipe: $RUN/vae.safetensors exists"; else
     timed vae "$BWM" train-vae --data "$VAE_DATA" --max-episodes "$VAE_EPISODES" --holdout-tail "$VAE_HOLDOUT_TAIL" \
       --resolution "${RESOLUTION}x$RESOLUTION" --dim "$VAE_DIM" --dec-dim "$VAE_DEC_DIM" --spatial-stride "$VAE_STRIDE" --clip-frames "$VAE_CLIP_FRAMES" --batch "$VAE_BATCH" --steps "$VAE_STEPS" --lr "$VAE_LR" \
-      --no-flip --eval-every "$VAE_EVAL_EVERY" --dtype "$VAE_DTYPE" --recon-loss "$VAE_LOSS" --seed "$VAE_SEED" --candidates "$VAE_CANDIDATES" --z-dim "$VAE_Z_DIM" --device "$DEVICE" $([ "$VAE_GRAPH" = 1 ] && echo --cuda-graph) --out "$RUN/vae.safetensors"
+      --no-flip --eval-every "$VAE_EVAL_EVERY" --dtype "$VAE_DTYPE" --recon-loss "$VAE_LOSS" --seed "$VAE_SEED" --candidates "$VAE_CANDIDATES" ${VAE_CHOOSE_AT:+--choose-at "$VAE_CHOOSE_AT"} --z-dim "$VAE_Z_DIM" --device "$DEVICE" $([ "$VAE_GRAPH" = 1 ] && echo --cuda-graph) --out "$RUN/vae.safetensors"
   fi
 fi
 

@@ -75,10 +75,16 @@ pub struct TrainVaeArgs {
     /// Initial weights and clip order (the first candidate's with --candidates).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// Train this many VAEs, from seeds --seed, --seed + 1, ..., one after another, and keep the
-    /// one with the best held-out reconstruction PSNR (the file records every candidate's).
+    /// Train this many VAEs, from seeds --seed, --seed + 1, ..., and keep the one with the best
+    /// held-out reconstruction PSNR (the file records every candidate's).
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..))]
     pub candidates: u64,
+    /// With --candidates: train each candidate this many steps, then only the best held-out PSNR
+    /// on to --steps (N candidates cost (N - 1) x this many steps more than one VAE). Default (or at
+    /// least --steps): every candidate trains all --steps, one after another, and the best at the
+    /// end is kept.
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
+    pub choose_at: Option<u64>,
     #[arg(long, default_value = "auto")]
     pub device: String,
     /// Weights and activations in f32, or bf16 with fp32 master weights in the optimizer (losses
@@ -160,7 +166,7 @@ fn train(a: &TrainVaeArgs, cfg: VaeConfig, data: FrameSets, device: tch::Device,
         cuda_graph: a.cuda_graph,
     };
     let seeds: Vec<u64> = (a.seed..a.seed.saturating_add(a.candidates)).collect();
-    let trained = train_best_vae(&data, &settings, &seeds, &mut |line| println!("  {line}"))?;
+    let trained = train_best_vae(&data, &settings, &seeds, a.choose_at, &mut |line| println!("  {line}"))?;
     save_trained_vae(&trained, &a.out)?;
     let report = &trained.report;
     let kept = if seeds.len() > 1 { format!("the best of {} seeds, seed {}: ", seeds.len(), report.seed) } else { String::new() };

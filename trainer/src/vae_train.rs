@@ -326,11 +326,12 @@ pub fn train_best_vae(
         ensure!(k > 0, "the candidate VAEs must train at least one step before one is chosen");
     }
     let stop = choose_at.unwrap_or(s.steps);
-    let mut compared: Vec<(VaeRun, f64)> = Vec::with_capacity(n);
+    // A NaN PSNR (a diverged candidate) never wins.
+    let beats = |psnr: f64, other: f64| !psnr.is_nan() && (other.is_nan() || psnr > other);
+    // Choosing part way: the leading run so far; in full: the best trained VAE so far.
+    let mut leader: Option<(VaeRun, f64)> = None;
     let mut best: Option<TrainedVae> = None;
     let mut candidates = Vec::with_capacity(n);
-    // A NaN PSNR (a diverged candidate) never wins.
-    let rank = |p: f64| if p.is_nan() { f64::NEG_INFINITY } else { p };
     for (i, settings) in settings.iter().enumerate() {
         let seed = settings.seed;
         if n > 1 {
@@ -338,39 +339,32 @@ pub fn train_best_vae(
         }
         let mut run = VaeRun::new(data, settings).with_context(|| format!("the VAE from seed {seed}"))?;
         run.train_until(data, stop, on_log).with_context(|| format!("the VAE from seed {seed}"))?;
-        let psnr = match choose_at {
-            Some(_) => run.holdout_psnr(data)?,
-            None => {
-                let trained = run.finish(data)?;
-                let psnr = trained.report.holdout_psnr;
-                if best.as_ref().map_or(true, |b| rank(psnr) > rank(b.report.holdout_psnr)) {
-                    best = Some(trained);
-                }
-                candidates.push((seed, psnr));
-                if n > 1 {
-                    on_log(&format!("candidate {}/{n}: seed {seed}: held-out reconstruction PSNR {psnr:.2} dB", i + 1));
-                }
-                continue;
+        if choose_at.is_some() {
+            let psnr = run.holdout_psnr(data)?;
+            on_log(&format!("candidate {}/{n}: seed {seed}: held-out reconstruction PSNR {psnr:.2} dB at step {stop}", i + 1));
+            candidates.push((seed, psnr));
+            if leader.as_ref().map_or(true, |(_, lead)| beats(psnr, *lead)) {
+                leader = Some((run, psnr));
             }
-        };
-        on_log(&format!("candidate {}/{n}: seed {seed}: held-out reconstruction PSNR {psnr:.2} dB at step {stop}", i + 1));
-        candidates.push((seed, psnr));
-        match compared.first() {
-            Some((_, leader)) if rank(psnr) <= rank(*leader) => {}
-            _ => compared.insert(0, (run, psnr)),
+        } else {
+            let trained = run.finish(data)?;
+            let psnr = trained.report.holdout_psnr;
+            if n > 1 {
+                on_log(&format!("candidate {}/{n}: seed {seed}: held-out reconstruction PSNR {psnr:.2} dB", i + 1));
+            }
+            candidates.push((seed, psnr));
+            if best.as_ref().map_or(true, |b| beats(psnr, b.report.holdout_psnr)) {
+                best = Some(trained);
+            }
         }
-        compared.truncate(1);
     }
-    let mut best = match best {
-        Some(best) => best,
-        None => {
-            let (mut run, psnr) = compared.pop().context("no candidate trained")?;
-            ensure!(psnr.is_finite(), "every candidate VAE's held-out PSNR is non-finite at step {stop}: {candidates:?}");
-            on_log(&format!("seed {} goes on from step {stop} to {}", run.s.seed, s.steps));
-            run.train_until(data, s.steps, on_log)?;
-            run.finish(data)?
-        }
-    };
+    if let Some((mut run, psnr)) = leader {
+        ensure!(!psnr.is_nan(), "every candidate VAE's held-out PSNR is non-finite at step {stop}: {candidates:?}");
+        on_log(&format!("seed {} goes on from step {stop} to {}", run.s.seed, s.steps));
+        run.train_until(data, s.steps, on_log)?;
+        best = Some(run.finish(data)?);
+    }
+    let mut best = best.context("no candidate trained")?;
     ensure!(best.report.holdout_psnr.is_finite(), "every candidate VAE's held-out PSNR is non-finite: {candidates:?}");
     best.report.seconds = start.elapsed().as_secs_f64();
     best.report.candidates = candidates;

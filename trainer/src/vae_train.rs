@@ -494,24 +494,16 @@ mod tests {
 
     #[test]
     fn the_best_of_several_seeds_is_kept_as_that_seed_alone_trains_it_and_the_file_names_them_all() {
-        let video = |seed: i64| {
-            tch::manual_seed(seed);
-            Tensor::rand([3, 5, 16, 16], (Kind::Float, Device::Cpu)) * 2.0 - 1.0
-        };
-        let data = FrameSets { train: vec![video(1), video(2)], holdout: vec![video(3)] };
+        let data = random_clips(5, 16);
         let s = VaeTrainSettings { steps: 4, lr: 1e-2, ..tiny_settings(5) };
         let mut log = Vec::new();
         let best = train_best_vae(&data, &s, &[3, 4, 5], None, &mut |l| log.push(l.to_string())).unwrap();
         let tried = &best.report.candidates;
         assert_eq!(tried.iter().map(|c| c.0).collect::<Vec<_>>(), [3, 4, 5]);
         assert!(tried.windows(2).any(|w| w[0].1 != w[1].1), "the seeds train different VAEs: {tried:?}");
-        let top = tried.iter().cloned().fold((0, f64::NEG_INFINITY), |a, c| if c.1 > a.1 { c } else { a });
-        assert_eq!((best.report.seed, best.report.holdout_psnr), top, "{log:?}");
+        let top = assert_kept_as_alone(&data, &s, &best);
+        assert_eq!(best.report.holdout_psnr, top.1, "trained in full, the PSNR compared is the final one");
         assert!(log.iter().any(|l| l.starts_with("candidate 3/3: seed 5: held-out reconstruction PSNR")), "{log:?}");
-        let alone = train_vae(&data, &VaeTrainSettings { seed: top.0, ..s.clone() }, &mut |_| {}).unwrap();
-        for ((name, a), (_, b)) in alone.params.iter().zip(&best.params) {
-            assert!((a - b).abs().max().double_value(&[]) < 1e-6, "{name}: the kept VAE is not seed {}'s", top.0);
-        }
         let dir = bwm_testdir::TestDir::new("vae-best-of");
         let path = dir.join("vae.safetensors");
         save_trained_vae(&best, &path).unwrap();
@@ -525,11 +517,7 @@ mod tests {
 
     #[test]
     fn candidates_chosen_part_way_leave_the_best_to_train_on_as_its_seed_alone_does() {
-        let video = |seed: i64| {
-            tch::manual_seed(seed);
-            Tensor::rand([3, 5, 16, 16], (Kind::Float, Device::Cpu)) * 2.0 - 1.0
-        };
-        let data = FrameSets { train: vec![video(1), video(2)], holdout: vec![video(3)] };
+        let data = random_clips(5, 16);
         let s = VaeTrainSettings { steps: 5, lr: 1e-2, eval_every: 1, ..tiny_settings(5) };
         let mut log = Vec::new();
         let best = train_best_vae(&data, &s, &[3, 4, 5], Some(2), &mut |l| log.push(l.to_string())).unwrap();
@@ -540,15 +528,9 @@ mod tests {
             let at_two = log.iter().skip_while(|l| *l != &format!("candidate {}/3: seed {seed}", seed - 2)).find(|l| l.starts_with("step     2: held-out")).unwrap();
             assert!(at_two.contains(&format!("{psnr:.2} dB")), "{at_two} / {psnr}: {log:?}");
         }
-        let top = tried.iter().cloned().fold((0, f64::NEG_INFINITY), |a, c| if c.1 > a.1 { c } else { a });
-        assert_eq!(best.report.seed, top.0);
+        let top = assert_kept_as_alone(&data, &s, &best);
         assert!(log.iter().any(|l| l == &format!("seed {} goes on from step 2 to 5", top.0)), "{log:?}");
         assert_eq!(log.iter().filter(|l| l.starts_with("step     5/5")).count(), 1, "only the chosen one trains to the end: {log:?}");
-        let alone = train_vae(&data, &VaeTrainSettings { seed: top.0, ..s.clone() }, &mut |_| {}).unwrap();
-        assert_eq!(best.report.holdout_psnr, alone.report.holdout_psnr);
-        for ((name, a), (_, b)) in alone.params.iter().zip(&best.params) {
-            assert!((a - b).abs().max().double_value(&[]) < 1e-6, "{name}: the chosen VAE did not train on as seed {} alone does", top.0);
-        }
         let err = train_best_vae(&data, &s, &[3, 4], Some(0), &mut |_| {}).err().unwrap();
         assert!(err.to_string().contains("at least one step"), "{err}");
     }
@@ -571,15 +553,7 @@ mod tests {
     /// closely, not bit for bit). Without CUDA there is nothing to compare and it says so.
     #[test]
     fn the_cuda_graph_replays_train_as_the_eager_steps_do() {
-        if !tch::Cuda::is_available() {
-            eprintln!("no CUDA device: the graph's training is compared on the GPU machines only");
-            return;
-        }
-        let video = |seed: i64| {
-            tch::manual_seed(seed);
-            Tensor::rand([3, 9, 32, 32], (Kind::Float, Device::Cpu)) * 2.0 - 1.0
-        };
-        let data = FrameSets { train: vec![video(1), video(2)], holdout: vec![video(3)] };
+        let Some(data) = cuda_clips("the graph's training") else { return };
         let train = |cuda_graph: bool| {
             // A held-out measurement runs eagerly between two replays.
             let s = VaeTrainSettings { device: Device::Cuda(0), batch: 2, steps: 6, flip: true, eval_every: 4, cuda_graph, ..tiny_settings(5) };
@@ -590,13 +564,7 @@ mod tests {
         let (eager, eager_log) = train(false);
         let (graphed, graph_log) = train(true);
         assert_eq!(eager_log.len(), graph_log.len());
-        // An update moves a weight by about lr; a replay that read stale inputs or lost the
-        // gradients would move some by several lr over the four replayed steps.
-        let lr = tiny_settings(5).lr;
-        for ((name, a), (_, b)) in eager.params.iter().zip(&graphed.params) {
-            let diff = (a - b).abs().max().double_value(&[]);
-            assert!(diff <= 0.5 * lr, "{name}: the graph's weights differ from the eager ones by {diff} (lr {lr})");
-        }
+        assert_weights_as_eager(&eager, &graphed);
         assert!((eager.report.holdout_psnr - graphed.report.holdout_psnr).abs() < 0.01, "{} vs {}", eager.report.holdout_psnr, graphed.report.holdout_psnr);
     }
 
@@ -604,15 +572,7 @@ mod tests {
     /// once), and the chosen one replays its own on to the end, as the eager candidates train.
     #[test]
     fn the_cuda_graph_candidates_chosen_part_way_train_as_the_eager_ones() {
-        if !tch::Cuda::is_available() {
-            eprintln!("no CUDA device: the graph's candidates are compared on the GPU machines only");
-            return;
-        }
-        let video = |seed: i64| {
-            tch::manual_seed(seed);
-            Tensor::rand([3, 9, 32, 32], (Kind::Float, Device::Cpu)) * 2.0 - 1.0
-        };
-        let data = FrameSets { train: vec![video(1), video(2)], holdout: vec![video(3)] };
+        let Some(data) = cuda_clips("the graph's candidates") else { return };
         let train = |cuda_graph: bool| {
             let s = VaeTrainSettings { device: Device::Cuda(0), batch: 2, steps: 8, cuda_graph, ..tiny_settings(5) };
             train_best_vae(&data, &s, &[0, 1], Some(4), &mut |_| {}).unwrap()
@@ -627,6 +587,43 @@ mod tests {
             return;
         }
         assert_eq!(eager.report.seed, graphed.report.seed, "{ce:?} / {cg:?}");
+        assert_weights_as_eager(&eager, &graphed);
+    }
+
+    /// Two training and one held-out random clip of 9 frames at 32x32 where CUDA is; without it
+    /// there is nothing to compare a graph with, and it says so.
+    fn cuda_clips(what: &str) -> Option<FrameSets> {
+        if !tch::Cuda::is_available() {
+            eprintln!("no CUDA device: {what} is compared on the GPU machines only");
+            return None;
+        }
+        Some(random_clips(9, 32))
+    }
+
+    /// Two training videos and one held-out of `frames` random frames, `side` pixels square.
+    fn random_clips(frames: i64, side: i64) -> FrameSets {
+        let video = |seed: i64| {
+            tch::manual_seed(seed);
+            Tensor::rand([3, frames, side, side], (Kind::Float, Device::Cpu)) * 2.0 - 1.0
+        };
+        FrameSets { train: vec![video(1), video(2)], holdout: vec![video(3)] }
+    }
+
+    /// The candidate with the best PSNR, and that the kept VAE's weights are its seed's alone.
+    fn assert_kept_as_alone(data: &FrameSets, s: &VaeTrainSettings, best: &TrainedVae) -> (u64, f64) {
+        let top = best.report.candidates.iter().cloned().fold((0, f64::NEG_INFINITY), |a, c| if c.1 > a.1 { c } else { a });
+        assert_eq!(best.report.seed, top.0, "{:?}", best.report.candidates);
+        let alone = train_vae(data, &VaeTrainSettings { seed: top.0, ..s.clone() }, &mut |_| {}).unwrap();
+        assert_eq!(best.report.holdout_psnr, alone.report.holdout_psnr);
+        for ((name, a), (_, b)) in alone.params.iter().zip(&best.params) {
+            assert!((a - b).abs().max().double_value(&[]) < 1e-6, "{name}: the kept VAE is not seed {}'s alone", top.0);
+        }
+        top
+    }
+
+    /// An update moves a weight by about lr; a replay that read stale inputs or lost the gradients
+    /// would move some by several lr over the replayed steps.
+    fn assert_weights_as_eager(eager: &TrainedVae, graphed: &TrainedVae) {
         let lr = tiny_settings(5).lr;
         for ((name, a), (_, b)) in eager.params.iter().zip(&graphed.params) {
             let diff = (a - b).abs().max().double_value(&[]);

@@ -318,6 +318,10 @@ fn the_recipes_vae_graph_and_candidates_reach_train_vae() {
     assert!(log.contains(" goes on from step 1 to 2"), "{log}");
     assert!(log.contains("the best of 2 seeds, seed "), "{log}");
     assert!(runs.join("vae.safetensors").exists());
+    // By default the CPU trains one.
+    std::fs::remove_file(runs.join("vae.safetensors")).unwrap();
+    let log = run(toy("recipe.sh", &runs).arg("vae"), "recipe.sh vae");
+    assert!(!log.contains("candidate") && log.contains("train-vae: reconstruction PSNR"), "{log}");
 }
 
 #[test]

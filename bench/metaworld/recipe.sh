@@ -72,7 +72,7 @@ VAE_SEED="${VAE_SEED:-0}"                # bwm train-vae --seed: initial weights
 # bwm train-vae --candidates: VAEs trained from seeds VAE_SEED, VAE_SEED + 1, ..., the best held-out
 # PSNR kept. One seed in four settled about 1 dB under the others in every run, and the world model
 # on its latents reached r 0.64-0.70 where the others reached 0.78-0.91 (docs/fidelity.md, run 31).
-# 2 on CUDA devices (with the graphed VAE steps, two cost less than one eager did), 1 elsewhere.
+# 2 on CUDA devices (with VAE_GRAPH's graphed steps two cost less than one eager VAE), 1 elsewhere.
 VAE_CANDIDATES="${VAE_CANDIDATES:-$([[ $DEVICE == cuda* ]] && echo 2 || echo 1)}"
 # bwm train-vae --choose-at: the candidates' steps before the best goes on alone (the poor seed's
 # gap showed early in run 27's training losses: 2.8 dB under the others at step 200, 1.1 at 400,

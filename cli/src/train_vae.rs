@@ -76,7 +76,8 @@ pub struct TrainVaeArgs {
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// Train this many VAEs, from seeds --seed, --seed + 1, ..., and keep the one with the best
-    /// held-out reconstruction PSNR (the file records every candidate's).
+    /// held-out reconstruction PSNR (the file records every candidate's and the step it was
+    /// measured at).
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..))]
     pub candidates: u64,
     /// With --candidates: train each candidate this many steps, then only the best held-out PSNR
@@ -165,7 +166,8 @@ fn train(a: &TrainVaeArgs, cfg: VaeConfig, data: FrameSets, device: tch::Device,
         recon_loss: a.recon_loss,
         cuda_graph: a.cuda_graph,
     };
-    let seeds: Vec<u64> = (a.seed..a.seed.saturating_add(a.candidates)).collect();
+    let end = a.seed.checked_add(a.candidates).with_context(|| format!("--seed {} + --candidates {} is past the largest seed", a.seed, a.candidates))?;
+    let seeds: Vec<u64> = (a.seed..end).collect();
     let trained = train_best_vae(&data, &settings, &seeds, a.choose_at, &mut |line| println!("  {line}"))?;
     save_trained_vae(&trained, &a.out)?;
     let report = &trained.report;

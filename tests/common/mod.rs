@@ -51,7 +51,7 @@ pub fn write_random_vae(path: &Path, seed: i64) {
     use bwm_trainer::vae_train::{save_trained_vae, TrainedVae, VaeTrainReport};
     let (vae, store) = WanVae::random(&VaeConfig::with_width(16, 16), Kind::Float, Device::Cpu, seed).unwrap();
     let params = store.named_parameters();
-    let report = VaeTrainReport { train_psnr: 0.0, holdout_psnr: 0.0, seconds: 0.0, steps: 0, clip_frames: 5, seed: 0, candidates: vec![(0, 0.0)] };
+    let report = VaeTrainReport { train_psnr: 0.0, holdout_psnr: 0.0, seconds: 0.0, steps: 0, clip_frames: 5, seed: 0, candidates: vec![(0, 0.0)], candidates_step: 0 };
     save_trained_vae(&TrainedVae { vae, params, report }, path).unwrap();
 }
 

@@ -5,6 +5,10 @@ use tch::{Kind, Tensor};
 /// PSNR in dB over all pixels of `a` and `b` ([.., H, W] in [-1, 1], data range 2).
 pub fn psnr(a: &Tensor, b: &Tensor) -> f64 {
     let mse = (a.to_kind(Kind::Float) - b.to_kind(Kind::Float)).square().mean(Kind::Double).double_value(&[]);
+    // `f64::max` would turn a NaN error into the 120 dB of a perfect match.
+    if mse.is_nan() {
+        return f64::NAN;
+    }
     10.0 * (4.0 / mse.max(1e-12)).log10()
 }
 
@@ -43,6 +47,9 @@ mod tests {
         let noisy = &a + Tensor::randn([3, 2, 32, 32], (Kind::Float, tch::Device::Cpu)) * 0.2;
         // Noise of std 0.2 on a range of 2: MSE 0.04 -> PSNR 10 log10(4 / 0.04) = 20 dB.
         assert!((psnr(&a, &noisy) - 20.0).abs() < 0.5);
+        let broken = a.copy();
+        let _ = broken.get(0).fill_(f64::NAN);
+        assert!(psnr(&broken, &a).is_nan(), "a NaN frame is no match");
         let noisier = &a + Tensor::randn([3, 2, 32, 32], (Kind::Float, tch::Device::Cpu)) * 0.6;
         let (s1, s2) = (ssim(&a, &noisy), ssim(&a, &noisier));
         assert!(s1 < 0.97 && s2 < s1 - 0.1, "{s1} {s2}");

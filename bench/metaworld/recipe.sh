@@ -75,8 +75,8 @@ VAE_SEED="${VAE_SEED:-0}"                # bwm train-vae --seed: initial weights
 # 2 on CUDA devices (with VAE_GRAPH's graphed steps two cost less than one eager VAE), 1 elsewhere.
 VAE_CANDIDATES="${VAE_CANDIDATES:-$([[ $DEVICE == cuda* ]] && echo 2 || echo 1)}"
 # bwm train-vae --choose-at: the candidates' steps before the best goes on alone (the poor seed's
-# gap showed early in run 27's training losses: 2.8 dB under the others at step 200, 1.1 at 400,
-# 0.8 at 600; held out 1.1 at 1000); empty: every candidate trains in full.
+# gap showed early in run 27's training losses: 2.3 dB under the others around step 200, 1.1
+# around 400, 1.0 around 600; held out 1.1 at 1000); empty: every candidate trains in full.
 VAE_CHOOSE_AT="${VAE_CHOOSE_AT-400}"
 VAE_Z_DIM="${VAE_Z_DIM:-48}"             # bwm train-vae --z-dim: latent channels (the DiT's in_dim and out_dim follow)
 KEEP_FRAMES="${KEEP_FRAMES:-0}"          # 1: the latent cache also keeps pixel frames (training's validation scores against them; 23 GB at 128x128)

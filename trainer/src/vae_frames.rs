@@ -150,8 +150,7 @@ mod tests {
     use super::*;
 
     fn video(frames: i64, seed: i64) -> Tensor {
-        tch::manual_seed(seed);
-        Tensor::rand([3, frames, 8, 8], (Kind::Float, tch::Device::Cpu)) * 2.0 - 1.0
+        bwm_model::vb::with_seed(seed, || Tensor::rand([3, frames, 8, 8], (Kind::Float, tch::Device::Cpu))) * 2.0 - 1.0
     }
 
     #[test]

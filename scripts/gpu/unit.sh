@@ -25,11 +25,12 @@ status=0
   done
   for g in "${groups[@]}"; do
     if [ "$g" = vae ]; then
-      # One at a time: a failed capture is one of the tests, and the others share the process.
+      # One test at a time: a capture fails when another thread's CUDA work waits on the device
+      # meanwhile (the trainer's own tests also take turns on the GPU).
       dist/test-cuda-graph --test-threads 1 || status=1
-      dist/test-trainer the_cuda_graph || status=1
+      dist/test-trainer the_cuda_graph --test-threads 1 || status=1
     else
-      dist/test-training cuda_graph || status=1
+      dist/test-training cuda_graph --test-threads 1 || status=1
     fi
   done
   exit $status

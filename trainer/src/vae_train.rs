@@ -567,7 +567,7 @@ mod tests {
     /// closely, not bit for bit). Without CUDA there is nothing to compare and it says so.
     #[test]
     fn the_cuda_graph_replays_train_as_the_eager_steps_do() {
-        let Some(data) = cuda_clips("the graph's training") else { return };
+        let Some((_gpu, data)) = cuda_clips("the graph's training") else { return };
         let train = |cuda_graph: bool| {
             // A held-out measurement runs eagerly between two replays.
             let s = VaeTrainSettings { device: Device::Cuda(0), batch: 2, steps: 6, flip: true, eval_every: 4, cuda_graph, ..tiny_settings(5) };
@@ -605,7 +605,7 @@ mod tests {
     /// once), and the chosen one replays its own on to the end, as the eager candidates train.
     #[test]
     fn the_cuda_graph_candidates_chosen_part_way_train_as_the_eager_ones() {
-        let Some(data) = cuda_clips("the graph's candidates") else { return };
+        let Some((_gpu, data)) = cuda_clips("the graph's candidates") else { return };
         let train = |cuda_graph: bool| {
             let s = VaeTrainSettings { device: Device::Cuda(0), batch: 2, steps: 8, cuda_graph, ..tiny_settings(5) };
             train_best_vae(&data, &s, &[0, 1], Some(4), &mut |_| {}).unwrap()
@@ -623,14 +623,18 @@ mod tests {
         assert_weights_as_eager(&eager, &graphed);
     }
 
-    /// Two training and one held-out random clip of 9 frames at 32x32 where CUDA is; without it
-    /// there is nothing to compare a graph with, and it says so.
-    fn cuda_clips(what: &str) -> Option<FrameSets> {
+    /// Two training and one held-out random clip of 9 frames at 32x32 where CUDA is, with the GPU
+    /// to the test alone while it holds the guard: a capture fails when another thread's CUDA work
+    /// meanwhile waits on the device (a parallel test's copy to it failed one). Without CUDA there
+    /// is nothing to compare a graph with, and it says so.
+    fn cuda_clips(what: &str) -> Option<(std::sync::MutexGuard<'static, ()>, FrameSets)> {
+        static GPU: std::sync::Mutex<()> = std::sync::Mutex::new(());
         if !tch::Cuda::is_available() {
             eprintln!("no CUDA device: {what} is compared on the GPU machines only");
             return None;
         }
-        Some(random_clips(9, 32))
+        let gpu = GPU.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+        Some((gpu, random_clips(9, 32)))
     }
 
     /// Two training videos and one held-out of `frames` random frames, `side` pixels square. Drawn

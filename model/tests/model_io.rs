@@ -19,9 +19,9 @@ fn save(params: &[(String, Tensor)], path: &Path) {
 
 /// Latents for 1+8+8 pixel frames (5 latent frames) of a 64x96 video and their actions.
 fn inputs(seed: i64) -> (Tensor, Tensor, Tensor) {
-    tch::manual_seed(seed);
-    let latents = Tensor::randn([2, 48, 5, 4, 6], (Kind::Float, Device::Cpu));
-    let actions = Tensor::rand([2, 17, 14], (Kind::Float, Device::Cpu)) * 2.0 - 1.0;
+    let (latents, actions) = bwm_model::vb::with_seed(seed, || {
+        (Tensor::randn([2, 48, 5, 4, 6], (Kind::Float, Device::Cpu)), Tensor::rand([2, 17, 14], (Kind::Float, Device::Cpu)) * 2.0 - 1.0)
+    });
     let t = frame_timesteps(&Tensor::from_slice(&[875.0f32, 312.5]), 5, 3);
     (latents, t, actions)
 }

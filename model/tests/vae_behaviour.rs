@@ -12,8 +12,7 @@ fn small() -> VaeConfig {
 }
 
 fn video(frames: i64, h: i64, w: i64, seed: i64) -> Tensor {
-    tch::manual_seed(seed);
-    Tensor::rand([1, 3, frames, h, w], (Kind::Float, Device::Cpu)) * 2.0 - 1.0
+    bwm_model::vb::with_seed(seed, || Tensor::rand([1, 3, frames, h, w], (Kind::Float, Device::Cpu))) * 2.0 - 1.0
 }
 
 #[test]
@@ -39,8 +38,7 @@ fn encoding_is_causal() {
 #[test]
 fn streaming_decode_memory_does_not_grow_with_length() {
     let (vae, _) = WanVae::random(&small(), Kind::Float, Device::Cpu, 4).unwrap();
-    tch::manual_seed(5);
-    let latents = Tensor::randn([1, 48, 24, 2, 3], (Kind::Float, Device::Cpu));
+    let latents = bwm_model::vb::with_seed(5, || Tensor::randn([1, 48, 24, 2, 3], (Kind::Float, Device::Cpu)));
     let mut stream = vae.decoder_stream();
     let mut frames = Vec::new();
     let mut cache_sizes = Vec::new();

@@ -64,12 +64,13 @@ pub fn temp_dir(name: &str) -> TestDir {
 }
 
 pub fn write_cache(dir: &Path) {
-    tch::manual_seed(0);
+    // Drawn under with_seed's lock, so every caller writes the same clips.
+    let clips: Vec<(Tensor, Tensor)> = bwm_model::vb::with_seed(0, || {
+        (0..3).map(|_| (Tensor::randn([48, 4, 4, 4], (Kind::Float, Device::Cpu)), Tensor::rand([13, 14], (Kind::Float, Device::Cpu)) * 2.0 - 1.0)).collect()
+    });
     let index = CacheIndex::new(vec![48, 4, 4, 4], 14, 8, 4, [64, 64], 30.0, "synthetic");
     let mut w = CacheWriter::create(dir, index).unwrap();
-    for episode in 0..3 {
-        let latents = Tensor::randn([48, 4, 4, 4], (Kind::Float, Device::Cpu));
-        let actions = Tensor::rand([13, 14], (Kind::Float, Device::Cpu)) * 2.0 - 1.0;
+    for (episode, (latents, actions)) in (0..).zip(clips) {
         w.add(
             ClipEntry {
                 file: String::new(),

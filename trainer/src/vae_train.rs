@@ -168,6 +168,8 @@ struct VaeRun<'a> {
     step: u64,
     /// Seconds spent in this run's own work (its steps and measurements).
     seconds: f64,
+    /// The held-out PSNR last measured and the step it was measured at.
+    measured: Option<(u64, f64)>,
 }
 
 /// What every VAE trained on `data` with `s` needs, checked once before any trains.
@@ -202,7 +204,7 @@ impl<'a> VaeRun<'a> {
             toml::from_str(&format!("lr = {}\nweight_decay = 0.0\ngrad_clip = 1.0\nwarmup_steps = 20\nschedule = \"cosine\"\nmin_lr_ratio = 0.05", s.lr))?;
         let opt = AdamW::new(&store.named_parameters(), &["*".into()], &[], &optim, s.steps, Sharding::SINGLE)?;
         let graph = if s.cuda_graph { Some(GraphedStep::new(s.device, GRAPH_WARM_UP_STEPS)?) } else { None };
-        Ok(Self { s, vae, store, opt, graph, starts, step: 0, seconds: 0.0 })
+        Ok(Self { s, vae, store, opt, graph, starts, step: 0, seconds: 0.0, measured: None })
     }
 
     /// Trains on until `until` steps are done (at most the settings' steps).
@@ -269,17 +271,23 @@ impl<'a> VaeRun<'a> {
             }
             if s.eval_every > 0 && (step + 1) % s.eval_every == 0 && !last {
                 let p = reconstruction_psnr(vae, &data.holdout, s.clip_frames, s.device)?;
+                self.measured = Some((step + 1, p));
                 on_log(&format!("step {:>5}: held-out reconstruction PSNR {p:.2} dB", step + 1));
             }
         }
         Ok(())
     }
 
+    /// The held-out PSNR at the current step (measured once per step).
     fn holdout_psnr(&mut self, data: &FrameSets) -> Result<f64> {
+        if let Some((_, p)) = self.measured.filter(|&(step, _)| step == self.step) {
+            return Ok(p);
+        }
         let start = Instant::now();
-        let p = reconstruction_psnr(&self.vae, &data.holdout, self.s.clip_frames, self.s.device);
+        let p = reconstruction_psnr(&self.vae, &data.holdout, self.s.clip_frames, self.s.device)?;
         self.seconds += start.elapsed().as_secs_f64();
-        p
+        self.measured = Some((self.step, p));
+        Ok(p)
     }
 
     /// The latent statistics and the final PSNRs; the run must have done all its steps.

@@ -322,6 +322,23 @@ fn the_recipes_vae_graph_and_candidates_reach_train_vae() {
     std::fs::remove_file(runs.join("vae.safetensors")).unwrap();
     let log = run(toy("recipe.sh", &runs).arg("vae"), "recipe.sh vae");
     assert!(!log.contains("candidate") && log.contains("train-vae: reconstruction PSNR"), "{log}");
+    assert!(!log.contains("CUDA graph"), "the CPU trains eagerly by default: {log}");
+    std::fs::remove_file(runs.join("vae.safetensors")).unwrap();
+    // On a CUDA device the default (VAE_GRAPH=auto) tries the graph and, when that training
+    // fails, trains the VAE again eagerly. Without CUDA both fail, and each attempt is seen.
+    if !tch::Cuda::is_available() {
+        let out = toy("recipe.sh", &runs).arg("vae").env("DEVICE", "cuda").output().unwrap();
+        let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+        assert!(!out.status.success(), "no CUDA: both attempts must fail:\n{text}");
+        assert!(text.contains("training it eagerly"), "{text}");
+        assert_eq!(text.matches("recipe: vae (").count(), 1, "{text}");
+        assert_eq!(text.matches("recipe: vae-eager (").count(), 1, "{text}");
+        assert!(!runs.join("vae.safetensors").exists(), "no VAE may be written");
+        let timings = std::fs::read_to_string(runs.join("timings.tsv")).unwrap();
+        assert!(timings.contains("vae-failed\t") && timings.contains("vae-eager-failed\t"), "both attempts' times are kept: {timings}");
+    }
+    let out = toy("recipe.sh", &runs).arg("vae").env("VAE_GRAPH", "yes").output().unwrap();
+    assert!(String::from_utf8_lossy(&out.stderr).contains("VAE_GRAPH must be 0, 1 or auto"), "{out:?}");
 }
 
 #[test]

@@ -56,8 +56,10 @@ VAE_LR="${VAE_LR:-1e-3}"
 VAE_DTYPE="${VAE_DTYPE:-f32}"             # bwm train-vae --dtype: f32, or bf16 with fp32 masters (slower here: docs/performance.md)
 VAE_LOSS="${VAE_LOSS:-mse}"                # bwm train-vae --recon-loss: mse or l1
 # 1: bwm train-vae --cuda-graph (the step replayed from a CUDA graph: 1.8x faster on an H200,
-# docs/performance.md); on by default on CUDA devices, off elsewhere (a CPU has no CUDA graphs).
-VAE_GRAPH="${VAE_GRAPH:-$([[ $DEVICE == cuda* ]] && echo 1 || echo 0)}"
+# docs/performance.md); 0: eager; auto (default): the graph on CUDA devices, and should its
+# training fail, the VAE trained again eagerly (a CPU has no CUDA graphs: eager there).
+VAE_GRAPH="${VAE_GRAPH:-auto}"
+case "$VAE_GRAPH" in 0|1|auto) ;; *) echo "recipe: VAE_GRAPH must be 0, 1 or auto, not '$VAE_GRAPH'" >&2; exit 2 ;; esac
 VAE_EVAL_EVERY="${VAE_EVAL_EVERY:-1000}"  # held-out reconstruction PSNR every N VAE steps (and at the end)
 # The VAE trains on clips as long as the DiT's (x0 + 8 + 24 = 33 frames): its causal convolutions
 # see the video's start in every 9-frame clip, and one trained on those decodes the later latents
@@ -120,12 +122,14 @@ done
 [ -x "$BWM" ] || { echo "recipe: no bwm binary at $BWM (make build, or set BWM)" >&2; exit 1; }
 mkdir -p "$RUN"
 wants() { [[ " ${STAGES[*]} " == *" $1 "* ]]; }
-timed() { # $1 = stage name; the rest runs, its wall time appended to $RUN/timings.tsv
-  local name=$1 t0; shift
+timed() { # $1 = stage name; the rest runs, its wall time appended to $RUN/timings.tsv (as NAME-failed when it fails)
+  local name=$1 t0 status=0; shift
   t0=$(date +%s.%N)
   echo "recipe: $name ($(date +%T))"
-  "$@"
+  "$@" || status=$?
+  [ "$status" = 0 ] || name="$name-failed"
   awk -v n="$name" -v a="$t0" -v b="$(date +%s.%N)" 'BEGIN { printf "%s\t%.1f\n", n, b - a }' | tee -a "$RUN/timings.tsv"
+  return "$status"
 }
 
 if wants data; then
@@ -140,9 +144,19 @@ fi
 
 if wants vae; then
   if [ -f "$RUN/vae.safetensors" ]; then echo "recipe: $RUN/vae.safetensors exists"; else
-    timed vae "$BWM" train-vae --data "$VAE_DATA" --max-episodes "$VAE_EPISODES" --holdout-tail "$VAE_HOLDOUT_TAIL" \
-      --resolution "${RESOLUTION}x$RESOLUTION" --dim "$VAE_DIM" --dec-dim "$VAE_DEC_DIM" --spatial-stride "$VAE_STRIDE" --clip-frames "$VAE_CLIP_FRAMES" --batch "$VAE_BATCH" --steps "$VAE_STEPS" --lr "$VAE_LR" \
-      --no-flip --eval-every "$VAE_EVAL_EVERY" --dtype "$VAE_DTYPE" --recon-loss "$VAE_LOSS" --seed "$VAE_SEED" --candidates "$VAE_CANDIDATES" ${VAE_CHOOSE_AT:+--choose-at "$VAE_CHOOSE_AT"} --z-dim "$VAE_Z_DIM" --device "$DEVICE" $([ "$VAE_GRAPH" = 1 ] && echo --cuda-graph) --out "$RUN/vae.safetensors"
+    vae=("$BWM" train-vae --data "$VAE_DATA" --max-episodes "$VAE_EPISODES" --holdout-tail "$VAE_HOLDOUT_TAIL"
+      --resolution "${RESOLUTION}x$RESOLUTION" --dim "$VAE_DIM" --dec-dim "$VAE_DEC_DIM" --spatial-stride "$VAE_STRIDE" --clip-frames "$VAE_CLIP_FRAMES" --batch "$VAE_BATCH" --steps "$VAE_STEPS" --lr "$VAE_LR"
+      --no-flip --eval-every "$VAE_EVAL_EVERY" --dtype "$VAE_DTYPE" --recon-loss "$VAE_LOSS" --seed "$VAE_SEED" --candidates "$VAE_CANDIDATES" ${VAE_CHOOSE_AT:+--choose-at "$VAE_CHOOSE_AT"} --z-dim "$VAE_Z_DIM" --device "$DEVICE" --out "$RUN/vae.safetensors")
+    if [ "$VAE_GRAPH" = 1 ]; then
+      timed vae "${vae[@]}" --cuda-graph
+    elif [ "$VAE_GRAPH" = auto ] && [[ $DEVICE == cuda* ]]; then
+      timed vae "${vae[@]}" --cuda-graph || {
+        echo "recipe: the VAE's training with its step replayed from a CUDA graph failed (above); training it eagerly (VAE_GRAPH=0 skips the graph)" >&2
+        timed vae-eager "${vae[@]}"
+      }
+    else
+      timed vae "${vae[@]}"
+    fi
   fi
 fi
 

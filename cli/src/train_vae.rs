@@ -3,7 +3,7 @@
 
 use std::path::PathBuf;
 
-use anyhow::{Context, Result};
+use anyhow::{bail, Context, Result};
 use bwm_data::frames::{parse_resize, parse_resolution};
 use bwm_data::{open_dataset, CameraSelection, ResizeMode};
 use bwm_model::vae::VaeConfig;
@@ -92,10 +92,16 @@ pub struct TrainVaeArgs {
     /// in f32 either way; the file holds f32 weights).
     #[arg(long, default_value = "f32")]
     pub dtype: String,
-    /// Reconstruction loss: mse (what PSNR measures) or l1 (as Wan's VAE trains; errs less
-    /// towards blurring a small object into its surroundings).
+    /// Reconstruction loss: mse (what PSNR measures), l1 (as Wan's VAE trains; errs less
+    /// towards blurring a small object into its surroundings) or motion (MSE weighted towards
+    /// where the frames change and the pixels within one latent cell of it: the arm and what it
+    /// nears, against the static scene).
     #[arg(long, default_value = "mse")]
     pub recon_loss: ReconLoss,
+    /// With --recon-loss motion: how much more the squared error counts, on average over a clip,
+    /// where it changes (default 4; 0 is plain MSE).
+    #[arg(long, allow_negative_numbers = true)]
+    pub motion_weight: Option<f64>,
     /// Record the training step (forward and backward) once as a CUDA graph and replay it after
     /// two eager warm-up steps (CUDA only). The small VAE's step is bound by launching its
     /// kernels, which a replay does in one launch; the results are the eager step's.
@@ -120,6 +126,7 @@ pub fn run(a: TrainVaeArgs) -> Result<()> {
     let size = parse_resolution(&a.resolution, cfg.spatial_stride() as u32)?;
     let device = parse_device(&a.device)?;
     let dtype = parse_kind(&a.dtype).context("--dtype")?;
+    let motion_weight = motion_weight(&a)?;
     let data = match &a.frames {
         Some(path) => {
             let data = FrameSets::read(path)?;
@@ -133,7 +140,7 @@ pub fn run(a: TrainVaeArgs) -> Result<()> {
         println!("train-vae: wrote the frames to {}", path.display());
         return Ok(());
     }
-    train(&a, cfg, data, device, dtype)
+    train(&a, cfg, data, device, dtype, motion_weight)
 }
 
 fn decode_frame_sets(a: &TrainVaeArgs, size: (u32, u32)) -> Result<FrameSets> {
@@ -143,7 +150,17 @@ fn decode_frame_sets(a: &TrainVaeArgs, size: (u32, u32)) -> Result<FrameSets> {
     FrameSets::from_dataset(source.as_ref(), &selection)
 }
 
-fn train(a: &TrainVaeArgs, cfg: VaeConfig, data: FrameSets, device: tch::Device, dtype: tch::Kind) -> Result<()> {
+/// --motion-weight, only with the loss it weighs.
+fn motion_weight(a: &TrainVaeArgs) -> Result<f64> {
+    match a.motion_weight {
+        None => Ok(4.0),
+        Some(_) if a.recon_loss != ReconLoss::Motion => bail!("--motion-weight weighs --recon-loss motion, not {}", a.recon_loss),
+        Some(w) if w.is_finite() && w >= 0.0 => Ok(w),
+        Some(w) => bail!("--motion-weight must be a finite number of at least 0, not {w}"),
+    }
+}
+
+fn train(a: &TrainVaeArgs, cfg: VaeConfig, data: FrameSets, device: tch::Device, dtype: tch::Kind, motion_weight: f64) -> Result<()> {
     let frames: i64 = data.train.iter().map(|t| t.size()[1]).sum();
     let stride = cfg.spatial_stride();
     println!(
@@ -164,6 +181,7 @@ fn train(a: &TrainVaeArgs, cfg: VaeConfig, data: FrameSets, device: tch::Device,
         crop: a.crop.as_deref().map(|c| parse_resolution(c, stride as u32).map(|(w, h)| (w as i64, h as i64))).transpose().context("--crop")?,
         dtype,
         recon_loss: a.recon_loss,
+        motion_weight,
         cuda_graph: a.cuda_graph,
     };
     let end = a.seed.checked_add(a.candidates).with_context(|| format!("--seed {} + --candidates {} is past the largest seed", a.seed, a.candidates))?;

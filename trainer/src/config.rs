@@ -191,6 +191,11 @@ pub struct ObjectiveSection {
     /// guidance); 0: every sample sees its actions (the BWM release).
     #[serde(default)]
     pub action_dropout: f64,
+    /// Weight the loss per future latent cell towards where the clean latents change from the
+    /// frame before (and the cells beside it): on average this many times more than a still
+    /// cell's (`Objective::cell_weights`). 0 (default): the plain MSE of the BWM release.
+    #[serde(default)]
+    pub motion_weight: f64,
 }
 
 fn default_sampling() -> TimestepSampling {
@@ -211,6 +216,7 @@ impl Default for ObjectiveSection {
             history_sigma: None,
             condition_latents: default_condition_latents(),
             action_dropout: 0.0,
+            motion_weight: 0.0,
         }
     }
 }
@@ -484,6 +490,8 @@ impl RunConfig {
             "objective.action_dropout must lie in [0, 1), got {}",
             self.objective.action_dropout
         );
+        let m = self.objective.motion_weight;
+        ensure!(m.is_finite() && m >= 0.0, "objective.motion_weight must be a finite number of at least 0, got {m}");
         if let TimestepSampling::LogitNormal { std, .. } = self.objective.timestep_sampling {
             ensure!(std > 0.0, "objective.timestep_sampling.std must be positive");
         }

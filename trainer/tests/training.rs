@@ -250,7 +250,7 @@ fn config_errors_name_the_key() {
     assert_eq!(c.optim.lr, 2e-5);
     assert!(!c.train.recompute);
     assert!(bwm_trainer::RunConfig::parse(&text, &["train.steps=0".into()]).unwrap_err().to_string().contains("train.steps"));
-    for bad in ["objective.action_dropout=1.0", "objective.action_dropout=-0.1", "validation.guidance=-1.0"] {
+    for bad in ["objective.action_dropout=1.0", "objective.action_dropout=-0.1", "validation.guidance=-1.0", "objective.motion_weight=-1.0"] {
         let e = bwm_trainer::RunConfig::parse(&text, &[bad.into()]).unwrap_err().to_string();
         assert!(e.contains(bad.split('=').next().unwrap()), "{bad}: {e}");
     }
@@ -379,4 +379,20 @@ fn batched_validation_rollouts_equal_one_clip_at_a_time() {
         / 3.0;
     let report = validation::run(&mut t, 0).unwrap();
     assert!((report.latent_mse - expected).abs() < 1e-6 * expected.max(1.0), "{} vs {expected}", report.latent_mse);
+}
+
+#[test]
+fn the_motion_weighted_objective_trains_and_weighs_the_loss_differently() {
+    let dir = tmp_dir("motion-weight");
+    let cache = write_cache(&dir.join("cache"), 3, 21);
+    let run = |extra: &str, name: &str| {
+        let mut t = trainer(config(&cache, &dir.join(name), &format!("[train]\nsteps = 2\n{extra}")), Resume::No).unwrap();
+        t.run().unwrap();
+        t.history.iter().map(|m| m.loss).collect::<Vec<f64>>()
+    };
+    let plain = run("", "plain");
+    let weighted = run("[objective]\nmotion_weight = 4.0", "weighted");
+    assert_eq!(weighted.len(), 2);
+    assert!(weighted.iter().all(|l| l.is_finite() && *l > 0.0), "{weighted:?}");
+    assert_ne!(plain, weighted, "the weights did not reach the loss");
 }

@@ -653,12 +653,13 @@ mod tests {
     }
 
     /// On a CUDA machine: candidates chosen part way each hold their own graph (two alive at
-    /// once), and the chosen one replays its own on to the end, as the eager candidates train.
+    /// once), and the chosen one replays its own on to the end, as the eager candidates train
+    /// (with the motion loss, whose weights the graph computes from the clips it is given).
     #[test]
     fn the_cuda_graph_candidates_chosen_part_way_train_as_the_eager_ones() {
         let Some((_gpu, data)) = cuda_clips("the graph's candidates") else { return };
         let train = |cuda_graph: bool| {
-            let s = VaeTrainSettings { device: Device::Cuda(0), batch: 2, steps: 8, cuda_graph, ..tiny_settings(5) };
+            let s = VaeTrainSettings { device: Device::Cuda(0), batch: 2, steps: 8, cuda_graph, recon_loss: ReconLoss::Motion, ..tiny_settings(5) };
             train_best_vae(&data, &s, &[0, 1], Some(4), &mut |_| {}).unwrap()
         };
         let (eager, graphed) = (train(false), train(true));

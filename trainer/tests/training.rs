@@ -282,24 +282,27 @@ fn the_cuda_graph_step_trains_as_the_eager_step() {
     }
     let dir = tmp_dir("graph");
     let cache = write_cache(&dir.join("cache"), 4, 6);
-    let run = |graph: bool| {
-        // A validation pass runs eagerly between two replays.
-        let extra = format!("[data]\nholdout_episodes = 1\n[train]\nsteps = 6\nmicro_batch = 2\nrecompute = false\ncuda_graph = {graph}\n[validation]\nevery = 4\nsample_steps = 2");
-        let mut cfg = config(&cache, &dir.join(format!("run-{graph}")), &extra);
-        cfg.run.device = "cuda".into();
-        let mut t = trainer(cfg, Resume::No).unwrap();
-        t.run().unwrap();
-        let losses: Vec<f64> = t.history.iter().map(|m| m.loss).collect();
-        (weights(&t), losses)
-    };
-    let (eager, eager_losses) = run(false);
-    let (graphed, graph_losses) = run(true);
-    for (step, (a, b)) in eager_losses.iter().zip(&graph_losses).enumerate() {
-        assert!((a - b).abs() <= 1e-3 * a.abs(), "step {}: loss {b} with the graph, {a} without", step + 1);
+    // The plain loss, and the motion-weighted one whose cell weights are one more recorded input.
+    for motion_weight in [0.0, 4.0] {
+        let run = |graph: bool| {
+            // A validation pass runs eagerly between two replays.
+            let extra = format!("[data]\nholdout_episodes = 1\n[train]\nsteps = 6\nmicro_batch = 2\nrecompute = false\ncuda_graph = {graph}\n[objective]\nmotion_weight = {motion_weight:?}\n[validation]\nevery = 4\nsample_steps = 2");
+            let mut cfg = config(&cache, &dir.join(format!("run-{graph}-{motion_weight}")), &extra);
+            cfg.run.device = "cuda".into();
+            let mut t = trainer(cfg, Resume::No).unwrap();
+            t.run().unwrap();
+            let losses: Vec<f64> = t.history.iter().map(|m| m.loss).collect();
+            (weights(&t), losses)
+        };
+        let (eager, eager_losses) = run(false);
+        let (graphed, graph_losses) = run(true);
+        for (step, (a, b)) in eager_losses.iter().zip(&graph_losses).enumerate() {
+            assert!((a - b).abs() <= 1e-3 * a.abs(), "motion weight {motion_weight}, step {}: loss {b} with the graph, {a} without", step + 1);
+        }
+        // An update moves a weight by about lr (1e-3); a replay that read stale inputs or lost the
+        // gradients would move some by several lr over the four replayed steps.
+        assert_same(&eager, &graphed, 5e-4, &format!("graph against eager, motion weight {motion_weight}"));
     }
-    // An update moves a weight by about lr (1e-3); a replay that read stale inputs or lost the
-    // gradients would move some by several lr over the four replayed steps.
-    assert_same(&eager, &graphed, 5e-4, "graph against eager");
 }
 
 #[test]

@@ -12,6 +12,13 @@ fn weights(t: &Trainer) -> Vec<(String, Tensor)> {
     t.opt.params.iter().map(|p| (p.name.clone(), p.param.to_kind(Kind::Float))).collect()
 }
 
+/// A run of the tiny config on `cache` with `extra`, trained to its end.
+fn trained(cache: &std::path::Path, out: &std::path::Path, extra: &str) -> bwm_trainer::Trainer {
+    let mut t = trainer(config(cache, out, extra), Resume::No).unwrap();
+    t.run().unwrap();
+    t
+}
+
 fn assert_same(a: &[(String, Tensor)], b: &[(String, Tensor)], tol: f64, what: &str) {
     assert_eq!(a.len(), b.len());
     for ((n, x), (_, y)) in a.iter().zip(b) {
@@ -178,11 +185,7 @@ fn recomputation_gives_the_same_gradients() {
 fn action_dropout_trains_a_keyed_share_of_samples_without_their_actions() {
     let dir = tmp_dir("action-dropout");
     let cache = write_cache(&dir.join("cache"), 2, 6);
-    let run = |name: &str, extra: &str| {
-        let mut t = trainer(config(&cache, &dir.join(name), &format!("[train]\nsteps = 6\nmicro_batch = 2\n{extra}")), Resume::No).unwrap();
-        t.run().unwrap();
-        t
-    };
+    let run = |name: &str, extra: &str| trained(&cache, &dir.join(name), &format!("[train]\nsteps = 6\nmicro_batch = 2\n{extra}"));
     let plain = run("plain", "");
     let dropped = run("dropped", "[objective]\naction_dropout = 0.5");
     let shape = &plain.cache.index.latent_shape;
@@ -388,11 +391,7 @@ fn batched_validation_rollouts_equal_one_clip_at_a_time() {
 fn the_motion_weighted_objective_trains_and_weighs_the_loss_differently() {
     let dir = tmp_dir("motion-weight");
     let cache = write_cache(&dir.join("cache"), 3, 21);
-    let run = |extra: &str, name: &str| {
-        let mut t = trainer(config(&cache, &dir.join(name), &format!("[train]\nsteps = 2\n{extra}")), Resume::No).unwrap();
-        t.run().unwrap();
-        t.history.iter().map(|m| m.loss).collect::<Vec<f64>>()
-    };
+    let run = |extra: &str, name: &str| trained(&cache, &dir.join(name), &format!("[train]\nsteps = 2\n{extra}")).history.iter().map(|m| m.loss).collect::<Vec<f64>>();
     let plain = run("", "plain");
     let weighted = run("[objective]\nmotion_weight = 4.0", "weighted");
     assert_eq!(weighted.len(), 2);

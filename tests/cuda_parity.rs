@@ -21,9 +21,7 @@ fn tiny_forward_on_cuda_matches_cpu() {
     let gpu = BwmModel::load(&file, Layout::WanNative, &cfg, Kind::Float, Device::Cuda(0)).unwrap();
     let gpu_bf16 = BwmModel::load(&file, Layout::WanNative, &cfg, Kind::BFloat16, Device::Cuda(0)).unwrap();
 
-    tch::manual_seed(3);
-    let x = Tensor::randn([2, 48, 5, 8, 12], (Kind::Float, Device::Cpu));
-    let a = Tensor::rand([2, 17, 14], (Kind::Float, Device::Cpu)) * 2.0 - 1.0;
+    let (x, a) = bwm_model::vb::with_seed(3, || (Tensor::randn([2, 48, 5, 8, 12], (Kind::Float, Device::Cpu)), Tensor::rand([2, 17, 14], (Kind::Float, Device::Cpu)) * 2.0 - 1.0));
     let t = frame_timesteps(&Tensor::from_slice(&[900.0f32, 250.0]), 5, 3);
     let on = |d: Device| (x.to_device(d), t.to_device(d), a.to_device(d));
     let reference = tch::no_grad(|| cpu.forward(&x, &t, &a)).unwrap();

@@ -95,8 +95,8 @@ fn closed_loop_scenario(in_flight: usize) {
     let dir = temp_dir(&format!("evaluate-{in_flight}"));
     let vae = dir.join("vae.safetensors");
     write_random_vae(&vae, 4);
-    tch::manual_seed(1);
-    let x0 = bwm_data::frames::tensor_to_frames(&(Tensor::rand([3, 1, 32, 32], (Kind::Float, Device::Cpu)) * 2.0 - 1.0)).unwrap();
+    let x0 = bwm_model::vb::with_seed(1, || Tensor::rand([3, 1, 32, 32], (Kind::Float, Device::Cpu))) * 2.0 - 1.0;
+    let x0 = bwm_data::frames::tensor_to_frames(&x0).unwrap();
     x0[0].save(dir.join("x0.png")).unwrap();
     let stats: Value = serde_json::from_str(&std::fs::read_to_string(demo().join("stat.json")).unwrap()).unwrap();
     let pose: Vec<f32> = stats["state_pose"]["mean"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap() as f32).collect();

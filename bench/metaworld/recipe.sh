@@ -57,8 +57,8 @@ VAE_DTYPE="${VAE_DTYPE:-f32}"             # bwm train-vae --dtype: f32, or bf16 
 VAE_LOSS="${VAE_LOSS:-mse}"                # bwm train-vae --recon-loss: mse, l1 or motion (MSE weighted towards what moves)
 VAE_MOTION_WEIGHT="${VAE_MOTION_WEIGHT:-}" # bwm train-vae --motion-weight, with VAE_LOSS=motion (empty: its default, 4)
 # 1: bwm train-vae --cuda-graph (the step replayed from a CUDA graph: 1.8x faster on an H200,
-# docs/performance.md); 0: eager; auto (default): the graph on CUDA devices, and should its
-# training fail, the VAE trained again eagerly (a CPU has no CUDA graphs: eager there).
+# docs/performance.md); 0: eager; auto (default): the graph on CUDA devices, and should the graph
+# fail, the VAE trained again eagerly (a CPU has no CUDA graphs: eager there).
 VAE_GRAPH="${VAE_GRAPH:-auto}"
 case "$VAE_GRAPH" in 0|1|auto) ;; *) echo "recipe: VAE_GRAPH must be 0, 1 or auto, not '$VAE_GRAPH'" >&2; exit 2 ;; esac
 VAE_EVAL_EVERY="${VAE_EVAL_EVERY:-1000}"  # held-out reconstruction PSNR every N VAE steps (and at the end)
@@ -75,7 +75,8 @@ VAE_SEED="${VAE_SEED:-0}"                # bwm train-vae --seed: initial weights
 # bwm train-vae --candidates: VAEs trained from seeds VAE_SEED, VAE_SEED + 1, ..., the best held-out
 # PSNR kept. One seed in four settled about 1 dB under the others in every run, and the world model
 # on its latents reached r 0.64-0.70 where the others reached 0.78-0.91 (docs/fidelity.md, run 31).
-# 2 on CUDA devices (with VAE_GRAPH's graphed steps two cost less than one eager VAE), 1 elsewhere.
+# 2 on CUDA devices (with VAE_GRAPH's graphed steps two cost less than one eager VAE; eager, as
+# after a graph's failure, they cost about 1.3 times one), 1 elsewhere.
 VAE_CANDIDATES="${VAE_CANDIDATES:-$([[ $DEVICE == cuda* ]] && echo 2 || echo 1)}"
 # bwm train-vae --choose-at: the candidates' steps before the best goes on alone (the poor seed's
 # gap showed early in run 27's training losses: 2.3 dB under the others around step 200, 1.1
@@ -123,6 +124,8 @@ done
 [ -x "$BWM" ] || { echo "recipe: no bwm binary at $BWM (make build, or set BWM)" >&2; exit 1; }
 mkdir -p "$RUN"
 wants() { [[ " ${STAGES[*]} " == *" $1 "* ]]; }
+# A stage's commands run in a `||` context, where `set -e` does not stop them: a stage function
+# must return its first failure itself (`|| return 1`).
 timed() { # $1 = stage name; the rest runs, its wall time appended to $RUN/timings.tsv (as NAME-failed when it fails)
   local name=$1 t0 status=0; shift
   t0=$(date +%s.%N)
@@ -151,10 +154,17 @@ if wants vae; then
     if [ "$VAE_GRAPH" = 1 ]; then
       timed vae "${vae[@]}" --cuda-graph
     elif [ "$VAE_GRAPH" = auto ] && [[ $DEVICE == cuda* ]]; then
-      timed vae "${vae[@]}" --cuda-graph || {
-        echo "recipe: the VAE's training with its step replayed from a CUDA graph failed (above); training it eagerly (VAE_GRAPH=0 skips the graph)" >&2
+      # Only a failure of the graph is retried eagerly; any other error stops the recipe. The
+      # attempt's error output is shown once it ends.
+      status=0
+      timed vae "${vae[@]}" --cuda-graph 2> "$RUN/vae-graph.err" || status=$?
+      cat "$RUN/vae-graph.err" >&2
+      if [ "$status" != 0 ]; then
+        grep -q "CUDA graph" "$RUN/vae-graph.err" || exit "$status"
+        echo "recipe: the VAE's step could not be replayed from a CUDA graph (above); training it eagerly (VAE_GRAPH=0 skips the graph)" >&2
         timed vae-eager "${vae[@]}"
-      }
+      fi
+      rm -f "$RUN/vae-graph.err"
     else
       timed vae "${vae[@]}"
     fi

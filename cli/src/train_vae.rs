@@ -163,9 +163,13 @@ fn motion_weight(a: &TrainVaeArgs) -> Result<f64> {
 fn train(a: &TrainVaeArgs, cfg: VaeConfig, data: FrameSets, device: tch::Device, dtype: tch::Kind, motion_weight: f64) -> Result<()> {
     let frames: i64 = data.train.iter().map(|t| t.size()[1]).sum();
     let stride = cfg.spatial_stride();
+    let loss = match a.recon_loss {
+        ReconLoss::Motion => format!("motion loss (weight {motion_weight})"),
+        other => format!("{other} loss"),
+    };
     println!(
-        "train-vae: {frames} training frames; VAE dim {} / dec_dim {} (z {}, spatial stride {stride}), {} steps of {} clips x {} frames on {:?} in {}, {} loss",
-        cfg.dim, cfg.dec_dim, cfg.z_dim, a.steps, a.batch, a.clip_frames, device, a.dtype, a.recon_loss
+        "train-vae: {frames} training frames; VAE dim {} / dec_dim {} (z {}, spatial stride {stride}), {} steps of {} clips x {} frames on {:?} in {}, {loss}",
+        cfg.dim, cfg.dec_dim, cfg.z_dim, a.steps, a.batch, a.clip_frames, device, a.dtype
     );
     let settings = VaeTrainSettings {
         cfg,

@@ -115,15 +115,16 @@ impl Objective {
     /// Weights of the future latent cells of `clean` `[B, C, F, H, W]` fp32: 1 + motion_weight x
     /// how much each cell changed from the latent frame before (mean absolute difference over the
     /// channels), spread to its 8 neighbours (a max over 3x3 cells, so a still object beside what
-    /// moved counts too) and divided by the sample's mean; a sample without change weighs every
-    /// cell 1. In a robot's clip the arm and what it touches are a few cells of a still scene,
+    /// moved counts too) and divided by the sample's mean (at least 1e-3); a sample without change
+    /// weighs every cell 1. In a robot's clip the arm and what it touches are a few cells of a still scene,
     /// which dominates a plain mean.
     pub fn cell_weights(&self, clean: &Tensor) -> Tensor {
         tch::no_grad(|| {
             let (f, p) = (clean.size()[2], self.condition_latents);
             let change = (clean.narrow(2, p, f - p) - clean.narrow(2, p - 1, f - p)).abs().mean_dim(&[1i64][..], true, Kind::Float);
             let spread = change.max_pool3d([1, 3, 3], [1, 1, 1], [0, 1, 1], [1, 1, 1], false);
-            let mean = spread.mean_dim(&[1i64, 2, 3, 4][..], true, Kind::Float).clamp_min(1e-12);
+            // A sample that barely changes is weighed nearly evenly: its noise is not made into motion.
+            let mean = spread.mean_dim(&[1i64, 2, 3, 4][..], true, Kind::Float).clamp_min(1e-3);
             spread / mean * self.motion_weight + 1.0
         })
     }

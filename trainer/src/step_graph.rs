@@ -36,7 +36,7 @@ impl StepGraph {
     /// losses `[B]`, the gradients added to the parameters' `.grad`.
     pub fn step(&mut self, model: &BwmModel, objective: &Objective, input: &Tensor, prepared: &Prepared, actions: &Tensor, keep: Option<&Tensor>) -> Result<Tensor> {
         let mut inputs = vec![input, &prepared.frame_timesteps, &prepared.target, &prepared.weights, actions];
-        // Then the cell weights and the action mask, where the run has them (the same every step).
+        // Then the cell weights and the action mask, where the run has them (every step, or none).
         let cells = prepared.cell_weights.is_some() as usize;
         inputs.extend(prepared.cell_weights.as_ref());
         inputs.extend(keep);

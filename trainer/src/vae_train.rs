@@ -193,6 +193,7 @@ fn check_inputs(data: &FrameSets, s: &VaeTrainSettings) -> Result<()> {
         s.clip_frames
     );
     ensure!(matches!(s.dtype, Kind::Float | Kind::BFloat16), "the VAE trains in f32 or bf16, not {:?}", s.dtype);
+    ensure!(s.motion_weight.is_finite() && s.motion_weight >= 0.0, "the motion weight must be a finite number of at least 0, not {}", s.motion_weight);
     ensure!(!s.cuda_graph || s.device.is_cuda(), "CUDA graphs (--cuda-graph) need a CUDA device; the VAE trains on {:?}", s.device);
     // Checked once here, so that no step waits for the device to check its clips.
     for (i, video) in data.train.iter().enumerate() {
@@ -278,6 +279,7 @@ impl<'a> VaeRun<'a> {
             if s.eval_every > 0 && (step + 1) % s.eval_every == 0 && !last {
                 let p = reconstruction_psnr(vae, &data.holdout, s.clip_frames, s.device)?;
                 self.measured = Some((step + 1, p));
+                self.seconds = seconds_before + start.elapsed().as_secs_f64();
                 on_log(&format!("step {:>5}: held-out reconstruction PSNR {p:.2} dB", step + 1));
             }
         }
@@ -406,8 +408,10 @@ fn reconstruction_term(s: &VaeTrainSettings, error: &Tensor, x: &Tensor) -> Tens
         ReconLoss::L1 => error.abs().mean(Kind::Float),
         ReconLoss::Motion => {
             let w = motion_weights(x, s.motion_weight, s.cfg.spatial_stride());
-            // w is shared by the channels: the means, not the sums, compare.
-            (error.square() * &w).mean(Kind::Float) / w.mean(Kind::Float)
+            // Per clip (w is shared by the channels: the means, not the sums, compare), then
+            // the batch's mean, so a still clip counts as much as a moving one.
+            let dims = &[1i64, 2, 3, 4][..];
+            ((error.square() * &w).mean_dim(dims, false, Kind::Float) / w.mean_dim(dims, false, Kind::Float)).mean(Kind::Float)
         }
     }
 }
@@ -416,8 +420,11 @@ fn reconstruction_term(s: &VaeTrainSettings, error: &Tensor, x: &Tensor) -> Tens
 /// change from the frame before (mean absolute difference over the channels; the first frame
 /// takes the second's), spread to every pixel within `reach` of a change (a max over the window,
 /// so the still object a moving hand nears counts too) and divided by the clip's mean spread
-/// change. A clip without change weighs every pixel 1.
+/// change, or by `MIN_MEAN_CHANGE` where that is smaller: a clip without change weighs every pixel
+/// 1, one that barely changes nearly so (its noise is not made into motion).
 fn motion_weights(x: &Tensor, weight: f64, reach: i64) -> Tensor {
+    // An eighth of an 8-bit level in [-1, 1] pixels.
+    const MIN_MEAN_CHANGE: f64 = 1e-3;
     tch::no_grad(|| {
         let s = x.size();
         let (b, f, h, w) = (s[0], s[2], s[3], s[4]);
@@ -430,7 +437,7 @@ fn motion_weights(x: &Tensor, weight: f64, reach: i64) -> Tensor {
         // The window's max in two passes, along the rows and then the columns.
         let k = 2 * reach + 1;
         let spread = change.max_pool3d([1, 1, k], [1, 1, 1], [0, 0, reach], [1, 1, 1], false).max_pool3d([1, k, 1], [1, 1, 1], [0, reach, 0], [1, 1, 1], false);
-        let mean = spread.mean_dim(&[1i64, 2, 3, 4][..], true, Kind::Float).clamp_min(1e-6);
+        let mean = spread.mean_dim(&[1i64, 2, 3, 4][..], true, Kind::Float).clamp_min(MIN_MEAN_CHANGE);
         spread / mean * weight + 1.0
     })
 }

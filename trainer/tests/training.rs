@@ -284,7 +284,8 @@ fn the_cuda_graph_step_trains_as_the_eager_step() {
         return;
     }
     let dir = tmp_dir("graph");
-    let cache = write_cache(&dir.join("cache"), 4, 6);
+    // One cell moves, so that the motion-weighted loss differs from the plain one.
+    let cache = write_moving_cell_cache(&dir.join("cache"), 4, 6);
     // The plain loss, and the motion-weighted one whose cell weights are one more recorded input.
     for motion_weight in [0.0, 4.0] {
         let run = |graph: bool| {
@@ -390,11 +391,15 @@ fn batched_validation_rollouts_equal_one_clip_at_a_time() {
 #[test]
 fn the_motion_weighted_objective_trains_and_weighs_the_loss_differently() {
     let dir = tmp_dir("motion-weight");
-    let cache = write_cache(&dir.join("cache"), 3, 21);
+    let cache = write_moving_cell_cache(&dir.join("cache"), 3, 21);
     let run = |extra: &str, name: &str| trained(&cache, &dir.join(name), &format!("[train]\nsteps = 2\n{extra}")).history.iter().map(|m| m.loss).collect::<Vec<f64>>();
     let plain = run("", "plain");
     let weighted = run("[objective]\nmotion_weight = 4.0", "weighted");
     assert_eq!(weighted.len(), 2);
     assert!(weighted.iter().all(|l| l.is_finite() && *l > 0.0), "{weighted:?}");
-    assert_ne!(plain, weighted, "the weights did not reach the loss");
+    // One moving cell (and its neighbours) of 16 per frame weighs several times a still one, so
+    // the weighted training departs from the plain one; on a clip changing the same everywhere
+    // the two agree to rounding (1e-6). The first step's losses are close: the untrained model
+    // errs about as much everywhere.
+    assert!(plain.iter().zip(&weighted).any(|(a, b)| (a - b).abs() > 1e-2 * a), "the weights did not reach the loss: {plain:?} / {weighted:?}");
 }

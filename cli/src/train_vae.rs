@@ -9,7 +9,7 @@ use bwm_data::{open_dataset, CameraSelection, ResizeMode};
 use bwm_model::vae::VaeConfig;
 use bwm_trainer::devices::{parse_device, parse_kind};
 use bwm_trainer::vae_frames::FrameSelection;
-use bwm_trainer::vae_train::{save_trained_vae, train_best_vae, FrameSets, ReconLoss, VaeTrainSettings};
+use bwm_trainer::vae_train::{save_trained_vae, train_best_vae, FrameSets, ReconLoss, VaeTrainSettings, DEFAULT_MOTION_WEIGHT};
 use clap::Args;
 
 #[derive(Args)]
@@ -153,7 +153,7 @@ fn decode_frame_sets(a: &TrainVaeArgs, size: (u32, u32)) -> Result<FrameSets> {
 /// --motion-weight, only with the loss it weighs.
 fn motion_weight(a: &TrainVaeArgs) -> Result<f64> {
     match a.motion_weight {
-        None => Ok(4.0),
+        None => Ok(DEFAULT_MOTION_WEIGHT),
         Some(_) if a.recon_loss != ReconLoss::Motion => bail!("--motion-weight weighs --recon-loss motion, not {}", a.recon_loss),
         Some(w) if w.is_finite() && w >= 0.0 => Ok(w),
         Some(w) => bail!("--motion-weight must be a finite number of at least 0, not {w}"),

@@ -6,9 +6,8 @@
 # machine, carry [".carry"] as scripts/gpu/carry.sh prepares it:
 #   bash scripts/gpu/unit.sh [GROUP ...]
 # GROUP: `vae` (cuda-graph's tests and the VAE's graphed training: what the recipe's VAE_GRAPH
-# relies on) or `dit` (the DiT's graphed training, `train.cuda_graph`); default both. So a run can
-# fall back on the eager VAE when only the VAE's graph failed:
-#   bash scripts/gpu/unit.sh vae || G="VAE_GRAPH=0"
+# relies on) or `dit` (the DiT's graphed training, `train.cuda_graph`); default both. (The recipe
+# needs no fallback of its own: with VAE_GRAPH=auto it trains the VAE eagerly should the graph fail.)
 # Exits non-zero when a test failed; the output is also in $OUT/unit.log.
 set -uo pipefail
 source "$(dirname "$0")/common.sh"

@@ -12,6 +12,7 @@ pub mod image_metrics;
 /// Keyed random draws live with the model (the rollout sampler uses them too).
 pub use bwm_model::keyed_rng;
 pub mod metrics;
+pub mod motion;
 pub mod objective;
 pub mod optim;
 pub mod recompute;

@@ -11,6 +11,7 @@ use tch::{Kind, Tensor};
 
 use crate::config::{ObjectiveSection, TimestepSampling};
 use crate::keyed_rng::{self, Purpose};
+use crate::motion;
 
 pub struct Objective {
     pub schedule: FlowSchedule,
@@ -112,21 +113,12 @@ impl Objective {
         })
     }
 
-    /// Weights of the future latent cells of `clean` `[B, C, F, H, W]` fp32: 1 + motion_weight x
-    /// how much each cell changed from the latent frame before (mean absolute difference over the
-    /// channels), spread to its 8 neighbours (a max over 3x3 cells, so a still object beside what
-    /// moved counts too) and divided by the sample's mean (at least 1e-3); a sample without change
-    /// weighs every cell 1. In a robot's clip the arm and what it touches are a few cells of a still scene,
-    /// which dominates a plain mean.
+    /// Weights of the future latent cells of `clean` `[B, C, F, H, W]` fp32 (`motion::from_change`):
+    /// towards the cells that changed from the latent frame before and their 8 neighbours.
     pub fn cell_weights(&self, clean: &Tensor) -> Tensor {
-        tch::no_grad(|| {
-            let (f, p) = (clean.size()[2], self.condition_latents);
-            let change = (clean.narrow(2, p, f - p) - clean.narrow(2, p - 1, f - p)).abs().mean_dim(&[1i64][..], true, Kind::Float);
-            let spread = change.max_pool3d([1, 3, 3], [1, 1, 1], [0, 1, 1], [1, 1, 1], false);
-            // A sample that barely changes is weighed nearly evenly: its noise is not made into motion.
-            let mean = spread.mean_dim(&[1i64, 2, 3, 4][..], true, Kind::Float).clamp_min(1e-3);
-            spread / mean * self.motion_weight + 1.0
-        })
+        let (f, p) = (clean.size()[2], self.condition_latents);
+        let change = tch::no_grad(|| motion::change(&clean.narrow(2, p - 1, f - p), &clean.narrow(2, p, f - p)));
+        motion::from_change(&change, self.motion_weight, 1)
     }
 
     /// Per-sample weighted MSE `[B]` over the future latents of `prediction` `[B, C, F, H, W]`.
@@ -134,11 +126,9 @@ impl Objective {
         let f = prediction.size()[2];
         let p = self.condition_latents;
         let diff = prediction.narrow(2, p, f - p).to_kind(Kind::Float) - &prepared.target;
-        let dims = &[1i64, 2, 3, 4][..];
         let mse = match &prepared.cell_weights {
-            None => diff.square().mean_dim(dims, false, Kind::Float),
-            // The weights are shared by the channels: the means, not the sums, compare.
-            Some(w) => (diff.square() * w).mean_dim(dims, false, Kind::Float) / w.mean_dim(dims, false, Kind::Float),
+            None => diff.square().mean_dim(&[1i64, 2, 3, 4][..], false, Kind::Float),
+            Some(w) => motion::weighted_mean(&diff.square(), w),
         };
         mse * &prepared.weights
     }

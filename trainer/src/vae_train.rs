@@ -14,6 +14,7 @@ use tch::{Device, Kind, Tensor};
 use crate::config::OptimSection;
 use crate::image_metrics::psnr;
 use crate::keyed_rng::{self, Purpose};
+use crate::motion;
 use crate::dist::LocalCollective;
 use crate::optim::{AdamW, Sharding};
 use bwm_cuda_graph::GraphedStep;
@@ -47,6 +48,9 @@ pub struct VaeTrainSettings {
     /// the small VAE's step is bound by launching its thousands of kernels, not by the GPU.
     pub cuda_graph: bool,
 }
+
+/// `VaeTrainSettings::motion_weight` unless chosen otherwise (`bwm train-vae --motion-weight`).
+pub const DEFAULT_MOTION_WEIGHT: f64 = 4.0;
 
 /// Eager steps on the graph's stream before the capture (see `CudaGraph::warm_up`).
 const GRAPH_WARM_UP_STEPS: u32 = 2;
@@ -231,7 +235,7 @@ impl<'a> VaeRun<'a> {
             let error = &recon - x;
             let mse = error.square().mean(Kind::Float);
             let kl = ((mu.square() + logvar.exp() - 1.0 - &logvar) * 0.5).mean(Kind::Float);
-            let reconstruction = reconstruction_term(s, &error, x);
+            let reconstruction = reconstruction_term(s, &error, x, &mse);
             (reconstruction + &kl * s.kl_weight).f_backward()?;
             Ok(Tensor::stack(&[mse, kl], 0))
         };
@@ -401,45 +405,31 @@ pub fn train_best_vae(
     Ok(best)
 }
 
-/// The loss's reconstruction term of `error` = reconstruction - `x`.
-fn reconstruction_term(s: &VaeTrainSettings, error: &Tensor, x: &Tensor) -> Tensor {
+/// The loss's reconstruction term of `error` = reconstruction - `x`, whose MSE is `mse`.
+fn reconstruction_term(s: &VaeTrainSettings, error: &Tensor, x: &Tensor, mse: &Tensor) -> Tensor {
     match s.recon_loss {
-        ReconLoss::Mse => error.square().mean(Kind::Float),
+        ReconLoss::Mse => mse.shallow_clone(),
         ReconLoss::L1 => error.abs().mean(Kind::Float),
-        ReconLoss::Motion => {
-            let w = motion_weights(x, s.motion_weight, s.cfg.spatial_stride());
-            // Per clip (w is shared by the channels: the means, not the sums, compare), then
-            // the batch's mean, so a still clip counts as much as a moving one.
-            let dims = &[1i64, 2, 3, 4][..];
-            ((error.square() * &w).mean_dim(dims, false, Kind::Float) / w.mean_dim(dims, false, Kind::Float)).mean(Kind::Float)
-        }
+        // Per clip, then the batch's mean, so a still clip counts as much as a moving one.
+        ReconLoss::Motion => motion::weighted_mean(&error.square(), &motion_weights(x, s.motion_weight, s.cfg.spatial_stride())).mean(Kind::Float),
     }
 }
 
-/// Per-pixel weights of the motion loss for clips [B, 3, F, H, W]: 1 + `weight` x the clip's
-/// change from the frame before (mean absolute difference over the channels; the first frame
-/// takes the second's), spread to every pixel within `reach` of a change (a max over the window,
-/// so the still object a moving hand nears counts too) and divided by the clip's mean spread
-/// change, or by `MIN_MEAN_CHANGE` where that is smaller: a clip without change weighs every pixel
-/// 1, one that barely changes nearly so (its noise is not made into motion).
+/// Per-pixel weights of the motion loss for clips [B, 3, F, H, W] (`motion::from_change`): towards
+/// where each frame changed from the one before (the first frame takes the second's change) and
+/// the pixels within `reach` of it.
 fn motion_weights(x: &Tensor, weight: f64, reach: i64) -> Tensor {
-    // An eighth of an 8-bit level in [-1, 1] pixels.
-    const MIN_MEAN_CHANGE: f64 = 1e-3;
-    tch::no_grad(|| {
-        let s = x.size();
-        let (b, f, h, w) = (s[0], s[2], s[3], s[4]);
-        let change = if f > 1 {
-            let d = (x.narrow(2, 1, f - 1) - x.narrow(2, 0, f - 1)).abs().mean_dim(&[1i64][..], true, Kind::Float);
+    let s = x.size();
+    let (b, f, h, w) = (s[0], s[2], s[3], s[4]);
+    let change = tch::no_grad(|| {
+        if f > 1 {
+            let d = motion::change(&x.narrow(2, 0, f - 1), &x.narrow(2, 1, f - 1));
             Tensor::cat(&[d.narrow(2, 0, 1), d], 2)
         } else {
             Tensor::zeros([b, 1, 1, h, w], (Kind::Float, x.device()))
-        };
-        // The window's max in two passes, along the rows and then the columns.
-        let k = 2 * reach + 1;
-        let spread = change.max_pool3d([1, 1, k], [1, 1, 1], [0, 0, reach], [1, 1, 1], false).max_pool3d([1, k, 1], [1, 1, 1], [0, reach, 0], [1, 1, 1], false);
-        let mean = spread.mean_dim(&[1i64, 2, 3, 4][..], true, Kind::Float).clamp_min(MIN_MEAN_CHANGE);
-        spread / mean * weight + 1.0
-    })
+        }
+    });
+    motion::from_change(&change, weight, reach)
 }
 
 /// Per-channel mean and std of the encoder's posterior means over the training clips.
@@ -521,7 +511,7 @@ mod tests {
             crop: None,
             dtype: Kind::Float,
             recon_loss: ReconLoss::Mse,
-            motion_weight: 4.0,
+            motion_weight: DEFAULT_MOTION_WEIGHT,
             cuda_graph: false,
         }
     }
@@ -771,7 +761,7 @@ mod tests {
     fn the_motion_loss_drives_the_updates_and_is_the_mse_at_weight_zero() {
         let error = bwm_model::vb::with_seed(2, || Tensor::randn([1, 3, 5, 16, 16], (Kind::Float, Device::Cpu)));
         let x = random_clips(5, 16).train[0].unsqueeze(0);
-        let term = |recon_loss, motion_weight| reconstruction_term(&VaeTrainSettings { recon_loss, motion_weight, ..tiny_settings(5) }, &error, &x).double_value(&[]);
+        let term = |recon_loss, motion_weight| reconstruction_term(&VaeTrainSettings { recon_loss, motion_weight, ..tiny_settings(5) }, &error, &x, &error.square().mean(Kind::Float)).double_value(&[]);
         let mse = term(ReconLoss::Mse, 4.0);
         assert!((term(ReconLoss::Motion, 0.0) - mse).abs() < 1e-6 * mse, "the motion loss at weight 0 is the MSE");
         // On a clip where only a square moves (top left), an error near it costs more than the
@@ -785,7 +775,7 @@ mod tests {
             let _ = e.narrow(3, y, 4).narrow(4, x, 4).fill_(0.5);
             e
         };
-        let cost = |recon_loss, e: &Tensor| reconstruction_term(&VaeTrainSettings { recon_loss, ..tiny_settings(5) }, e, &moving).double_value(&[]);
+        let cost = |recon_loss, e: &Tensor| reconstruction_term(&VaeTrainSettings { recon_loss, ..tiny_settings(5) }, e, &moving, &e.square().mean(Kind::Float)).double_value(&[]);
         let (near, far) = (patch(4, 8), patch(56, 56));
         assert_eq!(cost(ReconLoss::Mse, &near), cost(ReconLoss::Mse, &far));
         assert!(cost(ReconLoss::Motion, &near) > 3.0 * cost(ReconLoss::Motion, &far), "near {} far {}", cost(ReconLoss::Motion, &near), cost(ReconLoss::Motion, &far));

@@ -21,8 +21,10 @@ pub struct WorldModelArgs {
     /// checkpoint, or a diffusers/PEFT LoRA folder or .safetensors for WanTransformer3DModel.
     #[arg(long, requires = "checkpoint")]
     pub lora: Option<PathBuf>,
-    /// Random weights of a model preset instead of a checkpoint (timing and smoke tests only).
-    #[arg(long, conflicts_with = "checkpoint", value_name = "PRESET")]
+    /// Random weights instead of a checkpoint (timing and smoke tests only): of a model preset
+    /// (tiny, wan22_ti2v_5b), or of the `[model]` of a run config (a `.toml` file, e.g.
+    /// configs/metaworld.toml).
+    #[arg(long, conflicts_with = "checkpoint", value_name = "PRESET|CONFIG.toml")]
     pub random_weights: Option<String>,
     /// Model preset when the checkpoint carries no config (tiny, wan22_ti2v_5b).
     #[arg(long)]
@@ -83,6 +85,11 @@ pub struct WorldModelArgs {
     /// scale per tensor) or row (per token and output channel, CUDA only). Default: off.
     #[arg(long)]
     pub fp8: Option<bwm_model::fp8::Fp8Scaling>,
+    /// Record the sampler's forward pass once per input shape as a CUDA graph and replay it: a
+    /// small model's step is bound by launching its kernels (CUDA only; up to 4 shapes, the batch
+    /// of episodes in flight shrinking as they end, each holding its own activations' memory).
+    #[arg(long)]
+    pub cuda_graph: bool,
 }
 
 impl WorldModelArgs {
@@ -107,6 +114,7 @@ impl WorldModelArgs {
             guidance: self.guidance,
             seed: self.seed,
             fp8: self.fp8,
+            cuda_graph: self.cuda_graph,
         }
     }
 

@@ -27,6 +27,7 @@ pub mod bench;
 pub mod demo;
 pub mod evaluate;
 pub mod fidelity;
+pub mod graphed;
 pub mod msgpack_numpy;
 pub mod rollout;
 pub mod server;

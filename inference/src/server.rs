@@ -18,7 +18,6 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Context, Result};
-use bwm_model::rollout::Rollout;
 use bytes::Bytes;
 use http_body_util::{BodyExt, Full, LengthLimitError, Limited};
 use hyper::body::Incoming;
@@ -614,14 +613,7 @@ fn generate(wm: &WorldModel, req: &ChunkRequest, queued: f64) -> Result<Vec<u8>,
         seed: req.seed.unwrap_or(wm.spec.seed),
         ..wm.spec.clone()
     };
-    let mut rollout = Rollout::new(
-        &wm.model,
-        &wm.vae,
-        spec,
-        &frames.select(1, 0),
-        &actions.get(0),
-    )
-    .map_err(failed)?;
+    let mut rollout = wm.rollout_with(spec, &frames.select(1, 0), &actions.get(0)).map_err(failed)?;
     if t > 1 {
         rollout = rollout
             .with_history(&frames.narrow(1, 1, t - 1), &actions.narrow(0, 1, t - 1))

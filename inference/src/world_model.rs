@@ -1,7 +1,9 @@
 //! A trained world model ready to roll out: the DiT with its action encoder, the VAE, the action
 //! statistics and the rollout settings, opened from one set of options.
 
+use std::cell::RefCell;
 use std::path::{Path, PathBuf};
+use std::rc::Rc;
 
 use anyhow::{bail, ensure, Context, Result};
 use bwm_checkpoints::open::{build_model, open_any, training_record, with_lora_adapters};
@@ -12,9 +14,11 @@ use bwm_model::rollout::{history_sigma_for_shift, Rollout, RolloutSpec};
 use bwm_model::schedule::Solver;
 use bwm_model::vae::{VaeConfig, WanVae};
 use bwm_model::{BwmModel, ModelConfig};
-use bwm_trainer::config::Residual;
+use bwm_trainer::config::{Residual, RunConfig};
 use bwm_trainer::devices::{parse_device, parse_kind};
 use tch::{Device, Kind, Tensor};
+
+use crate::graphed::GraphedDenoiser;
 
 /// Where the weights come from and how chunks are generated. `bwm`'s world-model flags
 /// (`--checkpoint`, `--vae`, `--history`, ...) set the fields of the same names.
@@ -26,7 +30,8 @@ pub struct WorldModelOptions {
     /// LoRA adapters (a `bwm export` of a LoRA checkpoint, or a diffusers/PEFT LoRA folder or file
     /// for `WanTransformer3DModel`) merged into `checkpoint`'s weights at load.
     pub lora: Option<PathBuf>,
-    /// Random weights of a model preset instead of a checkpoint (timing and smoke tests only).
+    /// Random weights instead of a checkpoint (timing and smoke tests only): of a model preset
+    /// (tiny, wan22_ti2v_5b), or of the `[model]` of a run config (a `.toml` file).
     pub random_weights: Option<String>,
     /// Model preset when the checkpoint carries no config (tiny, wan22_ti2v_5b).
     pub model_preset: Option<String>,
@@ -63,6 +68,9 @@ pub struct WorldModelOptions {
     pub seed: u64,
     /// The DiT blocks' linear layers in FP8 with this scaling (None: the weights' dtype).
     pub fp8: Option<Fp8Scaling>,
+    /// The sampler's forward pass recorded as a CUDA graph per input shape and replayed
+    /// (`graphed::GraphedDenoiser`); CUDA only.
+    pub cuda_graph: bool,
 }
 
 impl Default for WorldModelOptions {
@@ -87,6 +95,7 @@ impl Default for WorldModelOptions {
             guidance: 1.0,
             seed: 0,
             fp8: None,
+            cuda_graph: false,
         }
     }
 }
@@ -102,6 +111,15 @@ fn check_guidance(guidance: f64, trained_action_dropout: Option<f64>) -> Result<
     Ok(())
 }
 
+/// The model that `--random-weights NAME` builds: a preset, or a run config's `[model]`.
+fn random_model_config(name: &str) -> Result<ModelConfig> {
+    if name.ends_with(".toml") {
+        let run = RunConfig::load(Path::new(name), &[]).with_context(|| format!("--random-weights {name}"))?;
+        return run.model.model_config().with_context(|| format!("--random-weights {name}: [model]"));
+    }
+    ModelConfig::preset(name).with_context(|| format!("--random-weights {name} (a preset, or a run config ending in .toml)"))
+}
+
 pub struct WorldModel {
     pub model: BwmModel,
     pub vae: WanVae,
@@ -110,6 +128,8 @@ pub struct WorldModel {
     pub device: Device,
     /// How the DiT blocks' linear layers run in FP8, if they do.
     pub fp8: Option<Fp8Scaling>,
+    /// Runs the sampler's forward passes of every rollout from CUDA graphs (`--cuda-graph`).
+    pub graphed: Option<Rc<RefCell<GraphedDenoiser>>>,
 }
 
 impl WorldModelOptions {
@@ -149,6 +169,7 @@ impl WorldModelOptions {
     pub fn load(&self) -> Result<WorldModel> {
         self.spec(None, None)?; // wrong flags are named before any weights are opened
         let device = parse_device(&self.device)?;
+        let graphed = if self.cuda_graph { Some(Rc::new(RefCell::new(GraphedDenoiser::new(device)?))) } else { None };
         let kind = match self.dtype.as_str() {
             "auto" if device.is_cuda() => Kind::BFloat16,
             "auto" => Kind::Float,
@@ -168,7 +189,7 @@ impl WorldModelOptions {
                 let trained = record.residual.map(|r| r.parse::<Residual>().map_err(|e| anyhow::anyhow!("--checkpoint {ckpt}: model.residual {e}"))).transpose()?;
                 (build_model(opened, preset.as_ref(), kind, device).with_context(|| format!("--checkpoint {ckpt}"))?, trained, record.history_sigma, record.shift)
             }
-            (None, Some(name)) => (BwmModel::random(&ModelConfig::preset(name)?, kind, device, self.seed as i64)?, None, None, None),
+            (None, Some(name)) => (BwmModel::random(&random_model_config(name)?, kind, device, self.seed as i64)?, None, None, None),
             (None, None) => bail!("pass --checkpoint (trained weights) or --random-weights PRESET"),
         };
         let spec = self.spec(trained_history_sigma, trained_shift).context("the history noise and shift the weights were trained with")?;
@@ -201,7 +222,7 @@ impl WorldModelOptions {
             }
             None => None,
         };
-        Ok(WorldModel { model, vae, stats, spec, device, fp8: self.fp8 })
+        Ok(WorldModel { model, vae, stats, spec, device, fp8: self.fp8, graphed })
     }
 }
 
@@ -235,7 +256,16 @@ impl WorldModel {
 
     /// A rollout from x0 `[3, H, W]` in [-1, 1] and its normalized action a0 `[d_a]`.
     pub fn rollout(&self, x0: &Tensor, a0: &Tensor) -> Result<Rollout<'_>> {
-        Rollout::new(&self.model, &self.vae, self.spec.clone(), x0, a0)
+        self.rollout_with(self.spec.clone(), x0, a0)
+    }
+
+    /// `rollout` with other settings than the loaded ones (a request's seed).
+    pub fn rollout_with(&self, spec: RolloutSpec, x0: &Tensor, a0: &Tensor) -> Result<Rollout<'_>> {
+        let rollout = Rollout::new(&self.model, &self.vae, spec, x0, a0)?;
+        Ok(match &self.graphed {
+            Some(g) => rollout.with_denoiser(g.clone()),
+            None => rollout,
+        })
     }
 }
 
@@ -274,6 +304,25 @@ mod tests {
         assert!((at_2 - 2.0 * 0.05 / 1.05).abs() < 1e-9, "{at_2}");
         assert_eq!(sigma(None, Some(2.0)), Some(at_2));
         assert_eq!(sigma(Some(3.0), Some(2.0)), Some(at_2), "--shift moves the sampler's grid, not the trained history noise");
+    }
+
+    #[test]
+    fn random_weights_take_a_preset_or_a_run_configs_model() {
+        let repo = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+        let metaworld = super::random_model_config(repo.join("configs/metaworld.toml").to_str().unwrap()).unwrap();
+        assert_eq!((metaworld.dit.dim, metaworld.dit.num_layers, metaworld.action.action_dim), (768, 8, 4));
+        assert_eq!(super::random_model_config("tiny").unwrap().dit.dim, 96);
+        let e = format!("{:#}", super::random_model_config("huge").unwrap_err());
+        assert!(e.contains("--random-weights huge") && e.contains(".toml"), "{e}");
+        let e = format!("{:#}", super::random_model_config("missing.toml").unwrap_err());
+        assert!(e.contains("--random-weights missing.toml"), "{e}");
+    }
+
+    #[test]
+    fn cuda_graphs_are_refused_on_the_cpu_by_their_flag() {
+        let options = WorldModelOptions { random_weights: Some("tiny".into()), device: "cpu".into(), cuda_graph: true, ..Default::default() };
+        let e = options.load().err().expect("--cuda-graph on the CPU must be refused").to_string();
+        assert!(e.contains("--cuda-graph needs a CUDA device"), "{e}");
     }
 
     #[test]

@@ -5,7 +5,9 @@
 //! actually applied to those frames; slots before the episode start hold x0 and action a0.
 //! Pixel frames are [3, F, H, W] f32 in [-1, 1]; actions are [rows, d_a], normalized.
 
+use std::cell::RefCell;
 use std::collections::VecDeque;
+use std::rc::Rc;
 use std::time::Instant;
 
 use anyhow::{ensure, Context, Result};
@@ -13,7 +15,7 @@ use tch::{Device, Kind, Tensor};
 
 use crate::bwm::BwmModel;
 use crate::keyed_rng::{self, Purpose};
-use crate::sampler::sample_chunk;
+use crate::sampler::{sample_chunk_with, Denoiser, Eager};
 use crate::schedule::{FlowSchedule, Solver, DEFAULT_SHIFT, NUM_TRAIN_TIMESTEPS};
 use crate::vae::WanVae;
 
@@ -96,7 +98,12 @@ pub struct Rollout<'m> {
     chunks: usize,
     /// Synchronizes the device before reading a timer (CUDA work is asynchronous).
     sync: Box<dyn Fn()>,
+    /// Runs the sampler's forward passes; None: eagerly.
+    denoiser: Option<SharedDenoiser<'m>>,
 }
+
+/// A denoiser that several rollouts (and their batches) share.
+pub type SharedDenoiser<'m> = Rc<RefCell<dyn Denoiser + 'm>>;
 
 impl<'m> Rollout<'m> {
     /// Starts a rollout at the episode's first frame `x0` `[3, H, W]` with its action `a0` `[d_a]`.
@@ -127,7 +134,15 @@ impl<'m> Rollout<'m> {
             history: VecDeque::new(),
             chunks: 0,
             sync,
+            denoiser: None,
         })
+    }
+
+    /// This rollout with the sampler's forward passes run by `denoiser` (a batch of rollouts
+    /// advanced together must share one).
+    pub fn with_denoiser(mut self, denoiser: SharedDenoiser<'m>) -> Self {
+        self.denoiser = Some(denoiser);
+        self
     }
 
     /// Frames already seen after x0 ([3, T, H, W]) with their actions ([T, d_a]); the last H are
@@ -214,6 +229,11 @@ impl<'m> Rollout<'m> {
                 first.spec
             );
             ensure!(r.x0.size() == first.x0.size(), "rollout {i}'s frames are {:?}, rollout 0's {:?}", r.x0.size(), first.x0.size());
+            let same_denoiser = match (&r.denoiser, &first.denoiser) {
+                (Some(a), Some(b)) => Rc::ptr_eq(a, b),
+                (a, b) => a.is_none() && b.is_none(),
+            };
+            ensure!(same_denoiser, "rollout {i} runs its sampler through another denoiser than rollout 0; a batch shares one");
         }
         let (k, d) = (first.spec.future as i64, first.a0.size()[0]);
         let p = first.spec.condition_latents() as i64;
@@ -262,7 +282,16 @@ impl<'m> Rollout<'m> {
         )
         .to_device(device);
         let start = Instant::now();
-        let latents = tch::no_grad(|| sample_chunk(model, &prefix.to_kind(kind), &noise.to_kind(kind), &all_actions, &first.schedule, first.spec.guidance, on_step))?;
+        let mut eager = Eager;
+        let mut shared = first.denoiser.as_ref().map(|d| d.borrow_mut());
+        let denoiser: &mut dyn Denoiser = match shared.as_deref_mut() {
+            Some(d) => d,
+            None => &mut eager,
+        };
+        let latents = tch::no_grad(|| {
+            sample_chunk_with(denoiser, model, &prefix.to_kind(kind), &noise.to_kind(kind), &all_actions, &first.schedule, first.spec.guidance, on_step)
+        })?;
+        drop(shared);
         sync();
         let dit_seconds = start.elapsed().as_secs_f64();
 

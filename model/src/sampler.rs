@@ -14,6 +14,24 @@ pub fn validate_guidance(w: f64) -> Result<()> {
     Ok(())
 }
 
+/// How the sampler evaluates the model at each step. The sampler's own inputs are the same
+/// whatever runs them, so a caller may run the forward pass another way (recorded once as a CUDA
+/// graph and replayed, by the inference crate) without the model or the sampler knowing.
+pub trait Denoiser {
+    /// The model's velocity for `latents` at `frame_timesteps` under `actions`, the samples whose
+    /// `keep` entry is 0 under the null action condition (`BwmModel::forward_keeping`).
+    fn velocity(&mut self, model: &BwmModel, latents: &Tensor, frame_timesteps: &Tensor, actions: &Tensor, keep: Option<&Tensor>) -> Result<Tensor>;
+}
+
+/// The model's forward pass as it stands, launched kernel by kernel.
+pub struct Eager;
+
+impl Denoiser for Eager {
+    fn velocity(&mut self, model: &BwmModel, latents: &Tensor, frame_timesteps: &Tensor, actions: &Tensor, keep: Option<&Tensor>) -> Result<Tensor> {
+        model.forward_keeping(latents, frame_timesteps, actions, keep)
+    }
+}
+
 /// Samples latents [B, C, F, H, W] from `noise` of that shape. `prefix` [B, C, P, H, W] holds the
 /// condition latents (timestep 0); `actions` [B, 1+4k, d_a]. `guidance` w is classifier-free
 /// guidance by the actions: the velocity is v_null + w (v_actions - v_null), v_null the model's
@@ -21,6 +39,21 @@ pub fn validate_guidance(w: f64) -> Result<()> {
 /// plain conditional velocity at one model evaluation per step, other values cost two.
 /// `on_step(i, model_input, velocity)` sees each step.
 pub fn sample_chunk(
+    model: &BwmModel,
+    prefix: &Tensor,
+    noise: &Tensor,
+    actions: &Tensor,
+    schedule: &FlowSchedule,
+    guidance: f64,
+    on_step: &mut dyn FnMut(usize, &Tensor, &Tensor),
+) -> Result<Tensor> {
+    sample_chunk_with(&mut Eager, model, prefix, noise, actions, schedule, guidance, on_step)
+}
+
+/// `sample_chunk` with each step's forward pass run by `denoiser`.
+#[allow(clippy::too_many_arguments)]
+pub fn sample_chunk_with(
+    denoiser: &mut dyn Denoiser,
     model: &BwmModel,
     prefix: &Tensor,
     noise: &Tensor,
@@ -50,9 +83,9 @@ pub fn sample_chunk(
         let t = Tensor::full([b], schedule.timesteps[i], (tch::Kind::Float, noise.device()));
         let ft = frame_timesteps(&t, frames, p);
         let v = match &guided {
-            None => model.forward(&latents, &ft, actions)?,
+            None => denoiser.velocity(model, &latents, &ft, actions, None)?,
             Some((keep, doubled_actions)) => {
-                let both = model.forward_keeping(&Tensor::cat(&[&latents, &latents], 0), &Tensor::cat(&[&ft, &ft], 0), doubled_actions, Some(keep))?;
+                let both = denoiser.velocity(model, &Tensor::cat(&[&latents, &latents], 0), &Tensor::cat(&[&ft, &ft], 0), doubled_actions, Some(keep))?;
                 let (cond, null) = (both.narrow(0, 0, b), both.narrow(0, b, b));
                 &null + (&cond - &null) * guidance
             }

@@ -2,23 +2,25 @@
 # The unit tests that only check something where there is a GPU (on CPU they say so and pass):
 # CUDA graphs (cuda-graph/: a replayed forward and backward pass against the eager one, a capture
 # that fails), and the VAE's and the DiT's training with the step replayed from a graph against
-# the eager training (trainer/: `vae_train` and tests/training.rs). From the repo root of a lent
+# the eager training (trainer/: `vae_train` and tests/training.rs), and rollouts whose sampler
+# replays a recorded forward pass against eager ones (inference/: `graphed`). From the repo root of a lent
 # machine, carry [".carry"] as scripts/gpu/carry.sh prepares it:
 #   bash scripts/gpu/unit.sh [GROUP ...]
 # GROUP: `vae` (cuda-graph's tests and the VAE's graphed training: what the recipe's VAE_GRAPH
-# relies on) or `dit` (the DiT's graphed training, `train.cuda_graph`); default both. (The recipe
+# relies on), `dit` (the DiT's graphed training, `train.cuda_graph`) or `rollout` (the graphed
+# sampler, `--cuda-graph`); default all three. (The recipe
 # needs no fallback of its own: with VAE_GRAPH=auto it trains the VAE eagerly should the graph fail.)
 # Exits non-zero when a test failed; the output is also in $OUT/unit.log.
 set -uo pipefail
 source "$(dirname "$0")/common.sh"
-groups=("$@"); [ ${#groups[@]} -gt 0 ] || groups=(vae dit)
+groups=("$@"); [ ${#groups[@]} -gt 0 ] || groups=(vae dit rollout)
 for g in "${groups[@]}"; do
-  case "$g" in vae|dit) ;; *) echo "unit: unknown group '$g' (groups: vae dit)" >&2; exit 2 ;; esac
+  case "$g" in vae|dit|rollout) ;; *) echo "unit: unknown group '$g' (groups: vae dit rollout)" >&2; exit 2 ;; esac
 done
 mkdir -p dist
 status=0
 {
-  for crate in cuda-graph trainer training; do
+  for crate in cuda-graph trainer training inference; do
     [ -f ".carry/test-$crate.xz" ] || { echo "unit: .carry/test-$crate.xz is missing (scripts/gpu/carry.sh --rebuild)"; exit 2; }
     xz -dc ".carry/test-$crate.xz" > "dist/test-$crate" && chmod +x "dist/test-$crate"
   done
@@ -28,8 +30,10 @@ status=0
       # meanwhile (the trainer's own tests also take turns on the GPU).
       dist/test-cuda-graph --test-threads 1 || status=1
       dist/test-trainer the_cuda_graph --test-threads 1 || status=1
-    else
+    elif [ "$g" = dit ]; then
       dist/test-training cuda_graph --test-threads 1 || status=1
+    else
+      dist/test-inference graphed --test-threads 1 || status=1
     fi
   done
   exit $status

@@ -7,7 +7,11 @@
 # within 0.5 dB (every task) and whose success estimates stay within 2 points of 50 Euler steps.
 # EXTRA_SETTINGS names more, e.g. "dpm++2m-8-fp8row" (the DiT's linears in FP8 with row scaling),
 # measured after the rest. Settings already measured are skipped, so the sweep can run over
-# several device calls.
+# several device calls. SETTINGS (e.g. "euler-8 euler-12") measures those settings alone and
+# leaves the table out: a share of the sweep for one GPU of several, e.g.
+#   CUDA_VISIBLE_DEVICES=1 SETTINGS="euler-8 euler-12" bash bench/metaworld/sweep.sh &
+# with the baseline among the shares; a last plain `bash bench/metaworld/sweep.sh` (STEPS and
+# SOLVERS naming what was measured) then skips them all and writes the table.
 # Usage (repository root, after recipe.sh's stages up to judge): bash bench/metaworld/sweep.sh;
 # the recipe's variables apply (STUDY_EPISODES, STUDY_VARIANTS, DEVICE, BWM, PYTHON, ...).
 set -euo pipefail
@@ -32,6 +36,7 @@ for steps in $STEPS; do
   done
 done
 settings+=(${EXTRA_SETTINGS:-})
+[ -z "${SETTINGS:-}" ] || settings=($SETTINGS)
 for setting in "${settings[@]}"; do
   fp8=
   case "$setting" in *-fp8*) fp8=${setting##*-fp8} ;; esac
@@ -52,4 +57,5 @@ for setting in "${settings[@]}"; do
   RUN="$RUN" SOLVER="$solver" SAMPLE_STEPS="$steps" FP8="$fp8" FIDELITY_DIR="$dir/fidelity" FIDELITY_EPISODES="$episodes" \
     STUDY_DIR="$dir/study" bash bench/metaworld/recipe.sh fidelity study
 done
+[ -n "${SETTINGS:-}" ] && { echo "sweep: $SETTINGS measured; the table comes from a plain sweep.sh"; exit 0; }
 "$PYTHON" bench/metaworld/sweep.py "$RUN/sweep" --baseline "$baseline"

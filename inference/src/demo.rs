@@ -5,7 +5,7 @@ use std::path::PathBuf;
 
 use anyhow::{ensure, Result};
 use bwm_data::{ActionSpec, ActionStats, BwmDataset};
-use bwm_model::{sampler::sample_chunk, BwmModel, FlowSchedule, ModelConfig};
+use bwm_model::{sampler::{sample_chunk, Eager}, BwmModel, FlowSchedule, ModelConfig};
 use tch::{Device, Kind, Tensor};
 
 /// What `bwm demo` samples: a clip of one episode of a BWM-layout dataset.
@@ -79,7 +79,7 @@ pub fn run(args: &DemoOptions) -> Result<()> {
     let schedule = FlowSchedule::inference(args.steps, 5.0);
     println!("sampling {} latent frames ({cond} condition + {fut} future) with {} Euler steps:", cond + fut, args.steps);
     let out = tch::no_grad(|| {
-        sample_chunk(&model, &prefix, &noise, &actions, &schedule, 1.0, &mut |i, _, v| {
+        sample_chunk(&mut Eager, &model, &prefix, &noise, &actions, &schedule, 1.0, &mut |i, _, v| {
             let future_v = v.narrow(2, cond, fut);
             println!(
                 "  step {:>2}: t = {:7.2}  sigma = {:.4}  |v_future| rms = {:.4}",

@@ -15,7 +15,7 @@ use tch::{Device, Kind, Tensor};
 
 use crate::bwm::BwmModel;
 use crate::keyed_rng::{self, Purpose};
-use crate::sampler::{sample_chunk_with, Denoiser, Eager};
+use crate::sampler::{sample_chunk, Denoiser, Eager};
 use crate::schedule::{FlowSchedule, Solver, DEFAULT_SHIFT, NUM_TRAIN_TIMESTEPS};
 use crate::vae::WanVae;
 
@@ -289,7 +289,7 @@ impl<'m> Rollout<'m> {
             None => &mut eager,
         };
         let latents = tch::no_grad(|| {
-            sample_chunk_with(denoiser, model, &prefix.to_kind(kind), &noise.to_kind(kind), &all_actions, &first.schedule, first.spec.guidance, on_step)
+            sample_chunk(denoiser, model, &prefix.to_kind(kind), &noise.to_kind(kind), &all_actions, &first.schedule, first.spec.guidance, on_step)
         })?;
         drop(shared);
         sync();

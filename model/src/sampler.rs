@@ -37,22 +37,10 @@ impl Denoiser for Eager {
 /// guidance by the actions: the velocity is v_null + w (v_actions - v_null), v_null the model's
 /// under the null action condition (a model trained with `objective.action_dropout`); 1 is the
 /// plain conditional velocity at one model evaluation per step, other values cost two.
-/// `on_step(i, model_input, velocity)` sees each step.
-pub fn sample_chunk(
-    model: &BwmModel,
-    prefix: &Tensor,
-    noise: &Tensor,
-    actions: &Tensor,
-    schedule: &FlowSchedule,
-    guidance: f64,
-    on_step: &mut dyn FnMut(usize, &Tensor, &Tensor),
-) -> Result<Tensor> {
-    sample_chunk_with(&mut Eager, model, prefix, noise, actions, schedule, guidance, on_step)
-}
-
-/// `sample_chunk` with each step's forward pass run by `denoiser`.
+/// `denoiser` runs each step's forward pass (`Eager`: the model's own); `on_step(i, model_input,
+/// velocity)` sees each step.
 #[allow(clippy::too_many_arguments)]
-pub fn sample_chunk_with(
+pub fn sample_chunk(
     denoiser: &mut dyn Denoiser,
     model: &BwmModel,
     prefix: &Tensor,

@@ -4,7 +4,7 @@
 
 mod common;
 
-use bwm_model::{sampler::sample_chunk, weights, ActionConfig, BwmModel, DitConfig, FlowSchedule, Layout, ModelConfig};
+use bwm_model::{sampler::{sample_chunk, Eager}, weights, ActionConfig, BwmModel, DitConfig, FlowSchedule, Layout, ModelConfig};
 use common::{golden, rel_err};
 use tch::{Device, Kind};
 
@@ -30,7 +30,7 @@ fn euler_sampler_with_prefix_matches_reference() {
     let prefix = &t["sampler_prefix"];
     let mut steps_seen = 0;
     let out = tch::no_grad(|| {
-        sample_chunk(&model, prefix, &t["sampler_init_noise"], &t["actions"], &schedule, 1.0, &mut |_, _, _| steps_seen += 1)
+        sample_chunk(&mut Eager, &model, prefix, &t["sampler_init_noise"], &t["actions"], &schedule, 1.0, &mut |_, _, _| steps_seen += 1)
     })
     .unwrap();
     assert_eq!(steps_seen, steps);

@@ -239,7 +239,7 @@ fn bf16_model_rolls_out_finite_frames_close_to_f32() {
 
 #[test]
 fn action_guidance_blends_the_conditional_and_null_velocities() {
-    use bwm_model::sampler::sample_chunk;
+    use bwm_model::sampler::{sample_chunk, Eager};
     use bwm_model::schedule::FlowSchedule;
     let (model, _) = parts(Kind::Float);
     let d = model.cfg.action.action_dim;
@@ -270,13 +270,13 @@ fn action_guidance_blends_the_conditional_and_null_velocities() {
     let prefix = latents.narrow(2, 0, 2);
     let noise = draw(&[2, 48, 4, 4, 4], 3);
     let schedule = FlowSchedule::inference(1, 5.0);
-    let chunk = |a: &Tensor, w: f64| tch::no_grad(|| sample_chunk(&model, &prefix, &noise, a, &schedule, w, &mut |_, _, _| {}).unwrap());
+    let chunk = |a: &Tensor, w: f64| tch::no_grad(|| sample_chunk(&mut Eager, &model, &prefix, &noise, a, &schedule, w, &mut |_, _, _| {}).unwrap());
     let (c0, c1, c2) = (chunk(&actions, 0.0), chunk(&actions, 1.0), chunk(&actions, 2.5));
     assert!((&c2 - &c1).allclose(&((&c1 - &c0) * 1.5), 1e-4, 1e-5, false), "v_null + w (v_cond - v_null)");
     assert!(!c2.allclose(&c1, 1e-5, 1e-5, false));
     assert!(chunk(&other, 0.0).allclose(&c0, 1e-5, 1e-5, false), "w = 0 ignores the actions");
     assert!(c1.narrow(2, 0, 2).equal(&prefix) && c2.narrow(2, 0, 2).equal(&prefix), "the prefix stays fixed");
-    let e = sample_chunk(&model, &prefix, &noise, &actions, &schedule, -1.0, &mut |_, _, _| {}).unwrap_err().to_string();
+    let e = sample_chunk(&mut Eager, &model, &prefix, &noise, &actions, &schedule, -1.0, &mut |_, _, _| {}).unwrap_err().to_string();
     assert!(e.contains("guidance"), "{e}");
     let e = RolloutSpec { guidance: f64::NAN, ..spec(4, 4, 0) }.validate().unwrap_err().to_string();
     assert!(e.contains("guidance"), "{e}");

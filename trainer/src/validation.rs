@@ -8,7 +8,7 @@ use std::path::PathBuf;
 use anyhow::{Context, Result};
 use bwm_data::frames::{frame_strip, tensor_to_frames};
 use bwm_data::latent_cache::{Clip, LatentCache};
-use bwm_model::sampler::sample_chunk;
+use bwm_model::sampler::{sample_chunk, Eager};
 use bwm_model::BwmModel;
 use bwm_model::vae::WanVae;
 use bwm_model::FlowSchedule;
@@ -79,7 +79,7 @@ pub fn rollout_clips(run: &(impl ValidationRun + ?Sized), clean: &Tensor, action
     let schedule = FlowSchedule::inference(steps, run.config().objective.shift).with_solver(run.config().validation.solver);
     let kind = run.model().store.kind();
     let out = tch::no_grad(|| {
-        sample_chunk(run.model(), &prefix.to_kind(kind), &noise.to_kind(kind), actions, &schedule, run.config().validation.guidance, &mut |_, _, _| {})
+        sample_chunk(&mut Eager, run.model(), &prefix.to_kind(kind), &noise.to_kind(kind), actions, &schedule, run.config().validation.guidance, &mut |_, _, _| {})
     })?;
     Ok(out.to_kind(Kind::Float))
 }

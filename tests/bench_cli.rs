@@ -83,11 +83,16 @@ fn bench_rollout_runs_the_block_linears_in_fp8_when_asked() {
         ]
     };
     let out = run(&args("tensor"));
-    assert!(line(&out, "bench-rollout:").ends_with("block linears in FP8 (tensor scaling)"), "{out}");
+    assert!(line(&out, "bench-rollout:").ends_with("block linears in FP8 (tensor scaling), sampler forward eager"), "{out}");
     assert!(line(&out, "chunk 0:").contains("; 4 frames;"), "{out}");
     let failed = Command::new(bwm()).args(args("row")).output().unwrap();
     let err = String::from_utf8_lossy(&failed.stderr);
     assert!(!failed.status.success() && err.contains("--fp8") && err.contains("needs a CUDA device"), "{err}");
+    let mut graphed = args("tensor");
+    graphed.push("--cuda-graph");
+    let failed = Command::new(bwm()).args(graphed).output().unwrap();
+    let err = String::from_utf8_lossy(&failed.stderr);
+    assert!(!failed.status.success() && err.contains("--cuda-graph needs a CUDA device"), "{err}");
 }
 
 #[test]

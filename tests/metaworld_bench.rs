@@ -197,6 +197,13 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
         let episodes: u64 = bands.values().map(|c| c["episodes"].as_u64().unwrap()).sum();
         assert_eq!(episodes, 2, "{task}: {bands:?}");
     }
+    // SAMPLER_GRAPH=1 reaches the world model's flags, which refuse CUDA graphs on the CPU by name.
+    let elsewhere = dir.join("fidelity-graphed");
+    let out = toy("recipe.sh", &runs).arg("fidelity").env("SAMPLER_GRAPH", "1").env("FIDELITY_DIR", &elsewhere).output().unwrap();
+    let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(!out.status.success() && text.contains("--cuda-graph needs a CUDA device"), "{text}");
+    let out = toy("recipe.sh", &runs).arg("fidelity").env("SAMPLER_GRAPH", "yes").output().unwrap();
+    assert_eq!(out.status.code(), Some(2), "{out:?}");
     let judged = json(&runs.join("study/judged.json"));
     assert_eq!(judged["judged"]["drawer-open-v3"]["wrong"].as_array().map(Vec::len), Some(1), "{judged}");
     assert!(study["per_task"]["drawer-open-v3"]["mae"].is_number(), "{study}");

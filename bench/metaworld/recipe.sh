@@ -89,6 +89,9 @@ TRAIN_SETS="${TRAIN_SETS:-}"              # more `--set KEY=VALUE` for bwm train
 SAMPLE_STEPS="${SAMPLE_STEPS:-4}"         # sampler steps per generated chunk (the sweep's pick, docs/fidelity.md run 15)
 SOLVER="${SOLVER:-euler}"                 # euler or dpm++2m (bwm --solver)
 FP8="${FP8:-}"                            # tensor or row: the DiT blocks' linears in FP8 (bwm --fp8); default off
+SAMPLER_GRAPH="${SAMPLER_GRAPH:-0}"       # 1: the sampler's forward pass replayed from CUDA graphs (bwm --cuda-graph)
+                                          # in the fidelity, study, teacher and probe stages; CUDA only
+case "$SAMPLER_GRAPH" in 0|1) ;; *) echo "recipe: SAMPLER_GRAPH must be 0 or 1, not '$SAMPLER_GRAPH'" >&2; exit 2 ;; esac
 GUIDANCE="${GUIDANCE:-1}"                 # bwm --guidance: classifier-free guidance by the actions (1 = off; other
                                           # values need TRAIN_SETS=objective.action_dropout=P with P > 0)
 JUDGE_STEPS="${JUDGE_STEPS:-600}"
@@ -202,6 +205,7 @@ world_model() {
   local ckpt="$RUN/checkpoints/$(cat "$RUN/checkpoints/latest")"
   WM=(--checkpoint "$ckpt" --vae "$RUN/vae.safetensors" --stats "$RUN/latents/stat.json" --stats-group observation.state
       --history 8 --future 24 --sample-steps "$SAMPLE_STEPS" --solver "$SOLVER" --guidance "$GUIDANCE" ${FP8:+--fp8 "$FP8"} --device "$DEVICE")
+  if [ "$SAMPLER_GRAPH" = 1 ]; then WM+=(--cuda-graph); fi
 }
 
 if wants fidelity; then

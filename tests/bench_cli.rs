@@ -62,13 +62,22 @@ fn bench_rollout_times_each_chunk() {
         "bench-rollout", "--random-weights", "tiny", "--vae", vae.to_str().unwrap(), "--device", "cpu", "--height", "32", "--width", "32", "--history", "4", "--future", "4",
         "--sample-steps", "2", "--chunks", "2",
     ]);
-    assert!(line(&out, "bench-rollout:").contains("x0 + 4 history frames, 4 frames per chunk, 2 euler steps, attention backend auto"), "{out}");
+    assert!(line(&out, "bench-rollout:").contains("1 rollout(s) at once, x0 + 4 history frames, 4 frames per chunk, 2 euler steps, attention backend auto"), "{out}");
     for i in 0..2 {
         let l = line(&out, &format!("chunk {i}:"));
         assert!(l.contains("; 4 frames;"), "{l}");
         let parts = ["encode", "DiT", "decode"].map(|p| number_after(l, &format!("{p} ")));
         assert!(number_after(l, &format!("chunk {i}:")) + 0.02 + 1e-9 >= parts.iter().sum::<f64>(), "the parts exceed the chunk: {l}");
     }
+    // Several rollouts advance as one batch per chunk.
+    let out = run(&[
+        "bench-rollout", "--random-weights", "tiny", "--vae", vae.to_str().unwrap(), "--device", "cpu", "--height", "32", "--width", "32", "--history", "4", "--future", "4",
+        "--sample-steps", "2", "--chunks", "1", "--batch", "3",
+    ]);
+    assert!(line(&out, "bench-rollout:").contains("3 rollout(s) at once"), "{out}");
+    assert!(line(&out, "chunk 0:").contains("; 4 frames;"), "{out}");
+    let failed = Command::new(bwm()).args(["bench-rollout", "--random-weights", "tiny", "--vae", vae.to_str().unwrap(), "--device", "cpu", "--batch", "0"]).output().unwrap();
+    assert!(!failed.status.success() && String::from_utf8_lossy(&failed.stderr).contains("--batch must be at least 1"), "{failed:?}");
 }
 
 #[test]

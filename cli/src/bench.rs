@@ -102,8 +102,11 @@ pub struct BenchRolloutArgs {
     /// Chunks to generate (the first includes one-time CUDA start-up costs).
     #[arg(long, default_value_t = 2)]
     chunks: usize,
+    /// Rollouts advanced together, one batch per chunk (as `bwm evaluate`'s episodes in flight).
+    #[arg(long, default_value_t = 1)]
+    batch: usize,
 }
 
 pub fn rollout(args: BenchRolloutArgs) -> Result<()> {
-    bwm_inference::bench::rollout(&args.wm.load()?, args.height, args.width, args.chunks)
+    bwm_inference::bench::rollout(&args.wm.load()?, args.height, args.width, args.chunks, args.batch)
 }

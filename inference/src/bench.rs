@@ -5,6 +5,7 @@
 use std::time::Instant;
 
 use anyhow::{ensure, Result};
+use bwm_model::rollout::{Rollout, RolloutSpec};
 use bwm_model::{frame_timesteps, BwmModel, ModelConfig, ParamStore};
 use bwm_trainer::devices::synchronize as sync;
 use tch::{Device, Kind, Tensor};
@@ -172,19 +173,24 @@ pub fn vae(args: &VaeBenchOptions) -> Result<()> {
 }
 
 /// Times `chunks` whole rollout chunks (condition encode, the sampler's DiT steps, decode) of
-/// `wm` at `width` x `height` on a random x0 and random actions; the first includes one-time CUDA
-/// start-up costs.
-pub fn rollout(wm: &WorldModel, height: i64, width: i64, chunks: usize) -> Result<()> {
+/// `batch` rollouts advanced together (as the evaluator's episodes in flight) of `wm` at `width` x
+/// `height` on random x0s and random actions; the first includes one-time CUDA start-up costs.
+pub fn rollout(wm: &WorldModel, height: i64, width: i64, chunks: usize, batch: usize) -> Result<()> {
+    ensure!(batch >= 1, "--batch must be at least 1");
     let d = wm.action_dim() as i64;
     tch::manual_seed(0);
-    let x0 = Tensor::rand([3, height, width], (Kind::Float, Device::Cpu)) * 2.0 - 1.0;
     let a0 = Tensor::zeros([d], (Kind::Float, Device::Cpu));
-    let mut rollout = wm.rollout(&x0, &a0)?;
-    let spec = rollout.spec().clone();
+    let mut rollouts = (0..batch)
+        .map(|i| {
+            let x0 = Tensor::rand([3, height, width], (Kind::Float, Device::Cpu)) * 2.0 - 1.0;
+            wm.rollout_with(RolloutSpec { seed: wm.spec.seed + i as u64, ..wm.spec.clone() }, &x0, &a0)
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let spec = wm.spec.clone();
     let dit = &wm.model.cfg.dit;
     let kernel = bwm_sdp::kernel_for_shape(dit.num_heads, dit.head_dim(), 1024, wm.model.store.kind(), wm.device)?;
     println!(
-        "bench-rollout: {:?} {:?}, {}x{}, x0 + {} history frames, {} frames per chunk, {} {} steps, attention backend {} ({kernel}), libtorch CPU threads {}, {}, sampler forward {}",
+        "bench-rollout: {:?} {:?}, {}x{}, {batch} rollout(s) at once, x0 + {} history frames, {} frames per chunk, {} {} steps, attention backend {} ({kernel}), libtorch CPU threads {}, {}, sampler forward {}",
         wm.device,
         wm.model.store.kind(),
         width,
@@ -199,9 +205,9 @@ pub fn rollout(wm: &WorldModel, height: i64, width: i64, chunks: usize) -> Resul
         if wm.graphed.is_some() { "replayed from a CUDA graph (warm-up and capture in the first chunk)" } else { "eager" }
     );
     for i in 0..chunks {
-        let actions = Tensor::rand([spec.future as i64, d], (Kind::Float, Device::Cpu)) * 2.0 - 1.0;
+        let actions: Vec<Tensor> = (0..batch).map(|_| Tensor::rand([spec.future as i64, d], (Kind::Float, Device::Cpu)) * 2.0 - 1.0).collect();
         let start = Instant::now();
-        let c = rollout.next_chunk(&actions)?;
+        let c = Rollout::next_chunks(&mut rollouts.iter_mut().collect::<Vec<_>>(), &actions)?.remove(0);
         let total = start.elapsed().as_secs_f64();
         println!(
             "chunk {i}: {total:.2} s = encode {:.2} s + DiT {:.2} s ({:.3} s/step) + decode {:.2} s; {} frames; device memory {}",

@@ -183,7 +183,7 @@ pub fn rollout(wm: &WorldModel, height: i64, width: i64, chunks: usize, batch: u
     let mut rollouts = (0..batch)
         .map(|i| {
             let x0 = Tensor::rand([3, height, width], (Kind::Float, Device::Cpu)) * 2.0 - 1.0;
-            wm.rollout_with(RolloutSpec { seed: wm.spec.seed + i as u64, ..wm.spec.clone() }, &x0, &a0)
+            wm.rollout_with(RolloutSpec { seed: wm.spec.seed.wrapping_add(i as u64), ..wm.spec.clone() }, &x0, &a0)
         })
         .collect::<Result<Vec<_>>>()?;
     let spec = wm.spec.clone();

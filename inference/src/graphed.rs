@@ -5,7 +5,7 @@
 
 use anyhow::{Context, Result};
 use bwm_cuda_graph::GraphedStep;
-use bwm_model::sampler::Denoiser;
+use bwm_model::sampler::{Denoiser, Eager};
 use bwm_model::BwmModel;
 use tch::{Device, Tensor};
 
@@ -46,7 +46,7 @@ impl Denoiser for GraphedDenoiser {
                 self.graphs.push((shape.clone(), GraphedStep::new(self.device, WARM_UPS)?));
                 self.graphs.len() - 1
             }
-            None => return model.forward_keeping(latents, frame_timesteps, actions, keep),
+            None => return Eager.velocity(model, latents, frame_timesteps, actions, keep),
         };
         self.graphs[slot]
             .1

@@ -231,7 +231,8 @@ impl<'m> Rollout<'m> {
             ensure!(r.x0.size() == first.x0.size(), "rollout {i}'s frames are {:?}, rollout 0's {:?}", r.x0.size(), first.x0.size());
             let same_denoiser = match (&r.denoiser, &first.denoiser) {
                 (Some(a), Some(b)) => Rc::ptr_eq(a, b),
-                (a, b) => a.is_none() && b.is_none(),
+                (None, None) => true,
+                _ => false,
             };
             ensure!(same_denoiser, "rollout {i} runs its sampler through another denoiser than rollout 0; a batch shares one");
         }

@@ -306,6 +306,27 @@ fn the_recipes_degraded_share_reaches_the_generator() {
 }
 
 #[test]
+fn the_recipes_default_data_are_mostly_near_misses() {
+    // By default 60% of the episodes are degraded and `miss` weighs 20 beside each other
+    // degradation's 1 (generate.py's own defaults: 40%, 3), so about 46% of the episodes are near
+    // misses where generate.py alone would make about 13%; the draws are seeded, the count fixed.
+    let dir = temp_dir("metaworld-misses");
+    let runs = dir.join("run");
+    run(toy("recipe.sh", &runs).arg("data").envs([("TRAIN_EPISODES", "20"), ("VAL_EPISODES", "1"), ("FRAMES", "4")]), "recipe.sh data");
+    let text = std::fs::read_to_string(runs.join("data/train/meta/episodes.jsonl")).unwrap();
+    let behaviours: Vec<String> = text.lines().map(|l| serde_json::from_str::<Value>(l).unwrap()["behaviour"].as_str().unwrap().to_string()).collect();
+    let misses = behaviours.iter().filter(|b| *b == "miss").count();
+    assert_eq!(behaviours.len(), 40, "{text}");
+    assert!((12..=28).contains(&misses), "{misses} near misses of 40: {behaviours:?}");
+
+    // Near misses are placed either by distance or around the measured boundary, not both.
+    let both = toy("recipe.sh", &dir.join("both")).arg("data").envs([("MISS_CM", "3,9"), ("MISS_BOUNDARY", "bench/metaworld/boundary.json")]).output().unwrap();
+    let err = String::from_utf8_lossy(&both.stderr);
+    assert!(!both.status.success() && err.contains("MISS_CM and MISS_BOUNDARY"), "{err}");
+    assert!(!dir.join("both/data").exists());
+}
+
+#[test]
 fn the_recipes_vae_graph_and_candidates_reach_train_vae() {
     // On the CPU the recipe leaves CUDA graphs off and trains one VAE by default (the toy recipe
     // trains its VAE so); CUDA graphs asked for reach `bwm train-vae`, which refuses them there by name.

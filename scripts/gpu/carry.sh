@@ -1,12 +1,15 @@
 #!/usr/bin/env bash
 # What the GPU scripts need carried to a lent machine (device tool), prepared on this machine from
 # the repo root: .carry/bwm.xz (the bwm binary built with --no-default-features, stripped and
-# xz-compressed: the carry limit is 64 MiB) and .carry/test-*.xz (the tests of cuda-graph/,
+# xz-compressed: the carry limit is 64 MiB), .carry-tests/test-*.xz (the tests of cuda-graph/,
 # trainer/ and inference/ that need a GPU to check anything, which scripts/gpu/unit.sh runs there), .whl (bench/metaworld's wheels for that machine's
 # Python 3.12) and .gl (the GL loader debs MuJoCo's EGL rendering needs there). Each part is
-# skipped when present; --rebuild rebuilds and repacks the binary. Then, for example:
+# skipped when present; --rebuild rebuilds and repacks the binaries. Then, for example:
 #   run(carry=[".whl", ".gl", ".carry"], command="bash scripts/gpu/metaworld.sh data")
-# The three folders must be git-ignored (.git/info/exclude) so that the device tool carries them
+#   run(carry=[".carry-tests"], command="bash scripts/gpu/unit.sh")
+# The tests travel apart: with the wheels and the working tree, all of it passes the device tool's
+# 64 MiB (2026-11-28), so the unit tests take a call of their own.
+# The four folders must be git-ignored (.git/info/exclude) so that the device tool carries them
 # only when asked. Respects BWM_VENV and CARGO_TARGET_DIR (default ~/.cache/bwm-gpu-target, kept
 # apart from the CPU build's target: the feature sets differ).
 set -euo pipefail
@@ -17,27 +20,28 @@ case "${1:-}" in
   --rebuild) rebuild=1 ;;
   *) echo "usage: scripts/gpu/carry.sh [--rebuild]" >&2; exit 2 ;;
 esac
-for d in .carry .whl .gl; do
+for d in .carry .carry-tests .whl .gl; do
   git check-ignore -q "$d/x" || { echo "carry: $d is not git-ignored; add /$d/ to .git/info/exclude" >&2; exit 1; }
 done
 export CARGO_TARGET_DIR="${CARGO_TARGET_DIR:-$HOME/.cache/bwm-gpu-target}"
 source scripts/env.sh
 
-pack() { # $1 = executable, $2 = name under .carry: stripped and xz-compressed
-  strip -o ".carry/$2.tmp" "$1"
-  xz -T0 -6 -c ".carry/$2.tmp" > ".carry/$2.xz.tmp" && rm ".carry/$2.tmp" && mv ".carry/$2.xz.tmp" ".carry/$2.xz"
+pack() { # $1 = executable, $2 = path without .xz (under .carry or .carry-tests): stripped and xz-compressed
+  strip -o "$2.tmp" "$1"
+  xz -T0 -6 -c "$2.tmp" > "$2.xz.tmp" && rm "$2.tmp" && mv "$2.xz.tmp" "$2.xz"
 }
-if [ $rebuild = 1 ] || [ ! -f .carry/bwm.xz ] || [ "$(ls .carry/test-*.xz 2>/dev/null | wc -l)" -lt 4 ]; then
+if [ $rebuild = 1 ] || [ ! -f .carry/bwm.xz ] || [ "$(ls .carry-tests/test-*.xz 2>/dev/null | wc -l)" -lt 4 ]; then
   echo "carry: building bwm without FFmpeg/HDF5 into $CARGO_TARGET_DIR (several minutes cold)"
   cargo build --release -p bwm-cli --no-default-features
-  mkdir -p .carry
-  pack "$CARGO_TARGET_DIR/release/bwm" bwm
+  mkdir -p .carry .carry-tests
+  rm -f .carry/test-*.xz  # where earlier versions of this script put them
+  pack "$CARGO_TARGET_DIR/release/bwm" .carry/bwm
   # The unit tests that need a GPU to check anything (scripts/gpu/unit.sh runs them there).
   for test in cuda-graph:--lib trainer:--lib training:--test=training inference:--lib; do
     crate=${test%%:*} crate=bwm-${crate/training/trainer}
     exe=$(cargo test --release --no-default-features -p "$crate" "${test#*:}" --no-run --message-format=json 2>/dev/null |
       "$BWM_VENV/bin/python" -c 'import json,sys; print([m["executable"] for m in map(json.loads, sys.stdin) if m.get("executable")][-1])')
-    pack "$exe" "test-${test%%:*}"
+    pack "$exe" ".carry-tests/test-${test%%:*}"
   done
 fi
 
@@ -63,3 +67,4 @@ if [ "$(ls .gl/*.deb 2>/dev/null | wc -l)" -lt 7 ]; then
   (cd .gl && apt-get "${apt[@]}" download libvulkan1 libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2)
 fi
 echo "carry: $(du -sh .carry | cut -f1) binary, $(ls .whl | wc -l) wheels, $(ls .gl | wc -l) GL debs; pass carry [\".whl\", \".gl\", \".carry\"]"
+echo "carry: $(du -sh .carry-tests | cut -f1) of GPU unit tests; pass carry [\".carry-tests\"] to scripts/gpu/unit.sh"

@@ -4,7 +4,8 @@
 # that fails), and the VAE's and the DiT's training with the step replayed from a graph against
 # the eager training (trainer/: `vae_train` and tests/training.rs), and rollouts whose sampler
 # replays a recorded forward pass against eager ones (inference/: `graphed`). From the repo root of a lent
-# machine, carry [".carry"] as scripts/gpu/carry.sh prepares it:
+# machine, carry [".carry-tests"] as scripts/gpu/carry.sh prepares it (alone: beside the wheels it
+# passes the device tool's 64 MiB):
 #   bash scripts/gpu/unit.sh [GROUP ...]
 # GROUP: `vae` (cuda-graph's tests and the VAE's graphed training: what the recipe's VAE_GRAPH
 # relies on), `dit` (the DiT's graphed training, `train.cuda_graph`) or `rollout` (the graphed
@@ -21,8 +22,8 @@ mkdir -p dist
 status=0
 {
   for crate in cuda-graph trainer training inference; do
-    [ -f ".carry/test-$crate.xz" ] || { echo "unit: .carry/test-$crate.xz is missing (scripts/gpu/carry.sh --rebuild)"; exit 2; }
-    xz -dc ".carry/test-$crate.xz" > "dist/test-$crate" && chmod +x "dist/test-$crate"
+    [ -f ".carry-tests/test-$crate.xz" ] || { echo "unit: .carry-tests/test-$crate.xz is missing (scripts/gpu/carry.sh --rebuild; carry [\".carry-tests\"])"; exit 2; }
+    xz -dc ".carry-tests/test-$crate.xz" > "dist/test-$crate" && chmod +x "dist/test-$crate"
   done
   for g in "${groups[@]}"; do
     if [ "$g" = vae ]; then

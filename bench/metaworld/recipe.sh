@@ -43,9 +43,10 @@ SPREAD="${SPREAD:-narrow}"                # the experts' noise and speed in the 
 # The data's failing near misses. Since run 34 (docs/fidelity.md) 60% of the episodes are degraded
 # and the `miss` episodes, steering 3-9 cm off, weigh 20 beside each other degradation's 1: about
 # 46% of all episodes, most failing just beyond the contact (generate.py's own defaults: 40%
-# degraded, misses 2-12 cm off at weight 3). Two trainings of the recipe from seeds 0 and 3 reached
-# r 0.899 / 0.900 with them where the same seeds had given 0.76-0.91 (the drawer's `wrong` hand
-# drawn opening the drawer 0.44-0.46 against 0.38-0.84, the button's r 0.997-0.998 against 0.95).
+# degraded, misses 2-12 cm off at weight 3). Two trainings of the recipe on them (VAE seeds 1 and 3)
+# reached r 0.899 / 0.900, where the same VAE seeds had given 0.85-0.86 and 0.76-0.82 (the drawer's
+# `wrong` hand drawn opening the drawer 0.46 / 0.44 against 0.38-0.44 and 0.68-0.84, the button's r
+# 0.997-0.998 against 0.95).
 MISS_BOUNDARY="${MISS_BOUNDARY:-}"        # instead of MISS_CM: misses around where the outcome flips in their direction (generate.py --miss-boundary; bench/metaworld/boundary.json)
 MISS_CM="${MISS_CM-$([ -n "$MISS_BOUNDARY" ] || echo 3,9)}"  # LOW,HIGH: how far off the data's `miss` episodes steer (generate.py --miss-cm; empty: its 2,12)
 [ -z "$MISS_CM" ] || [ -z "$MISS_BOUNDARY" ] || { echo "recipe: MISS_CM and MISS_BOUNDARY both place the near misses; set one" >&2; exit 2; }

@@ -289,6 +289,12 @@ fn the_judge_learns_from_reconstructed_frames() {
     run(Command::new(python()).arg(Path::new(ROOT).join("bench/metaworld/tests/test_judge.py")), "test_judge.py");
 }
 
+/// Each episode's behaviour (`expert` or a degraded mode) in a generated dataset's episodes.jsonl.
+fn behaviours(dataset: &Path) -> Vec<String> {
+    let text = std::fs::read_to_string(dataset.join("meta/episodes.jsonl")).unwrap_or_else(|e| panic!("{}: {e}", dataset.display()));
+    text.lines().map(|l| serde_json::from_str::<Value>(l).unwrap()["behaviour"].as_str().unwrap().to_string()).collect()
+}
+
 #[test]
 fn the_recipes_degraded_share_reaches_the_generator() {
     // DEGRADED=0 makes every episode the expert's, 1 none: each split's episodes.jsonl says which.
@@ -297,9 +303,8 @@ fn the_recipes_degraded_share_reaches_the_generator() {
         let runs = dir.join("run");
         run(toy("recipe.sh", &runs).arg("data").envs([("DEGRADED", share), ("TRAIN_EPISODES", "2"), ("VAL_EPISODES", "1")]), "recipe.sh data");
         for split in ["train", "val"] {
-            let text = std::fs::read_to_string(runs.join(format!("data/{split}/meta/episodes.jsonl"))).unwrap();
-            let behaviours: Vec<String> = text.lines().map(|l| serde_json::from_str::<Value>(l).unwrap()["behaviour"].as_str().unwrap().to_string()).collect();
-            assert_eq!(behaviours.len(), if split == "train" { 4 } else { 2 }, "{text}");
+            let behaviours = behaviours(&runs.join(format!("data/{split}")));
+            assert_eq!(behaviours.len(), if split == "train" { 4 } else { 2 }, "{behaviours:?}");
             assert!(behaviours.iter().all(|b| (b == "expert") == experts), "DEGRADED={share}, {split}: {behaviours:?}");
         }
     }
@@ -313,10 +318,9 @@ fn the_recipes_default_data_are_mostly_near_misses() {
     let dir = temp_dir("metaworld-misses");
     let runs = dir.join("run");
     run(toy("recipe.sh", &runs).arg("data").envs([("TRAIN_EPISODES", "20"), ("VAL_EPISODES", "1"), ("FRAMES", "4")]), "recipe.sh data");
-    let text = std::fs::read_to_string(runs.join("data/train/meta/episodes.jsonl")).unwrap();
-    let behaviours: Vec<String> = text.lines().map(|l| serde_json::from_str::<Value>(l).unwrap()["behaviour"].as_str().unwrap().to_string()).collect();
+    let behaviours = behaviours(&runs.join("data/train"));
     let misses = behaviours.iter().filter(|b| *b == "miss").count();
-    assert_eq!(behaviours.len(), 40, "{text}");
+    assert_eq!(behaviours.len(), 40, "{behaviours:?}");
     assert!((12..=28).contains(&misses), "{misses} near misses of 40: {behaviours:?}");
 
     // Near misses are placed either by distance or around the measured boundary, not both.

@@ -66,10 +66,12 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
             .envs([("VAL_EPISODES", "1"), ("VAE_EPISODES", "6"), ("JUDGE_RECONSTRUCT_EPISODES", "4")])
             .envs(TOY_STUDY)
             .env("PROBE_VARIANTS", "wrong-0cm,wrong-6cm")
-            // The DiT trained with action dropout, its own history noise and grid shift, every world-model
-            // stage guided by the actions; the data's near misses drawn around the measured
-            // outcome boundary and weighted up, and decoys among its degraded episodes.
+            // The DiT trained with action dropout, its own history noise and grid shift and an
+            // average of its weights, every world-model stage guided by the actions and rolling
+            // out that average; the data's near misses drawn around the measured outcome boundary
+            // and weighted up, and decoys among its degraded episodes.
             .env("TRAIN_SETS", format!("{TOY_DIT} objective.action_dropout=0.5 objective.history_sigma=0.1 objective.shift=3.0"))
+            .env("EMA_DECAY", "0.5")
             .env("GUIDANCE", "1.5")
             .env("MISS_BOUNDARY", Path::new(ROOT).join("bench/metaworld/boundary.json"))
             .env("MISS_WEIGHT", "9")
@@ -184,6 +186,12 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
     }
     let flags: Vec<&str> = study["world_model_flags"].as_array().unwrap().iter().filter_map(Value::as_str).collect();
     assert!(flags.windows(2).any(|w| w == ["--guidance", "1.5"]), "{flags:?}");
+    // The world model is the newest checkpoint's average of weights, exported once for every stage.
+    let ckpt = flags.windows(2).find(|w| w[0] == "--checkpoint").map(|w| Path::new(w[1])).expect("--checkpoint");
+    assert_eq!(ckpt, runs.join("ema/step-00000002"), "{flags:?}");
+    assert!(ckpt.join("config.json").is_file(), "{flags:?}");
+    assert!(config.contains("ema_decay = 0.5"), "{config}");
+    assert_eq!(timings.lines().filter(|l| l.starts_with("ema\t")).count(), 1, "{timings}");
     assert_eq!(study["per_episode"]["n"], 4, "one episode per rate, each paired with its truth: {study}");
     for r in rates {
         let e = &r["per_episode"];

@@ -95,6 +95,10 @@ VAE_Z_DIM="${VAE_Z_DIM:-48}"             # bwm train-vae --z-dim: latent channel
 KEEP_FRAMES="${KEEP_FRAMES:-0}"          # 1: the latent cache also keeps pixel frames (training's validation scores against them; 23 GB at 128x128)
 TRAIN_STEPS="${TRAIN_STEPS:-}"            # default: configs/metaworld.toml's
 TRAIN_SETS="${TRAIN_SETS:-}"              # more `--set KEY=VALUE` for bwm train, space-separated
+# The DiT's weights averaged over its training (optim.ema_decay, e.g. 0.999: about the last 1000
+# steps); every stage that rolls out then uses the average of the newest checkpoint (bwm export
+# --ema into $RUN/ema/STEP), not its last step's weights. Empty (default): no average.
+EMA_DECAY="${EMA_DECAY:-}"
 SAMPLE_STEPS="${SAMPLE_STEPS:-4}"         # sampler steps per generated chunk (the sweep's pick, docs/fidelity.md run 15)
 SOLVER="${SOLVER:-euler}"                 # euler or dpm++2m (bwm --solver)
 FP8="${FP8:-}"                            # tensor or row: the DiT blocks' linears in FP8 (bwm --fp8); default off
@@ -204,14 +208,22 @@ PY
         --set "data.holdout_episodes=$holdout" --set "validation.vae=\"$RUN/vae.safetensors\""
         --set "model.dit.in_dim=$VAE_Z_DIM" --set "model.dit.out_dim=$VAE_Z_DIM")
   [ -n "$TRAIN_STEPS" ] && sets+=(--set "train.steps=$TRAIN_STEPS")
+  [ -n "$EMA_DECAY" ] && sets+=(--set "optim.ema_decay=$EMA_DECAY")
   set -f  # the settings may hold glob characters (patch_size=[1,2,2])
   for kv in $TRAIN_SETS; do sets+=(--set "$kv"); done
   set +f
   timed train "$BWM" train --config configs/metaworld.toml "${sets[@]}" --resume auto
 fi
-# The world-model flags every later command shares: the newest checkpoint, its VAE and statistics.
+# The world-model flags every later command shares: the newest checkpoint (its EMA weights with
+# EMA_DECAY, exported once), its VAE and statistics.
 world_model() {
-  local ckpt="$RUN/checkpoints/$(cat "$RUN/checkpoints/latest")"
+  local step ckpt
+  step=$(cat "$RUN/checkpoints/latest")
+  ckpt="$RUN/checkpoints/$step"
+  if [ -n "$EMA_DECAY" ]; then
+    [ -f "$RUN/ema/$step/config.json" ] || timed ema "$BWM" export --checkpoint "$ckpt" --ema --dtype fp32 --out "$RUN/ema/$step" || exit 1
+    ckpt="$RUN/ema/$step"
+  fi
   WM=(--checkpoint "$ckpt" --vae "$RUN/vae.safetensors" --stats "$RUN/latents/stat.json" --stats-group observation.state
       --history 8 --future 24 --sample-steps "$SAMPLE_STEPS" --solver "$SOLVER" --guidance "$GUIDANCE" ${FP8:+--fp8 "$FP8"} --device "$DEVICE")
   if [ "$SAMPLER_GRAPH" = 1 ]; then WM+=(--cuda-graph); fi

@@ -114,7 +114,7 @@ fn variants_with_the_same_data_variables_share_one_dataset() {
 /// it would use (recipe.sh's defaults), and leaves a study.json naming the judge in that folder.
 const STUB_STAGES: &str = r#"
 study=${STUDY_DIR:-$RUN/study} judge=${JUDGE_FRAMES:-reconstructed}
-echo "$* judge=$judge study=$study" >> "$CALLS"
+echo "$* judge=$judge study=$study ema=${EMA_DECAY:-}" >> "$CALLS"
 for s in "$@"; do
   if [ "$s" = study ]; then mkdir -p "$study"; echo "{\"judge\": \"$judge\"}" > "$study/study.json"; fi
 done
@@ -135,6 +135,8 @@ fn stages(dir: &Path, vars: &[(&str, &str)]) -> (Output, Vec<String>) {
         .env_remove("STUDY_DIR")
         .env_remove("COMPARE_JUDGE")
         .env_remove("TEACHER")
+        .env_remove("COMPARE_EMA")
+        .env_remove("EMA_DECAY")
         .env("RUN", "runs/x")
         .env("OUT", dir.join("out"))
         .env("CALLS", &calls)
@@ -165,7 +167,7 @@ fn each_judge_has_its_own_study_folder() {
         for (judge, folder) in [(own, "runs/x/study"), (other, second.as_str())] {
             // The judge stage leaves the judge on the simulator's frames in the folder of the study it is for.
             for stage in ["judge", "study"] {
-                let call = format!("{stage} judge={judge} study={folder}");
+                let call = format!("{stage} judge={judge} study={folder} ema=");
                 assert_eq!(calls.iter().filter(|c| **c == call).count(), 1, "{call}\n{log}");
             }
             let study = fs::read_to_string(d.join(folder).join("study.json")).unwrap();
@@ -199,6 +201,24 @@ fn the_teacher_stage_follows_the_study_when_asked() {
         }
         fs::remove_dir_all(d.join("runs")).unwrap();
     }
+}
+
+#[test]
+fn the_last_steps_weights_are_studied_beside_their_average_when_asked() {
+    let dir = common::temp_dir("gpu-ema");
+    let d = dir.path();
+    let (out, calls) = stages(d, &[("EMA_DECAY", "0.999"), ("COMPARE_EMA", "1")]);
+    let log = format!("{}\n{}\n{calls:#?}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "{log}");
+    let studies: Vec<&String> = calls.iter().filter(|c| c.starts_with("study ")).collect();
+    assert_eq!(studies, ["study judge=reconstructed study=runs/x/study ema=0.999", "study judge=reconstructed study=runs/x/study-last ema="], "{log}");
+    assert!(d.join("runs/x/study-last/study.json").is_file(), "{log}");
+    fs::remove_dir_all(d.join("runs")).unwrap();
+    // Without an average there is nothing to compare: refused before any stage.
+    let (out, calls) = stages(d, &[("COMPARE_EMA", "1")]);
+    assert_eq!(out.status.code(), Some(2), "{calls:?}");
+    assert!(String::from_utf8_lossy(&out.stderr).contains("set EMA_DECAY"));
+    assert!(calls.is_empty(), "{calls:?}");
 }
 
 /// Removes detached.sh's folder of a name when the test ends, also on failure.

@@ -21,6 +21,9 @@ if [ -n "${COMPARE_JUDGE:-}" ]; then
   case "$COMPARE_JUDGE" in real|reconstructed) ;; *) echo "metaworld: COMPARE_JUDGE must be real or reconstructed" >&2; exit 2 ;; esac
   [ "$COMPARE_JUDGE" != "$OWN_JUDGE" ] || { echo "metaworld: COMPARE_JUDGE=$COMPARE_JUDGE is the study's own judge (JUDGE_FRAMES)" >&2; exit 2; }
 fi
+if [ "${COMPARE_EMA:-0}" = 1 ] && [ -z "${EMA_DECAY:-}" ]; then
+  echo "metaworld: COMPARE_EMA=1 compares the average of weights with the last step's; set EMA_DECAY" >&2; exit 2
+fi
 judge_log() { if [ "$1" = real ]; then echo "$OUT/judge.log"; else echo "$OUT/judge-$1.log"; fi; }
 # The study each judge is for (its judge stage leaves the judge on the simulator's frames there).
 study_dir() { if [ "$1" = "$OWN_JUDGE" ]; then echo "$OWN_STUDY"; else echo "$R/study-judge-$1"; fi; }
@@ -78,6 +81,11 @@ else
     fi
     if [ $status = 0 ] && [ -n "${COMPARE_SOLVER:-}" ]; then
       SOLVER=$COMPARE_SOLVER STUDY_DIR=$R/study-$COMPARE_SOLVER recipe study 2>&1 | tee -a "$OUT/recipe.log"
+      [ "${PIPESTATUS[0]}" = 0 ] || status=1
+    fi
+    if [ $status = 0 ] && [ "${COMPARE_EMA:-0}" = 1 ]; then
+      # The same training's last step's weights, beside the average the study rolled out.
+      EMA_DECAY= STUDY_DIR=$R/study-last recipe study 2>&1 | tee -a "$OUT/recipe.log"
       [ "${PIPESTATUS[0]}" = 0 ] || status=1
     fi
     for w in ${COMPARE_GUIDANCE:-}; do

@@ -20,6 +20,8 @@
 # picks variants). COMPARE_SOLVER=dpm++2m studies the same model a
 # second time with that sampler ($RUN/study-dpm++2m); COMPARE_GUIDANCE="2 3" once more per
 # action-guidance value ($RUN/study-g2, ...; the model trained with objective.action_dropout > 0);
+# COMPARE_EMA=1 (with EMA_DECAY) once more with the newest checkpoint's last step's weights instead
+# of their average ($RUN/study-last);
 # COMPARE_JUDGE=real once more with the judge that learned from the simulator's frames alone
 # ($RUN/study-judge-real, its ceiling in $RUN/ceiling/judge.json; JUDGE_FRAMES=real makes it the
 # study's own, and COMPARE_JUDGE=reconstructed then adds the recipe's default judge).

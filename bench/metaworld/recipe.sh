@@ -152,6 +152,16 @@ timed() { # $1 = stage name; the rest runs, its wall time appended to $RUN/timin
   return "$status"
 }
 
+# The EMA weights of a checkpoint (EMA_DECAY), exported once: under a lock, since stages that roll
+# out may start side by side (scripts/gpu/metaworld-stages.sh).
+ema_export() { # $1 = the checkpoint's folder name (step-NNNNNNNN)
+  mkdir -p "$RUN/ema"
+  (
+    flock 9
+    [ -f "$RUN/ema/$1/config.json" ] || timed ema "$BWM" export --checkpoint "$RUN/checkpoints/$1" --ema --dtype fp32 --out "$RUN/ema/$1"
+  ) 9> "$RUN/ema/.lock"
+}
+
 if wants data; then
   for split in train val; do
     if [ -f "$RUN/data/$split/meta/info.json" ]; then echo "recipe: $RUN/data/$split exists"; continue; fi
@@ -213,6 +223,7 @@ PY
   for kv in $TRAIN_SETS; do sets+=(--set "$kv"); done
   set +f
   timed train "$BWM" train --config configs/metaworld.toml "${sets[@]}" --resume auto
+  [ -z "$EMA_DECAY" ] || ema_export "$(cat "$RUN/checkpoints/latest")"
 fi
 # The world-model flags every later command shares: the newest checkpoint (its EMA weights with
 # EMA_DECAY, exported once), its VAE and statistics.
@@ -221,7 +232,7 @@ world_model() {
   step=$(cat "$RUN/checkpoints/latest")
   ckpt="$RUN/checkpoints/$step"
   if [ -n "$EMA_DECAY" ]; then
-    [ -f "$RUN/ema/$step/config.json" ] || timed ema "$BWM" export --checkpoint "$ckpt" --ema --dtype fp32 --out "$RUN/ema/$step" || exit 1
+    ema_export "$step" || exit 1
     ckpt="$RUN/ema/$step"
   fi
   WM=(--checkpoint "$ckpt" --vae "$RUN/vae.safetensors" --stats "$RUN/latents/stat.json" --stats-group observation.state

@@ -236,6 +236,28 @@ def agreement(names: list[str], estimated: list[float], true: list[float]) -> di
     }
 
 
+def pearson_interval(paired: list[list[tuple[bool, bool]]], draws: int = 2000, seed: int = 0) -> list[float] | None:
+    """The 95% interval of Pearson r between the rates' estimates and truths when each rate's
+    episodes (truth and world model together: one placement and policy seed) are drawn again with
+    replacement: how far r moves with another draw of as many episodes. Deterministic (seeded);
+    None when too few draws give an r (rates that cannot vary)."""
+    rng = np.random.default_rng(seed)
+    true, est = [], []
+    for episodes in paired:
+        a = np.asarray(episodes, float).reshape(-1, 2)
+        picks = a[rng.integers(0, len(a), (draws, len(a)))]  # [draws, n, 2]
+        true.append(picks[:, :, 0].mean(1))
+        est.append(picks[:, :, 1].mean(1))
+    t, e = np.stack(true, 1), np.stack(est, 1)  # [draws, rates]
+    t, e = t - t.mean(1, keepdims=True), e - e.mean(1, keepdims=True)
+    norm = np.sqrt((t * t).sum(1) * (e * e).sum(1))
+    ok = norm > 0
+    if len(paired) < 3 or ok.sum() < draws // 2:
+        return None
+    r = (t * e).sum(1)[ok] / norm[ok]
+    return [float(np.percentile(r, 2.5)), float(np.percentile(r, 97.5))]
+
+
 def episode_agreement(true: list[bool], estimated: list[bool]) -> dict:
     """Whether the world model gets *which* episodes succeed: the share of episodes whose outcome
     it draws as the simulator does, and Cohen's kappa (that share above what the two success
@@ -305,6 +327,7 @@ def summarize(truth: dict, estimates: dict, judged: dict, tasks: list[str], vari
     and its own agreement, the judge's share of the error; `replayed` (replay_world_model) the
     simulator's outcome of the world model's own episodes, which splits the rest of the error."""
     rows, pooled_true, pooled_est, pooled_first = [], [], [], []
+    paired_by_rate: list = []  # per row: its episodes' (true success, drawn success)
     approach: dict = {}
     # Per task, per world-model episode: (replay succeeded, drawn as a success, replay's closest
     # approach in cm, the judge's probability on the world model's frames).
@@ -323,6 +346,7 @@ def summarize(truth: dict, estimates: dict, judged: dict, tasks: list[str], vari
             pooled_first += [p[0] for p in paired]
             pooled_true += [p[0] is not None for p in paired]
             pooled_est += [p[1] for p in paired]
+            paired_by_rate.append([(p[0] is not None, p[1]) for p in paired])
             near, succeeded, drawn = approach.setdefault(t, ([], [], []))
             near += [truth[t][v][k][1] for k in done]
             succeeded += [p[0] is not None for p in paired]
@@ -348,7 +372,9 @@ def summarize(truth: dict, estimates: dict, judged: dict, tasks: list[str], vari
     for t in tasks:
         mine = [r for r in rows if r["task"] == t]
         per_task[t] = agreement([r["variant"] for r in mine], [r["estimated"] for r in mine], [r["true"] for r in mine])
+        per_task[t]["pearson_r_95"] = pearson_interval([p for r, p in zip(rows, paired_by_rate) if r["task"] == t])
     overall = agreement([f"{r['variant']}/{r['task']}" for r in rows], [r["estimated"] for r in rows], [r["true"] for r in rows])
+    overall["pearson_r_95"] = pearson_interval(paired_by_rate)
     mean = lambda v, key: float(np.mean([r[key] for r in rows if r["variant"] == v]))
     # A mean over tasks needs the variant in every task.
     complete = [v for v in variants if all(v in estimates[t] for t in tasks)]
@@ -768,7 +794,9 @@ def write_summary(out: str, summary: dict, tasks: list[str], chunk: int) -> None
                     ("the judge alone, on the simulator's frames", summary["judge_on_simulator_frames"])]:
         if g is None:
             continue
-        print(f"{name}: Pearson r {fmt(g['pearson_r'])}, Spearman {fmt(g['spearman_rho'])}, MAE {fmt(g['mae'])}, "
+        interval = g.get("pearson_r_95")
+        within = f" (95% over redrawn episodes {interval[0]:.3f}-{interval[1]:.3f})" if interval else ""
+        print(f"{name}: Pearson r {fmt(g['pearson_r'])}{within}, Spearman {fmt(g['spearman_rho'])}, MAE {fmt(g['mae'])}, "
               f"best {'/'.join(g['best_true'])} ranked first: {g['best_ranked_first']}")
     e = summary["per_episode"]
     print(f"per episode, pooled: the world model draws the simulator's outcome in {e['agreement']:.3f} of {e['n']} episodes "

@@ -41,6 +41,28 @@ def test_summarize_pairs_episodes_by_index():
                                       "8-10 cm": {"episodes": 4, "true": 0, "drawn": 0}, "10+ cm": {"episodes": 1, "true": 0, "drawn": 1}}}, s["by_approach"]
 
 
+def test_r_comes_with_its_interval_over_redrawn_episodes():
+    # Four rates of 20 episodes. A world model that draws every episode's outcome right keeps r = 1
+    # in every redraw; one that draws the right rates on the wrong episodes moves with the draw.
+    trues = [[k < n for k in range(20)] for n in (2, 8, 12, 18)]
+    exact = [list(zip(t, t)) for t in trues]
+    assert study.pearson_interval(exact) == [1.0, 1.0]
+    shuffled = [list(zip(t, t[::-1])) for t in trues]
+    lo, hi = study.pearson_interval(shuffled)
+    assert 0.5 < lo < hi < 1.0, (lo, hi)
+    assert study.pearson_interval(shuffled) == [lo, hi], "seeded: the same interval every time"
+    fewer = [list(zip(t[::4], t[::-1][::4])) for t in trues]  # 5 episodes per rate
+    assert study.pearson_interval(fewer)[0] < lo, "fewer episodes, a wider interval"
+    assert study.pearson_interval(exact[:2]) is None, "two rates give no interval"
+    # summarize reports it beside r, over all rates and per task.
+    truth = {"t": {v: [[10 if ok else None, 1.0] for ok in t] for v, t in zip("abcd", trues)}}
+    estimates = {"t": {v: [{"episode": k, "success": ok, "error": None} for k, ok in enumerate(t[::-1])] for v, t in zip("abcd", trues)}}
+    judged = {"t": {v: [0.9 if ok else 0.1 for ok in t] for v, t in zip("abcd", trues)}}
+    s = study.summarize(truth, estimates, judged, ["t"], list("abcd"), chunk=24)
+    assert abs(s["all"]["pearson_r"] - 1.0) < 1e-9 and s["all"]["pearson_r_95"] == [lo, hi], s["all"]
+    assert s["per_task"]["t"]["pearson_r_95"] == [lo, hi], s["per_task"]
+
+
 def test_replayed_actions_split_the_world_models_error_from_the_policies():
     truth = {"t": {"a": [[30, 0.5], [None, 6.0], [None, 7.0], [None, 12.0]]}}
     record = lambda k, ok, p: {"episode": k, "success": ok, "error": None, "actions": [], "success_probability": p}

@@ -241,6 +241,8 @@ def pearson_interval(paired: list[list[tuple[bool, bool]]], draws: int = 2000, s
     episodes (truth and world model together: one placement and policy seed) are drawn again with
     replacement: how far r moves with another draw of as many episodes. Deterministic (seeded);
     None when too few draws give an r (rates that cannot vary)."""
+    if len(paired) < 3:
+        return None
     rng = np.random.default_rng(seed)
     true, est = [], []
     for episodes in paired:
@@ -252,7 +254,7 @@ def pearson_interval(paired: list[list[tuple[bool, bool]]], draws: int = 2000, s
     t, e = t - t.mean(1, keepdims=True), e - e.mean(1, keepdims=True)
     norm = np.sqrt((t * t).sum(1) * (e * e).sum(1))
     ok = norm > 0
-    if len(paired) < 3 or ok.sum() < draws // 2:
+    if ok.sum() < draws // 2:
         return None
     r = (t * e).sum(1)[ok] / norm[ok]
     return [float(np.percentile(r, 2.5)), float(np.percentile(r, 97.5))]
@@ -342,20 +344,21 @@ def summarize(truth: dict, estimates: dict, judged: dict, tasks: list[str], vari
             probability_of = {e["episode"]: e.get("success_probability") for e in est}
             done = [k for k in range(len(truth[t][v])) if k in by_episode]
             first = [truth[t][v][k][0] for k in done]
-            paired = [(f, by_episode[k]) for k, f in zip(done, first)]
-            pooled_first += [p[0] for p in paired]
-            pooled_true += [p[0] is not None for p in paired]
-            pooled_est += [p[1] for p in paired]
-            paired_by_rate.append([(p[0] is not None, p[1]) for p in paired])
+            true_ok = [f is not None for f in first]
+            drawn_ok = [by_episode[k] for k in done]
+            pooled_first += first
+            pooled_true += true_ok
+            pooled_est += drawn_ok
+            paired_by_rate.append(list(zip(true_ok, drawn_ok)))
             near, succeeded, drawn = approach.setdefault(t, ([], [], []))
             near += [truth[t][v][k][1] for k in done]
-            succeeded += [p[0] is not None for p in paired]
-            drawn += [p[1] for p in paired]
-            row = {"task": t, "variant": v, "episodes": len(first), "true": float(np.mean([f is not None for f in first])),
+            succeeded += true_ok
+            drawn += drawn_ok
+            row = {"task": t, "variant": v, "episodes": len(first), "true": float(np.mean(true_ok)),
                    "estimated": float(np.mean([e["success"] for e in est])), "errors": sum(e["error"] is not None for e in est),
                    "judged_simulator": float(np.mean([judged[t][v][k] >= THRESHOLD for k in done])),
-                   "per_episode": episode_agreement([p[0] is not None for p in paired], [p[1] for p in paired]),
-                   "by_success_chunk": by_success_chunk([p[0] for p in paired], [p[1] for p in paired], chunk)}
+                   "per_episode": episode_agreement(true_ok, drawn_ok),
+                   "by_success_chunk": by_success_chunk(first, drawn_ok, chunk)}
             if replayed is not None:
                 outcome = replayed[t][v]
                 # Per world-model episode: [episode, drawn as a success, replay's first success step

@@ -98,6 +98,7 @@ TRAIN_SETS="${TRAIN_SETS:-}"              # more `--set KEY=VALUE` for bwm train
 # The DiT's weights averaged over its training (optim.ema_decay, e.g. 0.999: about the last 1000
 # steps); every stage that rolls out then uses the average of the newest checkpoint (bwm export
 # --ema into $RUN/ema/STEP), not its last step's weights. Empty (default): no average.
+# At 0.999 the average drew the drawer worse than the last step (docs/fidelity.md, run 36).
 EMA_DECAY="${EMA_DECAY:-}"
 SAMPLE_STEPS="${SAMPLE_STEPS:-4}"         # sampler steps per generated chunk (the sweep's pick, docs/fidelity.md run 15)
 SOLVER="${SOLVER:-euler}"                 # euler or dpm++2m (bwm --solver)

@@ -483,6 +483,11 @@ fn the_study_scores_rates_and_episodes() {
 }
 
 #[test]
+fn trainings_are_compared_rate_for_rate() {
+    run(Command::new(python()).arg(Path::new(ROOT).join("bench/metaworld/tests/test_trainings.py")), "test_trainings.py");
+}
+
+#[test]
 fn teacher_forcing_lays_chunks_out_and_scores_them() {
     run(Command::new(python()).arg(Path::new(ROOT).join("bench/metaworld/tests/test_teacher.py")), "test_teacher.py");
 }

@@ -434,6 +434,11 @@ fn near_misses_are_counted_by_distance_in_the_simulator() {
     assert!(count("2,12") >= 1 && count("2,12") == count("3,9"), "{report}");
     for (range, lo, hi) in [("2,12", 2.0, 12.0), ("3,9", 2.0, 10.0)] {
         assert_eq!(episodes_in_bands(&drawer[range]["by_cm"], lo, hi, &report), count(range), "--miss-cm {range}: {report}");
+        // Split by the axis they aim along, the same episodes again.
+        let axes = drawer[range]["by_axis"].as_object().unwrap_or_else(|| panic!("no by_axis: {report}"));
+        assert!(axes.keys().all(|k| ["-y", "+y", "x"].contains(&k.as_str())), "{report}");
+        let split: u64 = axes.values().map(|row| episodes_in_bands(&row["by_cm"], lo, hi, &report)).sum();
+        assert_eq!(split, count(range), "--miss-cm {range}: {report}");
     }
 
     // Misses drawn around the measured boundary (the committed boundary.json) and weighted up:

@@ -6,7 +6,9 @@
 For the training seeds 0..episodes-1 (the recipe's train split), every episode that generate.py
 would degrade into a `miss` (the expert steering on an object estimate off by a random distance in
 a random direction) is simulated with that distance drawn from each --miss-cm range, and its
-outcome counted by distance band. The bands where outcomes flip are where a world model needs
+outcome counted by distance band, over all directions and per axis (`by_axis`: within 45 degrees
+of -y or of +y, else beside the object along x; for the drawer, in front of its handle, behind it,
+beside it). The bands where outcomes flip are where a world model needs
 examples on both sides of the contact; a range that puts most misses far past them adds failures
 it already draws, one inside them adds successes. With --miss-boundary FILE, the misses are
 drawn as `generate.py --miss-boundary FILE` draws them (around where the outcome flips in their
@@ -33,9 +35,9 @@ from mw import TASKS, Sim
 
 def outcomes(task: str, episodes: int, miss: tuple[float, float] | boundary.Boundary, frames: int, degraded: float, spread: str,
              decoy_weight: float = 0.0, mode: str = "miss", miss_weight: float = generate.DEGRADED_MODES["miss"]) -> list[tuple[float, bool]]:
-    """(distance in cm, succeeded) of every `mode` episode among seeds 0..episodes-1, the misses
-    drawn `miss` (m) off or around its boundary; the distance is how far from the object the
-    episode's expert aims."""
+    """(distance in cm, succeeded, axis) of every `mode` episode among seeds 0..episodes-1, the
+    misses drawn `miss` (m) off or around its boundary; the distance is how far from the object
+    the episode's expert aims, the axis which way (`axis`)."""
     out = []
     for seed in range(episodes):
         behaviour = generate.Behaviour(task, generate.episode_rng(task, seed), frames, degraded, spread, miss, decoy_weight, miss_weight)
@@ -43,16 +45,26 @@ def outcomes(task: str, episodes: int, miss: tuple[float, float] | boundary.Boun
             continue
         with Sim(task, seed, 32) as sim:
             success = generate.simulate(behaviour, sim, frames, render=False)[4]
-        out.append((float(np.linalg.norm(behaviour.offset[:2])) * 100, any(success)))
+        out.append((float(np.linalg.norm(behaviour.offset[:2])) * 100, any(success), axis(behaviour.offset)))
     return out
 
 
-def by_band(results: list[tuple[float, bool]], band: float) -> dict:
-    top = max((d for d, _ in results), default=0.0)
+def axis(offset: np.ndarray) -> str:
+    """Which way an aim `offset` points in the table plane: "-y" or "+y" within 45 degrees of that
+    axis, else "x" (either side). For the drawer, -y is in front of its handle (where its `wrong`
+    variant aims) and x is beside it (where its `blind` hand misses a drawer placed off centre)."""
+    x, y = float(offset[0]), float(offset[1])
+    if abs(y) > abs(x):
+        return "-y" if y < 0 else "+y"
+    return "x"
+
+
+def by_band(results: list[tuple[float, bool, str]], band: float) -> dict:
+    top = max((d for d, _, _ in results), default=0.0)
     bands = {}
     for k in range(int(top // band) + 1):
         lo, hi = k * band, (k + 1) * band
-        inside = [s for d, s in results if lo <= d < hi]
+        inside = [s for d, s, _ in results if lo <= d < hi]
         if inside:
             bands[f"{lo:g}-{hi:g}"] = {"episodes": len(inside), "succeeded": sum(inside)}
     return bands
@@ -91,7 +103,12 @@ def main(argv=None) -> None:
             counted.append(("decoy", "decoy", counted[0][2]))
         for name, mode, miss in counted:
             results = outcomes(task, args.episodes, miss, args.frames, args.degraded_fraction, args.spread, args.decoy_weight, mode, args.miss_weight)
-            row = {f"{mode}_episodes": len(results), "succeeded": sum(s for _, s in results), "by_cm": by_band(results, args.band_cm)}
+            row = {f"{mode}_episodes": len(results), "succeeded": sum(s for _, s, _ in results), "by_cm": by_band(results, args.band_cm),
+                   "by_axis": {}}
+            for way in ("-y", "+y", "x"):
+                these = [r for r in results if r[2] == way]
+                if these:
+                    row["by_axis"][way] = {"episodes": len(these), "succeeded": sum(s for _, s, _ in these), "by_cm": by_band(these, args.band_cm)}
             report["tasks"].setdefault(task, {})[name] = row
             label = {"decoy": "decoy", "boundary": "--miss-boundary"}.get(name, f"--miss-cm {name}")
             print(f"miss_outcomes: {task} {label}: {row['succeeded']} of {len(results)} {mode} episodes succeed", file=sys.stderr, flush=True)

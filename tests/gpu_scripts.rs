@@ -268,4 +268,28 @@ fn detached_work_is_followed_across_waits_and_packed() {
     assert!(stdout.contains("ended with status 0") && !stdout.contains("v/log:"), "{stdout}");
     let listing = Command::new("tar").arg("-tzf").arg(out_dir.path().join(format!("{}.tar.gz", name.0))).output().unwrap();
     assert!(String::from_utf8_lossy(&listing.stdout).contains("out/v/log"), "{}", String::from_utf8_lossy(&listing.stdout));
+
+    // Episode videos: the first of each videos/ folder, or those VIDEOS picks.
+    let study = out_dir.path().join("study");
+    let files = ["eval-0/videos/expert/t/episode_000.png", "eval-0/videos/expert/t/episode_001.png", "eval-1/videos/wrong/t/episode_003.png"];
+    for f in files {
+        let p = study.join(f);
+        fs::create_dir_all(p.parent().unwrap()).unwrap();
+        fs::write(&p, f).unwrap();
+    }
+    let packed = |pattern: Option<&str>| -> Vec<bool> {
+        let mut wait = Command::new("bash");
+        wait.arg(&script).args(["wait", &name.0, "1"]).arg(&study).env("OUT", out_dir.path());
+        match pattern {
+            Some(p) => wait.env("VIDEOS", p),
+            None => wait.env_remove("VIDEOS"),
+        };
+        let o = wait.output().unwrap();
+        assert_eq!(o.status.code(), Some(0), "{}", String::from_utf8_lossy(&o.stdout));
+        let listing = Command::new("tar").arg("-tzf").arg(out_dir.path().join(format!("{}-videos.tar.gz", name.0))).output().unwrap();
+        let listing = String::from_utf8_lossy(&listing.stdout).into_owned();
+        files.iter().map(|f| listing.contains(f)).collect()
+    };
+    assert_eq!(packed(None), [true, false, false]);
+    assert_eq!(packed(Some("*/videos/wrong/*")), [false, false, true]);
 }

@@ -9,7 +9,9 @@
 #                                                          and the files under 3 MB in each DIR (outside
 #                                                          videos/) into $OUT/NAME.tar.gz (in 15 MiB
 #                                                          parts NAME.tar.gz.part-NN when larger), the first
-#                                                          episode of each videos/ folder into
+#                                                          episode of each videos/ folder (or the episode
+#                                                          videos whose path matches VIDEOS, a find -path
+#                                                          pattern) into
 #                                                          $OUT/NAME-videos.tar.gz, both partial if
 #                                                          CMD is still running (then with the last line
 #                                                          of each log in the out folder)
@@ -47,8 +49,10 @@ case "$mode" in
     cp "$dir/log" "${OUT:-/tmp/out}/$name.log"
     rm -rf "$dir/pack"; mkdir -p "$dir/pack"; cp -r "$dir/out" "$dir/pack/out"
     rm -rf "$dir/videos"; mkdir -p "$dir/videos"
-    # The first episode of each videos/ folder goes in an archive of its own, as many as fit in
-    # 14 MiB (files over the device tool's 16 MiB limit do not come back, and the measurements must).
+    # The first episode of each videos/ folder (or those VIDEOS picks) goes in an archive of its
+    # own, as many as fit in 14 MiB (files over the device tool's 16 MiB limit do not come back,
+    # and the measurements must).
+    videos="${VIDEOS:-*/videos/*/episode_000.*}"
     video_bytes=0 video_left=0
     for d in "$@"; do
       [ -d "$d" ] || continue
@@ -60,7 +64,7 @@ case "$mode" in
         else
           video_left=$((video_left + 1))
         fi
-      done < <(find "$d" -type f -size -3M -path '*/videos/*' -name 'episode_000.*' | sort)
+      done < <(find "$d" -type f -path '*/videos/*' -path "$videos" | sort)
     done
     [ "$video_left" -gt 0 ] && echo "detached: $video_left episode videos left out of $name-videos.tar.gz (over 14 MiB in all)"
     tar -czf "${OUT:-/tmp/out}/$name.tar.gz" -C "$dir/pack" .

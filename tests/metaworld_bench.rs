@@ -488,6 +488,11 @@ fn the_study_scores_rates_and_episodes() {
 }
 
 #[test]
+fn world_model_episodes_are_set_beside_the_simulators_frames_of_their_actions() {
+    run(Command::new(python()).arg(Path::new(ROOT).join("bench/metaworld/tests/test_side_by_side.py")), "test_side_by_side.py");
+}
+
+#[test]
 fn trainings_are_compared_rate_for_rate() {
     run(Command::new(python()).arg(Path::new(ROOT).join("bench/metaworld/tests/test_trainings.py")), "test_trainings.py");
 }

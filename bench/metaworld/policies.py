@@ -221,6 +221,8 @@ class Episode:
     approach_cm: float
     commands: np.ndarray
     frames: np.ndarray | None = None
+    # The hand's offset from the object at that closest approach (cm, world x, y, z).
+    nearest_cm: np.ndarray | None = None
 
 
 class _Outcome:
@@ -228,24 +230,27 @@ class _Outcome:
 
     def __init__(self, sim):
         self.sim, self.t, self.first, self.commands = sim, 0, None, []
-        self.approach = self._distance()
+        self.nearest = self._offset()
+        self.approach = float(np.linalg.norm(self.nearest))
 
-    def _distance(self) -> float:
-        return float(np.linalg.norm(self.sim.hand_pos() - self.sim.object_pos()))
+    def _offset(self) -> np.ndarray:
+        return self.sim.hand_pos() - self.sim.object_pos()
 
     def step(self, command, render: bool):
         image, state, done = self.sim.step(command, render=render)
         self.t += 1
         self.commands.append(np.asarray(command, np.float32))
         if self.first is None:
-            self.approach = min(self.approach, self._distance())
+            offset = self._offset()
+            if np.linalg.norm(offset) < self.approach:
+                self.nearest, self.approach = offset, float(np.linalg.norm(offset))
             if done:
                 self.first = self.t
         return image, state, done
 
     def episode(self, frames=None) -> Episode:
         commands = np.stack(self.commands) if self.commands else np.zeros((0, 4), np.float32)
-        return Episode(self.first, 100 * self.approach, commands, None if frames is None else np.stack(frames))
+        return Episode(self.first, 100 * self.approach, commands, None if frames is None else np.stack(frames), 100 * self.nearest)
 
 
 def run_episode(task: str, variant: str, seed: int, horizon: int = 120, chunk: int = 24, resolution: int = 64,
@@ -271,18 +276,23 @@ def run_episode(task: str, variant: str, seed: int, horizon: int = 120, chunk: i
         return outcome.episode(frames)
 
 
-def replay(task: str, seed: int, commands, resolution: int = 64) -> Episode:
+def replay(task: str, seed: int, commands, resolution: int = 64, record: bool = False) -> Episode:
     """A fixed sequence of commands (a world-model episode's actions) issued open loop in the
-    simulator from the placement of `seed`, up to its first success."""
+    simulator from the placement of `seed`, up to its first success; with `record`, every command
+    and every frame from x0 on."""
     from mw import Sim
 
     with Sim(task, seed, resolution) as sim:
-        sim.reset()
+        image, _ = sim.reset()
+        frames = [image] if record else None
         outcome = _Outcome(sim)
         for command in np.asarray(commands, np.float32).reshape(-1, 4):
-            if outcome.step(command, render=False)[2]:
+            image, _, done = outcome.step(command, render=record)
+            if record:
+                frames.append(image)
+            elif done:
                 break
-        return outcome.episode()
+        return outcome.episode(frames)
 
 
 def measure_truth(task: str, variant: str, seeds, horizon: int = 120, chunk: int = 24, resolution: int = 64) -> list[Episode]:

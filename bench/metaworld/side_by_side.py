@@ -10,8 +10,10 @@ from the same placement (episode_seeds.json), every frame rendered at the study'
 world model's contact sheet of that episode (its videos/, 24 frames a row, as `bwm` writes it
 without FFmpeg), its rows interleaved with the simulator's (world model, simulator, world model,
 ...); else the simulator's rows alone. Prints per episode, and writes to DIR/side_by_side.json:
-the world model's verdict, the simulator's outcome of the same actions, and how close the hand
-came to the object there, with its offset at that moment (cm, world x, y, z). So one can see
+the world model's verdict, the simulator's outcome of the same actions, how close the hand came
+to the object there, with its offset at that moment (cm, world x, y, z), and where a sheet was
+kept, the world model's frames against the simulator's (PSNR per chunk of 24 frames: where they
+part). So one can see
 whether the world model drew the hand where the actions put it, and what it drew happening.
 """
 
@@ -86,6 +88,22 @@ def sim_rows(frames: np.ndarray) -> list[np.ndarray]:
     return rows
 
 
+def sheet_frames(rows: list[np.ndarray], size: int, n: int) -> np.ndarray:
+    """The first `n` frames of a contact sheet's rows, in order."""
+    frames = [row[:, c : c + size] for row in rows for c in range(0, row.shape[1], size)]
+    if len(frames) < n:
+        raise ValueError(f"the sheet holds {len(frames)} frames, the episode {n}")
+    return np.stack(frames[:n])
+
+
+def psnr_by_chunk(world_model: np.ndarray, simulator: np.ndarray, chunk: int = PER_ROW) -> list[float | None]:
+    """PSNR (dB) of the world model's frames against the simulator's over each chunk of `chunk`
+    frames (of the chunk's mean squared error); None for a chunk drawn exactly."""
+    err = ((world_model.astype(np.float64) - simulator.astype(np.float64)) ** 2).reshape(len(world_model), -1).mean(1)
+    means = [float(err[start : start + chunk].mean()) for start in range(0, len(err), chunk)]
+    return [None if m == 0 else round(10 * np.log10(255.0**2 / m), 2) for m in means]
+
+
 def interleave(world_model: list[np.ndarray], simulator: list[np.ndarray]) -> np.ndarray:
     """Rows of both, world model first; the shorter sheet's missing rows left black."""
     width = max(r.shape[1] for r in world_model + simulator)
@@ -132,18 +150,27 @@ def main(argv=None) -> None:
         rows = sim_rows(replayed.frames)
         path = sheet(r)
         drawn = path is not None and os.path.isfile(path)
-        image = interleave(sheet_rows(np.asarray(Image.open(path).convert("RGB")), resolution), rows) if drawn else np.concatenate(rows)
+        psnr = None
+        if drawn:
+            wm_rows = sheet_rows(np.asarray(Image.open(path).convert("RGB")), resolution)
+            image = interleave(wm_rows, rows)
+            n = min(int(r.get("frames", len(r["actions"]))), len(replayed.frames) - 1)
+            psnr = psnr_by_chunk(sheet_frames(wm_rows, resolution, n), replayed.frames[1 : n + 1])
+        else:
+            image = np.concatenate(rows)
         name = f"{a.variant}-{a.task}-episode_{e:03d}.png"
         tmp = os.path.join(a.out, name + ".tmp")
         Image.fromarray(image).save(tmp, format="PNG")
         os.replace(tmp, os.path.join(a.out, name))
         row = {"episode": e, "seed": seeds[e], "world_model_success": bool(r["success"]), "simulator_first_success": replayed.first,
                "closest_approach_cm": round(replayed.approach_cm, 2), "offset_at_closest_cm": [round(float(v), 2) for v in replayed.nearest_cm],
-               "world_model_sheet": drawn, "image": name}
+               "world_model_sheet": drawn, "psnr_db_by_chunk": psnr, "image": name}
         report.append(row)
         print(f"side_by_side: {a.variant}/{a.task} episode {e} (seed {seeds[e]}): world model {'success' if row['world_model_success'] else 'failure'}, "
               f"simulator {'success at step %d' % replayed.first if replayed.first else 'failure'}; hand closest {row['closest_approach_cm']} cm "
-              f"off (x, y, z {', '.join(map(str, row['offset_at_closest_cm']))}); {name}{'' if drawn else ' (the simulator alone: no world-model sheet)'}",
+              f"off (x, y, z {', '.join(map(str, row['offset_at_closest_cm']))})"
+              f"{'; world model against simulator, PSNR by chunk ' + ', '.join('exact' if p is None else f'{p} dB' for p in psnr) if drawn else ''}"
+              f"; {name}{'' if drawn else ' (the simulator alone: no world-model sheet)'}",
               flush=True)
     tmp = os.path.join(a.out, "side_by_side.json.tmp")
     with open(tmp, "w") as f:

@@ -18,7 +18,7 @@ import side_by_side  # noqa: E402
 TASK, SEEDS, SIZE = "drawer-open-v3", [100000, 100001], 32
 
 
-def make_study(root: str, actions: list) -> None:
+def make_study(root: str, actions: list, sheet: np.ndarray | None = None) -> None:
     with open(os.path.join(root, "episode_seeds.json"), "w") as f:
         json.dump({TASK: SEEDS}, f)
     ev = os.path.join(root, "eval-0")
@@ -36,7 +36,9 @@ def make_study(root: str, actions: list) -> None:
     # 1's was not kept.
     from PIL import Image
 
-    Image.fromarray(np.full((2 * SIZE, 24 * SIZE, 3), 200, np.uint8)).save(os.path.join(ev, "videos", "wrong", TASK, "episode_000.png"))
+    if sheet is None:
+        sheet = np.full((2 * SIZE, 24 * SIZE, 3), 200, np.uint8)
+    Image.fromarray(sheet).save(os.path.join(ev, "videos", "wrong", TASK, "episode_000.png"))
 
 
 def test_the_world_models_rows_alternate_with_the_simulators_of_the_same_actions():
@@ -65,6 +67,18 @@ def test_the_world_models_rows_alternate_with_the_simulators_of_the_same_actions
         assert np.array_equal(rows[1][:, :SIZE], truth.frames[1]) and np.array_equal(rows[3][:, 5 * SIZE : 6 * SIZE], truth.frames[30])
         assert not rows[3][:, 6 * SIZE :].any()
         assert not [n for n in os.listdir(out) if n.endswith(".tmp")]
+        assert len(e["psnr_db_by_chunk"]) == 2 and all(p < 30 for p in e["psnr_db_by_chunk"]), e
+
+        # A world model that drew the simulator's frames exactly, but for its second chunk.
+        exact = np.concatenate([rows[1], rows[3]]).copy()
+        exact[SIZE:, :SIZE] = 255 - exact[SIZE:, :SIZE]
+        shutil.rmtree(root)
+        os.makedirs(root)
+        make_study(root, actions, exact)
+        side_by_side.main(["--study", root, "--task", TASK, "--variant", "wrong", "--out", out])
+        with open(os.path.join(out, "side_by_side.json")) as f:
+            psnr = json.load(f)["episodes"][0]["psnr_db_by_chunk"]
+        assert psnr[0] is None and psnr[1] is not None and psnr[1] < 30, psnr
 
         # An episode without a kept sheet: the simulator alone.
         side_by_side.main(["--study", root, "--task", TASK, "--variant", "wrong", "--episodes", "1", "--out", out])

@@ -34,7 +34,7 @@ from mw import TASKS, Sim
 
 
 def outcomes(task: str, episodes: int, miss: tuple[float, float] | boundary.Boundary, frames: int, degraded: float, spread: str,
-             decoy_weight: float = 0.0, mode: str = "miss", miss_weight: float = generate.DEGRADED_MODES["miss"]) -> list[tuple[float, bool]]:
+             decoy_weight: float = 0.0, mode: str = "miss", miss_weight: float = generate.DEGRADED_MODES["miss"]) -> list[tuple[float, bool, str]]:
     """(distance in cm, succeeded, axis) of every `mode` episode among seeds 0..episodes-1, the
     misses drawn `miss` (m) off or around its boundary; the distance is how far from the object
     the episode's expert aims, the axis which way (`axis`)."""

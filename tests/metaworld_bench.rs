@@ -24,6 +24,11 @@ fn run(cmd: &mut Command, what: &str) -> String {
     text
 }
 
+/// Runs one of bench/metaworld/tests/'s Python test files.
+fn python_tests(file: &str) {
+    run(Command::new(python()).arg(Path::new(ROOT).join("bench/metaworld/tests").join(file)), file);
+}
+
 fn json(path: &Path) -> Value {
     serde_json::from_str(&std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))).unwrap()
 }
@@ -294,7 +299,7 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
 
 #[test]
 fn the_judge_learns_from_reconstructed_frames() {
-    run(Command::new(python()).arg(Path::new(ROOT).join("bench/metaworld/tests/test_judge.py")), "test_judge.py");
+    python_tests("test_judge.py");
 }
 
 /// Each episode's behaviour (`expert` or a degraded mode) in a generated dataset's episodes.jsonl.
@@ -399,7 +404,7 @@ fn the_recipes_vae_graph_and_candidates_reach_train_vae() {
 
 #[test]
 fn the_generator_spreads_its_experts_as_asked() {
-    run(Command::new(python()).arg(Path::new(ROOT).join("bench/metaworld/tests/test_generate.py")), "test_generate.py");
+    python_tests("test_generate.py");
 }
 
 /// The episodes of a miss_outcomes.py `by_cm` row, every band inside [lo, hi] cm and no band
@@ -479,37 +484,37 @@ fn near_misses_are_counted_by_distance_in_the_simulator() {
 
 #[test]
 fn the_outcome_boundary_is_measured_in_the_simulator() {
-    run(Command::new(python()).arg(Path::new(ROOT).join("bench/metaworld/tests/test_boundary.py")), "test_boundary.py");
+    python_tests("test_boundary.py");
 }
 
 #[test]
 fn the_study_scores_rates_and_episodes() {
-    run(Command::new(python()).arg(Path::new(ROOT).join("bench/metaworld/tests/test_study.py")), "test_study.py");
+    python_tests("test_study.py");
 }
 
 #[test]
 fn world_model_episodes_are_set_beside_the_simulators_frames_of_their_actions() {
-    run(Command::new(python()).arg(Path::new(ROOT).join("bench/metaworld/tests/test_side_by_side.py")), "test_side_by_side.py");
+    python_tests("test_side_by_side.py");
 }
 
 #[test]
 fn trainings_are_compared_rate_for_rate() {
-    run(Command::new(python()).arg(Path::new(ROOT).join("bench/metaworld/tests/test_trainings.py")), "test_trainings.py");
+    python_tests("test_trainings.py");
 }
 
 #[test]
 fn teacher_forcing_lays_chunks_out_and_scores_them() {
-    run(Command::new(python()).arg(Path::new(ROOT).join("bench/metaworld/tests/test_teacher.py")), "test_teacher.py");
+    python_tests("test_teacher.py");
 }
 
 #[test]
 fn the_sampler_sweep_picks_the_fewest_steps_within_bounds() {
-    run(Command::new(python()).arg(Path::new(ROOT).join("bench/metaworld/tests/test_sweep.py")), "test_sweep.py");
+    python_tests("test_sweep.py");
 }
 
 #[test]
 fn the_policy_server_speaks_openpi() {
-    run(Command::new(python()).arg(Path::new(ROOT).join("bench/metaworld/tests/test_policy_server.py")), "test_policy_server.py");
+    python_tests("test_policy_server.py");
 }
 
 /// bench/metaworld/transfer.sh at toy sizes: a base on one task, post-trained onto the other in

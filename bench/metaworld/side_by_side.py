@@ -8,7 +8,7 @@ policy sent through the world model's frames (eval-*/episodes.jsonl) are issued 
 from the same placement (episode_seeds.json), every frame rendered at the study's resolution
 (eval-*/evaluate.toml). Writes DIR/VARIANT-TASK-episode_NNN.png: where `bwm evaluate` wrote the
 world model's contact sheet of that episode (its videos/, 24 frames a row, as `bwm` writes it
-without FFmpeg), its rows interleaved with the simulator's (world model, simulator, world model,
+without FFmpeg; an MP4 is left out), its rows interleaved with the simulator's (world model, simulator, world model,
 ...); else the simulator's rows alone. Prints per episode, and writes to DIR/side_by_side.json:
 the world model's verdict, the simulator's outcome of the same actions, how close the hand came
 to the object there, with its offset at that moment (cm, world x, y, z), and where a sheet was
@@ -128,7 +128,9 @@ def main(argv=None) -> None:
     import policies
 
     records, seeds, resolution, _ = load_study(a.study, a.task, a.variant)
-    sheet = lambda r: os.path.join(r["_folder"], r["video"]) if r.get("video") else None
+    video = lambda r: os.path.join(r["_folder"], r["video"]) if r.get("video") else None
+    # bwm writes an MP4 where it was built with FFmpeg, a PNG contact sheet otherwise.
+    sheet = lambda r: video(r) if video(r) and video(r).endswith(".png") and os.path.isfile(video(r)) else None
     if a.episodes:
         try:
             chosen = [int(e) for e in a.episodes.split(",")]
@@ -137,7 +139,7 @@ def main(argv=None) -> None:
         if missing := [e for e in chosen if e not in records]:
             ap.error(f"no episode {', '.join(map(str, missing))} of {a.variant} on {a.task} in the study")
     else:
-        chosen = [e for e in sorted(records) if sheet(records[e]) and os.path.isfile(sheet(records[e]))] or sorted(records)[:4]
+        chosen = [e for e in sorted(records) if sheet(records[e])] or sorted(records)[:4]
     os.makedirs(a.out, exist_ok=True)
     report = []
     for e in chosen:
@@ -149,10 +151,14 @@ def main(argv=None) -> None:
         replayed = policies.replay(a.task, seeds[e], r["actions"], resolution, record=True)
         rows = sim_rows(replayed.frames)
         path = sheet(r)
-        drawn = path is not None and os.path.isfile(path)
+        drawn = path is not None
+        why = f"its video {os.path.basename(video(r))} is not a PNG contact sheet" if video(r) and os.path.isfile(video(r)) else "no world-model sheet"
         psnr = None
         if drawn:
-            wm_rows = sheet_rows(np.asarray(Image.open(path).convert("RGB")), resolution)
+            try:
+                wm_rows = sheet_rows(np.asarray(Image.open(path).convert("RGB")), resolution)
+            except ValueError as err:
+                raise SystemExit(f"side_by_side: {path}: {err}") from None
             image = interleave(wm_rows, rows)
             n = min(int(r.get("frames", len(r["actions"]))), len(replayed.frames) - 1)
             psnr = psnr_by_chunk(sheet_frames(wm_rows, resolution, n), replayed.frames[1 : n + 1])
@@ -170,7 +176,7 @@ def main(argv=None) -> None:
               f"simulator {'success at step %d' % replayed.first if replayed.first else 'failure'}; hand closest {row['closest_approach_cm']} cm "
               f"off (x, y, z {', '.join(map(str, row['offset_at_closest_cm']))})"
               f"{'; world model against simulator, PSNR by chunk ' + ', '.join('exact' if p is None else f'{p} dB' for p in psnr) if drawn else ''}"
-              f"; {name}{'' if drawn else ' (the simulator alone: no world-model sheet)'}",
+              f"; {name}{'' if drawn else f' (the simulator alone: {why})'}",
               flush=True)
     tmp = os.path.join(a.out, "side_by_side.json.tmp")
     with open(tmp, "w") as f:

@@ -28,12 +28,13 @@ def make_study(root: str, actions: list, sheet: np.ndarray | None = None) -> Non
     records = [{"policy": "wrong", "task": TASK, "episode": 0, "success": True, "actions": actions,
                 "video": f"videos/wrong/{TASK}/episode_000.png"},
                {"policy": "wrong", "task": TASK, "episode": 1, "success": False, "actions": actions,
-                "video": f"videos/wrong/{TASK}/episode_001.png"},
+                "video": f"videos/wrong/{TASK}/episode_001.mp4"},
                {"policy": "expert", "task": TASK, "episode": 0, "success": True, "actions": actions}]
     with open(os.path.join(ev, "episodes.jsonl"), "w") as f:
         f.write("".join(json.dumps(r) + "\n" for r in records))
     # The world model's sheet of episode 0 (30 frames: a row of 24 and one of 6), one grey; episode
-    # 1's was not kept.
+    # 1's is an MP4 (a bwm built with FFmpeg).
+    open(os.path.join(ev, "videos", "wrong", TASK, "episode_001.mp4"), "wb").close()
     from PIL import Image
 
     if sheet is None:
@@ -80,8 +81,11 @@ def test_the_world_models_rows_alternate_with_the_simulators_of_the_same_actions
             psnr = json.load(f)["episodes"][0]["psnr_db_by_chunk"]
         assert psnr[0] is None and psnr[1] is not None and psnr[1] < 30, psnr
 
-        # An episode without a kept sheet: the simulator alone.
-        side_by_side.main(["--study", root, "--task", TASK, "--variant", "wrong", "--episodes", "1", "--out", out])
+        # An episode without a contact sheet: the simulator alone, and why.
+        said = io.StringIO()
+        with contextlib.redirect_stdout(said):
+            side_by_side.main(["--study", root, "--task", TASK, "--variant", "wrong", "--episodes", "1", "--out", out])
+        assert "episode_001.mp4 is not a PNG contact sheet" in said.getvalue(), said.getvalue()
         with open(os.path.join(out, "side_by_side.json")) as f:
             e = json.load(f)["episodes"][0]
         assert not e["world_model_sheet"] and not e["world_model_success"], e

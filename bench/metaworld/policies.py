@@ -242,8 +242,9 @@ class _Outcome:
         self.commands.append(np.asarray(command, np.float32))
         if self.first is None:
             offset = self._offset()
-            if np.linalg.norm(offset) < self.approach:
-                self.nearest, self.approach = offset, float(np.linalg.norm(offset))
+            distance = float(np.linalg.norm(offset))
+            if distance < self.approach:
+                self.nearest, self.approach = offset, distance
             if done:
                 self.first = self.t
         return image, state, done

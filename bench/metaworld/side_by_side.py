@@ -43,13 +43,13 @@ def load_study(study: str, task: str, variant: str) -> tuple[dict[int, dict], li
         seeds = json.load(f)
     if task not in seeds:
         raise SystemExit(f"side_by_side: the study ran no {task} (it ran {', '.join(seeds)})")
+    from study import read_estimates
+
     records, resolution, folders = {}, None, []
     for folder in sorted(glob.glob(os.path.join(study, "eval-*"))):
-        path = os.path.join(folder, "episodes.jsonl")
-        if not os.path.isfile(path):
-            continue
-        with open(path) as f:
-            mine = [r for r in map(json.loads, filter(str.strip, f)) if r.get("task") == task and r.get("policy") == variant]
+        # One folder at a time, so that each record knows where its video is; a folder without
+        # episodes (a process that wrote none) is passed over as a cut study's is.
+        mine = read_estimates([folder], cut=True).get(task, {}).get(variant, [])
         if not mine:
             continue
         folders.append(folder)

@@ -69,14 +69,15 @@ fn lines(path: &Path) -> Vec<String> {
 fn variants_with_the_same_data_variables_share_one_dataset() {
     let dir = common::temp_dir("gpu-variants");
     let d = dir.path();
-    let out = variants(d, &["a", "DECOY=3 MISS_WEIGHT=9", "b", "MISS_WEIGHT=9 DECOY=3 VAE_SEED=1", "c", "DECOY=6"]);
+    let out = variants(d, &["a", "DECOY=3 MISS_WEIGHT=9", "b", "MISS_WEIGHT=9 DECOY=3 VAE_SEED=1", "c", "DECOY=6", "e", "DECOY=6 MISS_FACTOR=1.1,2"]);
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(out.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
     assert!(stdout.contains("variants: b uses a's data"), "{stdout}");
-    // Two datasets made (a's and c's); b started once a's were written and found them.
+    // Three datasets made (a's, c's and e's, whose misses lie elsewhere); b started once a's were
+    // written and found them.
     assert_eq!(
         lines(&d.join("made.txt")),
-        ["runs/a made train", "runs/a made val", "runs/b found its data", "runs/c made train", "runs/c made val"],
+        ["runs/a made train", "runs/a made val", "runs/b found its data", "runs/c made train", "runs/c made val", "runs/e made train", "runs/e made val"],
         "{stdout}"
     );
     assert_eq!(fs::read_link(d.join("runs/b/data")).unwrap(), d.join("runs/a/data"));

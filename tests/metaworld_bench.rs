@@ -341,6 +341,11 @@ fn the_recipes_default_data_are_mostly_near_misses() {
     let err = String::from_utf8_lossy(&both.stderr);
     assert!(!both.status.success() && err.contains("MISS_CM and MISS_BOUNDARY"), "{err}");
     assert!(!dir.join("both/data").exists());
+    // A factor scales the boundary's distances: without a boundary it is refused before any data.
+    let alone = toy("recipe.sh", &dir.join("alone")).arg("data").env("MISS_FACTOR", "1.1,2").output().unwrap();
+    let err = String::from_utf8_lossy(&alone.stderr);
+    assert!(!alone.status.success() && err.contains("MISS_FACTOR") && err.contains("MISS_BOUNDARY"), "{err}");
+    assert!(!dir.join("alone/data").exists());
 }
 
 #[test]

@@ -13,11 +13,14 @@ A world model needs examples on both sides of this boundary in every direction: 
 handle is still caught about 8 cm to the side of it but not 4 cm in front, and near misses drawn
 at one distance for every direction put most of them where the outcome is the same on both
 sides. `generate.py --miss-boundary FILE` draws each miss in a random direction at FACTOR times
-that direction's boundary, never beyond the report's --max-cm, where nothing was measured.
+that direction's boundary, never beyond the report's --max-cm, where nothing was measured;
+`--miss-factor LO,HI` sets that range (1.1,2 keeps every miss beyond the boundary: failing pulls
+just past the contact, without the successes inside it).
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 from dataclasses import dataclass
@@ -48,6 +51,7 @@ class Boundary:
     radii: dict[str, np.ndarray]
     limit: float
     source: str = "boundary"
+    factor: tuple[float, float] = FACTOR
 
     def radius(self, task: str, angle: float) -> float:
         """The boundary distance (m) toward `angle` (rad), linear between measured directions."""
@@ -59,10 +63,10 @@ class Boundary:
         return float((1 - w) * r[i] + w * r[(i + 1) % len(r)])
 
     def draw(self, task: str, rng: np.random.Generator) -> np.ndarray:
-        """A miss offset (m): a random direction, FACTOR times its boundary distance, at most the
+        """A miss offset (m): a random direction, `factor` times its boundary distance, at most the
         farthest distance measured."""
         angle = rng.uniform(0, 2 * np.pi)
-        return direction(angle) * min(self.radius(task, angle) * rng.uniform(*FACTOR), self.limit)
+        return direction(angle) * min(self.radius(task, angle) * rng.uniform(*self.factor), self.limit)
 
 
 def _numbers(values) -> bool:
@@ -99,12 +103,35 @@ def load(path: str, tasks: list[str] = ()) -> Boundary:
     return Boundary(radii, limit / 100, path)
 
 
-def from_argument(parser, path: str | None, tasks: list[str]) -> Boundary | None:
-    """`--miss-boundary FILE` of a command line: the Boundary, None when not given; the parser's
-    error (exit 2) when the file does not load or lacks one of `tasks`."""
+def factor_range(text: str) -> tuple[float, float]:
+    """`--miss-factor LO,HI`: how many times its direction's boundary distance a miss lies, 0 < LO <= HI."""
+    try:
+        lo, hi = (float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"takes LO,HI (times the boundary distance), got {text!r}") from None
+    if not (math.isfinite(hi) and 0.0 < lo <= hi):
+        raise argparse.ArgumentTypeError(f"needs 0 < LO <= HI, got {text!r}")
+    return lo, hi
+
+
+def add_factor_argument(parser) -> None:
+    parser.add_argument("--miss-factor", type=factor_range, metavar="LO,HI",
+                        help=f"with --miss-boundary: each miss LO-HI times its direction's boundary distance (default "
+                             f"{FACTOR[0]:g},{FACTOR[1]:g}: a third inside, where the expert still succeeds; 1.1,2 puts all beyond it)")
+
+
+def from_argument(parser, path: str | None, tasks: list[str], factor: tuple[float, float] | None = None) -> Boundary | None:
+    """`--miss-boundary FILE` (and `--miss-factor`) of a command line: the Boundary, None when not
+    given; the parser's error (exit 2) when the file does not load or lacks one of `tasks`, or a
+    factor comes without a file."""
     if path is None:
+        if factor is not None:
+            parser.error("--miss-factor needs --miss-boundary")
         return None
     try:
-        return load(path, tasks)
+        around = load(path, tasks)
     except ValueError as e:
         parser.error(f"--miss-boundary: {e}")
+    if factor is not None:
+        around.factor = factor
+    return around

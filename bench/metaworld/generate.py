@@ -286,9 +286,10 @@ def parse_args(argv=None) -> argparse.Namespace:
                         "default 2,12 (2,15 with --spread wide). Outcomes flip a few cm from the object, so a range "
                         "close to it puts more episodes on both sides of the contact boundary")
     where.add_argument("--miss-boundary", metavar="FILE", help="measure_boundary.py's report: each `miss` steers in a random direction "
-                       f"{boundary.FACTOR[0]:g}-{boundary.FACTOR[1]:g} times as far off as the expert's outcome flips in that "
-                       "direction (measured in the simulator, for the same --frames), at most the report's max_cm, so that "
-                       "directions have misses on both sides of it")
+                       "--miss-factor times (default 0.5-2) as far off as the expert's outcome flips in that "
+                       "direction (measured in the simulator, for the same --frames), at most the report's max_cm; with the default "
+                       "factor every direction has misses on both sides of it")
+    boundary.add_factor_argument(parser)
     parser.add_argument("--miss-weight", type=weight, default=float(DEGRADED_MODES["miss"]),
                         help=f"weight of `miss` episodes among the degraded ones (default {DEGRADED_MODES['miss']}; the others weigh 1)")
     parser.add_argument("--decoy-weight", type=weight, default=0.0,
@@ -319,7 +320,7 @@ def parse_args(argv=None) -> argparse.Namespace:
         parser.error("--workers must be at least 1")
     if os.path.exists(args.out) and not args.force:
         parser.error(f"{args.out} exists (--force replaces it)")
-    args.miss = boundary.from_argument(parser, args.miss_boundary, args.tasks) or args.miss_cm
+    args.miss = boundary.from_argument(parser, args.miss_boundary, args.tasks, args.miss_factor) or args.miss_cm
     return args
 
 

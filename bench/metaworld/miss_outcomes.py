@@ -76,6 +76,7 @@ def main(argv=None) -> None:
     parser.add_argument("--episodes", type=int, default=400, help="training seeds 0..episodes-1 per task")
     parser.add_argument("--miss-cm", type=generate.miss_range, action="append", help="LOW,HIGH (cm); repeat to compare (default 2,12)")
     parser.add_argument("--miss-boundary", metavar="FILE", help="also count misses drawn around this boundary (generate.py --miss-boundary)")
+    boundary.add_factor_argument(parser)
     parser.add_argument("--miss-weight", type=generate.weight, default=float(generate.DEGRADED_MODES["miss"]),
                         help="the data's `miss` weight (generate.py --miss-weight)")
     parser.add_argument("--decoy-weight", type=generate.weight, default=0.0, help="the data's `decoy` weight (generate.py --decoy-weight); above 0 "
@@ -91,7 +92,7 @@ def main(argv=None) -> None:
         parser.error(f"unknown task(s) {', '.join(unknown)} (known: {', '.join(TASKS)})")
     if args.episodes < 1 or args.frames < 2 or args.band_cm <= 0:
         parser.error("--episodes must be at least 1, --frames at least 2, --band-cm positive")
-    around = boundary.from_argument(parser, args.miss_boundary, tasks)
+    around = boundary.from_argument(parser, args.miss_boundary, tasks, args.miss_factor)
     report = {"episodes": args.episodes, "frames": args.frames, "degraded_fraction": args.degraded_fraction, "spread": args.spread,
               "miss_weight": args.miss_weight, "decoy_weight": args.decoy_weight, "tasks": {}}
     for task in tasks:

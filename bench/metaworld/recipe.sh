@@ -49,8 +49,10 @@ SPREAD="${SPREAD:-narrow}"                # the experts' noise and speed in the 
 # 0.997-0.998 against 0.95). A third training (run 35, VAE seed 3 again under DiT seed 2) gave 0.830:
 # the defaults' mean is 0.876.
 MISS_BOUNDARY="${MISS_BOUNDARY:-}"        # instead of MISS_CM: misses around where the outcome flips in their direction (generate.py --miss-boundary; bench/metaworld/boundary.json)
+MISS_FACTOR="${MISS_FACTOR:-}"            # with MISS_BOUNDARY: LO,HI times the boundary's distance (generate.py --miss-factor; empty: its 0.5,2)
 MISS_CM="${MISS_CM-$([ -n "$MISS_BOUNDARY" ] || echo 3,9)}"  # LOW,HIGH: how far off the data's `miss` episodes steer (generate.py --miss-cm; empty: its 2,12)
 [ -z "$MISS_CM" ] || [ -z "$MISS_BOUNDARY" ] || { echo "recipe: MISS_CM and MISS_BOUNDARY both place the near misses; set one" >&2; exit 2; }
+[ -z "$MISS_FACTOR" ] || [ -n "$MISS_BOUNDARY" ] || { echo "recipe: MISS_FACTOR scales MISS_BOUNDARY's distances; set MISS_BOUNDARY too" >&2; exit 2; }
 MISS_WEIGHT="${MISS_WEIGHT:-20}"          # weight of `miss` episodes among the degraded (generate.py --miss-weight; the others weigh 1)
 DEGRADED="${DEGRADED:-0.6}"               # share of episodes degraded (generate.py --degraded-fraction)
 DECOY="${DECOY:-0}"                       # weight of `decoy` episodes among the degraded (generate.py --decoy-weight; 0: none)
@@ -168,7 +170,7 @@ if wants data; then
     if [ -f "$RUN/data/$split/meta/info.json" ]; then echo "recipe: $RUN/data/$split exists"; continue; fi
     if [ $split = train ]; then n=$TRAIN_EPISODES; s=0; else n=$VAL_EPISODES; s=100000; fi
     timed "data-$split" "$PYTHON" bench/metaworld/generate.py --tasks "$TASKS" --episodes "$n" --seed-start "$s" \
-      --frames "$FRAMES" --resolution "$RESOLUTION" --spread "$SPREAD" ${MISS_CM:+--miss-cm "$MISS_CM"} ${MISS_BOUNDARY:+--miss-boundary "$MISS_BOUNDARY"} \
+      --frames "$FRAMES" --resolution "$RESOLUTION" --spread "$SPREAD" ${MISS_CM:+--miss-cm "$MISS_CM"} ${MISS_BOUNDARY:+--miss-boundary "$MISS_BOUNDARY"} ${MISS_FACTOR:+--miss-factor "$MISS_FACTOR"} \
       --miss-weight "$MISS_WEIGHT" --decoy-weight "$DECOY" --degraded-fraction "$DEGRADED" --workers "$WORKERS" --out "$RUN/data/$split"
   done
 fi

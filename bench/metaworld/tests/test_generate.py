@@ -2,6 +2,7 @@
 
 import os
 import sys
+from dataclasses import replace
 
 import numpy as np
 
@@ -183,6 +184,13 @@ def test_misses_around_a_boundary_steer_as_far_off_as_it_is_in_their_direction()
     assert [b.mode for b in bs] == [b.mode for b in default]
     assert all(a.noise == b.noise and (a.offset == b.offset).all() for a, b in zip(bs, default) if a.mode != "miss")
     assert all(a.rng.bit_generator.state == b.rng.bit_generator.state for a, b in zip(bs, default))
+    # With a factor from 1.1 every miss lies beyond its direction's boundary, in every quadrant.
+    beyond = replace(around, factor=(1.1, 2.0))
+    outside = [generate.Behaviour(TASK, generate.episode_rng(TASK, seed), 120, 0.4, "narrow", beyond) for seed in range(300)]
+    outside = [b.offset for b in outside if b.mode == "miss"]
+    factors = [np.linalg.norm(o) / beyond.radius(TASK, np.arctan2(o[1], o[0])) for o in outside]
+    assert len(outside) == len(misses) and min(factors) >= 1.1 - 1e-9 and max(factors) <= 2.0 + 1e-9, factors
+    assert len({int(np.arctan2(o[1], o[0]) // (np.pi / 2)) for o in outside}) == 4
     # Never beyond the farthest distance measured: a boundary at it draws misses up to it, not past.
     with tempfile.TemporaryDirectory() as d:
         capped = boundary.load(boundary_file(d, [2.0, 8.0, 4.0, 6.0], max_cm=8.0), [TASK])
@@ -228,11 +236,18 @@ def test_a_bad_boundary_file_is_refused():
             raise AssertionError("a boundary without the button was accepted for it")
         out = ["--episodes", "1", "--out", os.path.join(d, "x")]
         args = generate.parse_args(["--task", TASK, *out, "--miss-boundary", good])
-        assert isinstance(args.miss, boundary.Boundary) and args.miss_cm is None
+        assert isinstance(args.miss, boundary.Boundary) and args.miss_cm is None and args.miss.factor == boundary.FACTOR
+        args = generate.parse_args(["--task", TASK, *out, "--miss-boundary", good, "--miss-factor", "1.1,2"])
+        assert args.miss.factor == (1.1, 2.0)
         for argv in (["--tasks", f"{TASK},button-press-topdown-v3", "--miss-boundary", good],
                      ["--task", TASK, "--miss-boundary", good, "--miss-cm", "2,12"],
                      ["--task", TASK, "--miss-boundary", cases["uneven"]],
-                     ["--task", TASK, "--miss-boundary", ""]):
+                     ["--task", TASK, "--miss-boundary", ""],
+                     ["--task", TASK, "--miss-factor", "1.1,2"],
+                     ["--task", TASK, "--miss-boundary", good, "--miss-factor", "0,2"],
+                     ["--task", TASK, "--miss-boundary", good, "--miss-factor", "2,1"],
+                     ["--task", TASK, "--miss-boundary", good, "--miss-factor", "1,inf"],
+                     ["--task", TASK, "--miss-boundary", good, "--miss-factor", "1.5"]):
             try:
                 generate.parse_args([*argv, *out])
             except SystemExit:

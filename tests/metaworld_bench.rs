@@ -508,6 +508,11 @@ fn trainings_are_compared_rate_for_rate() {
 }
 
 #[test]
+fn world_model_contact_is_mapped_by_where_the_hand_came_closest() {
+    python_tests("test_contact_map.py");
+}
+
+#[test]
 fn teacher_forcing_lays_chunks_out_and_scores_them() {
     python_tests("test_teacher.py");
 }

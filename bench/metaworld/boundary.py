@@ -43,6 +43,16 @@ def directions_deg(n: int) -> list[float]:
     return [k * 360 / n for k in range(n)]
 
 
+def axis(offset) -> str:
+    """Which way an `offset` from the object (an aim, a closest approach) points in the table
+    plane: "-y" or "+y" within 45 degrees of that axis, else "x" (either side). For the drawer, -y is in front of its handle (where its `wrong`
+    variant aims) and x is beside it (where its `blind` hand misses a drawer placed off centre)."""
+    x, y = float(offset[0]), float(offset[1])
+    if abs(y) > abs(x):
+        return "-y" if y < 0 else "+y"
+    return "x"
+
+
 @dataclass
 class Boundary:
     """Per task, the boundary distance (m) at evenly spaced directions from 0 rad, and the

@@ -37,7 +37,7 @@ def outcomes(task: str, episodes: int, miss: tuple[float, float] | boundary.Boun
              decoy_weight: float = 0.0, mode: str = "miss", miss_weight: float = generate.DEGRADED_MODES["miss"]) -> list[tuple[float, bool, str]]:
     """(distance in cm, succeeded, axis) of every `mode` episode among seeds 0..episodes-1, the
     misses drawn `miss` (m) off or around its boundary; the distance is how far from the object
-    the episode's expert aims, the axis which way (`axis`)."""
+    the episode's expert aims, the axis which way (`boundary.axis`)."""
     out = []
     for seed in range(episodes):
         behaviour = generate.Behaviour(task, generate.episode_rng(task, seed), frames, degraded, spread, miss, decoy_weight, miss_weight)
@@ -45,18 +45,8 @@ def outcomes(task: str, episodes: int, miss: tuple[float, float] | boundary.Boun
             continue
         with Sim(task, seed, 32) as sim:
             success = generate.simulate(behaviour, sim, frames, render=False)[4]
-        out.append((float(np.linalg.norm(behaviour.offset[:2])) * 100, any(success), axis(behaviour.offset)))
+        out.append((float(np.linalg.norm(behaviour.offset[:2])) * 100, any(success), boundary.axis(behaviour.offset)))
     return out
-
-
-def axis(offset: np.ndarray) -> str:
-    """Which way an aim `offset` points in the table plane: "-y" or "+y" within 45 degrees of that
-    axis, else "x" (either side). For the drawer, -y is in front of its handle (where its `wrong`
-    variant aims) and x is beside it (where its `blind` hand misses a drawer placed off centre)."""
-    x, y = float(offset[0]), float(offset[1])
-    if abs(y) > abs(x):
-        return "-y" if y < 0 else "+y"
-    return "x"
 
 
 def by_band(results: list[tuple[float, bool, str]], band: float) -> dict:

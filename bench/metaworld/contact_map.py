@@ -1,0 +1,93 @@
+"""Where a world model's contact reaches: side_by_side.py's episodes counted by where the hand was.
+
+    python contact_map.py sbs-wrong/side_by_side.json sbs-blind/side_by_side.json ... [--band-cm 2] [--json OUT]
+
+Each argument is a side_by_side.json (one task, one variant of a study, each episode's actions
+replayed in the simulator). Every episode is placed by the hand's offset from the object at its
+closest approach in the simulator: the axis it lies along in the table plane (`boundary.axis`: in
+front of the object, -y; behind it, +y; beside it, x) and its horizontal distance, in bands of
+--band-cm. Per task, axis and band: the episodes, the simulator's successes and the world model's.
+Where the simulator's successes stop and the world model's go on, the world model draws contact
+the simulator does not make (and the other way round). Printed as a table; --json writes it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import boundary  # noqa: E402
+
+AXES = ("-y", "+y", "x")
+
+
+def load(path: str) -> tuple[str, str, list[dict]]:
+    """(task, variant, episodes) of a side_by_side.json; ValueError naming `path` otherwise."""
+    try:
+        with open(path) as f:
+            report = json.load(f)
+        episodes = report["episodes"]
+        for e in episodes:
+            if len(e["offset_at_closest_cm"]) < 2:
+                raise ValueError("an offset needs x and y")
+            bool(e["world_model_success"]), e["simulator_first_success"]
+        return str(report["task"]), str(report["variant"]), episodes
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise ValueError(f"{path} is not a side_by_side.py report: {e}") from None
+
+
+def contact_map(reports: list[tuple[str, str, list[dict]]], band_cm: float) -> dict:
+    """Per task: the variants counted, and per axis and band {episodes, simulator, world_model}
+    (the simulator's and the world model's successes); bands named "LO-HI" in cm."""
+    if not band_cm > 0:
+        raise ValueError(f"the band width must be positive, got {band_cm}")
+    tasks: dict[str, dict] = {}
+    for task, variant, episodes in reports:
+        t = tasks.setdefault(task, {"variants": [], "by_axis": {a: {} for a in AXES}})
+        if variant in t["variants"]:
+            raise ValueError(f"{task} {variant} is given twice")
+        t["variants"].append(variant)
+        for e in episodes:
+            offset = np.asarray(e["offset_at_closest_cm"][:2], float)
+            k = int(np.hypot(*offset) // band_cm)
+            band = f"{k * band_cm:g}-{(k + 1) * band_cm:g}"
+            cell = t["by_axis"][boundary.axis(offset)].setdefault(band, {"lo": k * band_cm, "episodes": 0, "simulator": 0, "world_model": 0})
+            cell["episodes"] += 1
+            cell["simulator"] += e["simulator_first_success"] is not None
+            cell["world_model"] += bool(e["world_model_success"])
+    for t in tasks.values():
+        for a in AXES:
+            cells = sorted(t["by_axis"][a].items(), key=lambda kv: kv[1]["lo"])
+            t["by_axis"][a] = {band: {k: v for k, v in cell.items() if k != "lo"} for band, cell in cells}
+    return tasks
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("reports", nargs="+", help="side_by_side.json files")
+    ap.add_argument("--band-cm", type=float, default=2.0, help="width of the distance bands (cm)")
+    ap.add_argument("--json", help="also write the map here")
+    a = ap.parse_args(argv)
+    try:
+        m = contact_map([load(p) for p in a.reports], a.band_cm)
+    except ValueError as e:
+        ap.error(str(e))
+    for task, t in m.items():
+        print(f"{task} ({', '.join(t['variants'])}): episodes, simulator successes, world-model successes by where the hand came closest")
+        for axis in AXES:
+            for band, c in t["by_axis"][axis].items():
+                print(f"  {axis:>2} {band:>7} cm: {c['episodes']:4d} episodes, simulator {c['simulator']:4d}, world model {c['world_model']:4d}")
+    if a.json:
+        tmp = a.json + ".tmp"
+        with open(tmp, "w") as f:
+            json.dump({"band_cm": a.band_cm, "tasks": m}, f, indent=1)
+        os.replace(tmp, a.json)
+
+
+if __name__ == "__main__":
+    main()

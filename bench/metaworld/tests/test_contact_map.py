@@ -1,0 +1,63 @@
+"""contact_map.py on hand-made side_by_side.py reports: episodes placed by where the hand came closest."""
+
+import json
+import os
+import subprocess
+import sys
+import tempfile
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.join(HERE, ".."))
+import contact_map  # noqa: E402
+
+
+def episode(x, y, world_model, simulator):
+    return {"offset_at_closest_cm": [x, y, -0.5], "world_model_success": world_model, "simulator_first_success": 90 if simulator else None}
+
+
+def test_episodes_are_counted_by_axis_and_distance():
+    wrong = ("drawer", "wrong", [episode(0.5, -5.0, True, False), episode(-1.0, -5.5, False, False), episode(0.2, -7.1, True, False)])
+    blind = ("drawer", "blind", [episode(8.5, 1.0, True, False), episode(-8.9, -2.0, True, False), episode(1.0, 0.5, True, True)])
+    button = ("button", "expert", [episode(0.1, 0.1, True, True)])
+    m = contact_map.contact_map([wrong, blind, button], 2.0)
+    drawer = m["drawer"]
+    assert drawer["variants"] == ["wrong", "blind"]
+    assert drawer["by_axis"]["-y"] == {"4-6": {"episodes": 2, "simulator": 0, "world_model": 1},
+                                       "6-8": {"episodes": 1, "simulator": 0, "world_model": 1}}, drawer["by_axis"]["-y"]
+    # Beside the object on either side (x) and in bands ordered by distance.
+    assert list(drawer["by_axis"]["x"]) == ["0-2", "8-10"], drawer["by_axis"]["x"]
+    assert drawer["by_axis"]["x"]["8-10"] == {"episodes": 2, "simulator": 0, "world_model": 2}
+    assert drawer["by_axis"]["x"]["0-2"] == {"episodes": 1, "simulator": 1, "world_model": 1}
+    assert drawer["by_axis"]["+y"] == {}
+    assert m["button"]["by_axis"]["x"] == {"0-2": {"episodes": 1, "simulator": 1, "world_model": 1}}
+    # Another band width regroups the same episodes.
+    wide = contact_map.contact_map([wrong], 5.0)["drawer"]["by_axis"]["-y"]
+    assert wide == {"5-10": {"episodes": 3, "simulator": 0, "world_model": 2}}, wide
+
+
+def test_the_command_line_reads_reports_and_refuses_bad_ones():
+    with tempfile.TemporaryDirectory() as d:
+        good = os.path.join(d, "good.json")
+        with open(good, "w") as f:
+            json.dump({"task": "drawer", "variant": "wrong", "episodes": [episode(0.0, -5.0, True, False)]}, f)
+        out = os.path.join(d, "map.json")
+        p = subprocess.run([sys.executable, os.path.join(HERE, "..", "contact_map.py"), good, "--json", out], capture_output=True, text=True)
+        assert p.returncode == 0, p.stderr
+        assert "-y     4-6 cm:    1 episodes, simulator    0, world model    1" in p.stdout, p.stdout
+        with open(out) as f:
+            assert json.load(f)["tasks"]["drawer"]["by_axis"]["-y"]["4-6"]["world_model"] == 1
+        bad = os.path.join(d, "bad.json")
+        with open(bad, "w") as f:
+            json.dump({"task": "drawer", "variant": "wrong", "episodes": [{"offset_at_closest_cm": [1.0]}]}, f)
+        for argv, what in (([bad], "bad.json is not a side_by_side.py report"), ([good, good], "drawer wrong is given twice"),
+                           ([good, "--band-cm", "0"], "band width must be positive"), ([os.path.join(d, "none.json")], "none.json")):
+            p = subprocess.run([sys.executable, os.path.join(HERE, "..", "contact_map.py"), *argv], capture_output=True, text=True)
+            assert p.returncode == 2 and what in p.stderr, (argv, p.stderr)
+        assert sorted(os.listdir(d)) == ["bad.json", "good.json", "map.json"]
+
+
+if __name__ == "__main__":
+    for name, fn in list(globals().items()):
+        if name.startswith("test_"):
+            fn()
+            print(f"{name}: ok")

@@ -45,8 +45,9 @@ def directions_deg(n: int) -> list[float]:
 
 def axis(offset) -> str:
     """Which way an `offset` from the object (an aim, a closest approach) points in the table
-    plane: "-y" or "+y" within 45 degrees of that axis, else "x" (either side). For the drawer, -y is in front of its handle (where its `wrong`
-    variant aims) and x is beside it (where its `blind` hand misses a drawer placed off centre)."""
+    plane: "-y" or "+y" within 45 degrees of that axis, else "x" (either side). For the drawer, -y
+    is in front of its handle (where its `wrong` variant aims) and x is beside it (where its
+    `blind` hand misses a drawer placed off centre)."""
     x, y = float(offset[0]), float(offset[1])
     if abs(y) > abs(x):
         return "-y" if y < 0 else "+y"

@@ -1,14 +1,15 @@
-"""Where a world model's contact reaches: side_by_side.py's episodes counted by where the hand was.
+"""Where a world model's contact reaches: its episodes counted by where the hand was.
 
-    python contact_map.py sbs-wrong/side_by_side.json sbs-blind/side_by_side.json ... [--band-cm 2] [--json OUT]
+    python contact_map.py runs/X/study/study.json [sbs-wrong/side_by_side.json ...] [--band-cm 2] [--json OUT]
 
-Each argument is a side_by_side.json (one task, one variant of a study, each episode's actions
-replayed in the simulator). Every episode is placed by the hand's offset from the object at its
-closest approach in the simulator: the axis it lies along in the table plane (`boundary.axis`: in
-front of the object, -y; behind it, +y; beside it, x) and its horizontal distance, in bands of
---band-cm. Per task, axis and band: the episodes, the simulator's successes and the world model's.
-Where the simulator's successes stop and the world model's go on, the world model draws contact
-the simulator does not make (and the other way round). Printed as a table; --json writes it.
+Each argument is a study.json (study.py; every rate's world-model episodes, their actions replayed
+in the simulator) or a side_by_side.json (side_by_side.py; one task and variant). Every episode is
+placed by the hand's offset from the object at its closest approach in the simulator's replay: the
+axis it lies along in the table plane (`boundary.axis`: in front of the object, -y; behind it, +y;
+beside it, x) and its horizontal distance, in bands of --band-cm. Per task, axis and band: the
+episodes, the simulator's successes and the world model's. Where the simulator's successes stop
+and the world model's go on, the world model draws contact the simulator does not make (and the
+other way round). Printed as a table; --json writes it.
 """
 
 from __future__ import annotations
@@ -26,19 +27,34 @@ import boundary  # noqa: E402
 AXES = ("-y", "+y", "x")
 
 
-def load(path: str) -> tuple[str, str, list[dict]]:
-    """(task, variant, episodes) of a side_by_side.json; ValueError naming `path` otherwise."""
+def load(path: str) -> list[tuple[str, str, list[dict]]]:
+    """[(task, variant, episodes)] of a side_by_side.json or a study.json, each episode with
+    `offset_at_closest_cm`, `world_model_success` and `simulator_first_success`; ValueError naming
+    `path` otherwise (a study from before the replays kept the hand's offset among them)."""
     try:
         with open(path) as f:
             report = json.load(f)
-        episodes = report["episodes"]
-        for e in episodes:
-            if len(e["offset_at_closest_cm"]) < 2:
-                raise ValueError("an offset needs x and y")
-            bool(e["world_model_success"]), e["simulator_first_success"]
-        return str(report["task"]), str(report["variant"]), episodes
+        if "rates" in report:
+            out = []
+            for r in report["rates"]:
+                rows = r.get("replayed_episodes")
+                if rows is None:
+                    raise ValueError(f"{r['task']} {r['variant']} has no replayed episodes (a study without its world model's actions)")
+                if any(len(row) < 5 for row in rows):
+                    raise ValueError(f"{r['task']} {r['variant']}'s replays keep no offsets (study.py --rescore replays them again)")
+                out.append((str(r["task"]), str(r["variant"]), [{"offset_at_closest_cm": row[4], "world_model_success": row[1],
+                                                                 "simulator_first_success": row[2]} for row in rows]))
+            reports = out
+        else:
+            reports = [(str(report["task"]), str(report["variant"]), report["episodes"])]
+        for _, _, episodes in reports:
+            for e in episodes:
+                if len(e["offset_at_closest_cm"]) < 2:
+                    raise ValueError("an offset needs x and y")
+                bool(e["world_model_success"]), e["simulator_first_success"]
+        return reports
     except (OSError, ValueError, KeyError, TypeError) as e:
-        raise ValueError(f"{path} is not a side_by_side.py report: {e}") from None
+        raise ValueError(f"{path} is not a study.py or side_by_side.py report: {e}") from None
 
 
 def contact_map(reports: list[tuple[str, str, list[dict]]], band_cm: float) -> dict:
@@ -69,12 +85,12 @@ def contact_map(reports: list[tuple[str, str, list[dict]]], band_cm: float) -> d
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("reports", nargs="+", help="side_by_side.json files")
+    ap.add_argument("reports", nargs="+", help="study.json or side_by_side.json files")
     ap.add_argument("--band-cm", type=float, default=2.0, help="width of the distance bands (cm)")
     ap.add_argument("--json", help="also write the map here")
     a = ap.parse_args(argv)
     try:
-        m = contact_map([load(p) for p in a.reports], a.band_cm)
+        m = contact_map([r for p in a.reports for r in load(p)], a.band_cm)
     except ValueError as e:
         ap.error(str(e))
     for task, t in m.items():

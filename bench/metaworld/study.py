@@ -149,12 +149,13 @@ def _replay_job(job):
     task, variant, runs, resolution = job
     import policies
 
-    return task, variant, {k: [e.first, round(e.approach_cm, 3)] for k, seed, actions in runs
+    return task, variant, {k: [e.first, round(e.approach_cm, 3), [round(float(v), 2) for v in e.nearest_cm]] for k, seed, actions in runs
                            for e in [policies.replay(task, seed, actions, resolution)]}
 
 
 def replay_world_model(estimates: dict, episodes: dict, resolution: int, workers: int) -> dict | None:
-    """{task: {variant: {episode: [first success step or None, closest approach in cm]}}}: each
+    """{task: {variant: {episode: [first success step or None, closest approach in cm, the hand's
+    offset from the object there (cm, x y z)]}}}: each
     world-model episode's actions (the commands its policy sent through the world model's frames)
     issued in the simulator from the same placement. Where the world model's outcome differs from
     this one it drew the wrong outcome of those actions; where this one differs from the truth the
@@ -167,7 +168,7 @@ def replay_world_model(estimates: dict, episodes: dict, resolution: int, workers
             for t, per in estimates.items() for v, rs in per.items()]
     return by_variant_in_processes(
         _replay_job, jobs, workers,
-        lambda t, v, outcome: f"world model's actions replayed: {t} {v} {100 * np.mean([f is not None for f, _ in outcome.values()]):.0f}%")
+        lambda t, v, outcome: f"world model's actions replayed: {t} {v} {100 * np.mean([f is not None for f, *_ in outcome.values()]):.0f}%")
 
 
 def cached(path: str, name: str, key: dict, measure):
@@ -362,9 +363,10 @@ def summarize(truth: dict, estimates: dict, judged: dict, tasks: list[str], vari
             if replayed is not None:
                 outcome = replayed[t][v]
                 # Per world-model episode: [episode, drawn as a success, replay's first success step
-                # or None, replay's closest approach in cm].
+                # or None, replay's closest approach in cm, the hand's offset there (cm, x y z; for
+                # contact_map.py)].
                 row["replayed_episodes"] = [[k, by_episode[k], *outcome[k]] for k in sorted(by_episode)]
-                again = [(f is not None, d, cm, probability_of[k]) for k, d, f, cm in row["replayed_episodes"]]
+                again = [(f is not None, d, cm, probability_of[k]) for k, d, f, cm, *_ in row["replayed_episodes"]]
                 row["replayed"] = float(np.mean([a[0] for a in again]))
                 row["per_episode_replayed"] = episode_agreement([a[0] for a in again], [a[1] for a in again])
                 # Where this variant's hands went and what each world drew there (run 27's table).

@@ -1,4 +1,4 @@
-"""contact_map.py on hand-made side_by_side.py reports: episodes placed by where the hand came closest."""
+"""contact_map.py on hand-made side_by_side.py and study.py reports: episodes placed by where the hand came closest."""
 
 import json
 import os
@@ -49,11 +49,31 @@ def test_the_command_line_reads_reports_and_refuses_bad_ones():
         bad = os.path.join(d, "bad.json")
         with open(bad, "w") as f:
             json.dump({"task": "drawer", "variant": "wrong", "episodes": [{"offset_at_closest_cm": [1.0]}]}, f)
-        for argv, what in (([bad], "bad.json is not a side_by_side.py report"), ([good, good], "drawer wrong is given twice"),
+        for argv, what in (([bad], "bad.json is not a study.py or side_by_side.py report"), ([good, good], "drawer wrong is given twice"),
                            ([good, "--band-cm", "0"], "band width must be positive"), ([os.path.join(d, "none.json")], "none.json")):
             p = subprocess.run([sys.executable, os.path.join(HERE, "..", "contact_map.py"), *argv], capture_output=True, text=True)
             assert p.returncode == 2 and what in p.stderr, (argv, p.stderr)
-        assert sorted(os.listdir(d)) == ["bad.json", "good.json", "map.json"]
+        # A study.json: every rate's replayed episodes [episode, drawn, replay's first success, cm, offset].
+        study = os.path.join(d, "study.json")
+        with open(study, "w") as f:
+            json.dump({"rates": [{"task": "drawer", "variant": "blind", "replayed_episodes": [[0, True, None, 8.6, [8.5, 1.0, 0.2]],
+                                                                                               [1, True, 88, 1.1, [1.0, 0.5, 0.1]]]},
+                                 {"task": "button", "variant": "wrong", "replayed_episodes": [[0, False, None, 15.0, [0.0, 0.0, 15.0]]]}]}, f)
+        p = subprocess.run([sys.executable, os.path.join(HERE, "..", "contact_map.py"), study, good, "--json", out], capture_output=True, text=True)
+        assert p.returncode == 0, p.stderr
+        with open(out) as f:
+            m = json.load(f)["tasks"]
+        assert m["drawer"]["variants"] == ["blind", "wrong"], m
+        assert m["drawer"]["by_axis"]["x"] == {"0-2": {"episodes": 1, "simulator": 1, "world_model": 1},
+                                               "8-10": {"episodes": 1, "simulator": 0, "world_model": 1}}, m
+        assert m["button"]["by_axis"]["x"] == {"0-2": {"episodes": 1, "simulator": 0, "world_model": 0}}, m
+        # A study whose replays kept no offsets (before they did), or that has none, is refused.
+        old = os.path.join(d, "old.json")
+        with open(old, "w") as f:
+            json.dump({"rates": [{"task": "drawer", "variant": "blind", "replayed_episodes": [[0, True, None, 8.6]]}]}, f)
+        p = subprocess.run([sys.executable, os.path.join(HERE, "..", "contact_map.py"), old], capture_output=True, text=True)
+        assert p.returncode == 2 and "--rescore" in p.stderr, p.stderr
+        assert sorted(os.listdir(d)) == ["bad.json", "good.json", "map.json", "old.json", "study.json"]
 
 
 if __name__ == "__main__":

@@ -4,6 +4,8 @@ agreement that tells whether the world model gets *which* episodes succeed."""
 import os
 import sys
 
+import numpy as np
+
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 import study  # noqa: E402
 
@@ -70,14 +72,16 @@ def test_replayed_actions_split_the_world_models_error_from_the_policies():
     judged = {"t": {"a": [0.9, 0.1, 0.1, 0.1]}}
     # In the world model's loop the policy's hand came within 1 cm in episode 1 and succeeded in
     # the simulator too; episode 2's stayed 7 cm off: an opening the world model invented.
-    replayed = {"t": {"a": {0: [40, 0.4], 1: [50, 1.0], 2: [None, 7.0], 3: [None, 11.0]}}}
+    replayed = {"t": {"a": {0: [40, 0.4, [0.4, 0.0, 0.0]], 1: [50, 1.0, [0.0, -1.0, 0.0]], 2: [None, 7.0, [0.0, -7.0, 0.0]], 3: [None, 11.0, [11.0, 0.0, 0.0]]}}}
     s = study.summarize(truth, estimates, judged, ["t"], ["a"], chunk=24, replayed=replayed)
     row = s["rates"][0]
     assert (row["true"], row["estimated"], row["replayed"]) == (0.25, 0.75, 0.5), row
     e = row["per_episode_replayed"]
     assert (e["both_success"], e["missed"], e["invented"], e["both_fail"]) == (2, 0, 1, 1), e
     assert s["replayed"]["per_episode"] == e
-    assert row["replayed_episodes"] == [[0, True, 40, 0.4], [1, True, 50, 1.0], [2, True, None, 7.0], [3, False, None, 11.0]]
+    # Each with the hand's offset at its closest (contact_map.py reads it).
+    assert row["replayed_episodes"] == [[0, True, 40, 0.4, [0.4, 0.0, 0.0]], [1, True, 50, 1.0, [0.0, -1.0, 0.0]],
+                                        [2, True, None, 7.0, [0.0, -7.0, 0.0]], [3, False, None, 11.0, [11.0, 0.0, 0.0]]]
     assert s["replayed"]["by_approach"] == {"t": {"0-2 cm": {"episodes": 2, "true": 2, "drawn": 2},
                                                   "6-8 cm": {"episodes": 1, "true": 0, "drawn": 1},
                                                   "10+ cm": {"episodes": 1, "true": 0, "drawn": 0}}}, s["replayed"]
@@ -101,6 +105,10 @@ def test_a_simulator_episodes_commands_replayed_give_its_outcome():
         ran = policies.run_episode(task, variant, seed, horizon=120, chunk=24, resolution=64)
         again = policies.replay(task, seed, ran.commands.tolist(), resolution=64)
         assert (again.first, again.approach_cm) == (ran.first, ran.approach_cm), (task, variant, ran, again)
+        # The study's replay job keeps the same outcome, distance and offset.
+        _, _, out = study._replay_job((task, variant, [(0, seed, ran.commands.tolist())], 64))
+        assert out[0][:2] == [again.first, round(again.approach_cm, 3)], out
+        assert np.allclose(out[0][2], again.nearest_cm, atol=0.006) and abs(np.linalg.norm(out[0][2]) - again.approach_cm) < 0.02, out
         assert len(ran.commands) == (ran.first or 120), (task, variant, len(ran.commands))
     # The expert's opening cut short of its success is a failure; on another placement its
     # commands miss the handle.

@@ -26,7 +26,8 @@ many succeeded and how many the world model drew; and, where `bwm evaluate` kept
 actions, those actions replayed in the simulator from the same placement, under "replayed": the
 world model's outcomes against the simulator's for the same actions, its own error, apart from
 the policies acting otherwise on its frames than on the simulator's, and how clearly it drew them:
-the judge's probability on its frames by both outcomes), DIR/study.csv,
+the judge's probability on its frames by both outcomes; per rate each replay's outcome, closest
+approach and the hand's offset there, `replayed_episodes`, which contact_map.py maps), DIR/study.csv,
 DIR/study.svg (estimated against true rates) and each process's evaluate output in DIR/eval-*/.
 Everything after `--` goes to `bwm evaluate` (the world model's flags). With --rescore, a finished
 study in DIR is scored again from its eval-*/episodes.jsonl and judged.json (after a change to the

@@ -346,6 +346,15 @@ fn the_recipes_default_data_are_mostly_near_misses() {
     let err = String::from_utf8_lossy(&alone.stderr);
     assert!(!alone.status.success() && err.contains("MISS_FACTOR") && err.contains("MISS_BOUNDARY"), "{err}");
     assert!(!dir.join("alone/data").exists());
+    // With a boundary the factor reaches the generator, which checks it.
+    let bad = toy("recipe.sh", &dir.join("bad"))
+        .arg("data")
+        .envs([("MISS_BOUNDARY", "bench/metaworld/boundary.json"), ("MISS_FACTOR", "2,1"), ("TRAIN_EPISODES", "1"), ("VAL_EPISODES", "1"), ("FRAMES", "4")])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&bad.stderr);
+    assert!(!bad.status.success() && err.contains("--miss-factor") && err.contains("0 < LO <= HI"), "{err}");
+    assert!(!dir.join("bad/data/train/meta").exists());
 }
 
 #[test]

@@ -54,6 +54,23 @@ def axis(offset) -> str:
     return "x"
 
 
+AXES = ("-y", "+y", "x")
+
+
+def bands(distances_cm, band_cm: float, **counted) -> dict:
+    """Episodes by distance band of `band_cm` ("LO-HI" in cm, nearest first, empty bands left out):
+    per band {"episodes": n, NAME: how many of them are true in the list NAME, ...} for each
+    keyword list of flags, one per distance."""
+    out = {}
+    for i, d in enumerate(distances_cm):
+        k = int(d // band_cm)
+        cell = out.setdefault(k, {"episodes": 0, **{name: 0 for name in counted}})
+        cell["episodes"] += 1
+        for name, flags in counted.items():
+            cell[name] += bool(flags[i])
+    return {f"{k * band_cm:g}-{(k + 1) * band_cm:g}": out[k] for k in sorted(out)}
+
+
 @dataclass
 class Boundary:
     """Per task, the boundary distance (m) at evenly spaced directions from 0 rad, and the

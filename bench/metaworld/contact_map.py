@@ -24,9 +24,6 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import boundary  # noqa: E402
 
-AXES = ("-y", "+y", "x")
-
-
 def load(path: str) -> list[tuple[str, str, list[dict]]]:
     """[(task, variant, episodes)] of a side_by_side.json or a study.json, each episode with
     `offset_at_closest_cm`, `world_model_success` and `simulator_first_success`; ValueError naming
@@ -63,23 +60,20 @@ def contact_map(reports: list[tuple[str, str, list[dict]]], band_cm: float) -> d
     if not band_cm > 0:
         raise ValueError(f"the band width must be positive, got {band_cm}")
     tasks: dict[str, dict] = {}
+    rows: dict[str, dict[str, list]] = {}  # per task and axis: (distance, simulator, world model) per episode
     for task, variant, episodes in reports:
-        t = tasks.setdefault(task, {"variants": [], "by_axis": {a: {} for a in AXES}})
+        t = tasks.setdefault(task, {"variants": [], "by_axis": {}})
+        by_axis = rows.setdefault(task, {a: [] for a in boundary.AXES})
         if variant in t["variants"]:
             raise ValueError(f"{task} {variant} is given twice")
         t["variants"].append(variant)
         for e in episodes:
             offset = np.asarray(e["offset_at_closest_cm"][:2], float)
-            k = int(np.hypot(*offset) // band_cm)
-            band = f"{k * band_cm:g}-{(k + 1) * band_cm:g}"
-            cell = t["by_axis"][boundary.axis(offset)].setdefault(band, {"lo": k * band_cm, "episodes": 0, "simulator": 0, "world_model": 0})
-            cell["episodes"] += 1
-            cell["simulator"] += e["simulator_first_success"] is not None
-            cell["world_model"] += bool(e["world_model_success"])
-    for t in tasks.values():
-        for a in AXES:
-            cells = sorted(t["by_axis"][a].items(), key=lambda kv: kv[1]["lo"])
-            t["by_axis"][a] = {band: {k: v for k, v in cell.items() if k != "lo"} for band, cell in cells}
+            by_axis[boundary.axis(offset)].append((float(np.hypot(*offset)), e["simulator_first_success"] is not None, bool(e["world_model_success"])))
+    for task, t in tasks.items():
+        for a, placed in rows[task].items():
+            distance, simulator, world_model = zip(*placed) if placed else ((), (), ())
+            t["by_axis"][a] = boundary.bands(distance, band_cm, simulator=simulator, world_model=world_model)
     return tasks
 
 
@@ -95,7 +89,7 @@ def main(argv=None) -> None:
         ap.error(str(e))
     for task, t in m.items():
         print(f"{task} ({', '.join(t['variants'])}): episodes, simulator successes, world-model successes by where the hand came closest")
-        for axis in AXES:
+        for axis in boundary.AXES:
             for band, c in t["by_axis"][axis].items():
                 print(f"  {axis:>2} {band:>7} cm: {c['episodes']:4d} episodes, simulator {c['simulator']:4d}, world model {c['world_model']:4d}")
     if a.json:

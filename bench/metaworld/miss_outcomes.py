@@ -50,14 +50,7 @@ def outcomes(task: str, episodes: int, miss: tuple[float, float] | boundary.Boun
 
 
 def by_band(results: list[tuple[float, bool, str]], band: float) -> dict:
-    top = max((d for d, _, _ in results), default=0.0)
-    bands = {}
-    for k in range(int(top // band) + 1):
-        lo, hi = k * band, (k + 1) * band
-        inside = [s for d, s, _ in results if lo <= d < hi]
-        if inside:
-            bands[f"{lo:g}-{hi:g}"] = {"episodes": len(inside), "succeeded": sum(inside)}
-    return bands
+    return boundary.bands([d for d, _, _ in results], band, succeeded=[s for _, s, _ in results])
 
 
 def main(argv=None) -> None:
@@ -96,7 +89,7 @@ def main(argv=None) -> None:
             results = outcomes(task, args.episodes, miss, args.frames, args.degraded_fraction, args.spread, args.decoy_weight, mode, args.miss_weight)
             row = {f"{mode}_episodes": len(results), "succeeded": sum(s for _, s, _ in results), "by_cm": by_band(results, args.band_cm),
                    "by_axis": {}}
-            for way in ("-y", "+y", "x"):
+            for way in boundary.AXES:
                 these = [r for r in results if r[2] == way]
                 if these:
                     row["by_axis"][way] = {"episodes": len(these), "succeeded": sum(s for _, s, _ in these), "by_cm": by_band(these, args.band_cm)}

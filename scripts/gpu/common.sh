@@ -12,3 +12,11 @@ mem() { # $1 = log name; samples used memory every 50 ms while the rest of the a
   local peak; peak=$(sort -n "$OUT/$log.mem" | tail -1)
   echo "$log: peak GPU memory used ${peak} MiB (baseline ${base} MiB before the process)" | tee -a "$OUT/$log.log"
 }
+second_half_median() { # $1 = a figure's unit in a log (s/step, samples/s), $2 = the log: "MEDIAN HALF N", the
+  # median of the figure over the last HALF of its N values (the steps after warm-up; "none" without any)
+  local n half
+  n=$(awk -v u="$1" '{ for (i = 1; i < NF; i++) if ($(i+1) == u) n++ } END { print n + 0 }' "$2")
+  half=$(( (n + 1) / 2 ))
+  awk -v u="$1" '{ for (i = 1; i < NF; i++) if ($(i+1) == u) print $i }' "$2" | tail -n "$half" | sort -g \
+    | awk -v half="$half" -v n="$n" '{ v[NR] = $1 } END { print (NR ? v[int((NR + 1) / 2)] : "none"), half, n }'
+}

@@ -18,11 +18,8 @@ bench() { # $1 = name, $2 = GPU, $3 = CPU threads
 }
 summary() { # median s/step over the second half of each log's steps
   for f in "$OUT/$1"-g*.log; do
-    awk '/s\/step/ { for (i = 1; i < NF; i++) if ($(i+1) == "s/step") print $i }' "$f" > "$f.steps"
-    n=$(wc -l < "$f.steps")
-    med=$(tail -n $(( (n + 1) / 2 )) "$f.steps" | sort -g | awk '{ v[NR] = $1 } END { if (NR) print v[int((NR + 1) / 2)]; else print "none" }')
-    echo "$(basename "$f" .log): median $med s/step over the last $(( (n + 1) / 2 )) of $n steps"
-    rm "$f.steps"
+    read -r med half n < <(second_half_median s/step "$f")
+    echo "$(basename "$f" .log): median $med s/step over the last $half of $n steps"
   done
 }
 for t in "${threads[@]}"; do bench "alone-t$t" 0 "$t"; summary "alone-t$t"; done

@@ -28,12 +28,8 @@ vae() { # $1 = name
 summary() { # $1 = the logged figure (samples/s or s/step), the rest names
   local unit=$1; shift
   for name in "$@"; do
-    f="$OUT/$name.log"
-    awk -v u="$unit" '{ for (i = 1; i < NF; i++) if ($(i+1) == u) print $i }' "$f" > "$f.steps"
-    n=$(wc -l < "$f.steps")
-    med=$(tail -n $(( (n + 1) / 2 )) "$f.steps" | sort -g | awk '{ v[NR] = $1 } END { if (NR) print v[int((NR + 1) / 2)]; else print "none" }')
-    echo "$name: median $med $unit over the last $(( (n + 1) / 2 )) of $n logged steps; $(cat "/tmp/share-gpu/times/$name.wall") s by the clock (status $(cat "/tmp/share-gpu/times/$name.rc"))"
-    rm "$f.steps"
+    read -r med half n < <(second_half_median "$unit" "$OUT/$name.log")
+    echo "$name: median $med $unit over the last $half of $n logged steps; $(cat "/tmp/share-gpu/times/$name.wall") s by the clock (status $(cat "/tmp/share-gpu/times/$name.rc"))"
   done
 }
 timed() { # $1 = function, $2 = name: runs it, its wall time and status beside the other processes'

@@ -136,6 +136,7 @@ fn stages(dir: &Path, vars: &[(&str, &str)]) -> (Output, Vec<String>) {
         .env_remove("STUDY_DIR")
         .env_remove("COMPARE_JUDGE")
         .env_remove("TEACHER")
+        .env_remove("OWN")
         .env_remove("COMPARE_EMA")
         .env_remove("EMA_DECAY")
         .env("RUN", "runs/x")
@@ -198,6 +199,23 @@ fn the_teacher_stage_follows_the_study_when_asked() {
         let study = calls.iter().position(|c| c.starts_with("study ")).expect("a study stage");
         match calls.iter().position(|c| c.starts_with("teacher ")) {
             Some(teacher) => assert!(asked && teacher > study, "{log}"),
+            None => assert!(!asked, "{log}"),
+        }
+        fs::remove_dir_all(d.join("runs")).unwrap();
+    }
+}
+
+#[test]
+fn the_own_stage_follows_the_study_and_the_teacher_when_asked() {
+    let dir = common::temp_dir("gpu-own");
+    let d = dir.path();
+    for (vars, asked) in [(&[("TEACHER", "1")][..], false), (&[("TEACHER", "1"), ("OWN", "1")][..], true)] {
+        let (out, calls) = stages(d, vars);
+        let log = format!("{}\n{}\n{calls:#?}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+        assert!(out.status.success(), "{log}");
+        let teacher = calls.iter().position(|c| c.starts_with("teacher ")).expect("a teacher stage");
+        match calls.iter().position(|c| c.starts_with("own ")) {
+            Some(own) => assert!(asked && own > teacher, "{log}"),
             None => assert!(!asked, "{log}"),
         }
         fs::remove_dir_all(d.join("runs")).unwrap();

@@ -71,6 +71,8 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
             .envs([("VAL_EPISODES", "1"), ("VAE_EPISODES", "6"), ("JUDGE_RECONSTRUCT_EPISODES", "4")])
             .envs(TOY_STUDY)
             .env("PROBE_VARIANTS", "wrong-0cm,wrong-6cm")
+            // The own stage over one episode per task of each dataset, whatever its behaviour.
+            .envs([("OWN_BEHAVIOURS", ""), ("OWN_EPISODES", "1")])
             // The DiT trained with action dropout, its own history noise and grid shift and an
             // average of its weights, every world-model stage guided by the actions and rolling
             // out that average; the data's near misses drawn around the measured outcome boundary
@@ -97,7 +99,7 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
     assert!(log.split("recipe: judged-reconstructed (").nth(1).is_some_and(|rest| rest.contains("judge on simulator frames")), "{log}");
 
     let timings = std::fs::read_to_string(runs.join("timings.tsv")).unwrap();
-    for stage in ["data-train", "data-val", "vae", "latents", "train", "fidelity", "truth", "judge-reconstructed", "judged-reconstructed", "ceiling", "study", "teacher", "probe"] {
+    for stage in ["data-train", "data-val", "vae", "latents", "train", "fidelity", "truth", "judge-reconstructed", "judged-reconstructed", "ceiling", "study", "teacher", "own-train", "own-val", "probe"] {
         assert!(timings.lines().any(|l| l.split('\t').next() == Some(stage)), "no {stage} in timings.tsv:\n{timings}\n{log}");
     }
 
@@ -258,6 +260,27 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
     let chunks: u64 = ["invented", "missed", "both_success", "both_fail"].iter().map(|k| teacher["chunks"][k].as_u64().unwrap()).sum();
     assert_eq!(chunks, 8, "{teacher}");
     assert_eq!(teacher["all"]["teacher_forced"]["n"], 4, "{teacher}");
+
+    // The own stage: each dataset's first episode per task teacher-forced from its own frames and
+    // states, its truth the dataset's flags, placed by its commands replayed in the simulator.
+    for split in ["train", "val"] {
+        let own = json(&runs.join(format!("own/{split}/teacher.json")));
+        assert_eq!(own["settings"]["own_episodes"], true, "{own}");
+        assert_eq!(own["settings"]["horizon"], 48, "{own}");
+        let episodes: Vec<&Value> = own["episodes"].as_object().unwrap().values().flat_map(|by| by.as_object().unwrap().values()).flat_map(|e| e.as_array().unwrap()).collect();
+        assert_eq!(episodes.len(), 2, "one per task: {own}");
+        for e in &episodes {
+            assert_eq!(e["drawn"].as_array().unwrap().len(), 2, "{e}");
+            assert_eq!(e["offset_at_closest_cm"].as_array().unwrap().len(), 3, "{e}");
+        }
+        let map = json(&runs.join(format!("own/{split}/contact_map.json")));
+        let counted: u64 = map["tasks"].as_object().unwrap().values()
+            .flat_map(|t| t["by_axis"].as_object().unwrap().values())
+            .flat_map(|a| a.as_object().unwrap().values())
+            .map(|c| c["episodes"].as_u64().unwrap())
+            .sum();
+        assert_eq!(counted, 2, "{map}");
+    }
 
     // The probe: the graded `wrong` variants through the same study, in their own folder.
     let probe = json(&runs.join("probe/study.json"));

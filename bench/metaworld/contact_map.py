@@ -3,8 +3,10 @@
     python contact_map.py runs/X/study/study.json [sbs-wrong/side_by_side.json ...] [--band-cm 2] [--json OUT]
 
 Each argument is a study.json (study.py; every rate's world-model episodes, their actions replayed
-in the simulator) or a side_by_side.json (side_by_side.py; one task and variant). Every episode is
-placed by the hand's offset from the object at its closest approach in the simulator's replay: the
+in the simulator), a side_by_side.json (side_by_side.py; one task and variant) or a teacher.json
+(teacher.py; each episode's chunks drawn from the simulator's frames, an episode drawn succeeding
+when any of its chunks is). Every episode is
+placed by the hand's offset from the object at its closest approach in the simulator (replay): the
 axis it lies along in the table plane (`boundary.axis`: in front of the object, -y; behind it, +y;
 beside it, x) and its horizontal distance, in bands of --band-cm. Per task, axis and band: the
 episodes, the simulator's successes and the world model's. Where the simulator's successes stop
@@ -25,13 +27,24 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import boundary  # noqa: E402
 
 def load(path: str) -> list[tuple[str, str, list[dict]]]:
-    """[(task, variant, episodes)] of a side_by_side.json or a study.json, each episode with
-    `offset_at_closest_cm`, `world_model_success` and `simulator_first_success`; ValueError naming
-    `path` otherwise (a study from before the replays kept the hand's offset among them)."""
+    """[(task, variant, episodes)] of a side_by_side.json, a study.json or a teacher.json, each
+    episode with `offset_at_closest_cm`, `world_model_success` and `simulator_first_success`;
+    ValueError naming `path` otherwise (a study from before the replays kept the hand's offset among
+    them, a teacher.json from before its episodes kept it)."""
     try:
         with open(path) as f:
             report = json.load(f)
-        if "rates" in report:
+        if "settings" in report and isinstance(report.get("episodes"), dict):
+            threshold = float(report["settings"]["threshold"])
+            reports = []
+            for task, by_variant in report["episodes"].items():
+                for variant, episodes in by_variant.items():
+                    if any("offset_at_closest_cm" not in e for e in episodes):
+                        raise ValueError(f"{task} {variant}'s episodes keep no offsets (a teacher.py report from before they were kept)")
+                    reports.append((str(task), str(variant), [{"offset_at_closest_cm": e["offset_at_closest_cm"],
+                                                               "world_model_success": max(e["drawn"]) >= threshold,
+                                                               "simulator_first_success": e["first"]} for e in episodes]))
+        elif "rates" in report:
             out = []
             for r in report["rates"]:
                 rows = r.get("replayed_episodes")
@@ -51,7 +64,7 @@ def load(path: str) -> list[tuple[str, str, list[dict]]]:
                 bool(e["world_model_success"]), e["simulator_first_success"]
         return reports
     except (OSError, ValueError, KeyError, TypeError) as e:
-        raise ValueError(f"{path} is not a study.py or side_by_side.py report: {e}") from None
+        raise ValueError(f"{path} is not a study.py, side_by_side.py or teacher.py report: {e}") from None
 
 
 def contact_map(reports: list[tuple[str, str, list[dict]]], band_cm: float) -> dict:

@@ -22,6 +22,12 @@
 #            from the simulator's own history frames and judged beside the simulator's chunk: does
 #            the model draw a command's outcome wrongly from real frames, or only from its own?
 #            $RUN/teacher/teacher.json
+#   own      the same teacher forcing over the datasets' own episodes (teacher.py --own-episodes): the
+#            first OWN_EPISODES per task of behaviours OWN_BEHAVIOURS (default: the near misses) of
+#            the training set and of the held-out set, drawn from their real history, judged beside
+#            their real chunks, and mapped by the hand's closest approach (contact_map.py): did the
+#            world model learn the outcomes it was trained on, and do they hold on unseen placements?
+#            $RUN/own/{train,val}/ (teacher.json, contact_map.json)
 #   probe    the same study over graded `wrong-<d>cm` variants (the expert with its targets moved d
 #            cm along the task's `wrong` offset): does the model's contact follow a shifted
 #            command as the simulator's does? $RUN/probe/ (same files as study/)
@@ -132,14 +138,16 @@ FIDELITY_EPISODES="${FIDELITY_EPISODES:-}" # comma-separated positions in data/v
 FIDELITY_IN_FLIGHT="${FIDELITY_IN_FLIGHT:-8}" # episodes rolled out at once (one batch per chunk)
 PROBE_VARIANTS="${PROBE_VARIANTS:-wrong-0cm,wrong-1cm,wrong-2cm,wrong-3cm,wrong-4cm,wrong-5cm,wrong-6cm}"
 TEACHER_VARIANTS="${TEACHER_VARIANTS:-$STUDY_VARIANTS}"  # the teacher stage's variants (default: the study's)
+OWN_BEHAVIOURS="${OWN_BEHAVIOURS-miss}"   # the own stage's generator behaviours, comma-separated (empty: all)
+OWN_EPISODES="${OWN_EPISODES:-400}"       # the own stage's episodes per task and dataset (the first of those behaviours)
 STAGES=()
 for arg in "$@"; do
   case "$arg" in
-    data|vae|latents|train|fidelity|truth|judge|ceiling|study|teacher|probe) STAGES+=("$arg") ;;
-    *) echo "recipe: unknown stage '$arg' (stages: data vae latents train fidelity truth judge ceiling study teacher probe)" >&2; exit 2 ;;
+    data|vae|latents|train|fidelity|truth|judge|ceiling|study|teacher|own|probe) STAGES+=("$arg") ;;
+    *) echo "recipe: unknown stage '$arg' (stages: data vae latents train fidelity truth judge ceiling study teacher own probe)" >&2; exit 2 ;;
   esac
 done
-[ ${#STAGES[@]} -gt 0 ] || STAGES=(data vae latents train fidelity truth judge ceiling study teacher probe)
+[ ${#STAGES[@]} -gt 0 ] || STAGES=(data vae latents train fidelity truth judge ceiling study teacher own probe)
 [ -x "$BWM" ] || { echo "recipe: no bwm binary at $BWM (make build, or set BWM)" >&2; exit 1; }
 mkdir -p "$RUN"
 wants() { [[ " ${STAGES[*]} " == *" $1 "* ]]; }
@@ -302,6 +310,20 @@ if wants teacher; then
     timed teacher "$PYTHON" bench/metaworld/teacher.py "${COMMON_STUDY_ARGS[@]}" ${TEACHER_VARIANTS:+--variants "$TEACHER_VARIANTS"} \
       --out "$RUN/teacher" --judge "$JUDGE" --judge-device "$DEVICE" --bwm "$BWM" -- "${WM[@]}"
   fi
+fi
+
+if wants own; then
+  world_model
+  for split in train val; do
+    if [ -f "$RUN/own/$split/teacher.json" ]; then
+      echo "recipe: $RUN/own/$split/teacher.json exists"
+      continue
+    fi
+    timed "own-$split" "$PYTHON" bench/metaworld/teacher.py --data "$RUN/data/$split" --own-episodes ${OWN_BEHAVIOURS:+--behaviours "$OWN_BEHAVIOURS"} \
+      --episodes "$OWN_EPISODES" --horizon "$STUDY_HORIZON" --resolution "$RESOLUTION" --workers "$WORKERS" \
+      --out "$RUN/own/$split" --judge "$JUDGE" --judge-device "$DEVICE" --bwm "$BWM" -- "${WM[@]}"
+    "$PYTHON" bench/metaworld/contact_map.py "$RUN/own/$split/teacher.json" --band-cm 1 --json "$RUN/own/$split/contact_map.json"
+  done
 fi
 
 if wants probe; then

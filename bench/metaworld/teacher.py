@@ -19,11 +19,25 @@ DIR/teacher.json: per variant the true rate, the rate the judge gives the simula
 the teacher-forced rate (an episode counts as a success when the judge passes any of its drawn
 chunks), Pearson r / Spearman / MAE of both against the truth (per task and over all), the chunks
 drawn succeeding where the simulator's did not (invented) and the other way (missed), over
-all chunks their agreement and Cohen's kappa, and per episode each chunk's two probabilities. Everything after `--` goes to `bwm serve`.
+all chunks their agreement and Cohen's kappa, and per episode each chunk's two probabilities and
+the hand's offset from the object at its closest approach in the simulator (`offset_at_closest_cm`,
+which contact_map.py maps). Everything after `--` goes to `bwm serve`.
+
+With --own-episodes the episodes are the dataset's own instead (a training set's, to ask whether
+the world model learned the outcomes it was trained on, or a held-out set's): its frames, its
+`observation.state` as the actions (what `bwm prepare` trains on) and its success flags as the
+truth, rows by task and the generator's `behaviour` (--behaviours picks them, e.g. `miss`), the
+closest approach measured by replaying the episode's commands (`action`) in the simulator from its
+seed. --episodes is then per task (its first episodes of those behaviours), --horizon is cut to
+the episodes' length, and --variants does not apply.
+
+    python teacher.py --data TRAIN_DATASET --own-episodes --behaviours miss --episodes 400 \\
+        --judge judge.pt --out DIR -- --checkpoint CKPT ...
 """
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import multiprocessing
 import os
@@ -67,8 +81,75 @@ def _record_job(job):
     task, variant, seeds, horizon, chunk, resolution = job
     import policies
 
-    return task, variant, [(seed, e.first, e.frames, e.commands)
+    return task, variant, [(seed, e.first, e.frames, frame_actions(task, e.commands), e.nearest_cm)
                            for seed in seeds for e in [policies.run_episode(task, variant, seed, horizon, chunk, resolution, record=True)]]
+
+
+def own_episodes(root: str, tasks: list[str], per_task: int, behaviours: list[str] | None) -> dict[str, list[dict]]:
+    """Per task, the metadata of the dataset's first `per_task` episodes whose generator behaviour
+    is among `behaviours` (any without), each with its position in the dataset."""
+    import judge
+
+    path = os.path.join(root, "meta", "episodes.jsonl")
+    if not os.path.isfile(path):
+        raise SystemExit(f"teacher: {root} is not a generate.py dataset (no meta/episodes.jsonl)")
+    out: dict[str, list[dict]] = {t: [] for t in tasks}
+    for position, e in enumerate(sorted(judge.read_jsonl(path), key=lambda e: e["episode_index"])):
+        if "seed" not in e or "behaviour" not in e:
+            raise SystemExit(f"teacher: {path}: episode {e['episode_index']} has no seed or behaviour (not written by generate.py)")
+        for t in tasks:
+            if e.get("tasks") == [t] and (behaviours is None or e["behaviour"] in behaviours) and len(out[t]) < per_task:
+                out[t].append(dict(e, position=position))
+    for t, eps in out.items():
+        if not eps:
+            which = f" of behaviour {', '.join(behaviours)}" if behaviours else ""
+            raise SystemExit(f"teacher: {root} holds no episodes of {t}{which}")
+    return out
+
+
+def _own_job(job):
+    """One dataset episode as teacher_forced takes it: its behaviour and (seed, first success
+    frame, frames uint8 [T, H, W, 3], actions float32 [T, 4], the hand's offset from the object at
+    its closest approach in cm, from its commands replayed in the simulator)."""
+    root, info, task, episode, resolution = job
+    import pyarrow.parquet as pq
+    from PIL import Image
+
+    import judge
+    import policies
+
+    i = episode["episode_index"]
+    table = pq.read_table(os.path.join(root, info["data_path"].format(episode_chunk=i // info.get("chunks_size", 1000), episode_index=i)))
+    cells = table.column(judge.image_column(info)).combine_chunks().field("bytes").to_pylist()
+    frames = np.stack([np.asarray(Image.open(io.BytesIO(c)).convert("RGB")) for c in cells])
+    if frames.shape[1:3] != (resolution, resolution):
+        raise ValueError(f"{root}: frames of {frames.shape[2]}x{frames.shape[1]}, but --resolution is {resolution}")
+    column = lambda name: np.asarray(table.column(name).to_pylist(), np.float32)
+    success = np.asarray(table.column(judge.success_column(table.column_names)).to_pylist(), bool)
+    first = int(np.argmax(success)) if success.any() else None
+    replayed = policies.replay(task, int(episode["seed"]), column("action")[: len(frames) - 1])
+    if replayed.first != first:
+        raise ValueError(f"{root}: episode {i}'s commands replayed from seed {episode['seed']} first succeed at frame "
+                         f"{replayed.first}, its success flags say {first}: not this simulator's episode")
+    return episode["behaviour"], (int(episode["seed"]), first, frames, column("observation.state"), replayed.nearest_cm)
+
+
+def record_own(root: str, episodes: dict[str, list[dict]], resolution: int, workers: int) -> dict[str, dict[str, list]]:
+    """{task: {behaviour: [records]}} of the dataset's `episodes` (own_episodes), in their order."""
+    with open(os.path.join(root, "meta", "info.json")) as f:
+        info = json.load(f)
+    jobs = [(root, info, t, e, resolution) for t, eps in episodes.items() for e in eps]
+    # The workers raise ValueError, which the pool hands back (a SystemExit would end a worker and
+    # leave the map waiting for it).
+    try:
+        with multiprocessing.get_context("spawn").Pool(min(workers, len(jobs))) as pool:
+            done = pool.map(_own_job, jobs)
+    except ValueError as e:
+        raise SystemExit(f"teacher: {e}") from None
+    out: dict[str, dict[str, list]] = {t: {} for t in episodes}
+    for (_, _, t, _, _), (behaviour, record) in zip(jobs, done):
+        out[t].setdefault(behaviour, []).append(record)
+    return out
 
 
 def post(url: str, body: bytes, patience: float = 600.0) -> bytes:
@@ -121,21 +202,22 @@ class WorldModel:
 
 
 def teacher_forced(task, variant, recorded, wm: WorldModel, judge, layout, positions: dict, requests: int = 1) -> list[dict]:
-    """Per recorded episode (in their order): its first success step and, per chunk, the judge's
-    probability on the simulator's frames and on the world model's drawn from them. `requests`
-    episodes at once, so that the server generates while the judge scores another's chunk; each
-    chunk's sampling seed is its own, so the order the server takes them in changes nothing."""
+    """Per recorded episode (seed, first success step, frames from x0 on, each frame's action,
+    the hand's offset at its closest approach; in their order): its first success step, that
+    offset and, per chunk, the judge's probability on the simulator's frames and on the world
+    model's drawn from them. `requests` episodes at once, so that the server generates while the
+    judge scores another's chunk; each chunk's sampling seed is its own, so the order the server
+    takes them in changes nothing."""
 
     def episode(record):
-        seed, first, frames, commands = record
-        actions = frame_actions(task, commands)
+        seed, first, frames, actions, nearest = record
         real, drawn = [], []
         for c, (given, target) in enumerate(layout):
             generated = wm.chunk(frames[given], actions[given + target], seed=positions[task, seed] * 1000 + c)
             ask = {"task": task, "prompt": task}
             real.append(round(float(judge.judge(dict(ask, frames=frames[target]))["success_probability"]), 4))
             drawn.append(round(float(judge.judge(dict(ask, frames=generated[: len(target)]))["success_probability"]), 4))
-        return {"seed": seed, "first": first, "real": real, "drawn": drawn}
+        return {"seed": seed, "first": first, "real": real, "drawn": drawn, "offset_at_closest_cm": [round(float(x), 3) for x in nearest]}
 
     with ThreadPoolExecutor(requests) as pool:
         return list(pool.map(episode, recorded))
@@ -145,7 +227,7 @@ def summarize(results: dict, tasks: list[str], variants: list[str]) -> dict:
     """Rates and agreement from {task: {variant: [episode records]}}."""
     rows, real_chunks, drawn_chunks = [], [], []
     for t in tasks:
-        for v in variants:
+        for v in (v for v in variants if v in results[t]):
             eps = results[t][v]
             # Each chunk as an episode of study.episode_agreement: the simulator's verdict, the world model's.
             real = [r >= study.THRESHOLD for e in eps for r in e["real"]]
@@ -179,39 +261,77 @@ def main(argv=None) -> None:
     ap.add_argument("--requests", type=study.at_least_one, default=3,
                     help="chunks asked of bwm serve at once (more than its --queue + 1 wait their turn)")
     study.add_episode_arguments(ap)
+    ap.add_argument("--own-episodes", action="store_true",
+                    help="the dataset's own episodes (frames, observation.state, success flags) instead of the policy variants on its placements")
+    ap.add_argument("--behaviours", help="with --own-episodes: the generator behaviours taken, comma-separated (default: all)")
     a = ap.parse_args(argv)
     if not serve_flags:
         ap.error("the world model's flags for `bwm serve` go after --")
-    tasks, variants = study.tasks_and_variants(ap, a)
+    if a.own_episodes and a.variants:
+        ap.error("--variants names policy variants; with --own-episodes pick the dataset's episodes by --behaviours")
+    if a.behaviours and not a.own_episodes:
+        ap.error("--behaviours picks the dataset's own episodes (--own-episodes)")
+    if a.own_episodes:
+        import policies
+
+        tasks = a.tasks.split(",")
+        if unknown := [t for t in tasks if t not in policies.VARIANTS]:
+            ap.error(f"unknown task(s) {', '.join(unknown)} (known: {', '.join(policies.VARIANTS)})")
+    else:
+        tasks, variants = study.tasks_and_variants(ap, a)
     if not os.path.isfile(a.judge):
         ap.error(f"no judge at {a.judge} (judge.py train writes it)")
     if not os.access(a.bwm, os.X_OK):
         ap.error(f"no bwm binary at {a.bwm} (make build, or pass --bwm)")
-    episodes = study.episodes_by_task(a.data, tasks, a.episodes)
-    positions = {(t, s): p for t, eps in episodes.items() for p, s in eps}
-    layout = chunk_layout(a.horizon, a.chunk, a.history)
+    if a.own_episodes:
+        behaviours = a.behaviours.split(",") if a.behaviours else None
+        own = own_episodes(a.data, tasks, a.episodes, behaviours)
+        positions = {(t, int(e["seed"])): e["position"] for t, eps in own.items() for e in eps}
+    else:
+        episodes = study.episodes_by_task(a.data, tasks, a.episodes)
+        positions = {(t, s): p for t, eps in episodes.items() for p, s in eps}
     os.makedirs(a.out, exist_ok=True)
 
     from judge import Judge, pick_device
 
     judge = Judge(a.judge, pick_device(a.judge_device), None)
-    wm = WorldModel(a.bwm, serve_flags, os.path.join(a.out, "serve.log"))
     results: dict = {t: {} for t in tasks}
     start = time.time()
+
+    def show(t, v, n, total):
+        eps = results[t][v]
+        print(f"teacher: {t} {v}: true {np.mean([e['first'] is not None for e in eps]):.2f}, teacher-forced "
+              f"{np.mean([max(e['drawn']) >= study.THRESHOLD for e in eps]):.2f} {n}/{total} ({time.time() - start:.0f} s)", flush=True)
+
+    if a.own_episodes:
+        recorded = record_own(a.data, own, a.resolution, a.workers)
+        length = min(len(r[2]) for by in recorded.values() for rs in by.values() for r in rs)
+        horizon = min(a.horizon, length - 1)
+        variants = sorted({b for by in recorded.values() for b in by}, key=lambda b: -sum(len(by.get(b, ())) for by in recorded.values()))
+        print(f"teacher: {sum(len(e) for e in own.values())} episodes of {a.data} ({', '.join(variants)}) recorded with their "
+              f"closest approaches ({time.time() - start:.0f} s)", flush=True)
+    else:
+        horizon = a.horizon
+    layout = chunk_layout(horizon, a.chunk, a.history)
+    wm = WorldModel(a.bwm, serve_flags, os.path.join(a.out, "serve.log"))
     try:
-        jobs = [(t, v, [s for _, s in episodes[t]], a.horizon, a.chunk, a.resolution) for t in tasks for v in variants]
-        with multiprocessing.get_context("spawn").Pool(min(a.workers, len(jobs))) as pool:
-            for n, (t, v, recorded) in enumerate(pool.imap_unordered(_record_job, jobs), 1):
-                results[t][v] = teacher_forced(t, v, recorded, wm, judge, layout, positions, a.requests)
-                eps = results[t][v]
-                print(f"teacher: {t} {v}: true {np.mean([e['first'] is not None for e in eps]):.2f}, teacher-forced "
-                      f"{np.mean([max(e['drawn']) >= study.THRESHOLD for e in eps]):.2f} {n}/{len(jobs)} ({time.time() - start:.0f} s)",
-                      flush=True)
+        if a.own_episodes:
+            pairs = [(t, v) for t in tasks for v in variants if v in recorded[t]]
+            for n, (t, v) in enumerate(pairs, 1):
+                results[t][v] = teacher_forced(t, v, recorded[t][v], wm, judge, layout, positions, a.requests)
+                show(t, v, n, len(pairs))
+        else:
+            jobs = [(t, v, [s for _, s in episodes[t]], a.horizon, a.chunk, a.resolution) for t in tasks for v in variants]
+            with multiprocessing.get_context("spawn").Pool(min(a.workers, len(jobs))) as pool:
+                for n, (t, v, recorded) in enumerate(pool.imap_unordered(_record_job, jobs), 1):
+                    results[t][v] = teacher_forced(t, v, recorded, wm, judge, layout, positions, a.requests)
+                    show(t, v, n, len(jobs))
     finally:
         wm.close()
     summary = summarize(results, tasks, variants)
-    report = {"settings": {"data": a.data, "judge": a.judge, "episodes": a.episodes, "horizon": a.horizon, "chunk": a.chunk,
-                           "history": a.history, "resolution": a.resolution, "serve": serve_flags, "threshold": study.THRESHOLD},
+    report = {"settings": {"data": a.data, "judge": a.judge, "episodes": a.episodes, "horizon": horizon, "chunk": a.chunk,
+                           "history": a.history, "resolution": a.resolution, "serve": serve_flags, "threshold": study.THRESHOLD,
+                           "own_episodes": a.own_episodes, "behaviours": a.behaviours},
               **summary, "episodes": results}
     path = os.path.join(a.out, "teacher.json")
     with open(path + ".tmp", "w") as f:

@@ -96,6 +96,9 @@ else
     if [ $status = 0 ] && [ "${TEACHER:-0}" = 1 ]; then
       recipe teacher 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
     fi
+    if [ $status = 0 ] && [ "${OWN:-0}" = 1 ]; then
+      recipe own 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
+    fi
     if [ $status = 0 ] && [ "${SKIP_PROBE:-0}" != 1 ]; then
       recipe probe 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
     fi

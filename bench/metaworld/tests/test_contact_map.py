@@ -1,4 +1,4 @@
-"""contact_map.py on hand-made side_by_side.py and study.py reports: episodes placed by where the hand came closest."""
+"""contact_map.py on hand-made side_by_side.py, study.py and teacher.py reports: episodes placed by where the hand came closest."""
 
 import json
 import os
@@ -49,7 +49,7 @@ def test_the_command_line_reads_reports_and_refuses_bad_ones():
         bad = os.path.join(d, "bad.json")
         with open(bad, "w") as f:
             json.dump({"task": "drawer", "variant": "wrong", "episodes": [{"offset_at_closest_cm": [1.0]}]}, f)
-        for argv, what in (([bad], "bad.json is not a study.py or side_by_side.py report"), ([good, good], "drawer wrong is given twice"),
+        for argv, what in (([bad], "bad.json is not a study.py, side_by_side.py or teacher.py report"), ([good, good], "drawer wrong is given twice"),
                            ([good, "--band-cm", "0"], "band width must be positive"), ([os.path.join(d, "none.json")], "none.json")):
             p = subprocess.run([sys.executable, os.path.join(HERE, "..", "contact_map.py"), *argv], capture_output=True, text=True)
             assert p.returncode == 2 and what in p.stderr, (argv, p.stderr)
@@ -73,7 +73,27 @@ def test_the_command_line_reads_reports_and_refuses_bad_ones():
             json.dump({"rates": [{"task": "drawer", "variant": "blind", "replayed_episodes": [[0, True, None, 8.6]]}]}, f)
         p = subprocess.run([sys.executable, os.path.join(HERE, "..", "contact_map.py"), old], capture_output=True, text=True)
         assert p.returncode == 2 and "--rescore" in p.stderr, p.stderr
-        assert sorted(os.listdir(d)) == ["bad.json", "good.json", "map.json", "old.json", "study.json"]
+        # A teacher.json: an episode is drawn succeeding when any chunk's probability reaches the threshold.
+        teacher = os.path.join(d, "teacher.json")
+        drawn = lambda first, drawn, x, y: {"seed": 0, "first": first, "real": [0.0] * len(drawn), "drawn": drawn, "offset_at_closest_cm": [x, y, 0.3]}
+        report = {"settings": {"threshold": 0.5}, "rates": [],
+                  "episodes": {"drawer": {"miss": [drawn(None, [0.1, 0.6], 0.5, -5.0), drawn(None, [0.1, 0.4], 0.2, -5.5), drawn(70, [0.2, 0.9], 1.0, 0.2)]}}}
+        with open(teacher, "w") as f:
+            json.dump(report, f)
+        p = subprocess.run([sys.executable, os.path.join(HERE, "..", "contact_map.py"), teacher, "--json", out], capture_output=True, text=True)
+        assert p.returncode == 0, p.stderr
+        with open(out) as f:
+            m = json.load(f)["tasks"]
+        assert m["drawer"]["variants"] == ["miss"], m
+        assert m["drawer"]["by_axis"]["-y"] == {"4-6": {"episodes": 2, "simulator": 0, "world_model": 1}}, m
+        assert m["drawer"]["by_axis"]["x"] == {"0-2": {"episodes": 1, "simulator": 1, "world_model": 1}}, m
+        # One from before teacher.py kept the offsets is refused.
+        del report["episodes"]["drawer"]["miss"][0]["offset_at_closest_cm"]
+        with open(teacher, "w") as f:
+            json.dump(report, f)
+        p = subprocess.run([sys.executable, os.path.join(HERE, "..", "contact_map.py"), teacher], capture_output=True, text=True)
+        assert p.returncode == 2 and "keep no offsets" in p.stderr, p.stderr
+        assert sorted(os.listdir(d)) == ["bad.json", "good.json", "map.json", "old.json", "study.json", "teacher.json"]
 
 
 if __name__ == "__main__":

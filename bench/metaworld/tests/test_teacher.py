@@ -67,13 +67,86 @@ def test_episodes_asked_at_once_come_back_in_their_order_with_their_own_seeds():
             return {"success_probability": float(ask["frames"].mean()) / 255}
 
     layout = teacher.chunk_layout(horizon=48, chunk=24, history=8)
-    recorded = [(seed, None, np.full((49, 2, 2, 3), 10 * k, np.uint8), np.zeros((48, 4), np.float32)) for k, seed in enumerate([7, 3, 9, 1, 5])]
+    recorded = [(seed, None, np.full((49, 2, 2, 3), 10 * k, np.uint8), np.zeros((49, 4), np.float32), np.array([k, -k, 0.5]))
+                for k, seed in enumerate([7, 3, 9, 1, 5])]
     positions = {("drawer-open-v3", seed): p for p, seed in enumerate([7, 3, 9, 1, 5])}
     served = Served()
     out = teacher.teacher_forced("drawer-open-v3", "expert", recorded, served, Judge(), layout, positions, requests=3)
     assert [e["seed"] for e in out] == [7, 3, 9, 1, 5], out
     assert [e["drawn"] for e in out] == [[round(10 * k / 255, 4)] * 2 for k in range(5)], out
+    assert [e["offset_at_closest_cm"] for e in out] == [[k, -k, 0.5] for k in range(5)], out
     assert sorted(served.seeds) == sorted(p * 1000 + c for p in range(5) for c in range(2)), served.seeds
+
+def test_own_episodes_are_the_datasets_frames_states_and_outcomes_placed_by_their_replay():
+    import json
+    import tempfile
+
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    import generate
+    import policies
+
+    task = "drawer-open-v3"
+    with tempfile.TemporaryDirectory() as d:
+        root = os.path.join(d, "data")
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+            generate.main(["--tasks", task, "--episodes", "4", "--frames", "100", "--resolution", "32", "--degraded-fraction", "1",
+                           "--miss-weight", "1000", "--workers", "1", "--out", root])
+        with open(os.path.join(root, "meta", "episodes.jsonl")) as f:
+            meta = [json.loads(line) for line in f]
+        misses = [e for e in meta if e["behaviour"] == "miss"][:2]
+        assert len(misses) == 2, meta
+        picked = teacher.own_episodes(root, [task], 2, ["miss"])
+        assert [e["episode_index"] for e in picked[task]] == [e["episode_index"] for e in misses], picked
+        assert [e["position"] for e in picked[task]] == [meta.index(e) for e in misses], picked
+
+        recorded = teacher.record_own(root, picked, 32, 2)
+        assert list(recorded[task]) == ["miss"], recorded.keys()
+        for e, (seed, first, frames, actions, nearest) in zip(misses, recorded[task]["miss"]):
+            table = pq.read_table(os.path.join(root, f"data/chunk-000/episode_{e['episode_index']:06d}.parquet"))
+            assert seed == e["seed"] and frames.shape == (100, 32, 32, 3) and frames.dtype == np.uint8
+            # The actions are what `bwm prepare` trains on; the truth is the dataset's own flags.
+            assert np.array_equal(actions, np.asarray(table.column("observation.state").to_pylist(), np.float32))
+            flags = table.column("success").to_pylist()
+            assert first == (flags.index(True) if True in flags else None), (first, e)
+            # The closest approach is the simulator's for this episode's commands: where the miss aimed.
+            replayed = policies.replay(task, seed, np.asarray(table.column("action").to_pylist(), np.float32)[:99])
+            assert np.array_equal(nearest, replayed.nearest_cm) and np.linalg.norm(nearest[:2]) > 0, nearest
+
+        # An episode whose flags its commands do not reproduce is not this simulator's: refused by name.
+        path = os.path.join(root, f"data/chunk-000/episode_{misses[0]['episode_index']:06d}.parquet")
+        table = pq.read_table(path)
+        flags = table.column("success").to_pylist()
+        table = table.set_column(table.column_names.index("success"), "success", pa.array([not flags[-1]] * len(flags)))
+        pq.write_table(table, path)
+        try:
+            teacher.record_own(root, picked, 32, 1)
+        except SystemExit as err:
+            assert f"episode {misses[0]['episode_index']}'s commands replayed" in str(err) and "not this simulator's episode" in str(err), err
+        else:
+            raise AssertionError("an episode with foreign success flags was taken")
+        try:
+            teacher.own_episodes(root, [task], 2, ["decoy"])
+        except SystemExit as err:
+            assert str(err) == f"teacher: {root} holds no episodes of {task} of behaviour decoy", err
+        else:
+            raise AssertionError("no episodes of a behaviour went unnoticed")
+
+
+def test_own_episodes_take_behaviours_not_variants():
+    for args, message in ((["--own-episodes", "--variants", "expert"], "with --own-episodes pick the dataset's episodes by --behaviours"),
+                          (["--behaviours", "miss"], "--behaviours picks the dataset's own episodes (--own-episodes)")):
+        err = io.StringIO()
+        try:
+            with contextlib.redirect_stderr(err):
+                teacher.main(["--data", "x", "--judge", "y", "--out", "z", *args, "--", "--checkpoint", "c"])
+        except SystemExit as e:
+            assert e.code == 2, e
+        else:
+            raise AssertionError(f"ran with {args}")
+        assert message in err.getvalue(), err.getvalue()
+
 
 def test_the_world_models_flags_are_required():
     try:

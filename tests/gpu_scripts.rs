@@ -188,38 +188,33 @@ fn each_judge_has_its_own_study_folder() {
     assert!(calls.is_empty(), "{calls:?}");
 }
 
-#[test]
-fn the_teacher_stage_follows_the_study_when_asked() {
-    let dir = common::temp_dir("gpu-teacher");
+/// Runs the stages without and with `asked` set to 1 (beside `base`): the optional `stage` runs
+/// only when asked, and after the stage `after`.
+fn runs_after_when_asked(name: &str, base: &[(&str, &str)], asked: &str, stage: &str, after: &str) {
+    let dir = common::temp_dir(name);
     let d = dir.path();
-    for (vars, asked) in [(&[][..], false), (&[("TEACHER", "1")][..], true)] {
+    let with: Vec<(&str, &str)> = base.iter().copied().chain([(asked, "1")]).collect();
+    for (vars, wanted) in [(base, false), (&with[..], true)] {
         let (out, calls) = stages(d, vars);
         let log = format!("{}\n{}\n{calls:#?}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
         assert!(out.status.success(), "{log}");
-        let study = calls.iter().position(|c| c.starts_with("study ")).expect("a study stage");
-        match calls.iter().position(|c| c.starts_with("teacher ")) {
-            Some(teacher) => assert!(asked && teacher > study, "{log}"),
-            None => assert!(!asked, "{log}"),
+        let before = calls.iter().position(|c| c.starts_with(&format!("{after} "))).unwrap_or_else(|| panic!("no {after} stage: {log}"));
+        match calls.iter().position(|c| c.starts_with(&format!("{stage} "))) {
+            Some(at) => assert!(wanted && at > before, "{log}"),
+            None => assert!(!wanted, "{log}"),
         }
         fs::remove_dir_all(d.join("runs")).unwrap();
     }
 }
 
 #[test]
-fn the_own_stage_follows_the_study_and_the_teacher_when_asked() {
-    let dir = common::temp_dir("gpu-own");
-    let d = dir.path();
-    for (vars, asked) in [(&[("TEACHER", "1")][..], false), (&[("TEACHER", "1"), ("OWN", "1")][..], true)] {
-        let (out, calls) = stages(d, vars);
-        let log = format!("{}\n{}\n{calls:#?}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
-        assert!(out.status.success(), "{log}");
-        let teacher = calls.iter().position(|c| c.starts_with("teacher ")).expect("a teacher stage");
-        match calls.iter().position(|c| c.starts_with("own ")) {
-            Some(own) => assert!(asked && own > teacher, "{log}"),
-            None => assert!(!asked, "{log}"),
-        }
-        fs::remove_dir_all(d.join("runs")).unwrap();
-    }
+fn the_teacher_stage_follows_the_study_when_asked() {
+    runs_after_when_asked("gpu-teacher", &[], "TEACHER", "teacher", "study");
+}
+
+#[test]
+fn the_own_stage_follows_the_teacher_when_asked() {
+    runs_after_when_asked("gpu-own", &[("TEACHER", "1")], "OWN", "own", "teacher");
 }
 
 #[test]

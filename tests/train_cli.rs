@@ -348,13 +348,13 @@ fn a_lora_run_exports_and_rolls_out_through_the_cli() {
 }
 
 #[test]
-fn an_action_encoder_with_fourier_features_trains_exports_and_rolls_out() {
+fn an_action_encoder_with_fourier_features_and_timed_actions_trains_exports_and_rolls_out() {
     let dir = temp_dir("fourier-cli");
     write_cache(&dir.join("cache"));
-    train(&write_config(&dir, "run.toml", &dir.join("run"), 1, 1), &["model.action.fourier_bands=3"]);
+    train(&write_config(&dir, "run.toml", &dir.join("run"), 1, 1), &["model.action.fourier_bands=3", "model.action.temporal_rope=true"]);
     let ckpt = dir.join("run/checkpoints/step-00000001");
     let saved = std::fs::read_to_string(ckpt.join("config.toml")).unwrap();
-    assert!(saved.contains("fourier_bands = 3"), "{saved}");
+    assert!(saved.contains("fourier_bands = 3") && saved.contains("temporal_rope = true"), "{saved}");
     // 14-D actions, each with 3 octaves of sines and cosines: 14 * 7 inputs.
     let weights = final_weights(&dir.join("run"));
     let first = weights.iter().find(|(n, _)| n.ends_with("action_mlp1.0.weight")).expect("action_mlp1.0.weight");
@@ -366,7 +366,10 @@ fn an_action_encoder_with_fourier_features_trains_exports_and_rolls_out() {
     let json = |p: &str| -> serde_json::Value { serde_json::from_slice(&std::fs::read(exported.join(p)).unwrap()).unwrap() };
     assert_eq!(json("config.json")["action"]["fourier_bands"], 3);
     assert_eq!(json("action_encoder/config.json")["fourier_bands"], 3);
-    assert!(std::fs::read_to_string(exported.join("README.md")).unwrap().contains("Fourier features over 3 octaves"));
+    assert_eq!(json("config.json")["action"]["temporal_rope"], true);
+    assert_eq!(json("action_encoder/config.json")["temporal_rope"], true);
+    let card = std::fs::read_to_string(exported.join("README.md")).unwrap();
+    assert!(card.contains("Fourier features over 3 octaves") && card.contains("temporal RoPE"), "{card}");
 
     for model in [&ckpt, &exported] {
         let out = Command::new(bwm())

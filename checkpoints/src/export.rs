@@ -399,6 +399,10 @@ pub fn write_weights(
                         j["fourier_bands"] = c.action.fourier_bands.into();
                         j["fourier_features"] = "each normalized action value a replaced by [a, sin(2^k*pi*a) for k < fourier_bands, cos(2^k*pi*a) for k < fourier_bands] (per frame: all values, then all sines, then all cosines) before action_mlp1 and action_mlp2; their action_dim is action_dim*(1 + 2*fourier_bands)".into();
                     }
+                    if c.action.temporal_rope {
+                        j["temporal_rope"] = true.into();
+                        j["temporal_rope_note"] = "the DiT's cross-attention rotates q and k after their RMSNorm by the temporal part of its 3-axis RoPE: each video token at its latent frame, each action token at latent frame (pixel_frame + prepend) // group; rows and columns unrotated".into();
+                    }
                     Some(j)
                 }
                 _ => None,
@@ -539,7 +543,7 @@ post-trained with the `bwm` trainer. Given the first frame, recent history laten
         match c.action.fourier_bands {
             0 => String::new(),
             b => format!(", each value with its Fourier features over {b} octaves"),
-        }
+        } + if c.action.temporal_rope { ", each action token placed at its latent frame in the cross-attention (temporal RoPE)" } else { "" }
     );
     s += &format!("| parameters | {} in {} tensors |\n", f.cfg.weights.parameters, f.cfg.weights.tensors);
     s += &format!("| layout | `{}` |\n| dtype | {} |\n| EMA weights | {} |\n\n", f.cfg.layout, f.cfg.weights.dtype, if f.cfg.weights.ema { "yes" } else { "no" });

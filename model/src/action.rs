@@ -24,6 +24,9 @@ pub struct ActionEmbedding {
     pub context: Tensor,
     /// [B, F_latent, D]: added to the time embedding of each latent frame.
     pub frame: Tensor,
+    /// The latent frame of each context token, for the cross-attention's temporal rotation
+    /// (`ActionConfig::temporal_rope`); None: the context has no positions (BWM).
+    pub context_frames: Option<Vec<i64>>,
 }
 
 impl ActionEmbedding {
@@ -35,7 +38,7 @@ impl ActionEmbedding {
         let b = self.context.size()[0];
         ensure!(keep.size() == [b], "the action keep mask must be [{b}], got {:?}", keep.size());
         let mask = |t: &Tensor| t * keep.to_device(t.device()).to_kind(t.kind()).view([b, 1, 1]);
-        Ok(ActionEmbedding { context: mask(&self.context), frame: mask(&self.frame) })
+        Ok(ActionEmbedding { context: mask(&self.context), frame: mask(&self.frame), context_frames: self.context_frames.clone() })
     }
 }
 
@@ -66,7 +69,8 @@ impl ActionEncoder {
         let first = actions.narrow(1, 0, 1).repeat([1, self.cfg.prepend, 1]);
         let grouped = Tensor::cat(&[first, actions], 1).reshape([s[0], latent_frames, self.cfg.group * e]);
         let frame = self.action_mlp2.l2.forward(&self.action_mlp2.l0.forward(&grouped).silu());
-        Ok(ActionEmbedding { context, frame })
+        let context_frames = self.cfg.temporal_rope.then(|| self.cfg.action_latent_frames(s[1]));
+        Ok(ActionEmbedding { context, frame, context_frames })
     }
 }
 
@@ -117,7 +121,7 @@ mod tests {
     }
 
     fn encoder(bands: i64) -> ActionEncoder {
-        let cfg = ActionConfig { action_dim: 2, prepend: 3, group: 4, fourier_bands: bands };
+        let cfg = ActionConfig { action_dim: 2, prepend: 3, group: 4, fourier_bands: bands, temporal_rope: false };
         ActionEncoder::new(&ParamStore::random(Kind::Float, Device::Cpu).root(), &cfg, 16).unwrap()
     }
 
@@ -141,7 +145,7 @@ mod tests {
         // Adam (lr 1e-2) on the encoder's parameters, the same seed for both inputs.
         let fit = |bands: i64| -> f64 {
             let store = ParamStore::random(Kind::Float, Device::Cpu);
-            let cfg = ActionConfig { action_dim: 1, prepend: 0, group: 1, fourier_bands: bands };
+            let cfg = ActionConfig { action_dim: 1, prepend: 0, group: 1, fourier_bands: bands, temporal_rope: false };
             let enc = with_seed(0, || ActionEncoder::new(&store.root(), &cfg, 16)).unwrap();
             let params: Vec<Tensor> = store.named_parameters().into_iter().map(|(_, t)| t.set_requires_grad(true)).collect();
             let mut moments: Vec<(Tensor, Tensor)> = params.iter().map(|p| (p.zeros_like(), p.zeros_like())).collect();

@@ -136,10 +136,21 @@ pub struct ActionConfig {
     /// encoder can resolve fine differences of a command; 0 is BWM's encoder.
     #[serde(skip_serializing_if = "is_zero")]
     pub fourier_bands: i64,
+    /// The cross-attention to the action tokens told where each action lies in time: queries and
+    /// action tokens rotated by the temporal part of the DiT's rotary embedding (each video token
+    /// at its latent frame, each action at the latent frame its pixel frame falls in), so that a
+    /// token can attend to the actions of its own frame. false is BWM's (no positions in the
+    /// cross-attention); the option adds no parameters.
+    #[serde(skip_serializing_if = "is_false")]
+    pub temporal_rope: bool,
 }
 
 fn is_zero(v: &i64) -> bool {
     *v == 0
+}
+
+fn is_false(v: &bool) -> bool {
+    !*v
 }
 
 /// The most octaves: at k = 11, sin(2^k*pi*a) turns over every 0.001 of a normalized command.
@@ -147,7 +158,7 @@ pub const MAX_FOURIER_BANDS: i64 = 12;
 
 impl Default for ActionConfig {
     fn default() -> Self {
-        Self { action_dim: 14, prepend: 3, group: 4, fourier_bands: 0 }
+        Self { action_dim: 14, prepend: 3, group: 4, fourier_bands: 0, temporal_rope: false }
     }
 }
 
@@ -166,6 +177,12 @@ impl ActionConfig {
             self.fourier_bands
         );
         Ok(())
+    }
+
+    /// The latent frame of each of `pixel_frames` actions: latent 0 holds pixel frame 0 (after P
+    /// copies of it), latent k the G frames before it.
+    pub fn action_latent_frames(&self, pixel_frames: i64) -> Vec<i64> {
+        (0..pixel_frames).map(|i| (i + self.prepend) / self.group).collect()
     }
 
     /// Values per frame that the encoder's first layers see: d_a, times 1 + 2B with Fourier features.
@@ -254,5 +271,17 @@ bogus = 1"#;
             let e = ActionConfig { fourier_bands: bad, ..f.clone() }.validate().unwrap_err().to_string();
             assert!(e.contains("action.fourier_bands"), "{e}");
         }
+    }
+
+    #[test]
+    fn each_action_has_the_latent_frame_of_its_group_and_the_rotation_is_opt_in() {
+        let a = ActionConfig { action_dim: 4, ..ActionConfig::default() };
+        // Pixel frame 0 alone in latent 0 (after P = 3 copies), then four frames per latent.
+        assert_eq!(a.action_latent_frames(9), [0, 1, 1, 1, 1, 2, 2, 2, 2]);
+        assert_eq!(a.action_latent_frames(9).last().map(|&l| l + 1), a.latent_frames(9).ok());
+        assert!(!a.temporal_rope && !toml::to_string(&a).unwrap().contains("temporal"), "BWM's writes its config as before");
+        let t: ActionConfig = toml::from_str("action_dim = 4\ntemporal_rope = true").unwrap();
+        assert!(t.temporal_rope);
+        assert_eq!(toml::from_str::<ActionConfig>(&toml::to_string(&t).unwrap()).unwrap(), t);
     }
 }

@@ -104,9 +104,21 @@ fn batch_two_equals_batch_one_with_accumulation_two() {
 
 #[test]
 fn recomputation_gives_the_same_gradients() {
+    recomputation_matches(false);
+}
+
+#[test]
+fn recomputation_gives_the_same_gradients_with_the_actions_timed_in_cross_attention() {
+    recomputation_matches(true);
+}
+
+fn recomputation_matches(temporal_rope: bool) {
     let dir = tmp_dir("recompute");
     let cache = write_cache(&dir.join("cache"), 2, 3);
-    let t = trainer(config(&cache, &dir.join("run"), "[train]\nmicro_batch = 2"), Resume::No).unwrap();
+    let mut c = config(&cache, &dir.join("run"), "[train]\nmicro_batch = 2");
+    c.model.action.temporal_rope = temporal_rope;
+    let t = trainer(c, Resume::No).unwrap();
+    assert_eq!(t.model.action_encoder.cfg.temporal_rope, temporal_rope);
     let clips: Vec<_> = (0..2).map(|i| t.cache.load(i, tch::Device::Cpu).unwrap()).collect();
     let latents = Tensor::stack(&clips.iter().map(|c| c.latents.shallow_clone()).collect::<Vec<_>>(), 0);
     let actions = Tensor::stack(&clips.iter().map(|c| c.actions.shallow_clone()).collect::<Vec<_>>(), 0);

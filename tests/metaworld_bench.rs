@@ -76,13 +76,15 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
             // The DiT trained with action dropout, its own history noise and grid shift and an
             // average of its weights, every world-model stage guided by the actions and rolling
             // out that average; the data's near misses drawn around the measured outcome boundary
-            // and weighted up, and decoys among its degraded episodes.
+            // and weighted up, decoys among its degraded episodes, and its expert looking at the
+            // object only every 8-40 frames.
             .env("TRAIN_SETS", format!("{TOY_DIT} objective.action_dropout=0.5 objective.history_sigma=0.1 objective.shift=3.0"))
             .env("EMA_DECAY", "0.5")
             .env("GUIDANCE", "1.5")
             .env("MISS_BOUNDARY", Path::new(ROOT).join("bench/metaworld/boundary.json"))
             .env("MISS_WEIGHT", "9")
-            .env("DECOY", "3"),
+            .env("DECOY", "3")
+            .env("OBSERVE_EVERY", "8,40"),
         "recipe.sh",
     );
 
@@ -116,7 +118,7 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
         Command::new(python())
             .arg(Path::new(ROOT).join("bench/metaworld/generate.py"))
             .args(["--tasks", "drawer-open-v3,button-press-topdown-v3", "--episodes", "1", "--seed-start", "100000"])
-            .args(["--frames", "100", "--resolution", "64", "--miss-weight", "9", "--decoy-weight", "3", "--workers", "1", "--miss-boundary"])
+            .args(["--frames", "100", "--resolution", "64", "--miss-weight", "9", "--decoy-weight", "3", "--observe-every", "8,40", "--workers", "1", "--miss-boundary"])
             .arg(Path::new(ROOT).join("bench/metaworld/boundary.json"))
             .arg("--out")
             .arg(&again),
@@ -547,6 +549,11 @@ fn world_model_contact_is_mapped_by_where_the_hand_came_closest() {
 #[test]
 fn teacher_forcing_lays_chunks_out_and_scores_them() {
     python_tests("test_teacher.py");
+}
+
+#[test]
+fn the_drawer_pulls_are_measured_by_outcome() {
+    python_tests("test_pulls.py");
 }
 
 #[test]

@@ -5,7 +5,7 @@ parquet files, no video). README.md describes the layout and the seed convention
         --seed-start 0 --frames 120 --resolution 64 --out DIR --workers 2
 
 Each episode is a pure function of (task, seed, --frames, --resolution, --degraded-fraction, --spread,
---miss-cm or --miss-boundary, --miss-weight, --decoy-weight):
+--miss-cm or --miss-boundary, --miss-weight, --decoy-weight, --observe-every):
 the same arguments give the same bytes whatever --workers is.
 """
 
@@ -51,7 +51,7 @@ class Behaviour:
 
     def __init__(self, task: str, rng: np.random.Generator, frames: int, degraded_fraction: float, spread: str = "narrow",
                  miss: tuple[float, float] | boundary.Boundary | None = None, decoy_weight: float = 0.0,
-                 miss_weight: float = DEGRADED_MODES["miss"]):
+                 miss_weight: float = DEGRADED_MODES["miss"], observe_every: tuple[int, int] = (1, 1)):
         import policies
 
         if spread not in ("narrow", "wide"):
@@ -62,6 +62,8 @@ class Behaviour:
         for name, w in (("decoy", decoy_weight), ("miss", miss_weight)):
             if not (np.isfinite(w) and w >= 0):
                 raise ValueError(f"the {name} weight {w} must be finite and >= 0")
+        if not 1 <= observe_every[0] <= observe_every[1]:
+            raise ValueError(f"the observation interval {observe_every} must be 1 <= low <= high (frames)")
         self.policies, self.task, self.rng = policies, task, rng
         if spread == "wide":
             # The experts' action noise log-uniform from near-clean to a jitter that sometimes
@@ -111,12 +113,24 @@ class Behaviour:
         elif self.mode == DECOY:
             self.decoy = rng.uniform(*policies.OBJECT_RANGE[task])
         self.waypoint, self.until, self.gain, self.grip = None, -1, 10.0, -1.0
+        # How often the expert looks at the object (drawn last, so that at 1,1 every other draw
+        # stays as it was). Between looks it acts on its belief, which, as policies.Policy's does,
+        # takes the drawer handle to follow the hand that pulls it: a pull that misses the handle
+        # then goes on as long as one that hooks it, and the commands do not tell the outcome.
+        lo, hi = observe_every
+        self.observe_every = lo if lo == hi else int(rng.integers(lo, hi + 1))
+        self.belief, self.pulled_from = None, None
 
     def command(self, t: int, state: np.ndarray, obj: np.ndarray) -> np.ndarray:
         rng, grip = self.rng, self.policies.GRIP[self.task]
         if self.decoy is not None:
             # Relative to the object as placed, so that a drawer the hand does pull still follows it.
             self.offset, self.decoy = self.decoy - obj, None
+        if t % self.observe_every == 0:
+            self.belief = np.array(obj, float)
+        elif self.pulled_from is not None:
+            self.belief[1] += state[1] - self.pulled_from
+        self.pulled_from = None
         if self.hold[t]:
             return state.copy()
         if self.explore[t]:
@@ -127,7 +141,9 @@ class Behaviour:
                 self.grip = rng.choice([-1.0, 1.0])
             to, gain, grip = self.waypoint, self.gain, self.grip
         else:
-            to, gain, _ = self.policies.expert_target(self.task, obj + self.offset, state)
+            to, gain, pulling = self.policies.expert_target(self.task, self.belief + self.offset, state)
+            if pulling:
+                self.pulled_from = state[1]
         speed = 1.0 if self.explore[t] else self.speed
         noise = rng.uniform(1.0, 2.0) if self.burst[t] else self.noise
         a = np.clip(np.clip(gain * (to - state[:3]), -1, 1) * speed + noise * rng.standard_normal(3), -1, 1)
@@ -182,8 +198,8 @@ def run_episode(job: tuple) -> dict:
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    root, episode_index, first_index, task_index, task, seed, frames, resolution, degraded, spread, miss, decoy, miss_weight = job
-    behaviour = Behaviour(task, episode_rng(task, seed), frames, degraded, spread, miss, decoy, miss_weight)
+    root, episode_index, first_index, task_index, task, seed, frames, resolution, degraded, spread, miss, decoy, miss_weight, observe = job
+    behaviour = Behaviour(task, episode_rng(task, seed), frames, degraded, spread, miss, decoy, miss_weight, observe)
     with Sim(task, seed, resolution) as sim:
         images, states, commands, deltas, success = simulate(behaviour, sim, frames)
     images, states, commands, deltas = (np.stack(x) for x in (images, states, commands, deltas))
@@ -268,6 +284,17 @@ def miss_range(text: str) -> tuple[float, float]:
     return lo / 100, hi / 100
 
 
+def interval(text: str) -> tuple[int, int]:
+    """`--observe-every LOW,HIGH` (frames)."""
+    try:
+        lo, hi = (int(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"takes LOW,HIGH in frames, got {text!r}") from None
+    if not 1 <= lo <= hi:
+        raise argparse.ArgumentTypeError(f"needs 1 <= LOW <= HIGH, got {text!r}")
+    return lo, hi
+
+
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     which = parser.add_mutually_exclusive_group(required=True)
@@ -296,6 +323,11 @@ def parse_args(argv=None) -> argparse.Namespace:
                         help="weight of `decoy` episodes among the degraded ones (the others weigh 1, `miss` --miss-weight): the expert "
                              "acting on an object placement drawn afresh from the task's range, so that the motion of a "
                              "success does not tell where the object is; default 0 (none)")
+    parser.add_argument("--observe-every", type=interval, default=(1, 1), metavar="LOW,HIGH",
+                        help="frames between the expert's looks at the object, per episode uniform in LOW..HIGH; between looks "
+                             "it takes the drawer handle to follow the hand that pulls it (as a policy seeing a frame per "
+                             "chunk does), so that a pull that misses lasts as long as one that hooks the handle. Default 1,1: "
+                             "every frame, and a missed pull stops as soon as the handle stays behind")
     parser.add_argument("--out", required=True, help="dataset folder (must not exist unless --force)")
     parser.add_argument("--workers", type=int, default=min(4, os.cpu_count() or 1))
     parser.add_argument("--force", action="store_true", help="replace --out if it exists")
@@ -333,7 +365,7 @@ def main(argv=None) -> None:
     for i in range(args.episodes):
         for task_index, task in enumerate(args.tasks):
             e = len(jobs)
-            jobs.append((tmp, e, e * args.frames, task_index, task, args.seed_start + i, args.frames, args.resolution, args.degraded_fraction, args.spread, args.miss, args.decoy_weight, args.miss_weight))
+            jobs.append((tmp, e, e * args.frames, task_index, task, args.seed_start + i, args.frames, args.resolution, args.degraded_fraction, args.spread, args.miss, args.decoy_weight, args.miss_weight, args.observe_every))
     start = time.time()
     try:
         results = []

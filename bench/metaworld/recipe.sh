@@ -62,6 +62,7 @@ MISS_CM="${MISS_CM-$([ -n "$MISS_BOUNDARY" ] || echo 3,9)}"  # LOW,HIGH: how far
 MISS_WEIGHT="${MISS_WEIGHT:-20}"          # weight of `miss` episodes among the degraded (generate.py --miss-weight; the others weigh 1)
 DEGRADED="${DEGRADED:-0.6}"               # share of episodes degraded (generate.py --degraded-fraction)
 DECOY="${DECOY:-0}"                       # weight of `decoy` episodes among the degraded (generate.py --decoy-weight; 0: none)
+OBSERVE_EVERY="${OBSERVE_EVERY:-}"        # LOW,HIGH: frames between the data's expert's looks at the object, between which it takes the handle to follow its pull (generate.py --observe-every; empty: its 1,1, every frame)
 FRAMES="${FRAMES:-120}"
 RESOLUTION="${RESOLUTION:-128}"          # frames are RESOLUTION x RESOLUTION pixels (8x8 latent cells at 128)
 WORKERS="${WORKERS:-$(nproc)}"
@@ -179,7 +180,7 @@ if wants data; then
     if [ $split = train ]; then n=$TRAIN_EPISODES; s=0; else n=$VAL_EPISODES; s=100000; fi
     timed "data-$split" "$PYTHON" bench/metaworld/generate.py --tasks "$TASKS" --episodes "$n" --seed-start "$s" \
       --frames "$FRAMES" --resolution "$RESOLUTION" --spread "$SPREAD" ${MISS_CM:+--miss-cm "$MISS_CM"} ${MISS_BOUNDARY:+--miss-boundary "$MISS_BOUNDARY"} ${MISS_FACTOR:+--miss-factor "$MISS_FACTOR"} \
-      --miss-weight "$MISS_WEIGHT" --decoy-weight "$DECOY" --degraded-fraction "$DEGRADED" --workers "$WORKERS" --out "$RUN/data/$split"
+      --miss-weight "$MISS_WEIGHT" --decoy-weight "$DECOY" ${OBSERVE_EVERY:+--observe-every "$OBSERVE_EVERY"} --degraded-fraction "$DEGRADED" --workers "$WORKERS" --out "$RUN/data/$split"
   done
 fi
 

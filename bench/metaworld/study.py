@@ -62,24 +62,34 @@ THRESHOLD = 0.5
 
 
 # --- the held-out episodes -----------------------------------------------------------------------
-def episodes_by_task(root: str, tasks: list[str], per_task: int) -> dict[str, list[tuple[int, int]]]:
-    """Per task: (dataset position, seed) of its first `per_task` episodes."""
+def dataset_episodes(root: str, tasks: list[str], per_task: int | None = None, behaviours: list[str] | None = None,
+                     need: int = 1, tool: str = "study") -> dict[str, list[dict]]:
+    """Per task, the metadata (meta/episodes.jsonl) of a generate.py dataset's first `per_task`
+    episodes (all with None) whose generator behaviour is among `behaviours` (any with None), in
+    episode order, each with its `position` in the dataset. Fewer than `need` of a task end the
+    program, in `tool`'s name."""
+    import judge
+
     path = os.path.join(root, "meta", "episodes.jsonl")
     if not os.path.isfile(path):
-        raise SystemExit(f"study: {root} is not a generate.py dataset (no meta/episodes.jsonl)")
-    with open(path) as f:
-        episodes = sorted((json.loads(line) for line in f if line.strip()), key=lambda e: e["episode_index"])
-    out: dict[str, list[tuple[int, int]]] = {t: [] for t in tasks}
-    for position, e in enumerate(episodes):
-        if "seed" not in e:
-            raise SystemExit(f"study: {path}: episode {e['episode_index']} has no seed (not written by generate.py)")
+        raise SystemExit(f"{tool}: {root} is not a generate.py dataset (no meta/episodes.jsonl)")
+    out: dict[str, list[dict]] = {t: [] for t in tasks}
+    for position, e in enumerate(sorted(judge.read_jsonl(path), key=lambda e: e["episode_index"])):
+        if "seed" not in e or (behaviours is not None and "behaviour" not in e):
+            raise SystemExit(f"{tool}: {path}: episode {e['episode_index']} has no seed or behaviour (not written by generate.py)")
         for t in tasks:
-            if e.get("tasks") == [t] and len(out[t]) < per_task:
-                out[t].append((position, int(e["seed"])))
+            if e.get("tasks") == [t] and (behaviours is None or e["behaviour"] in behaviours) and (per_task is None or len(out[t]) < per_task):
+                out[t].append(dict(e, position=position))
     for t, eps in out.items():
-        if len(eps) < per_task:
-            raise SystemExit(f"study: {root} holds {len(eps)} episodes of {t}; --episodes asks for {per_task}")
+        if len(eps) < need:
+            which = f" of behaviour {', '.join(behaviours)}" if behaviours else ""
+            raise SystemExit(f"{tool}: {root} holds {len(eps) or 'no'} episodes of {t}{which}" + (f"; {need} are needed" if need > 1 else ""))
     return out
+
+
+def episodes_by_task(root: str, tasks: list[str], per_task: int) -> dict[str, list[tuple[int, int]]]:
+    """Per task: (dataset position, seed) of its first `per_task` episodes."""
+    return {t: [(e["position"], int(e["seed"])) for e in eps] for t, eps in dataset_episodes(root, tasks, per_task, need=per_task).items()}
 
 
 # --- truth -----------------------------------------------------------------------------------------
@@ -619,15 +629,23 @@ def add_episode_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--bwm", default=os.path.join(os.environ.get("CARGO_TARGET_DIR", "target"), "release", "bwm"))
 
 
-def tasks_and_variants(ap: argparse.ArgumentParser, a) -> tuple[list[str], list[str]]:
-    """--tasks and --variants checked (every named variant exists for every task; by default the
-    variants the tasks share, in policies.py's order)."""
+def tasks_checked(ap: argparse.ArgumentParser, a) -> list[str]:
+    """--tasks, each one the policies know."""
     import policies
 
     tasks = a.tasks.split(",")
     for t in tasks:
         if t not in policies.VARIANTS:
             ap.error(f"unknown task {t!r} (known: {', '.join(policies.VARIANTS)})")
+    return tasks
+
+
+def tasks_and_variants(ap: argparse.ArgumentParser, a) -> tuple[list[str], list[str]]:
+    """--tasks and --variants checked (every named variant exists for every task; by default the
+    variants the tasks share, in policies.py's order)."""
+    import policies
+
+    tasks = tasks_checked(ap, a)
     shared = [v for v in policies.VARIANTS[tasks[0]] if all(v in policies.VARIANTS[t] for t in tasks)]
     variants = a.variants.split(",") if a.variants else shared
     problem = policies.check_variants(tasks, variants)

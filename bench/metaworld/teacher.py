@@ -85,28 +85,6 @@ def _record_job(job):
                            for seed in seeds for e in [policies.run_episode(task, variant, seed, horizon, chunk, resolution, record=True)]]
 
 
-def own_episodes(root: str, tasks: list[str], per_task: int, behaviours: list[str] | None) -> dict[str, list[dict]]:
-    """Per task, the metadata of the dataset's first `per_task` episodes whose generator behaviour
-    is among `behaviours` (any without), each with its position in the dataset."""
-    import judge
-
-    path = os.path.join(root, "meta", "episodes.jsonl")
-    if not os.path.isfile(path):
-        raise SystemExit(f"teacher: {root} is not a generate.py dataset (no meta/episodes.jsonl)")
-    out: dict[str, list[dict]] = {t: [] for t in tasks}
-    for position, e in enumerate(sorted(judge.read_jsonl(path), key=lambda e: e["episode_index"])):
-        if "seed" not in e or "behaviour" not in e:
-            raise SystemExit(f"teacher: {path}: episode {e['episode_index']} has no seed or behaviour (not written by generate.py)")
-        for t in tasks:
-            if e.get("tasks") == [t] and (behaviours is None or e["behaviour"] in behaviours) and len(out[t]) < per_task:
-                out[t].append(dict(e, position=position))
-    for t, eps in out.items():
-        if not eps:
-            which = f" of behaviour {', '.join(behaviours)}" if behaviours else ""
-            raise SystemExit(f"teacher: {root} holds no episodes of {t}{which}")
-    return out
-
-
 def _own_job(job):
     """One dataset episode as teacher_forced takes it: its behaviour and (seed, first success
     frame, frames uint8 [T, H, W, 3], actions float32 [T, 4], the hand's offset from the object at
@@ -135,7 +113,7 @@ def _own_job(job):
 
 
 def record_own(root: str, episodes: dict[str, list[dict]], resolution: int, workers: int) -> dict[str, dict[str, list]]:
-    """{task: {behaviour: [records]}} of the dataset's `episodes` (own_episodes), in their order."""
+    """{task: {behaviour: [records]}} of the dataset's `episodes` (study.dataset_episodes), in their order."""
     with open(os.path.join(root, "meta", "info.json")) as f:
         info = json.load(f)
     jobs = [(root, info, t, e, resolution) for t, eps in episodes.items() for e in eps]
@@ -272,11 +250,7 @@ def main(argv=None) -> None:
     if a.behaviours and not a.own_episodes:
         ap.error("--behaviours picks the dataset's own episodes (--own-episodes)")
     if a.own_episodes:
-        import policies
-
-        tasks = a.tasks.split(",")
-        if unknown := [t for t in tasks if t not in policies.VARIANTS]:
-            ap.error(f"unknown task(s) {', '.join(unknown)} (known: {', '.join(policies.VARIANTS)})")
+        tasks = study.tasks_checked(ap, a)
     else:
         tasks, variants = study.tasks_and_variants(ap, a)
     if not os.path.isfile(a.judge):
@@ -285,7 +259,7 @@ def main(argv=None) -> None:
         ap.error(f"no bwm binary at {a.bwm} (make build, or pass --bwm)")
     if a.own_episodes:
         behaviours = a.behaviours.split(",") if a.behaviours else None
-        own = own_episodes(a.data, tasks, a.episodes, behaviours)
+        own = study.dataset_episodes(a.data, tasks, a.episodes, behaviours, tool="teacher")
         positions = {(t, int(e["seed"])): e["position"] for t, eps in own.items() for e in eps}
     else:
         episodes = study.episodes_by_task(a.data, tasks, a.episodes)

@@ -5,7 +5,7 @@
 # The data are made once (runs/metaworld, when a variant uses them); each variant then runs
 # scripts/gpu/metaworld.sh in runs/NAME (its data linked to those, unless it sets a variable the
 # data depend on: TASKS, TRAIN_EPISODES, VAL_EPISODES, SPREAD, MISS_CM, MISS_BOUNDARY, MISS_FACTOR, MISS_WEIGHT,
-# DEGRADED, DECOY, FRAMES or RESOLUTION; then it makes its own, or uses an earlier variant's made with the
+# DEGRADED, DECOY, OBSERVE_EVERY, FRAMES or RESOLUTION; then it makes its own, or uses an earlier variant's made with the
 # same values of those, starting once they are written) with its variables, on GPU i mod the machine's GPU count for
 # the i-th variant, all at once; each trains its own judge, as the recipe does (it learns from the
 # variant's VAE, so it trains after it, beside the latents and the DiT). With STAGES (default: every
@@ -38,7 +38,7 @@ while [ $# -gt 0 ]; do
     fi
   done
   names+=("$name") assigns+=("$(printf '%s\n' "${assign[@]}")")
-  key=$(printf '%s\n' "${assign[@]}" | grep -E '^(TASKS|TRAIN_EPISODES|VAL_EPISODES|SPREAD|MISS_CM|MISS_BOUNDARY|MISS_FACTOR|MISS_WEIGHT|DEGRADED|DECOY|FRAMES|RESOLUTION)=' | sort)
+  key=$(printf '%s\n' "${assign[@]}" | grep -E '^(TASKS|TRAIN_EPISODES|VAL_EPISODES|SPREAD|MISS_CM|MISS_BOUNDARY|MISS_FACTOR|MISS_WEIGHT|DEGRADED|DECOY|OBSERVE_EVERY|FRAMES|RESOLUTION)=' | sort)
   # A variant whose data variables are an earlier one's uses that one's data (its lead).
   l=${#keys[@]}
   for j in "${!keys[@]}"; do [ -n "$key" ] && [ "${keys[$j]}" = "$key" ] && { l=$j; break; }; done

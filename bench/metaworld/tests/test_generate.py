@@ -267,6 +267,53 @@ def test_the_miss_weight_sets_how_many_episodes_miss():
     assert generate.parse_args(["--task", TASK, "--episodes", "1", "--out", "/nonexistent/x", "--miss-weight", "9"]).miss_weight == 9.0
 
 
+def test_between_looks_the_expert_takes_the_handle_to_follow_its_pull():
+    """With --observe-every the expert sees the object only every few frames: a pull in front of a
+    handle that stays behind (a miss) goes on as long as the look is away, where the expert that
+    sees every frame stops it once the handle is 15 cm behind."""
+    import pulls
+    from mw import next_state
+
+    obj = np.array([0.0, 0.73, 0.09])
+
+    def missed_pull(observe):
+        b = generate.Behaviour(TASK, generate.episode_rng(TASK, 0), 120, 0.0, "narrow", observe_every=observe)
+        b.noise, b.explore[:], b.offset = 0.0, False, np.array([0.0, -0.05, 0.0])
+        state, states = np.array([0.0, 0.6, 0.2, -1.0], np.float32), []
+        for t in range(120):
+            states.append(state)
+            state = next_state(state, b.command(t, state, obj))
+            if t % b.observe_every == 0:
+                assert np.array_equal(b.belief, obj), (t, b.belief)
+        return b, pulls.pull_cm(states)
+
+    every, every_cm = missed_pull((1, 1))
+    assert every.observe_every == 1 and 5 < every_cm < 18, every_cm
+    chunked, chunked_cm = missed_pull((40, 40))
+    assert chunked.observe_every == 40 and chunked_cm > every_cm + 5, (chunked_cm, every_cm)
+    # Drawn per episode within the range, after every other draw.
+    drawn = [generate.Behaviour(TASK, generate.episode_rng(TASK, seed), 120, 0.4, "narrow", observe_every=(1, 48)) for seed in range(100)]
+    assert {b.observe_every for b in drawn} <= set(range(1, 49)) and len({b.observe_every for b in drawn}) > 20
+    assert [b.mode for b in drawn] == [b.mode for b in behaviours("narrow", 100)]
+    for bad in ((0, 4), (5, 4)):
+        try:
+            generate.Behaviour(TASK, generate.episode_rng(TASK, 0), 120, 0.4, "narrow", observe_every=bad)
+        except ValueError as e:
+            assert "observation interval" in str(e), e
+        else:
+            raise AssertionError(f"the interval {bad} was accepted")
+    args = ["--task", TASK, "--episodes", "1", "--out", "/nonexistent/x"]
+    assert generate.parse_args(args).observe_every == (1, 1)
+    assert generate.parse_args(args + ["--observe-every", "8,40"]).observe_every == (8, 40)
+    for bad in ("0,4", "5,4", "8", "a,b"):
+        try:
+            generate.parse_args(args + ["--observe-every", bad])
+        except SystemExit:
+            pass
+        else:
+            raise AssertionError(f"--observe-every {bad} was accepted")
+
+
 if __name__ == "__main__":
     for name, fn in list(globals().items()):
         if name.startswith("test_"):

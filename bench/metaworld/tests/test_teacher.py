@@ -97,7 +97,7 @@ def test_own_episodes_are_the_datasets_frames_states_and_outcomes_placed_by_thei
             meta = [json.loads(line) for line in f]
         misses = [e for e in meta if e["behaviour"] == "miss"][:2]
         assert len(misses) == 2, meta
-        picked = teacher.own_episodes(root, [task], 2, ["miss"])
+        picked = study.dataset_episodes(root, [task], 2, ["miss"], tool="teacher")
         assert [e["episode_index"] for e in picked[task]] == [e["episode_index"] for e in misses], picked
         assert [e["position"] for e in picked[task]] == [meta.index(e) for e in misses], picked
 
@@ -127,7 +127,7 @@ def test_own_episodes_are_the_datasets_frames_states_and_outcomes_placed_by_thei
         else:
             raise AssertionError("an episode with foreign success flags was taken")
         try:
-            teacher.own_episodes(root, [task], 2, ["decoy"])
+            study.dataset_episodes(root, [task], 2, ["decoy"], tool="teacher")
         except SystemExit as err:
             assert str(err) == f"teacher: {root} holds no episodes of {task} of behaviour decoy", err
         else:

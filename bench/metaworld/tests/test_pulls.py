@@ -1,0 +1,83 @@
+"""pulls.py: the hand's longest low pull, on hand-made paths and on a generated dataset and
+policy episodes in the simulator."""
+
+import contextlib
+import io
+import json
+import os
+import sys
+import tempfile
+
+import numpy as np
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+import pulls  # noqa: E402
+
+TASK = "drawer-open-v3"
+
+
+def path(*moves, start=(0.0, 0.7, 0.05)):
+    """A hand path from `start` by (dy, z) moves, 1 cm per step in y."""
+    p = [np.array(start)]
+    for dy, z in moves:
+        p.append(np.array([p[-1][0], p[-1][1] + dy / 100, z]))
+    return np.stack(p)
+
+
+def test_a_pull_is_the_longest_low_stretch_toward_the_robot():
+    assert abs(pulls.pull_cm(path(*[(-1, 0.05)] * 12)) - 12) < 1e-6
+    # Travel high above the handle is no pull; rising ends one, and so does moving back.
+    assert pulls.pull_cm(path(*[(-1, 0.3)] * 12, start=(0.0, 0.7, 0.3))) == 0.0
+    assert abs(pulls.pull_cm(path(*[(-1, 0.05)] * 5, (-1, 0.2), *[(-1, 0.05)] * 3)) - 5) < 1e-6
+    assert abs(pulls.pull_cm(path(*[(-1, 0.05)] * 4, (1, 0.05), *[(-1, 0.05)] * 7)) - 7) < 1e-6
+    # Standing still keeps a pull going (a pause, not a new pull).
+    assert abs(pulls.pull_cm(path(*[(-1, 0.05)] * 4, (0, 0.05), *[(-1, 0.05)] * 3)) - 7) < 1e-6
+
+
+def test_pulls_of_a_dataset_and_of_policies_on_its_placements():
+    import generate
+    import policies
+    import pyarrow.parquet as pq
+
+    with tempfile.TemporaryDirectory() as d:
+        root = os.path.join(d, "data")
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+            generate.main(["--tasks", f"{TASK},button-press-topdown-v3", "--episodes", "4", "--frames", "100", "--resolution", "32",
+                           "--degraded-fraction", "0.5", "--workers", "1", "--out", root])
+        out = pulls.measure(root, None, ["wrong"], None, 2, 100, 24, 2)
+        with open(os.path.join(root, "meta", "episodes.jsonl")) as f:
+            meta = [json.loads(line) for line in f]
+        drawer = [e for e in meta if e["tasks"] == [TASK]]
+        # Every drawer episode once, under its behaviour and outcome, its pull from its own states.
+        got = {(b, k): sorted(g[k]) for b, g in out["dataset"].items() for k in ("succeeded", "failed")}
+        want: dict = {}
+        for e in drawer:
+            table = pq.read_table(os.path.join(root, f"data/chunk-000/episode_{e['episode_index']:06d}.parquet"))
+            hand = np.concatenate([np.asarray(table.column("observation.state").to_pylist()), np.asarray(table.column("action").to_pylist())[-1:]])
+            want.setdefault((e["behaviour"], "succeeded" if e["success"] else "failed"), []).append(round(pulls.pull_cm(hand), 3))
+        assert {k: v for k, v in got.items() if v} == {k: sorted(v) for k, v in want.items()}, (got, want)
+        # The variant on the dataset's first two drawer placements, as the study runs it.
+        seeds = [e["seed"] for e in drawer[:2]]
+        episodes = [policies.run_episode(TASK, "wrong", s, 100, 24, 32, record=True) for s in seeds]
+        wrong = out["variants"]["wrong"]
+        assert sorted(wrong["failed"] + wrong["succeeded"]) == sorted(round(pulls.pull_cm(e.commands), 3) for e in episodes)
+        assert len(wrong["failed"]) == sum(e.first is None for e in episodes)
+        assert out["succeeding_pull_p10_cm"] is None or wrong["failed_as_long_as_successes"] is not None
+        assert pulls.report(out).startswith(f"{TASK}: the longest pull")
+        # A dataset without the drawer is refused by name.
+        solo = os.path.join(d, "button")
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+            generate.main(["--task", "button-press-topdown-v3", "--episodes", "1", "--frames", "10", "--resolution", "32", "--workers", "1", "--out", solo])
+        try:
+            pulls.measure(solo, None, [], None, 2, 100, 24, 1)
+        except SystemExit as e:
+            assert str(e) == f"pulls: {solo} holds no episodes of {TASK}", e
+        else:
+            raise AssertionError("a dataset without drawer episodes was measured")
+
+
+if __name__ == "__main__":
+    for name, fn in list(globals().items()):
+        if name.startswith("test_"):
+            fn()
+            print(f"{name}: ok")

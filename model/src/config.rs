@@ -219,7 +219,14 @@ impl ModelConfig {
 
     pub fn validate(&self) -> Result<()> {
         self.dit.validate()?;
-        self.action.validate()
+        self.action.validate()?;
+        ensure!(
+            !self.action.temporal_rope || self.dit.patch_size[0] == 1,
+            "action.temporal_rope places each action at its latent frame, a token frame only with a temporal patch of 1; \
+             dit.patch_size is {:?}",
+            self.dit.patch_size
+        );
+        Ok(())
     }
 }
 
@@ -282,6 +289,13 @@ bogus = 1"#;
         assert!(!a.temporal_rope && !toml::to_string(&a).unwrap().contains("temporal"), "BWM's writes its config as before");
         let t: ActionConfig = toml::from_str("action_dim = 4\ntemporal_rope = true").unwrap();
         assert!(t.temporal_rope);
+        let mut m = ModelConfig { dit: DitConfig::tiny(), action: t.clone() };
+        m.validate().unwrap();
+        m.dit.patch_size[0] = 2;
+        let err = m.validate().unwrap_err().to_string();
+        assert!(err.contains("temporal_rope") && err.contains("[2, "), "{err}");
+        m.action.temporal_rope = false;
+        m.validate().unwrap();
         assert_eq!(toml::from_str::<ActionConfig>(&toml::to_string(&t).unwrap()).unwrap(), t);
     }
 }

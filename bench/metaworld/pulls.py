@@ -70,6 +70,21 @@ def summary(cm: list[float]) -> dict:
     return {"n": len(v), "p10": float(np.percentile(v, 10)), "median": float(np.median(v)), "p90": float(np.percentile(v, 90))}
 
 
+def pull_rule(dataset: dict, variants: dict) -> dict | None:
+    """The rule that reads the outcome off the commands alone: a pull at least `threshold_cm` long
+    opens the drawer, the shortest threshold that sorts the dataset's episodes best; its accuracy
+    there, and the success rate it gives each variant (what a world model that learned only the
+    rule would estimate). None without both outcomes in the data."""
+    rows = [(cm, ok) for g in dataset.values() for ok, k in ((True, "succeeded"), (False, "failed")) for cm in g[k]]
+    if not any(ok for _, ok in rows) or all(ok for _, ok in rows):
+        return None
+    right = lambda t: sum((cm >= t) == ok for cm, ok in rows)  # noqa: E731
+    threshold = max(sorted({cm for cm, _ in rows}), key=right)  # max keeps the first (shortest) of equals
+    rate = lambda g: float(np.mean([cm >= threshold for cm in g["succeeded"] + g["failed"]]))  # noqa: E731
+    return {"threshold_cm": threshold, "data_accuracy": right(threshold) / len(rows), "episodes": len(rows),
+            "variants": {v: {"rule": rate(g), "true": len(g["succeeded"]) / len(g["succeeded"] + g["failed"])} for v, g in variants.items()}}
+
+
 def measure(data: str, behaviours: list[str] | None, variants: list[str], episodes: int | None, variant_episodes: int,
             horizon: int, chunk: int, workers: int) -> dict:
     with open(os.path.join(data, "meta", "info.json")) as f:
@@ -97,6 +112,7 @@ def measure(data: str, behaviours: list[str] | None, variants: list[str], episod
         for g in out[section].values():
             g["summary"] = {k: summary(g[k]) for k in ("succeeded", "failed")}
             g["failed_as_long_as_successes"] = None if floor is None else sum(int(cm >= floor) for cm in g["failed"])
+    out["rule"] = pull_rule(out["dataset"], out["variants"])
     return out
 
 
@@ -111,6 +127,11 @@ def report(out: dict) -> str:
                 if s["n"]:
                     extra = f"; {g['failed_as_long_as_successes']} at least as long" if k == "failed" and floor is not None else ""
                     lines.append(f"  {label} {name:10s} {k:9s} {s['n']:4d}: p10 {s['p10']:5.1f}  median {s['median']:5.1f}  p90 {s['p90']:5.1f}{extra}")
+    rule = out.get("rule")
+    if rule:
+        lines.append(f"  the commands alone: a pull of at least {rule['threshold_cm']:.1f} cm opens the drawer in "
+                     f"{rule['data_accuracy']:.3f} of the data's {rule['episodes']} episodes")
+        lines += [f"    variant {v:10s} true {r['true']:.2f}, by that rule {r['rule']:.2f}" for v, r in rule["variants"].items()]
     return "\n".join(lines)
 
 

@@ -34,6 +34,21 @@ def test_a_pull_is_the_longest_low_stretch_toward_the_robot():
     assert abs(pulls.pull_cm(path(*[(-1, 0.05)] * 4, (0, 0.05), *[(-1, 0.05)] * 3)) - 7) < 1e-6
 
 
+def test_the_commands_rule_is_the_shortest_best_threshold_of_the_data():
+    data = {"miss": {"succeeded": [30.0, 32.0], "failed": [10.0, 25.0]}, "expert": {"succeeded": [34.0], "failed": [29.0]}}
+    rule = pulls.pull_rule(data, {"wrong": {"succeeded": [31.0], "failed": [29.5, 35.0]}})
+    # 29 fails and 30 opens: the rule at 30 sorts all six (at 32 or 34 it would not).
+    assert rule["threshold_cm"] == 30.0 and rule["data_accuracy"] == 1.0 and rule["episodes"] == 6, rule
+    assert rule["variants"] == {"wrong": {"rule": 2 / 3, "true": 1 / 3}}, rule
+    # A long failing pull the rule cannot sort: the best threshold misreads one episode.
+    data["expert"]["failed"].append(33.0)
+    rule = pulls.pull_rule(data, {})
+    assert rule["threshold_cm"] == 30.0 and abs(rule["data_accuracy"] - 6 / 7) < 1e-12, rule
+    # Without both outcomes there is nothing to read.
+    assert pulls.pull_rule({"miss": {"succeeded": [30.0], "failed": []}}, {}) is None
+    assert pulls.pull_rule({"miss": {"succeeded": [], "failed": [3.0]}}, {}) is None
+
+
 def test_pulls_of_a_dataset_and_of_policies_on_its_placements():
     import generate
     import policies
@@ -64,6 +79,8 @@ def test_pulls_of_a_dataset_and_of_policies_on_its_placements():
         assert len(wrong["failed"]) == sum(e.first is None for e in episodes)
         assert out["succeeding_pull_p10_cm"] is None or wrong["failed_as_long_as_successes"] is not None
         assert pulls.report(out).startswith(f"{TASK}: the longest pull")
+        if out["rule"] is not None:
+            assert set(out["rule"]["variants"]) == {"wrong"} and "the commands alone" in pulls.report(out)
         # A dataset without the drawer is refused by name.
         solo = os.path.join(d, "button")
         with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):

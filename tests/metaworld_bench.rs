@@ -552,8 +552,8 @@ fn teacher_forcing_lays_chunks_out_and_scores_them() {
 }
 
 #[test]
-fn the_drawer_pulls_are_measured_by_outcome() {
-    python_tests("test_pulls.py");
+fn what_the_commands_tell_of_the_outcome_is_measured() {
+    python_tests("test_tells.py");
 }
 
 #[test]

@@ -271,7 +271,7 @@ def test_between_looks_the_expert_takes_the_handle_to_follow_its_pull():
     """With --observe-every the expert sees the object only every few frames: a pull in front of a
     handle that stays behind (a miss) goes on as long as the look is away, where the expert that
     sees every frame stops it once the handle is 15 cm behind."""
-    import pulls
+    import tells
     from mw import next_state
 
     obj = np.array([0.0, 0.73, 0.09])
@@ -285,7 +285,7 @@ def test_between_looks_the_expert_takes_the_handle_to_follow_its_pull():
             state = next_state(state, b.command(t, state, obj))
             if t % b.observe_every == 0:
                 assert np.array_equal(b.belief, obj), (t, b.belief)
-        return b, pulls.pull_cm(states)
+        return b, tells.pull_cm(states)
 
     every, every_cm = missed_pull((1, 1))
     assert every.observe_every == 1 and 5 < every_cm < 18, every_cm

@@ -72,6 +72,11 @@ def image_column(info: dict) -> str:
     return found[0]
 
 
+def episode_file(root: str, info: dict, i: int) -> str:
+    """The parquet file of episode `i` of a LeRobot v2.x dataset with meta/info.json `info`."""
+    return os.path.join(root, info["data_path"].format(episode_chunk=i // info.get("chunks_size", 1000), episode_index=i))
+
+
 def load_frames(root: str, max_frames: int, rng: np.random.Generator, known=()) -> dict[str, dict]:
     """Per task: frames uint8 [N, H, W, 3], success flags, episode indices and frame positions in
     their episode (at most max_frames, drawn evenly across episodes)."""
@@ -84,7 +89,7 @@ def load_frames(root: str, max_frames: int, rng: np.random.Generator, known=()) 
         info = json.load(f)
     if not str(info.get("codebase_version", "")).startswith("v2"):
         raise ValueError(f"{root}: LeRobot {info.get('codebase_version')} dataset; v2.x is read here")
-    key, chunks = image_column(info), info.get("chunks_size", 1000)
+    key = image_column(info)
     by_task: dict[str, list[dict]] = {}
     for ep in read_jsonl(os.path.join(root, "meta", "episodes.jsonl")):
         by_task.setdefault(task_name("; ".join(ep.get("tasks", [])), known), []).append(ep)
@@ -95,7 +100,7 @@ def load_frames(root: str, max_frames: int, rng: np.random.Generator, known=()) 
         frames, flags, episodes, positions = [], [], [], []
         for ep in eps:
             i = ep["episode_index"]
-            path = os.path.join(root, info["data_path"].format(episode_chunk=i // chunks, episode_index=i))
+            path = episode_file(root, info, i)
             table = pq.read_table(path)
             flag = success_column(table.column_names)
             rows = np.flatnonzero(rng.random(table.num_rows) < keep)

@@ -97,7 +97,7 @@ def _own_job(job):
     import policies
 
     i = episode["episode_index"]
-    table = pq.read_table(os.path.join(root, info["data_path"].format(episode_chunk=i // info.get("chunks_size", 1000), episode_index=i)))
+    table = pq.read_table(judge.episode_file(root, info, i))
     cells = table.column(judge.image_column(info)).combine_chunks().field("bytes").to_pylist()
     frames = np.stack([np.asarray(Image.open(io.BytesIO(c)).convert("RGB")) for c in cells])
     if frames.shape[1:3] != (resolution, resolution):

@@ -69,8 +69,10 @@ def _dataset_job(job):
     root, info, task, episode = job
     import pyarrow.parquet as pq
 
+    import judge
+
     i = episode["episode_index"]
-    table = pq.read_table(os.path.join(root, info["data_path"].format(episode_chunk=i // info.get("chunks_size", 1000), episode_index=i)))
+    table = pq.read_table(judge.episode_file(root, info, i))
     states = np.asarray(table.column("observation.state").to_pylist(), np.float32)
     commands = np.asarray(table.column("action").to_pylist(), np.float32)
     # The states are the commanded hand before each command; the last command adds the last step.
@@ -119,9 +121,11 @@ def measure(data: str, tasks: list[str], behaviours: list[str] | None, variants:
         info = json.load(f)
     resolution = info["features"][judge.image_column(info)]["shape"][0]
     own = study.dataset_episodes(data, tasks, episodes, behaviours, tool="tells")
-    placements = study.dataset_episodes(data, tasks, variant_episodes, need=variant_episodes if variants else 1, tool="tells")
     jobs = [(data, info, t, e) for t in tasks for e in own[t]]
-    variant_jobs = [(t, v, int(e["seed"]), horizon, chunk, resolution) for t in tasks for v in variants for e in placements[t]]
+    variant_jobs = []
+    if variants:
+        placements = study.dataset_episodes(data, tasks, variant_episodes, need=variant_episodes, tool="tells")
+        variant_jobs = [(t, v, int(e["seed"]), horizon, chunk, resolution) for t in tasks for v in variants for e in placements[t]]
     with multiprocessing.get_context("spawn").Pool(max(1, min(workers, len(jobs) + len(variant_jobs)))) as pool:
         rows = [("dataset", *r) for r in pool.map(_dataset_job, jobs)]
         rows += [("variants", *r) for r in pool.map(_variant_job, variant_jobs)]

@@ -85,9 +85,29 @@ def _record_job(job):
                            for seed in seeds for e in [policies.run_episode(task, variant, seed, horizon, chunk, resolution, record=True)]]
 
 
+class EpisodeFrames:
+    """A dataset episode's frames, uint8 [T, H, W, 3], decoded from its parquet file only when
+    `np.asarray` asks for them: the own stage holds hundreds of episodes at once, and takes each
+    episode's frames only while the world model draws from them."""
+
+    def __init__(self, path: str, column: str, count: int):
+        self.path, self.column, self.count = path, column, count
+
+    def __len__(self) -> int:
+        return self.count
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        import pyarrow.parquet as pq
+        from PIL import Image
+
+        cells = pq.read_table(self.path, columns=[self.column]).column(self.column).combine_chunks().field("bytes").to_pylist()
+        frames = np.stack([np.asarray(Image.open(io.BytesIO(c)).convert("RGB")) for c in cells])
+        return frames if dtype is None else frames.astype(dtype)
+
+
 def _own_job(job):
     """One dataset episode as teacher_forced takes it: its behaviour and (seed, first success
-    frame, frames uint8 [T, H, W, 3], actions float32 [T, 4], the hand's offset from the object at
+    frame, its frames (EpisodeFrames), actions float32 [T, 4], the hand's offset from the object at
     its closest approach in cm, from its commands replayed in the simulator)."""
     root, info, task, episode, resolution = job
     import pyarrow.parquet as pq
@@ -97,19 +117,21 @@ def _own_job(job):
     import policies
 
     i = episode["episode_index"]
-    table = pq.read_table(judge.episode_file(root, info, i))
-    cells = table.column(judge.image_column(info)).combine_chunks().field("bytes").to_pylist()
-    frames = np.stack([np.asarray(Image.open(io.BytesIO(c)).convert("RGB")) for c in cells])
-    if frames.shape[1:3] != (resolution, resolution):
-        raise ValueError(f"{root}: frames of {frames.shape[2]}x{frames.shape[1]}, but --resolution is {resolution}")
+    path = judge.episode_file(root, info, i)
+    table = pq.read_table(path)
+    image = judge.image_column(info)
+    with Image.open(io.BytesIO(table.column(image)[0].as_py()["bytes"])) as first_frame:
+        if first_frame.size != (resolution, resolution):
+            raise ValueError(f"{root}: frames of {first_frame.size[0]}x{first_frame.size[1]}, but --resolution is {resolution}")
     column = lambda name: np.asarray(table.column(name).to_pylist(), np.float32)
     success = np.asarray(table.column(judge.success_column(table.column_names)).to_pylist(), bool)
     first = int(np.argmax(success)) if success.any() else None
-    replayed = policies.replay(task, int(episode["seed"]), column("action")[: len(frames) - 1])
+    replayed = policies.replay(task, int(episode["seed"]), column("action")[: table.num_rows - 1])
     if replayed.first != first:
         raise ValueError(f"{root}: episode {i}'s commands replayed from seed {episode['seed']} first succeed at frame "
                          f"{replayed.first}, its success flags say {first}: not this simulator's episode")
-    return episode["behaviour"], (int(episode["seed"]), first, frames, column("observation.state"), replayed.nearest_cm)
+    return episode["behaviour"], (int(episode["seed"]), first, EpisodeFrames(path, image, table.num_rows),
+                                  column("observation.state"), replayed.nearest_cm)
 
 
 def record_own(root: str, episodes: dict[str, list[dict]], resolution: int, workers: int) -> dict[str, dict[str, list]]:
@@ -180,15 +202,16 @@ class WorldModel:
 
 
 def teacher_forced(task, variant, recorded, wm: WorldModel, judge, layout, positions: dict, requests: int = 1) -> list[dict]:
-    """Per recorded episode (seed, first success step, frames from x0 on, each frame's action,
-    the hand's offset at its closest approach; in their order): its first success step, that
-    offset and, per chunk, the judge's probability on the simulator's frames and on the world
-    model's drawn from them. `requests` episodes at once, so that the server generates while the
+    """Per recorded episode (seed, first success step, frames from x0 on (an array or
+    EpisodeFrames), each frame's action, the hand's offset at its closest approach; in their
+    order): its first success step, that offset and, per chunk, the judge's probability on the
+    simulator's frames and on the world model's drawn from them. `requests` episodes at once, so that the server generates while the
     judge scores another's chunk; each chunk's sampling seed is its own, so the order the server
     takes them in changes nothing."""
 
     def episode(record):
         seed, first, frames, actions, nearest = record
+        frames = np.asarray(frames)
         real, drawn = [], []
         for c, (given, target) in enumerate(layout):
             generated = wm.chunk(frames[given], actions[given + target], seed=positions[task, seed] * 1000 + c)

@@ -83,6 +83,7 @@ def test_own_episodes_are_the_datasets_frames_states_and_outcomes_placed_by_thei
 
     import pyarrow as pa
     import pyarrow.parquet as pq
+    from PIL import Image
 
     import generate
     import policies
@@ -105,7 +106,12 @@ def test_own_episodes_are_the_datasets_frames_states_and_outcomes_placed_by_thei
         assert list(recorded[task]) == ["miss"], recorded.keys()
         for e, (seed, first, frames, actions, nearest) in zip(misses, recorded[task]["miss"]):
             table = pq.read_table(os.path.join(root, f"data/chunk-000/episode_{e['episode_index']:06d}.parquet"))
-            assert seed == e["seed"] and frames.shape == (100, 32, 32, 3) and frames.dtype == np.uint8
+            # The frames stay in their file until the world model draws from them.
+            assert seed == e["seed"] and isinstance(frames, teacher.EpisodeFrames) and len(frames) == 100
+            cells = table.column("observation.image").to_pylist()
+            pixels = np.asarray(frames)
+            assert pixels.shape == (100, 32, 32, 3) and pixels.dtype == np.uint8
+            assert np.array_equal(pixels[-1], np.asarray(Image.open(io.BytesIO(cells[-1]["bytes"])).convert("RGB")))
             # The actions are what `bwm prepare` trains on; the truth is the dataset's own flags.
             assert np.array_equal(actions, np.asarray(table.column("observation.state").to_pylist(), np.float32))
             flags = table.column("success").to_pylist()
@@ -113,6 +119,13 @@ def test_own_episodes_are_the_datasets_frames_states_and_outcomes_placed_by_thei
             # The closest approach is the simulator's for this episode's commands: where the miss aimed.
             replayed = policies.replay(task, seed, np.asarray(table.column("action").to_pylist(), np.float32)[:99])
             assert np.array_equal(nearest, replayed.nearest_cm) and np.linalg.norm(nearest[:2]) > 0, nearest
+
+        try:
+            teacher.record_own(root, picked, 64, 1)
+        except SystemExit as err:
+            assert str(err) == f"teacher: {root}: frames of 32x32, but --resolution is 64", err
+        else:
+            raise AssertionError("frames of another resolution were taken")
 
         # An episode whose flags its commands do not reproduce is not this simulator's: refused by name.
         path = os.path.join(root, f"data/chunk-000/episode_{misses[0]['episode_index']:06d}.parquet")

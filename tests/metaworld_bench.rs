@@ -485,6 +485,22 @@ fn near_misses_are_counted_by_distance_in_the_simulator() {
         assert_eq!(split, count(range), "--miss-cm {range}: {report}");
     }
 
+    // An expert that looks at the object only every 24-48 frames misses on the same seeds, as
+    // far off; its pulls that miss go on longer, so only how they end may change.
+    run(
+        Command::new(python())
+            .arg(Path::new(ROOT).join("bench/metaworld/miss_outcomes.py"))
+            .args(["--tasks", "drawer-open-v3", "--episodes", "16", "--frames", "100", "--miss-cm", "3,9", "--observe-every", "24,48", "--out"])
+            .arg(&path),
+        "miss_outcomes.py --observe-every",
+    );
+    let looking = json(&path);
+    assert_eq!(looking["observe_every"], serde_json::json!([24, 48]), "{looking}");
+    let seen = &looking["tasks"]["drawer-open-v3"]["3,9"];
+    assert_eq!(seen["miss_episodes"].as_u64(), Some(count("3,9")), "{looking}");
+    let bands = |row: &Value| row["by_cm"].as_object().map(|b| b.iter().map(|(k, v)| (k.clone(), v["episodes"].clone())).collect::<Vec<_>>());
+    assert_eq!(bands(seen), bands(&drawer["3,9"]), "{looking} / {report}");
+
     // Misses drawn around the measured boundary (the committed boundary.json) and weighted up:
     // more seeds miss, as many in both ways of drawing them, and none beyond twice the
     // drawer's widest boundary (8.75 cm).

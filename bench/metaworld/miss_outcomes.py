@@ -15,7 +15,9 @@ drawn as `generate.py --miss-boundary FILE` draws them (around where the outcome
 direction, measure_boundary.py) and counted beside the ranges. With --miss-weight W and
 --decoy-weight W, the data's draws are those of generate.py with the same weights; with a decoy
 weight above 0 the `decoy` episodes (the expert aiming at a fresh placement from the task's
-range) are counted the same way, by how far from the object they aim.
+range) are counted the same way, by how far from the object they aim. With --observe-every
+LOW,HIGH the expert looks at the object only that often, as `generate.py --observe-every` (the
+recipe's data: 24,48) has it.
 Prints one JSON object (and writes it to --out).
 Only the episodes' draws and the simulator are used: nothing is rendered but each reset's frame.
 """
@@ -34,13 +36,15 @@ from mw import TASKS, Sim
 
 
 def outcomes(task: str, episodes: int, miss: tuple[float, float] | boundary.Boundary, frames: int, degraded: float, spread: str,
-             decoy_weight: float = 0.0, mode: str = "miss", miss_weight: float = generate.DEGRADED_MODES["miss"]) -> list[tuple[float, bool, str]]:
+             decoy_weight: float = 0.0, mode: str = "miss", miss_weight: float = generate.DEGRADED_MODES["miss"],
+             observe_every: tuple[int, int] = (1, 1)) -> list[tuple[float, bool, str]]:
     """(distance in cm, succeeded, axis) of every `mode` episode among seeds 0..episodes-1, the
     misses drawn `miss` (m) off or around its boundary; the distance is how far from the object
     the episode's expert aims, the axis which way (`boundary.axis`)."""
     out = []
     for seed in range(episodes):
-        behaviour = generate.Behaviour(task, generate.episode_rng(task, seed), frames, degraded, spread, miss, decoy_weight, miss_weight)
+        behaviour = generate.Behaviour(task, generate.episode_rng(task, seed), frames, degraded, spread, miss, decoy_weight, miss_weight,
+                                      observe_every)
         if behaviour.mode != mode:
             continue
         with Sim(task, seed, 32) as sim:
@@ -64,6 +68,8 @@ def main(argv=None) -> None:
                         help="the data's `miss` weight (generate.py --miss-weight)")
     parser.add_argument("--decoy-weight", type=generate.weight, default=0.0, help="the data's `decoy` weight (generate.py --decoy-weight); above 0 "
                         "the decoy episodes are counted too")
+    parser.add_argument("--observe-every", type=generate.interval, default=(1, 1), metavar="LOW,HIGH",
+                        help="frames between the expert's looks at the object (generate.py --observe-every; default every frame)")
     parser.add_argument("--band-cm", type=float, default=2.0, help="width of the distance bands")
     parser.add_argument("--frames", type=int, default=120)
     parser.add_argument("--degraded-fraction", type=float, default=0.4)
@@ -77,7 +83,7 @@ def main(argv=None) -> None:
         parser.error("--episodes must be at least 1, --frames at least 2, --band-cm positive")
     around = boundary.from_argument(parser, args.miss_boundary, tasks, args.miss_factor)
     report = {"episodes": args.episodes, "frames": args.frames, "degraded_fraction": args.degraded_fraction, "spread": args.spread,
-              "miss_weight": args.miss_weight, "decoy_weight": args.decoy_weight, "tasks": {}}
+              "miss_weight": args.miss_weight, "decoy_weight": args.decoy_weight, "observe_every": list(args.observe_every), "tasks": {}}
     for task in tasks:
         # (name in the report, mode, how misses are drawn)
         counted = [(f"{round(lo * 100, 6):g},{round(hi * 100, 6):g}", "miss", (lo, hi)) for lo, hi in args.miss_cm or [(0.02, 0.12)]]
@@ -86,7 +92,8 @@ def main(argv=None) -> None:
         if args.decoy_weight > 0:
             counted.append(("decoy", "decoy", counted[0][2]))
         for name, mode, miss in counted:
-            results = outcomes(task, args.episodes, miss, args.frames, args.degraded_fraction, args.spread, args.decoy_weight, mode, args.miss_weight)
+            results = outcomes(task, args.episodes, miss, args.frames, args.degraded_fraction, args.spread, args.decoy_weight, mode, args.miss_weight,
+                               args.observe_every)
             row = {f"{mode}_episodes": len(results), "succeeded": sum(s for _, s, _ in results), "by_cm": by_band(results, args.band_cm),
                    "by_axis": {}}
             for way in boundary.AXES:

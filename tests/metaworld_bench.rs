@@ -129,6 +129,22 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
         assert!(std::fs::read(val.join(&file)).unwrap() == std::fs::read(again.join(&file)).unwrap(), "{file} differs between worker counts");
     }
 
+    // The data stage again keeps the data made with its settings, and refuses them under others
+    // (here the recipe's own default of OBSERVE_EVERY) rather than train on them unnoticed.
+    let data_again = |observe: &str| {
+        toy("recipe.sh", &runs)
+            .envs([("VAL_EPISODES", "1"), ("MISS_WEIGHT", "9"), ("DECOY", "3"), ("OBSERVE_EVERY", observe)])
+            .env("MISS_BOUNDARY", Path::new(ROOT).join("bench/metaworld/boundary.json"))
+            .arg("data")
+            .output()
+            .unwrap()
+    };
+    let same = data_again("8,40");
+    assert!(same.status.success() && String::from_utf8_lossy(&same.stderr).contains("exists, made with these settings"), "{same:?}");
+    let other = data_again("24,48");
+    let said = String::from_utf8_lossy(&other.stderr);
+    assert!(!other.status.success() && said.contains("observe_every: [8, 40] there, [24, 48] asked"), "{other:?}");
+
     // The VAE of stride 8 with 16 channels (an 8x8x16 latent at 64x64) carried through to the
     // latent cache, and the DiT the recipe trained on it widened to match.
     let index = json(&runs.join("latents/index.json"));

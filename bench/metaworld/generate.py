@@ -6,12 +6,14 @@ parquet files, no video). README.md describes the layout and the seed convention
 
 Each episode is a pure function of (task, seed, --frames, --resolution, --degraded-fraction, --spread,
 --miss-cm or --miss-boundary, --miss-weight, --decoy-weight, --observe-every):
-the same arguments give the same bytes whatever --workers is.
+the same arguments give the same bytes whatever --workers is. meta/generator.json records them, so
+that `--reuse` keeps an existing dataset only when it was made with the same ones.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import io
 import json
 import multiprocessing
@@ -295,6 +297,37 @@ def interval(text: str) -> tuple[int, int]:
     return lo, hi
 
 
+def settings(args: argparse.Namespace) -> dict:
+    """What a dataset's bytes depend on (not --workers), as meta/generator.json records it."""
+    boundary_file = None
+    if args.miss_boundary is not None:
+        with open(args.miss_boundary, "rb") as f:
+            boundary_file = {"sha256": hashlib.sha256(f.read()).hexdigest()}
+    chosen = {"tasks": args.tasks, "episodes": args.episodes, "seed_start": args.seed_start, "frames": args.frames,
+              "resolution": args.resolution, "degraded_fraction": args.degraded_fraction, "spread": args.spread,
+              "miss_cm": args.miss_cm, "miss_boundary": boundary_file, "miss_factor": args.miss_factor,
+              "miss_weight": args.miss_weight, "decoy_weight": args.decoy_weight, "observe_every": args.observe_every}
+    return json.loads(json.dumps(chosen))
+
+
+def reuse(args: argparse.Namespace) -> None:
+    """`--reuse`: --out as it is when meta/generator.json records these settings; the program's end
+    (exit 2) naming what differs when it records others."""
+    path = os.path.join(args.out, "meta", "generator.json")
+    if not os.path.isfile(path):
+        print(f"generate.py: {args.out} holds no meta/generator.json (made before generate.py recorded its settings): "
+              "taken as it is, unchecked", file=sys.stderr)
+        return
+    with open(path) as f:
+        there = json.load(f)["settings"]
+    asked = settings(args)
+    if differ := [k for k in sorted(set(there) | set(asked)) if there.get(k) != asked.get(k)]:
+        raise SystemExit(f"generate.py: {args.out} was made with other settings ("
+                         + "; ".join(f"{k}: {json.dumps(there.get(k))} there, {json.dumps(asked.get(k))} asked" for k in differ)
+                         + "): remove it, or pick another --out")
+    print(f"generate.py: {args.out} exists, made with these settings", file=sys.stderr)
+
+
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     which = parser.add_mutually_exclusive_group(required=True)
@@ -330,7 +363,10 @@ def parse_args(argv=None) -> argparse.Namespace:
                              "every frame, and a missed pull stops as soon as the handle stays behind")
     parser.add_argument("--out", required=True, help="dataset folder (must not exist unless --force)")
     parser.add_argument("--workers", type=int, default=min(4, os.cpu_count() or 1))
-    parser.add_argument("--force", action="store_true", help="replace --out if it exists")
+    exists = parser.add_mutually_exclusive_group()
+    exists.add_argument("--force", action="store_true", help="replace --out if it exists")
+    exists.add_argument("--reuse", action="store_true",
+                        help="keep --out if it exists and was made with the same settings (its meta/generator.json); refuse if not")
     args = parser.parse_args(argv)
     args.tasks = args.tasks.split(",") if args.tasks else [args.task]
     unknown = [t for t in args.tasks if t not in TASKS]
@@ -350,14 +386,17 @@ def parse_args(argv=None) -> argparse.Namespace:
         parser.error("--degraded-fraction must be in [0, 1]")
     if args.workers < 1:
         parser.error("--workers must be at least 1")
-    if os.path.exists(args.out) and not args.force:
-        parser.error(f"{args.out} exists (--force replaces it)")
+    if os.path.exists(args.out) and not (args.force or args.reuse):
+        parser.error(f"{args.out} exists (--force replaces it, --reuse keeps it when made with the same settings)")
     args.miss = boundary.from_argument(parser, args.miss_boundary, args.tasks, args.miss_factor) or args.miss_cm
     return args
 
 
 def main(argv=None) -> None:
     args = parse_args(argv)
+    if args.reuse and os.path.exists(args.out):
+        reuse(args)
+        return
     out = os.path.abspath(args.out)
     tmp = f"{out}.tmp-{os.getpid()}"
     os.makedirs(os.path.join(tmp, "meta"))
@@ -388,6 +427,7 @@ def main(argv=None) -> None:
             "episodes.jsonl": lines(episodes),
             "tasks.jsonl": lines({"task_index": i, "task": t} for i, t in enumerate(args.tasks)),
             "episodes_stats.jsonl": lines(r["stats"] for r in results),
+            "generator.json": json.dumps({"generator": "bench/metaworld/generate.py", "settings": settings(args)}, indent=1) + "\n",
         }
         for name, text in meta.items():
             with open(os.path.join(tmp, "meta", name), "w") as f:

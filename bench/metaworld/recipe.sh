@@ -32,7 +32,8 @@
 #            cm along the task's `wrong` offset): does the model's contact follow a shifted
 #            command as the simulator's does? $RUN/probe/ (same files as study/)
 # Usage (repository root): bash bench/metaworld/recipe.sh [STAGE ...]   (default: all)
-# Each stage is skipped when its output exists; `train` resumes from its last checkpoint.
+# Each stage is skipped when its output exists (the data only when made with the same settings:
+# generate.py --reuse refuses others); `train` resumes from its last checkpoint.
 # Environment: RUN (output folder, default runs/metaworld), BWM (the bwm binary, default
 # $CARGO_TARGET_DIR/release/bwm or target/release/bwm), PYTHON (with bench/metaworld's
 # requirements), DEVICE (default cuda), and the sizes below. Stage times go to $RUN/timings.tsv.
@@ -182,11 +183,13 @@ ema_export() { # $1 = the checkpoint's folder name (step-NNNNNNNN)
 
 if wants data; then
   for split in train val; do
-    if [ -f "$RUN/data/$split/meta/info.json" ]; then echo "recipe: $RUN/data/$split exists"; continue; fi
     if [ $split = train ]; then n=$TRAIN_EPISODES; s=0; else n=$VAL_EPISODES; s=100000; fi
-    timed "data-$split" "$PYTHON" bench/metaworld/generate.py --tasks "$TASKS" --episodes "$n" --seed-start "$s" \
+    generate=("$PYTHON" bench/metaworld/generate.py --tasks "$TASKS" --episodes "$n" --seed-start "$s" \
       --frames "$FRAMES" --resolution "$RESOLUTION" --spread "$SPREAD" ${MISS_CM:+--miss-cm "$MISS_CM"} ${MISS_BOUNDARY:+--miss-boundary "$MISS_BOUNDARY"} ${MISS_FACTOR:+--miss-factor "$MISS_FACTOR"} \
-      --miss-weight "$MISS_WEIGHT" --decoy-weight "$DECOY" --observe-every "$OBSERVE_EVERY" --degraded-fraction "$DEGRADED" --workers "$WORKERS" --out "$RUN/data/$split"
+      --miss-weight "$MISS_WEIGHT" --decoy-weight "$DECOY" --observe-every "$OBSERVE_EVERY" --degraded-fraction "$DEGRADED" --workers "$WORKERS" --out "$RUN/data/$split")
+    # Existing data are kept only when made with these settings (the generator checks them).
+    if [ -f "$RUN/data/$split/meta/info.json" ]; then "${generate[@]}" --reuse; continue; fi
+    timed "data-$split" "${generate[@]}"
   done
 fi
 

@@ -314,6 +314,58 @@ def test_between_looks_the_expert_takes_the_handle_to_follow_its_pull():
             raise AssertionError(f"--observe-every {bad} was accepted")
 
 
+def test_a_dataset_records_its_settings_and_is_reused_only_with_the_same():
+    import contextlib
+    import io
+    import json
+    import shutil
+    import tempfile
+
+    here = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "boundary.json")
+
+    def make(out, *extra):
+        err = io.StringIO()
+        with contextlib.redirect_stderr(err):
+            generate.main(["--task", TASK, "--episodes", "1", "--frames", "8", "--resolution", "16", "--workers", "1",
+                           "--miss-boundary", here, "--observe-every", "8,40", "--out", out, *extra])
+        return err.getvalue()
+
+    with tempfile.TemporaryDirectory() as d:
+        out = os.path.join(d, "data")
+        make(out)
+        with open(os.path.join(out, "meta", "generator.json")) as f:
+            recorded = json.load(f)["settings"]
+        assert recorded["observe_every"] == [8, 40] and recorded["tasks"] == [TASK] and recorded["frames"] == 8, recorded
+        assert len(recorded["miss_boundary"]["sha256"]) == 64 and recorded["miss_cm"] is None, recorded
+        parquet = os.path.join(out, "data", "chunk-000", "episode_000000.parquet")
+        before = os.stat(parquet).st_mtime_ns
+
+        # The same settings: kept as they are, whatever --workers.
+        assert "exists, made with these settings" in make(out, "--reuse")
+        assert os.stat(parquet).st_mtime_ns == before
+        # Other settings: refused, naming what differs, and nothing touched.
+        try:
+            make(out, "--reuse", "--observe-every", "1,1")
+        except SystemExit as e:
+            assert str(e).startswith(f"generate.py: {out} was made with other settings (observe_every: [8, 40] there, [1, 1] asked)"), e
+        else:
+            raise AssertionError("data of other settings were reused")
+        assert os.stat(parquet).st_mtime_ns == before
+        # Without --reuse or --force an existing folder is refused; both at once are too.
+        for extra in ((), ("--reuse", "--force")):
+            try:
+                with contextlib.redirect_stderr(io.StringIO()):
+                    make(out, *extra)
+            except SystemExit as e:
+                assert e.code == 2, e
+            else:
+                raise AssertionError(f"{extra} over an existing dataset was accepted")
+        # A dataset made before the settings were recorded is taken unchecked, and says so.
+        os.remove(os.path.join(out, "meta", "generator.json"))
+        assert "holds no meta/generator.json" in make(out, "--reuse", "--observe-every", "1,1")
+        shutil.rmtree(out)
+
+
 if __name__ == "__main__":
     for name, fn in list(globals().items()):
         if name.startswith("test_"):

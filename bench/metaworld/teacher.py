@@ -205,9 +205,9 @@ def teacher_forced(task, variant, recorded, wm: WorldModel, judge, layout, posit
     """Per recorded episode (seed, first success step, frames from x0 on (an array or
     EpisodeFrames), each frame's action, the hand's offset at its closest approach; in their
     order): its first success step, that offset and, per chunk, the judge's probability on the
-    simulator's frames and on the world model's drawn from them. `requests` episodes at once, so that the server generates while the
-    judge scores another's chunk; each chunk's sampling seed is its own, so the order the server
-    takes them in changes nothing."""
+    simulator's frames and on the world model's drawn from them. `requests` episodes at once, so
+    that the server generates while the judge scores another's chunk; each chunk's sampling seed
+    is its own, so the order the server takes them in changes nothing."""
 
     def episode(record):
         seed, first, frames, actions, nearest = record

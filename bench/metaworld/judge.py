@@ -72,6 +72,12 @@ def image_column(info: dict) -> str:
     return found[0]
 
 
+def image_size(info: dict) -> tuple[int, int]:
+    """(height, width) of the frames of a LeRobot v2.x dataset with meta/info.json `info`."""
+    height, width = info["features"][image_column(info)]["shape"][:2]
+    return int(height), int(width)
+
+
 def episode_file(root: str, info: dict, i: int) -> str:
     """The parquet file of episode `i` of a LeRobot v2.x dataset with meta/info.json `info`."""
     return os.path.join(root, info["data_path"].format(episode_chunk=i // info.get("chunks_size", 1000), episode_index=i))

@@ -90,8 +90,8 @@ class EpisodeFrames:
     `np.asarray` asks for them: the own stage holds hundreds of episodes at once, and takes each
     episode's frames only while the world model draws from them."""
 
-    def __init__(self, path: str, column: str, count: int):
-        self.path, self.column, self.count = path, column, count
+    def __init__(self, path: str, column: str, count: int, size: tuple[int, int]):
+        self.path, self.column, self.count, self.size = path, column, count, size
 
     def __len__(self) -> int:
         return self.count
@@ -102,6 +102,8 @@ class EpisodeFrames:
 
         cells = pq.read_table(self.path, columns=[self.column]).column(self.column).combine_chunks().field("bytes").to_pylist()
         frames = np.stack([np.asarray(Image.open(io.BytesIO(c)).convert("RGB")) for c in cells])
+        if frames.shape != (self.count, *self.size, 3):
+            raise ValueError(f"{self.path}: frames {frames.shape}, its dataset's meta/info.json says {self.count} of {self.size}")
         return frames if dtype is None else frames.astype(dtype)
 
 
@@ -109,36 +111,37 @@ def _own_job(job):
     """One dataset episode as teacher_forced takes it: its behaviour and (seed, first success
     frame, its frames (EpisodeFrames), actions float32 [T, 4], the hand's offset from the object at
     its closest approach in cm, from its commands replayed in the simulator)."""
-    root, info, task, episode, resolution = job
+    root, info, task, episode = job
     import pyarrow.parquet as pq
-    from PIL import Image
 
     import judge
     import policies
 
     i = episode["episode_index"]
     path = judge.episode_file(root, info, i)
-    table = pq.read_table(path)
-    image = judge.image_column(info)
-    with Image.open(io.BytesIO(table.column(image)[0].as_py()["bytes"])) as first_frame:
-        if first_frame.size != (resolution, resolution):
-            raise ValueError(f"{root}: frames of {first_frame.size[0]}x{first_frame.size[1]}, but --resolution is {resolution}")
+    flag = judge.success_column(pq.read_schema(path).names)
+    table = pq.read_table(path, columns=["observation.state", "action", flag])
     column = lambda name: np.asarray(table.column(name).to_pylist(), np.float32)
-    success = np.asarray(table.column(judge.success_column(table.column_names)).to_pylist(), bool)
+    success = np.asarray(table.column(flag).to_pylist(), bool)
     first = int(np.argmax(success)) if success.any() else None
     replayed = policies.replay(task, int(episode["seed"]), column("action")[: table.num_rows - 1])
     if replayed.first != first:
         raise ValueError(f"{root}: episode {i}'s commands replayed from seed {episode['seed']} first succeed at frame "
                          f"{replayed.first}, its success flags say {first}: not this simulator's episode")
-    return episode["behaviour"], (int(episode["seed"]), first, EpisodeFrames(path, image, table.num_rows),
+    return episode["behaviour"], (int(episode["seed"]), first, EpisodeFrames(path, judge.image_column(info), table.num_rows, judge.image_size(info)),
                                   column("observation.state"), replayed.nearest_cm)
 
 
 def record_own(root: str, episodes: dict[str, list[dict]], resolution: int, workers: int) -> dict[str, dict[str, list]]:
     """{task: {behaviour: [records]}} of the dataset's `episodes` (study.dataset_episodes), in their order."""
+    import judge
+
     with open(os.path.join(root, "meta", "info.json")) as f:
         info = json.load(f)
-    jobs = [(root, info, t, e, resolution) for t, eps in episodes.items() for e in eps]
+    height, width = judge.image_size(info)
+    if (height, width) != (resolution, resolution):
+        raise SystemExit(f"teacher: {root}: frames of {width}x{height}, but --resolution is {resolution}")
+    jobs = [(root, info, t, e) for t, eps in episodes.items() for e in eps]
     # The workers raise ValueError, which the pool hands back (a SystemExit would end a worker and
     # leave the map waiting for it).
     try:
@@ -147,7 +150,7 @@ def record_own(root: str, episodes: dict[str, list[dict]], resolution: int, work
     except ValueError as e:
         raise SystemExit(f"teacher: {e}") from None
     out: dict[str, dict[str, list]] = {t: {} for t in episodes}
-    for (_, _, t, _, _), (behaviour, record) in zip(jobs, done):
+    for (_, _, t, _), (behaviour, record) in zip(jobs, done):
         out[t].setdefault(behaviour, []).append(record)
     return out
 

@@ -72,7 +72,7 @@ def _dataset_job(job):
     import judge
 
     i = episode["episode_index"]
-    table = pq.read_table(judge.episode_file(root, info, i))
+    table = pq.read_table(judge.episode_file(root, info, i), columns=["observation.state", "action"])
     states = np.asarray(table.column("observation.state").to_pylist(), np.float32)
     commands = np.asarray(table.column("action").to_pylist(), np.float32)
     # The states are the commanded hand before each command; the last command adds the last step.
@@ -119,7 +119,7 @@ def measure(data: str, tasks: list[str], behaviours: list[str] | None, variants:
 
     with open(os.path.join(data, "meta", "info.json")) as f:
         info = json.load(f)
-    resolution = info["features"][judge.image_column(info)]["shape"][0]
+    resolution = judge.image_size(info)[0]
     own = study.dataset_episodes(data, tasks, episodes, behaviours, tool="tells")
     jobs = [(data, info, t, e) for t in tasks for e in own[t]]
     variant_jobs = []

@@ -112,6 +112,13 @@ def test_own_episodes_are_the_datasets_frames_states_and_outcomes_placed_by_thei
             pixels = np.asarray(frames)
             assert pixels.shape == (100, 32, 32, 3) and pixels.dtype == np.uint8
             assert np.array_equal(pixels[-1], np.asarray(Image.open(io.BytesIO(cells[-1]["bytes"])).convert("RGB")))
+            # Frames other than the dataset's meta/info.json promises are not drawn from.
+            try:
+                np.asarray(teacher.EpisodeFrames(frames.path, frames.column, 100, (64, 64)))
+            except ValueError as err:
+                assert "(100, 32, 32, 3)" in str(err) and "(64, 64)" in str(err), err
+            else:
+                raise AssertionError("frames of another size were taken")
             # The actions are what `bwm prepare` trains on; the truth is the dataset's own flags.
             assert np.array_equal(actions, np.asarray(table.column("observation.state").to_pylist(), np.float32))
             flags = table.column("success").to_pylist()

@@ -66,8 +66,9 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
     let _turn = ONE_PIPELINE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let dir = temp_dir("metaworld");
     let runs = dir.join("run");
-    let log = run(
-        toy("recipe.sh", &runs)
+    let full = || {
+        let mut recipe = toy("recipe.sh", &runs);
+        recipe
             .envs([("VAL_EPISODES", "1"), ("VAE_EPISODES", "6"), ("JUDGE_RECONSTRUCT_EPISODES", "4")])
             .envs(TOY_STUDY)
             .env("PROBE_VARIANTS", "wrong-0cm,wrong-6cm")
@@ -84,9 +85,10 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
             .env("MISS_BOUNDARY", Path::new(ROOT).join("bench/metaworld/boundary.json"))
             .env("MISS_WEIGHT", "9")
             .env("DECOY", "3")
-            .env("OBSERVE_EVERY", "8,40"),
-        "recipe.sh",
-    );
+            .env("OBSERVE_EVERY", "8,40");
+        recipe
+    };
+    let log = run(&mut full(), "recipe.sh");
 
     // Training closes with its held-out rollout next to the copy-last-frame baseline, and the
     // loss of every step goes to losses.tsv (the loss curve's source).
@@ -336,6 +338,34 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
     let judged = json(&runs.join("study/judged.json"));
     assert!(judged["key"]["judge"].as_str().is_some_and(|d| d.len() == 64) && judged["key"]["judge"] != first_judge, "{judged}");
     assert_eq!(judged["judged"]["drawer-open-v3"]["wrong"].as_array().map(Vec::len), Some(1), "{judged}");
+
+    // Run again as they were made, the stages keep their outputs (and the DiT continues from its
+    // last checkpoint, which is its last step); each output's record says how it was made.
+    let again = run(full().args(["vae", "latents", "train", "judge", "ceiling", "teacher", "own"]), "recipe.sh again");
+    for out in ["vae.safetensors", "latents/index.json", "checkpoints/latest", "judge-reconstructed.pt", "ceiling/val.safetensors", "teacher/teacher.json", "own/train/teacher.json", "own/val/teacher.json"] {
+        assert!(again.contains(&format!("{}/{out} exists, made with these settings from these inputs; kept", runs.display())), "{out}:\n{again}");
+    }
+    for stage in ["vae", "latents", "judge-reconstructed", "teacher", "own-train", "own-val"] {
+        assert!(!again.contains(&format!("recipe: {stage} (")), "{stage} ran again:\n{again}");
+    }
+    let record = std::fs::read_to_string(runs.join("latents/index.json.recipe")).unwrap();
+    assert!(record.lines().any(|l| l.starts_with("--vae ") && l.contains("/vae.safetensors (sha256 ")), "{record}");
+    assert!(record.lines().any(|l| l.starts_with("--data ") && l.contains("/data/train (sha256 ")), "{record}");
+    assert!(!record.contains("--device") && !record.contains("--batch"), "{record}");
+    // A setting of a stage changed: its output is refused, naming the setting.
+    let out = full().arg("vae").env("VAE_STEPS", "3").output().unwrap();
+    let said = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{said}");
+    assert!(said.contains("vae.safetensors exists but was made otherwise") && said.contains("there: --steps 2") && said.contains("now:   --steps 3"), "{said}");
+    // A VAE made again (here from another seed): what was made from the first one is refused.
+    std::fs::rename(runs.join("vae.safetensors"), runs.join("vae-first.safetensors")).unwrap();
+    run(full().arg("vae").env("VAE_SEED", "9"), "recipe.sh vae (another seed)");
+    for (stage, out) in [("latents", "latents/index.json"), ("train", "checkpoints/latest"), ("ceiling", "ceiling/val.safetensors")] {
+        let refused = full().arg(stage).output().unwrap();
+        let said = String::from_utf8_lossy(&refused.stderr);
+        assert_eq!(refused.status.code(), Some(2), "{stage}: {said}");
+        assert!(said.contains(&format!("{out} exists but was made otherwise")) && said.contains("now:   --vae "), "{stage}: {said}");
+    }
 }
 
 #[test]

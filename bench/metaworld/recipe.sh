@@ -32,8 +32,12 @@
 #            cm along the task's `wrong` offset): does the model's contact follow a shifted
 #            command as the simulator's does? $RUN/probe/ (same files as study/)
 # Usage (repository root): bash bench/metaworld/recipe.sh [STAGE ...]   (default: all)
-# Each stage is skipped when its output exists (the data only when made with the same settings:
-# generate.py --reuse refuses others); `train` resumes from its last checkpoint.
+# A stage whose output exists keeps it only when it was made by the same command from the same
+# inputs (the data: generate.py --reuse; the VAE, latent cache, judge, the held-out round trip and
+# the teacher and own reports: a record beside each, OUTPUT.recipe) and refuses it otherwise,
+# naming what differs; an output from before the records is kept with a warning. `train` resumes
+# from its last checkpoint (bwm train checks the settings) when its latent cache and VAE are those
+# it started from.
 # Environment: RUN (output folder, default runs/metaworld), BWM (the bwm binary, default
 # $CARGO_TARGET_DIR/release/bwm or target/release/bwm), PYTHON (with bench/metaworld's
 # requirements), DEVICE (default cuda), and the sizes below. Stage times go to $RUN/timings.tsv.
@@ -171,6 +175,57 @@ timed() { # $1 = stage name; the rest runs, its wall time appended to $RUN/timin
   return "$status"
 }
 
+# How an output was made, as its record holds it: the command's words (the program, devices,
+# batch and worker counts and where it writes left out: none changes what it makes), each input
+# it names followed by that input's sha256 (an input made by an earlier stage: of its record,
+# whose last line says when it was made, so an input made again, even alike, is a new input; any
+# other file: of its bytes; a dataset: of its meta/ files; a checkpoint: of its weights). Code
+# (*.py, the bwm binary) is not an input.
+record_of() { # the command's words, its program first; one line per flag with its values
+  local prev=$1 w id line=
+  shift
+  for w in "$@"; do
+    case "$prev" in
+      --device|--judge-device|--workers|--jobs|--episodes-in-flight|--batch|--out|--bwm) prev=$w; continue ;;
+    esac
+    case "$w" in
+      --device|--judge-device|--workers|--jobs|--episodes-in-flight|--batch|--out|--bwm) prev=$w; continue ;;
+    esac
+    id=
+    if [ "$prev" != --reconstructed ] && [[ $w != *.py ]]; then
+      if [ -f "$w.recipe" ]; then id=$(sha256sum < "$w.recipe")
+      elif [ -f "$w" ]; then id=$(sha256sum < "$w")
+      elif [ -d "$w/meta" ]; then id=$(find "$w/meta" -maxdepth 1 -type f -print0 | sort -z | xargs -0 cat | sha256sum)
+      elif [ -f "$w/model.safetensors" ]; then id=$(sha256sum < "$w/model.safetensors")
+      fi
+    fi
+    [ -z "$id" ] || w="$w (sha256 ${id%% *})"
+    if [[ $w =~ ^--?[A-Za-z] || $w == -- ]]; then [ -z "$line" ] || echo "$line"; line=$w; else line="${line:+$line }$w"; fi
+    prev=${w%% (sha256 *}
+  done
+  [ -z "$line" ] || echo "$line"
+}
+# 0 when OUTPUT exists and its record is RECORD (kept); 1 when OUTPUT is to be made; exits 2 when
+# OUTPUT was made otherwise.
+kept() { # $1 = output, $2 = the record it must have
+  local out=$1 want=$2
+  [ -e "$out" ] || return 1
+  if [ ! -f "$out.recipe" ]; then
+    echo "recipe: $out exists and has no record of how it was made (made before the recipe kept records); kept" >&2
+    return 0
+  fi
+  if [ "$(grep -v '^made ' "$out.recipe")" = "$want" ]; then
+    echo "recipe: $out exists, made with these settings from these inputs; kept" >&2
+    return 0
+  fi
+  echo "recipe: $out exists but was made otherwise (its record $out.recipe); remove it, and what was made from it, or pick another RUN:" >&2
+  diff <(grep -v '^made ' "$out.recipe") <(printf '%s\n' "$want") | sed -n 's/^< /  there: /p; s/^> /  now:   /p' >&2
+  exit 2
+}
+recorded() { # $1 = output, $2 = its record
+  printf '%s\nmade %s %s\n' "$2" "$(date -u +%FT%T.%NZ)" "$RANDOM$RANDOM" > "$1.recipe.tmp" && mv -f "$1.recipe.tmp" "$1.recipe"
+}
+
 # The EMA weights of a checkpoint (EMA_DECAY), exported once: under a lock, since stages that roll
 # out may start side by side (scripts/gpu/metaworld-stages.sh).
 ema_export() { # $1 = the checkpoint's folder name (step-NNNNNNNN)
@@ -194,10 +249,11 @@ if wants data; then
 fi
 
 if wants vae; then
-  if [ -f "$RUN/vae.safetensors" ]; then echo "recipe: $RUN/vae.safetensors exists"; else
-    vae=("$BWM" train-vae --data "$VAE_DATA" --max-episodes "$VAE_EPISODES" --holdout-tail "$VAE_HOLDOUT_TAIL"
+  vae=("$BWM" train-vae --data "$VAE_DATA" --max-episodes "$VAE_EPISODES" --holdout-tail "$VAE_HOLDOUT_TAIL"
       --resolution "${RESOLUTION}x$RESOLUTION" --dim "$VAE_DIM" --dec-dim "$VAE_DEC_DIM" --spatial-stride "$VAE_STRIDE" --clip-frames "$VAE_CLIP_FRAMES" --batch "$VAE_BATCH" --steps "$VAE_STEPS" --lr "$VAE_LR"
       --no-flip --eval-every "$VAE_EVAL_EVERY" --dtype "$VAE_DTYPE" --recon-loss "$VAE_LOSS" ${VAE_MOTION_WEIGHT:+--motion-weight "$VAE_MOTION_WEIGHT"} --seed "$VAE_SEED" --candidates "$VAE_CANDIDATES" ${VAE_CHOOSE_AT:+--choose-at "$VAE_CHOOSE_AT"} --z-dim "$VAE_Z_DIM" --device "$DEVICE" --out "$RUN/vae.safetensors")
+  made_with=$(record_of "${vae[@]}")
+  if ! kept "$RUN/vae.safetensors" "$made_with"; then
     if [ "$VAE_GRAPH" = 1 ]; then
       timed vae "${vae[@]}" --cuda-graph
     elif [ "$VAE_GRAPH" = auto ] && [[ $DEVICE == cuda* ]]; then
@@ -215,15 +271,19 @@ if wants vae; then
     else
       timed vae "${vae[@]}"
     fi
+    recorded "$RUN/vae.safetensors" "$made_with"
   fi
 fi
 
 if wants latents; then
-  if [ -f "$RUN/latents/index.json" ]; then echo "recipe: $RUN/latents exists"; else
-    keep=(); [ "$KEEP_FRAMES" = 1 ] && keep=(--keep-frames)
-    timed latents "$BWM" prepare --data "$RUN/data/train" --vae "$RUN/vae.safetensors" --resolution "${RESOLUTION}x$RESOLUTION" \
-      --history 8 --future 24 --stride 4 --actions observation.state:0-3 --validation-fraction 0.02 \
-      "${keep[@]}" --batch 64 --device "$DEVICE" --out "$RUN/latents"
+  keep=(); [ "$KEEP_FRAMES" = 1 ] && keep=(--keep-frames)
+  prepare=("$BWM" prepare --data "$RUN/data/train" --vae "$RUN/vae.safetensors" --resolution "${RESOLUTION}x$RESOLUTION"
+    --history 8 --future 24 --stride 4 --actions observation.state:0-3 --validation-fraction 0.02
+    "${keep[@]}" --batch 64 --device "$DEVICE" --out "$RUN/latents")
+  made_with=$(record_of "${prepare[@]}")
+  if ! kept "$RUN/latents/index.json" "$made_with"; then
+    timed latents "${prepare[@]}"
+    recorded "$RUN/latents/index.json" "$made_with"
   fi
 fi
 
@@ -243,6 +303,10 @@ PY
   set -f  # the settings may hold glob characters (patch_size=[1,2,2])
   for kv in $TRAIN_SETS; do sets+=(--set "$kv"); done
   set +f
+  # Continued only on the latent cache and VAE it started from (settings are bwm train's to check).
+  made_with=$(record_of train --latents "$RUN/latents/index.json" --vae "$RUN/vae.safetensors")
+  kept "$RUN/checkpoints/latest" "$made_with" || true
+  mkdir -p "$RUN/checkpoints" && recorded "$RUN/checkpoints/latest" "$made_with"
   timed train "$BWM" train --config configs/metaworld.toml "${sets[@]}" --resume auto
   [ -z "$EMA_DECAY" ] || ema_export "$(cat "$RUN/checkpoints/latest")"
 fi
@@ -274,18 +338,26 @@ if wants truth; then
 fi
 
 if wants judge; then
+  reconstruct=() reconstructed=()
+  if [ "$JUDGE_FRAMES" = reconstructed ]; then
+    reconstruct=("$BWM" reconstruct --data "$RUN/data/train" --vae "$RUN/vae.safetensors" --resolution "${RESOLUTION}x$RESOLUTION"
+      --max-episodes "$JUDGE_RECONSTRUCT_EPISODES" --device "$DEVICE" --out "$RUN/judge-reconstructed/train.safetensors")
+    reconstructed=(--reconstructed "$RUN/judge-reconstructed/train.safetensors")
+  fi
+  train_judge=("$PYTHON" bench/metaworld/judge.py train --data "$RUN/data/train" "${reconstructed[@]}" --val "$RUN/data/val"
+    --steps "$JUDGE_STEPS" --device "$DEVICE" --out "$JUDGE")
   judge() {
-    local reconstructed=()
-    if [ "$JUDGE_FRAMES" = reconstructed ]; then
+    if [ ${#reconstruct[@]} -gt 0 ]; then
       [ -f "$RUN/vae.safetensors" ] || { echo "recipe: JUDGE_FRAMES=reconstructed needs the vae stage's $RUN/vae.safetensors" >&2; return 1; }
-      "$BWM" reconstruct --data "$RUN/data/train" --vae "$RUN/vae.safetensors" --resolution "${RESOLUTION}x$RESOLUTION" \
-        --max-episodes "$JUDGE_RECONSTRUCT_EPISODES" --device "$DEVICE" --out "$RUN/judge-reconstructed/train.safetensors" || return 1
-      reconstructed=(--reconstructed "$RUN/judge-reconstructed/train.safetensors")
+      "${reconstruct[@]}" || return 1
     fi
-    "$PYTHON" bench/metaworld/judge.py train --data "$RUN/data/train" "${reconstructed[@]}" --val "$RUN/data/val" \
-      --steps "$JUDGE_STEPS" --device "$DEVICE" --out "$JUDGE"
+    "${train_judge[@]}"
   }
-  if [ -f "$JUDGE" ]; then echo "recipe: $JUDGE exists"; else timed "$JUDGE_NAME" judge; fi
+  made_with=$(if [ ${#reconstruct[@]} -gt 0 ]; then record_of "${reconstruct[@]}"; fi; record_of "${train_judge[@]}")
+  if ! kept "$JUDGE" "$made_with"; then
+    timed "$JUDGE_NAME" judge
+    recorded "$JUDGE" "$made_with"
+  fi
   # The judge on the simulator's frames of the study's episodes (the study's first step, cached
   # for it) here, beside training.
   timed "${JUDGE_NAME/judge/judged}" "$PYTHON" bench/metaworld/study.py "${STUDY_ARGS[@]}" --judge "$JUDGE" --judged-only
@@ -294,11 +366,13 @@ fi
 if wants ceiling; then
   ceiling() {
     # The VAE's round trip of the held-out frames is the same for every judge: made once.
-    if [ -f "$RUN/ceiling/val.safetensors" ]; then
-      echo "recipe: $RUN/ceiling/val.safetensors exists (the held-out frames' round trip)"
-    else
-      "$BWM" reconstruct --data "$RUN/data/val" --vae "$RUN/vae.safetensors" --resolution "${RESOLUTION}x$RESOLUTION" --device "$DEVICE" \
-        --out "$RUN/ceiling/val.safetensors" || return 1
+    local round_trip=("$BWM" reconstruct --data "$RUN/data/val" --vae "$RUN/vae.safetensors" --resolution "${RESOLUTION}x$RESOLUTION"
+      --device "$DEVICE" --out "$RUN/ceiling/val.safetensors")
+    local made_with
+    made_with=$(record_of "${round_trip[@]}")
+    if ! kept "$RUN/ceiling/val.safetensors" "$made_with"; then
+      "${round_trip[@]}" || return 1
+      recorded "$RUN/ceiling/val.safetensors" "$made_with"
     fi
     "$PYTHON" bench/metaworld/judge.py score --model "$JUDGE" --val "$RUN/data/val" \
       --reconstructed "$RUN/ceiling/val.safetensors" --device "$DEVICE" --out "$RUN/ceiling/$JUDGE_NAME.json"
@@ -314,24 +388,25 @@ fi
 
 if wants teacher; then
   world_model
-  if [ -f "$RUN/teacher/teacher.json" ]; then
-    echo "recipe: $RUN/teacher/teacher.json exists"
-  else
-    timed teacher "$PYTHON" bench/metaworld/teacher.py "${COMMON_STUDY_ARGS[@]}" ${TEACHER_VARIANTS:+--variants "$TEACHER_VARIANTS"} \
-      --out "$RUN/teacher" --judge "$JUDGE" --judge-device "$DEVICE" --bwm "$BWM" -- "${WM[@]}"
+  teacher=("$PYTHON" bench/metaworld/teacher.py "${COMMON_STUDY_ARGS[@]}" ${TEACHER_VARIANTS:+--variants "$TEACHER_VARIANTS"}
+    --out "$RUN/teacher" --judge "$JUDGE" --judge-device "$DEVICE" --bwm "$BWM" -- "${WM[@]}")
+  made_with=$(record_of "${teacher[@]}")
+  if ! kept "$RUN/teacher/teacher.json" "$made_with"; then
+    timed teacher "${teacher[@]}"
+    recorded "$RUN/teacher/teacher.json" "$made_with"
   fi
 fi
 
 if wants own; then
   world_model
   for split in train val; do
-    if [ -f "$RUN/own/$split/teacher.json" ]; then
-      echo "recipe: $RUN/own/$split/teacher.json exists"
-      continue
-    fi
-    timed "own-$split" "$PYTHON" bench/metaworld/teacher.py --data "$RUN/data/$split" --own-episodes ${OWN_BEHAVIOURS:+--behaviours "$OWN_BEHAVIOURS"} \
-      --episodes "$OWN_EPISODES" --horizon "$STUDY_HORIZON" --resolution "$RESOLUTION" --workers "$WORKERS" \
-      --out "$RUN/own/$split" --judge "$JUDGE" --judge-device "$DEVICE" --bwm "$BWM" -- "${WM[@]}"
+    own=("$PYTHON" bench/metaworld/teacher.py --data "$RUN/data/$split" --own-episodes ${OWN_BEHAVIOURS:+--behaviours "$OWN_BEHAVIOURS"}
+      --episodes "$OWN_EPISODES" --horizon "$STUDY_HORIZON" --resolution "$RESOLUTION" --workers "$WORKERS"
+      --out "$RUN/own/$split" --judge "$JUDGE" --judge-device "$DEVICE" --bwm "$BWM" -- "${WM[@]}")
+    made_with=$(record_of "${own[@]}")
+    kept "$RUN/own/$split/teacher.json" "$made_with" && continue
+    timed "own-$split" "${own[@]}"
+    recorded "$RUN/own/$split/teacher.json" "$made_with"
     "$PYTHON" bench/metaworld/contact_map.py "$RUN/own/$split/teacher.json" --band-cm 1 --json "$RUN/own/$split/contact_map.json"
   done
 fi

@@ -42,6 +42,8 @@ fn variants_with(dir: &Path, args: &[&str], vars: &[(&str, &str)]) -> Output {
     fs::create_dir_all(dir.join("scripts/gpu")).unwrap();
     fs::create_dir_all(dir.join("bin")).unwrap();
     fs::copy(Path::new(ROOT).join("scripts/gpu/variants.sh"), dir.join("scripts/gpu/variants.sh")).unwrap();
+    fs::create_dir_all(dir.join("bench/metaworld")).unwrap();
+    fs::copy(Path::new(ROOT).join("bench/metaworld/data-settings.sh"), dir.join("bench/metaworld/data-settings.sh")).unwrap();
     fs::write(dir.join("scripts/gpu/metaworld.sh"), STUB_RECIPE).unwrap();
     write_executable(&dir.join("bin/nvidia-smi"), "#!/bin/sh\nfor i in 0 1 2 3; do echo \"GPU $i: stub\"; done\n");
     let path = format!("{}:{}", dir.join("bin").display(), std::env::var("PATH").unwrap_or_default());
@@ -69,7 +71,7 @@ fn lines(path: &Path) -> Vec<String> {
 fn variants_with_the_same_data_variables_share_one_dataset() {
     let dir = common::temp_dir("gpu-variants");
     let d = dir.path();
-    let out = variants(d, &["a", "DECOY=3 MISS_WEIGHT=9", "b", "MISS_WEIGHT=9 DECOY=3 VAE_SEED=1", "c", "DECOY=6", "e", "DECOY=6 MISS_FACTOR=1.1,2"]);
+    let out = variants(d, &["a", "DECOY=3 MISS_WEIGHT=9", "b", "MISS_WEIGHT=9 DECOY=3 VAE_SEED=1", "c", "DECOY=6", "e", "DECOY=6 MISS_BOUNDARY=boundary.json MISS_FACTOR=1.1,2"]);
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(out.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
     assert!(stdout.contains("variants: b uses a's data"), "{stdout}");
@@ -84,6 +86,33 @@ fn variants_with_the_same_data_variables_share_one_dataset() {
     assert!(!fs::symlink_metadata(d.join("runs/c/data")).unwrap().file_type().is_symlink());
     let b_log = fs::read_to_string(d.join("out/b/log")).unwrap();
     assert!(b_log.contains("stub: runs/b on GPU 1 with DECOY=3 VAE_SEED=1 JUDGE_FRAMES= stages"), "{b_log}");
+
+    // A data variable set to the recipe's default (bench/metaworld/data-settings.sh) gives the
+    // shared data, made once; other data variables are refused as the recipe would refuse them.
+    let dir = common::temp_dir("gpu-variants-defaults");
+    let d = dir.path();
+    let defaults = Command::new("bash")
+        .args(["-c", "source bench/metaworld/data-settings.sh && echo \"$OBSERVE_EVERY $MISS_WEIGHT\""])
+        .current_dir(ROOT)
+        .output()
+        .unwrap();
+    let defaults = String::from_utf8_lossy(&defaults.stdout).trim().to_string();
+    let (observe, weight) = defaults.split_once(' ').unwrap_or_else(|| panic!("{defaults}"));
+    let (first, second) = (format!("OBSERVE_EVERY={observe} VAE_SEED=1"), format!("MISS_WEIGHT={weight} VAE_SEED=2"));
+    let out = variants(d, &["a", &first, "b", &second, "c", "VAE_SEED=3"]);
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
+    assert_eq!(
+        lines(&d.join("made.txt")),
+        ["runs/a found its data", "runs/b found its data", "runs/c found its data", "runs/metaworld made train", "runs/metaworld made val"],
+        "{stdout}"
+    );
+    for v in ["a", "b", "c"] {
+        assert_eq!(fs::read_link(d.join(format!("runs/{v}/data"))).unwrap(), d.join("runs/metaworld/data"), "{v}: {stdout}");
+    }
+    let out = variants(d, &["a", "MISS_FACTOR=1.1,2"]);
+    assert_eq!(out.status.code(), Some(2), "{out:?}");
+    assert!(String::from_utf8_lossy(&out.stderr).contains("MISS_FACTOR scales MISS_BOUNDARY's distances"), "{out:?}");
 
     // A lead that fails before its data takes the variants waiting on them down with it.
     let dir = common::temp_dir("gpu-variants-failed");

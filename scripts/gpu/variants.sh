@@ -3,12 +3,12 @@
 # root, with the carry of scripts/gpu/metaworld.sh:
 #   bash scripts/gpu/variants.sh NAME "VAR=VALUE ..." [NAME "VAR=VALUE ..." ...]
 # The data are made once (runs/metaworld, when a variant uses them); each variant then runs
-# scripts/gpu/metaworld.sh in runs/NAME (its data linked to those, unless it sets a variable the
-# data depend on: TASKS, TRAIN_EPISODES, VAL_EPISODES, SPREAD, MISS_CM, MISS_BOUNDARY, MISS_FACTOR, MISS_WEIGHT,
-# DEGRADED, DECOY, OBSERVE_EVERY, FRAMES or RESOLUTION; then it makes its own, or uses an earlier variant's made with the
-# same values of those, starting once they are written) with its variables, on GPU i mod the machine's GPU count for
-# the i-th variant, all at once; each trains its own judge, as the recipe does (it learns from the
-# variant's VAE, so it trains after it, beside the latents and the DiT). With STAGES (default: every
+# scripts/gpu/metaworld.sh in runs/NAME (its data linked to those, unless its variables give other
+# data than the recipe's defaults do: bench/metaworld/data-settings.sh's DATA_VARS; then it makes its
+# own, or uses an earlier variant's made with the same values of those, starting once they are
+# written) with its variables, on GPU i mod the machine's GPU count for the i-th variant, all at
+# once; each trains its own judge, as the recipe does (it learns from the variant's VAE, so it
+# trains after it, beside the latents and the DiT). With STAGES (default: every
 # stage) picking stages, e.g. STAGES="vae ceiling" to compare VAEs alone, one judge of real frames
 # (JUDGE_FRAMES=real: the recipe's own learns from each variant's VAE) is made first for all and
 # linked into each variant's folder, and the variants use it unless they set JUDGE_FRAMES. In "VAR=VALUE ...", a word that is not NAME=...
@@ -27,6 +27,14 @@ mkdir -p "$OUT"
 # Every variant's words first: a word not of the form NAME=... continues the variable before it.
 # A variant's assignments are kept as one newline-separated string (bash has no arrays of arrays).
 names=() assigns=() keys=() lead=()
+data_settings() { # VAR=VALUE ...: every data variable's value under these assignments, one per line
+  (
+    for a in "$@"; do export "${a?}"; done
+    source bench/metaworld/data-settings.sh || exit 2
+    for v in $DATA_VARS; do echo "$v=${!v}"; done
+  )
+}
+default_data=$(data_settings) || exit 2
 while [ $# -gt 0 ]; do
   name=$1 vars=$2; shift 2
   case "$name" in metaworld|*/*|"") echo "variants: '$name' cannot name a run folder" >&2; exit 2 ;; esac
@@ -38,7 +46,10 @@ while [ $# -gt 0 ]; do
     fi
   done
   names+=("$name") assigns+=("$(printf '%s\n' "${assign[@]}")")
-  key=$(printf '%s\n' "${assign[@]}" | grep -E '^(TASKS|TRAIN_EPISODES|VAL_EPISODES|SPREAD|MISS_CM|MISS_BOUNDARY|MISS_FACTOR|MISS_WEIGHT|DEGRADED|DECOY|OBSERVE_EVERY|FRAMES|RESOLUTION)=' | sort)
+  # The data this variant's variables give (bench/metaworld/data-settings.sh's defaults for the
+  # rest): none of its own when they are the defaults'.
+  key=$(data_settings "${assign[@]}") || { echo "variants: $name's data variables (above)" >&2; exit 2; }
+  [ "$key" != "$default_data" ] || key=
   # A variant whose data variables are an earlier one's uses that one's data (its lead).
   l=${#keys[@]}
   for j in "${!keys[@]}"; do [ -n "$key" ] && [ "${keys[$j]}" = "$key" ] && { l=$j; break; }; done

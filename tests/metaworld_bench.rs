@@ -510,13 +510,19 @@ fn episodes_in_bands(by_cm: &Value, lo: f64, hi: f64, report: &Value) -> u64 {
 fn near_misses_are_counted_by_distance_in_the_simulator() {
     let dir = temp_dir("misses");
     let path = dir.join("misses.json");
-    run(
-        Command::new(python())
-            .arg(Path::new(ROOT).join("bench/metaworld/miss_outcomes.py"))
-            .args(["--tasks", "drawer-open-v3", "--episodes", "16", "--frames", "100", "--miss-cm", "2,12", "--miss-cm", "3,9", "--out"])
-            .arg(&path),
-        "miss_outcomes.py",
-    );
+    // miss_outcomes.py over the first `episodes` drawer seeds of 100 frames, with `args`, into `path`.
+    let misses = |episodes: &str, args: &[&str]| {
+        run(
+            Command::new(python())
+                .arg(Path::new(ROOT).join("bench/metaworld/miss_outcomes.py"))
+                .args(["--tasks", "drawer-open-v3", "--episodes", episodes, "--frames", "100"])
+                .args(args)
+                .arg("--out")
+                .arg(&path),
+            &format!("miss_outcomes.py {}", args.join(" ")),
+        )
+    };
+    misses("16", &["--miss-cm", "2,12", "--miss-cm", "3,9"]);
     let report = json(&path);
     let drawer = &report["tasks"]["drawer-open-v3"];
     // The range moves how far the misses steer, not which seeds miss.
@@ -533,13 +539,7 @@ fn near_misses_are_counted_by_distance_in_the_simulator() {
 
     // An expert that looks at the object only every 24-48 frames misses on the same seeds, as
     // far off; its pulls that miss go on longer, so only how they end may change.
-    run(
-        Command::new(python())
-            .arg(Path::new(ROOT).join("bench/metaworld/miss_outcomes.py"))
-            .args(["--tasks", "drawer-open-v3", "--episodes", "16", "--frames", "100", "--miss-cm", "3,9", "--observe-every", "24,48", "--out"])
-            .arg(&path),
-        "miss_outcomes.py --observe-every",
-    );
+    misses("16", &["--miss-cm", "3,9", "--observe-every", "24,48"]);
     let looking = json(&path);
     assert_eq!(looking["observe_every"], serde_json::json!([24, 48]), "{looking}");
     let seen = &looking["tasks"]["drawer-open-v3"]["3,9"];
@@ -550,15 +550,8 @@ fn near_misses_are_counted_by_distance_in_the_simulator() {
     // Misses drawn around the measured boundary (the committed boundary.json) and weighted up:
     // more seeds miss, as many in both ways of drawing them, and none beyond twice the
     // drawer's widest boundary (8.75 cm).
-    run(
-        Command::new(python())
-            .arg(Path::new(ROOT).join("bench/metaworld/miss_outcomes.py"))
-            .args(["--tasks", "drawer-open-v3", "--episodes", "16", "--frames", "100", "--miss-weight", "9", "--miss-boundary"])
-            .arg(Path::new(ROOT).join("bench/metaworld/boundary.json"))
-            .arg("--out")
-            .arg(&path),
-        "miss_outcomes.py --miss-boundary",
-    );
+    let boundary = Path::new(ROOT).join("bench/metaworld/boundary.json");
+    misses("16", &["--miss-weight", "9", "--miss-boundary", boundary.to_str().unwrap()]);
     let weighted = json(&path);
     let drawer_weighted = &weighted["tasks"]["drawer-open-v3"];
     let n = drawer_weighted["boundary"]["miss_episodes"].as_u64().unwrap_or_else(|| panic!("{weighted}"));
@@ -568,13 +561,7 @@ fn near_misses_are_counted_by_distance_in_the_simulator() {
 
     // With decoys in the data, they are counted by how far from the object they aim: anywhere in
     // the drawer's 20 cm range.
-    run(
-        Command::new(python())
-            .arg(Path::new(ROOT).join("bench/metaworld/miss_outcomes.py"))
-            .args(["--tasks", "drawer-open-v3", "--episodes", "30", "--frames", "100", "--decoy-weight", "3", "--out"])
-            .arg(&path),
-        "miss_outcomes.py --decoy-weight",
-    );
+    misses("30", &["--decoy-weight", "3"]);
     let report = json(&path);
     let decoy = &report["tasks"]["drawer-open-v3"]["decoy"];
     let n = decoy["decoy_episodes"].as_u64().unwrap_or_else(|| panic!("{report}"));

@@ -154,16 +154,15 @@ timed() { # $1 = stage name; the rest runs, its wall time appended to $RUN/timin
 # whose last line says when it was made, so an input made again, even alike, is a new input; any
 # other file: of its bytes; a dataset: of its meta/ files; a checkpoint: of its weights). Code
 # (*.py, the bwm binary) is not an input.
+not_in_record() { # $1 = a flag whose value changes nothing the command makes (or names the program)
+  case "$1" in --device|--judge-device|--workers|--jobs|--episodes-in-flight|--batch|--out|--bwm) return 0 ;; esac
+  return 1
+}
 record_of() { # the command's words, its program first; one line per flag with its values
   local prev=$1 w id line=
   shift
   for w in "$@"; do
-    case "$prev" in
-      --device|--judge-device|--workers|--jobs|--episodes-in-flight|--batch|--out|--bwm) prev=$w; continue ;;
-    esac
-    case "$w" in
-      --device|--judge-device|--workers|--jobs|--episodes-in-flight|--batch|--out|--bwm) prev=$w; continue ;;
-    esac
+    if not_in_record "$w" || not_in_record "$prev"; then prev=$w; continue; fi
     id=
     if [ "$prev" != --reconstructed ] && [[ $w != *.py ]]; then
       if [ -f "$w.recipe" ]; then id=$(sha256sum < "$w.recipe")
@@ -172,27 +171,28 @@ record_of() { # the command's words, its program first; one line per flag with i
       elif [ -f "$w/model.safetensors" ]; then id=$(sha256sum < "$w/model.safetensors")
       fi
     fi
+    prev=$w
     [ -z "$id" ] || w="$w (sha256 ${id%% *})"
     if [[ $w =~ ^--?[A-Za-z] || $w == -- ]]; then [ -z "$line" ] || echo "$line"; line=$w; else line="${line:+$line }$w"; fi
-    prev=${w%% (sha256 *}
   done
   [ -z "$line" ] || echo "$line"
 }
 # 0 when OUTPUT exists and its record is RECORD (kept); 1 when OUTPUT is to be made; exits 2 when
 # OUTPUT was made otherwise.
 kept() { # $1 = output, $2 = the record it must have
-  local out=$1 want=$2
+  local out=$1 want=$2 there
   [ -e "$out" ] || return 1
   if [ ! -f "$out.recipe" ]; then
     echo "recipe: $out exists and has no record of how it was made (made before the recipe kept records); kept" >&2
     return 0
   fi
-  if [ "$(grep -v '^made ' "$out.recipe")" = "$want" ]; then
+  there=$(grep -v '^made ' "$out.recipe")
+  if [ "$there" = "$want" ]; then
     echo "recipe: $out exists, made with these settings from these inputs; kept" >&2
     return 0
   fi
   echo "recipe: $out exists but was made otherwise (its record $out.recipe); remove it, and what was made from it, or pick another RUN:" >&2
-  diff <(grep -v '^made ' "$out.recipe") <(printf '%s\n' "$want") | sed -n 's/^< /  there: /p; s/^> /  now:   /p' >&2
+  diff <(printf '%s\n' "$there") <(printf '%s\n' "$want") | sed -n 's/^< /  there: /p; s/^> /  now:   /p' >&2
   exit 2
 }
 recorded() { # $1 = output, $2 = its record
@@ -278,8 +278,10 @@ PY
   set +f
   # Continued only on the latent cache and VAE it started from (settings are bwm train's to check).
   made_with=$(record_of train --latents "$RUN/latents/index.json" --vae "$RUN/vae.safetensors")
-  kept "$RUN/checkpoints/latest" "$made_with" || true
-  mkdir -p "$RUN/checkpoints" && recorded "$RUN/checkpoints/latest" "$made_with"
+  if ! kept "$RUN/checkpoints/latest" "$made_with"; then
+    mkdir -p "$RUN/checkpoints"
+    recorded "$RUN/checkpoints/latest" "$made_with"
+  fi
   timed train "$BWM" train --config configs/metaworld.toml "${sets[@]}" --resume auto
   [ -z "$EMA_DECAY" ] || ema_export "$(cat "$RUN/checkpoints/latest")"
 fi

@@ -2,7 +2,8 @@
 //! recipe the GPU run uses: generate.py writes training and held-out datasets from MuJoCo, then
 //! `bwm train-vae`, `bwm prepare`, `bwm train`, `bwm fidelity`, the truth of the policy variants in
 //! the simulator, judge.py, study.py (policy_server.py + judge over `bwm evaluate`, and the judge
-//! on the simulator's own frames of the same episodes) and teacher.py (over `bwm serve`). The numbers
+//! on the simulator's own frames of the same episodes), teacher.py (over `bwm serve`) and `bwm
+//! rollout` (the data engine) on the recipe's checkpoint and VAE. The numbers
 //! of a toy model mean nothing; the test checks that every stage runs on the real path and writes
 //! what it promises, that the datasets keep the generator's contract (bench/metaworld/tests/
 //! check_dataset.py) and that generation is deterministic whatever the worker count.
@@ -219,6 +220,22 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
     assert!(ckpt.join("config.json").is_file(), "{flags:?}");
     assert!(config.contains("ema_decay = 0.5"), "{config}");
     assert_eq!(timings.lines().filter(|l| l.starts_with("ema\t")).count(), 1, "{timings}");
+    // The recipe's checkpoint and VAE work with the data engine as any checkpoint does: the
+    // study's own world-model flags drive a held-out episode with its recorded commands.
+    let engine = dir.join("rollout");
+    run(
+        Command::new(bwm())
+            .arg("rollout")
+            .args(&flags)
+            .arg("--data")
+            .arg(runs.join("data/val"))
+            .args(["--actions", "observation.state:0-3", "--resolution", "64x64", "--episodes", "0", "--max-frames", "40", "--out"])
+            .arg(&engine),
+        "bwm rollout",
+    );
+    let generated = bwm_data::open_dataset(&engine).unwrap_or_else(|e| panic!("{e:#}"));
+    assert_eq!(generated.episodes().iter().map(|e| e.length).collect::<Vec<_>>(), [40]);
+    assert!(std::fs::read_to_string(engine.join("compare/metrics.jsonl")).is_ok_and(|m| m.contains("psnr")), "PSNR against the real episode");
     assert_eq!(study["per_episode"]["n"], 4, "one episode per rate, each paired with its truth: {study}");
     for r in rates {
         let e = &r["per_episode"];

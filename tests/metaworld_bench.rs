@@ -236,6 +236,32 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
     let generated = bwm_data::open_dataset(&engine).unwrap_or_else(|e| panic!("{e:#}"));
     assert_eq!(generated.episodes().iter().map(|e| e.length).collect::<Vec<_>>(), [40]);
     assert!(std::fs::read_to_string(engine.join("compare/metrics.jsonl")).is_ok_and(|m| m.contains("psnr")), "PSNR against the real episode");
+
+    // The same world model on other held-out seeds, without training again (other-seeds.sh, with
+    // the recipe's variables of this run); held-out seeds among the training ones are refused.
+    let other = dir.join("run-other-seeds");
+    let other_seeds = |start: &str| {
+        let mut cmd = Command::new("bash");
+        cmd.arg(Path::new(ROOT).join("bench/metaworld/other-seeds.sh")).arg(&runs).args(["data", "truth", "study"]);
+        for (k, v) in full().get_envs() {
+            if let Some(v) = v {
+                cmd.env(k, v);
+            }
+        }
+        cmd.env("RUN", &other).env("VAL_SEED_START", start);
+        cmd
+    };
+    let refused = other_seeds("2").output().unwrap();
+    let said = String::from_utf8_lossy(&refused.stderr);
+    assert!(refused.status.code() == Some(2) && said.contains("VAL_SEED_START=2 must be a whole number of at least TRAIN_EPISODES=3"), "{said}");
+    let other_log = run(&mut other_seeds("7"), "other-seeds.sh");
+    assert!(!other_log.contains("recipe: train (") && !other_log.contains("recipe: vae ("), "{other_log}");
+    let seeds: Vec<u64> = std::fs::read_to_string(other.join("data/val/meta/episodes.jsonl")).unwrap().lines().map(|l| serde_json::from_str::<Value>(l).unwrap()["seed"].as_u64().unwrap()).collect();
+    assert_eq!(seeds, [7, 7], "one held-out episode per task from seed 7");
+    let other_study = json(&other.join("study/study.json"));
+    assert_eq!(other_study["all"]["n"], 4, "{other_study}");
+    let other_flags: Vec<&str> = other_study["world_model_flags"].as_array().unwrap().iter().filter_map(Value::as_str).collect();
+    assert!(other_flags.windows(2).any(|w| w[0] == "--checkpoint" && Path::new(w[1]) == other.join("ema/step-00000002")), "the linked run's checkpoint: {other_flags:?}");
     assert_eq!(study["per_episode"]["n"], 4, "one episode per rate, each paired with its truth: {study}");
     for r in rates {
         let e = &r["per_episode"];

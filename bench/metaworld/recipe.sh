@@ -211,7 +211,7 @@ ema_export() { # $1 = the checkpoint's folder name (step-NNNNNNNN)
 
 if wants data; then
   for split in train val; do
-    if [ $split = train ]; then n=$TRAIN_EPISODES; s=0; else n=$VAL_EPISODES; s=100000; fi
+    if [ $split = train ]; then n=$TRAIN_EPISODES; s=0; else n=$VAL_EPISODES; s=$VAL_SEED_START; fi
     generate=("$PYTHON" bench/metaworld/generate.py --tasks "$TASKS" --episodes "$n" --seed-start "$s" \
       --frames "$FRAMES" --resolution "$RESOLUTION" --spread "$SPREAD" ${MISS_CM:+--miss-cm "$MISS_CM"} ${MISS_BOUNDARY:+--miss-boundary "$MISS_BOUNDARY"} ${MISS_FACTOR:+--miss-factor "$MISS_FACTOR"} \
       --miss-weight "$MISS_WEIGHT" --decoy-weight "$DECOY" --observe-every "$OBSERVE_EVERY" --degraded-fraction "$DEGRADED" --workers "$WORKERS" --out "$RUN/data/$split")

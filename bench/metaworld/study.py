@@ -11,7 +11,9 @@ starts from that episode's frame 0 and pose, and the policy's per-episode random
 simulator's placement both follow that episode's seed (its `seed` in meta/episodes.jsonl).
 Truth: policies.measure_truth over the same seeds (cached in DIR/truth.json: per episode the step
 of its first success, null for a failure, and the closest the hand came to the object before it,
-in cm). The variants are
+in cm; measured again when the seeds, the variants or the bytes of policies.py, calibration.json or
+mw.py differ from the cached one's, so a variant changed under its name is not scored against its
+old truth). The variants are
 split over --jobs `bwm evaluate` processes that share the servers (a variant's episodes stay in
 one process, in order, so that the policy server hands out seeds in the dataset's order).
 
@@ -56,6 +58,11 @@ import time
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+# What the simulator's outcome of a policy variant follows beside its seeds: the variants and
+# their perception (policies.py, calibration.json) and the simulator's wrapper (mw.py). The truth
+# and the judge's verdicts on the simulator's frames are cached under their bytes, so a variant
+# changed under the same name is measured again.
+TRUTH_SOURCES = [os.path.join(HERE, name) for name in ("policies.py", "calibration.json", "mw.py")]
 # The judge's probability at or above which an episode counts as a success (evaluate.toml's
 # judge.threshold, and the same rule on the simulator's frames).
 THRESHOLD = 0.5
@@ -196,6 +203,16 @@ def cached(path: str, name: str, key: dict, measure):
         json.dump({"key": key, name: value, "seconds": time.time() - t0}, f)
     os.replace(path + ".tmp", path)
     return value
+
+
+def truth_key(episodes: dict, horizon: int, chunk: int, resolution: int, variants: list[str]) -> dict:
+    """What a study's cached truth (and, without "outcome", its judged simulator frames) was
+    measured for: the episodes' seeds, the loop's settings, the variants and the bytes of
+    TRUTH_SOURCES."""
+    return {"episodes": {t: [s for _, s in e] for t, e in episodes.items()}, "horizon": horizon, "chunk": chunk,
+            "resolution": resolution, "variants": variants,
+            "sources": {os.path.basename(p): file_digest(p) for p in TRUTH_SOURCES},
+            "outcome": "first success step, closest approach (cm)"}
 
 
 def file_digest(path: str) -> str:
@@ -689,8 +706,7 @@ def main(argv=None) -> None:
     os.makedirs(a.out, exist_ok=True)
     episodes = episodes_by_task(a.data, tasks, a.episodes)
 
-    key = {"episodes": {t: [s for _, s in e] for t, e in episodes.items()}, "horizon": a.horizon, "chunk": a.chunk,
-           "resolution": a.resolution, "variants": variants, "outcome": "first success step, closest approach (cm)"}
+    key = truth_key(episodes, a.horizon, a.chunk, a.resolution, variants)
     truth_path = os.path.join(a.out, "truth.json")
     judged_path = os.path.join(a.out, "judged.json")
     # What the judge's verdicts depend on: the episodes, not the form of the truth.
@@ -710,7 +726,7 @@ def main(argv=None) -> None:
             found = json.load(f)
         # The judge's file is not needed again: its verdicts are kept with the episodes they judged.
         if {k: v for k, v in found["key"].items() if k not in ("judge", "outcome")} != episodes_key:
-            raise SystemExit(f"study: {judged_path} holds other episodes than --data/--episodes/--variants ask for")
+            raise SystemExit(f"study: {judged_path} was measured for other episodes or variants than --data/--episodes/--variants ask for, or under other policy code ({', '.join(os.path.basename(p) for p in TRUTH_SOURCES)})")
         estimates = read_estimates(evals, cut)
         missing = [f"{v}/{t}" for t in tasks for v in variants if v not in estimates.get(t, {})]
         finished = sum(len(rs) for per in estimates.values() for rs in per.values())

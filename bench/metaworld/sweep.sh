@@ -48,7 +48,7 @@ for setting in "${settings[@]}"; do
   fi
   echo "sweep: $solver, $steps steps${fp8:+, FP8 ($fp8 scaling)} ($(date +%H:%M:%S))"
   # The simulator's outcomes and the judge's verdicts on its frames do not depend on the sampler:
-  # the baseline's are reused (study.py keys them by seeds, variants and judge, and measures
+  # the baseline's are reused (study.py keys them by seeds, variants, the policies' code and judge, and measures
   # afresh where the key differs).
   mkdir -p "$dir/study"
   for f in truth.json judged.json; do

@@ -171,8 +171,8 @@ def test_a_cut_study_is_scored_over_the_episodes_it_finished():
         with open(os.path.join(data, "meta", "episodes.jsonl"), "w") as f:
             for i in range(6):
                 f.write(json.dumps({"episode_index": i, "tasks": [tasks[i % 2]], "seed": 100000 + i}) + "\n")
-        key = {"episodes": {"drawer-open-v3": [100000, 100002, 100004], "button-press-topdown-v3": [100001, 100003, 100005]},
-               "horizon": 48, "chunk": 24, "resolution": 64, "variants": variants}
+        episodes = {"drawer-open-v3": [(0, 100000), (2, 100002), (4, 100004)], "button-press-topdown-v3": [(1, 100001), (3, 100003), (5, 100005)]}
+        key = {k: v for k, v in study.truth_key(episodes, 48, 24, 64, variants).items() if k != "outcome"}
         # The expert succeeds in all three episodes of each task, `wrong` in none.
         truth = {t: {"expert": [[40, 0.5]] * 3, "wrong": [[None, 6.0]] * 3} for t in tasks}
         judged = {t: {"expert": [0.9] * 3, "wrong": [0.1] * 3} for t in tasks}
@@ -232,6 +232,34 @@ def test_a_cut_study_is_scored_over_the_episodes_it_finished():
             assert "finished no world-model episode" in str(e), e
         else:
             raise AssertionError("scored a cut study without episodes")
+
+
+def test_the_truth_is_measured_again_when_the_policies_code_changes():
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d:
+        sources = []
+        for name in ("policies.py", "calibration.json", "mw.py"):
+            sources.append(os.path.join(d, name))
+            with open(sources[-1], "w") as f:
+                f.write(name)
+        kept, study.TRUTH_SOURCES = study.TRUTH_SOURCES, sources
+        try:
+            episodes = {"drawer-open-v3": [(0, 100000), (1, 100001)]}
+            key = lambda: study.truth_key(episodes, 120, 24, 128, ["expert", "blind"])
+            path, measured = os.path.join(d, "truth.json"), []
+            measure = lambda: measured.append(1) or {"expert": len(measured)}
+            assert study.cached(path, "truth", key(), measure) == {"expert": 1}
+            assert study.cached(path, "truth", key(), measure) == {"expert": 1} and len(measured) == 1
+            # A variant changed under the same name (its code, or the calibration it perceives by).
+            for changed in (sources[0], sources[1]):
+                with open(changed, "a") as f:
+                    f.write(" changed")
+                before = len(measured)
+                assert study.cached(path, "truth", key(), measure) == {"expert": before + 1}
+            assert key()["episodes"] == {"drawer-open-v3": [100000, 100001]}
+        finally:
+            study.TRUTH_SOURCES = kept
 
 
 if __name__ == "__main__":

@@ -150,12 +150,19 @@ for s in "$@"; do
 done
 "#;
 
+/// A stub of bench/metaworld/other-seeds.sh: records its call with the run and study folder.
+const STUB_OTHER_SEEDS: &str = r#"
+echo "other-seeds $* VAL_SEED_START=$VAL_SEED_START RUN=$RUN study=${STUDY_DIR:-}" >> "$CALLS"
+"#;
+
 /// metaworld-stages.sh copied into `dir` beside the stub recipe, run there for runs/x with `vars`.
 fn stages(dir: &Path, vars: &[(&str, &str)]) -> (Output, Vec<String>) {
     fs::create_dir_all(dir.join("scripts/gpu")).unwrap();
     fs::create_dir_all(dir.join("bench/metaworld")).unwrap();
     fs::copy(Path::new(ROOT).join("scripts/gpu/metaworld-stages.sh"), dir.join("scripts/gpu/metaworld-stages.sh")).unwrap();
     fs::write(dir.join("bench/metaworld/recipe.sh"), STUB_STAGES).unwrap();
+    fs::write(dir.join("bench/metaworld/other-seeds.sh"), STUB_OTHER_SEEDS).unwrap();
+    fs::copy(Path::new(ROOT).join("bench/metaworld/data-settings.sh"), dir.join("bench/metaworld/data-settings.sh")).unwrap();
     let calls = dir.join("calls.txt");
     let _ = fs::remove_file(&calls);
     let out = Command::new("bash")
@@ -168,6 +175,7 @@ fn stages(dir: &Path, vars: &[(&str, &str)]) -> (Output, Vec<String>) {
         .env_remove("OWN")
         .env_remove("COMPARE_EMA")
         .env_remove("EMA_DECAY")
+        .env_remove("OTHER_SEEDS")
         .env("RUN", "runs/x")
         .env("OUT", dir.join("out"))
         .env("CALLS", &calls)
@@ -261,6 +269,24 @@ fn the_last_steps_weights_are_studied_beside_their_average_when_asked() {
     let (out, calls) = stages(d, &[("COMPARE_EMA", "1")]);
     assert_eq!(out.status.code(), Some(2), "{calls:?}");
     assert!(String::from_utf8_lossy(&out.stderr).contains("set EMA_DECAY"));
+    assert!(calls.is_empty(), "{calls:?}");
+}
+
+#[test]
+fn other_held_out_seeds_are_studied_after_the_study_when_asked() {
+    let dir = common::temp_dir("gpu-other-seeds");
+    let d = dir.path();
+    let (out, calls) = stages(d, &[("OTHER_SEEDS", "200000"), ("STUDY_DIR", "runs/x/mine")]);
+    let log = format!("{}\n{}\n{calls:#?}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "{log}");
+    let study = calls.iter().position(|c| c.starts_with("study ")).unwrap_or_else(|| panic!("{log}"));
+    let other = calls.iter().position(|c| c == "other-seeds runs/x data truth study VAL_SEED_START=200000 RUN=runs/x/seeds-200000 study=").unwrap_or_else(|| panic!("{log}"));
+    assert!(study < other, "{log}");
+    fs::remove_dir_all(d.join("runs")).unwrap();
+    // Seeds among the training ones are refused before any stage.
+    let (out, calls) = stages(d, &[("OTHER_SEEDS", "5")]);
+    assert_eq!(out.status.code(), Some(2), "{calls:?}");
+    assert!(String::from_utf8_lossy(&out.stderr).contains("VAL_SEED_START=5 must be a whole number of at least TRAIN_EPISODES"));
     assert!(calls.is_empty(), "{calls:?}");
 }
 

@@ -24,6 +24,9 @@ fi
 if [ "${COMPARE_EMA:-0}" = 1 ] && [ -z "${EMA_DECAY:-}" ]; then
   echo "metaworld: COMPARE_EMA=1 compares the average of weights with the last step's; set EMA_DECAY" >&2; exit 2
 fi
+if [ -n "${OTHER_SEEDS:-}" ]; then
+  (VAL_SEED_START=$OTHER_SEEDS; source bench/metaworld/data-settings.sh) || { echo "metaworld: OTHER_SEEDS=$OTHER_SEEDS (above)" >&2; exit 2; }
+fi
 judge_log() { if [ "$1" = real ]; then echo "$OUT/judge.log"; else echo "$OUT/judge-$1.log"; fi; }
 # The study each judge is for (its judge stage leaves the judge on the simulator's frames there).
 study_dir() { if [ "$1" = "$OWN_JUDGE" ]; then echo "$OWN_STUDY"; else echo "$R/study-judge-$1"; fi; }
@@ -101,6 +104,13 @@ else
     fi
     if [ $status = 0 ] && [ "${SKIP_PROBE:-0}" != 1 ]; then
       recipe probe 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
+    fi
+    if [ $status = 0 ] && [ -n "${OTHER_SEEDS:-}" ]; then
+      # The same world model on held-out seeds from OTHER_SEEDS, in a folder inside the run's (so
+      # that its study comes back in run.tar.gz).
+      STUDY_DIR= FIDELITY_DIR= VAL_SEED_START=$OTHER_SEEDS RUN=$R/seeds-$OTHER_SEEDS \
+        bash bench/metaworld/other-seeds.sh "$R" data truth study 2>&1 | tee -a "$OUT/recipe.log"
+      [ "${PIPESTATUS[0]}" = 0 ] || status=1
     fi
     [ -z "$fidelity" ] || wait $fidelity || { echo "metaworld: fidelity failed ($OUT/fidelity.log)"; status=1; }
     wait $ceiling || { echo "metaworld: ceiling failed ($OUT/ceiling*.log)"; status=1; }

@@ -23,6 +23,8 @@
 # action-guidance value ($RUN/study-g2, ...; the model trained with objective.action_dropout > 0);
 # COMPARE_EMA=1 (with EMA_DECAY) once more with the newest checkpoint's last step's weights instead
 # of their average ($RUN/study-last);
+# OTHER_SEEDS=S once more on held-out seeds from S (bench/metaworld/other-seeds.sh, without
+# training again: $RUN/seeds-S/);
 # COMPARE_JUDGE=real once more with the judge that learned from the simulator's frames alone
 # ($RUN/study-judge-real, its ceiling in $RUN/ceiling/judge.json; JUDGE_FRAMES=real makes it the
 # study's own, and COMPARE_JUDGE=reconstructed then adds the recipe's default judge).

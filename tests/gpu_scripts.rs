@@ -188,6 +188,22 @@ fn stages(dir: &Path, vars: &[(&str, &str)]) -> (Output, Vec<String>) {
     (out, calls)
 }
 
+/// The stages with `vars`, which must succeed: their calls, and a log of the run for messages.
+fn stages_ran(dir: &Path, vars: &[(&str, &str)]) -> (Vec<String>, String) {
+    let (out, calls) = stages(dir, vars);
+    let log = format!("{}\n{}\n{calls:#?}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "{log}");
+    (calls, log)
+}
+
+/// The stages with `vars` refused (exit 2, saying `said`) before any stage ran.
+fn refused_before_any_stage(dir: &Path, vars: &[(&str, &str)], said: &str) {
+    let (out, calls) = stages(dir, vars);
+    assert_eq!(out.status.code(), Some(2), "{calls:?}");
+    assert!(String::from_utf8_lossy(&out.stderr).contains(said), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(calls.is_empty(), "{calls:?}");
+}
+
 #[test]
 fn each_judge_has_its_own_study_folder() {
     let dir = common::temp_dir("gpu-stages");
@@ -199,9 +215,7 @@ fn each_judge_has_its_own_study_folder() {
         ("real", "reconstructed", &[("JUDGE_FRAMES", "real"), ("COMPARE_JUDGE", "reconstructed")][..]),
         ("reconstructed", "real", &[("COMPARE_JUDGE", "real")][..]),
     ] {
-        let (out, calls) = stages(d, vars);
-        let log = format!("{}\n{}\n{calls:#?}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
-        assert!(out.status.success(), "{log}");
+        let (calls, log) = stages_ran(d, vars);
         let second = format!("runs/x/study-judge-{other}");
         for (judge, folder) in [(own, "runs/x/study"), (other, second.as_str())] {
             // The judge stage leaves the judge on the simulator's frames in the folder of the study it is for.
@@ -219,10 +233,7 @@ fn each_judge_has_its_own_study_folder() {
         assert!(vae < reconstructed, "{log}");
         fs::remove_dir_all(d.join("runs")).unwrap();
     }
-    let (out, calls) = stages(d, &[("COMPARE_JUDGE", "reconstructed")]);
-    assert_eq!(out.status.code(), Some(2));
-    assert!(String::from_utf8_lossy(&out.stderr).contains("is the study's own judge"));
-    assert!(calls.is_empty(), "{calls:?}");
+    refused_before_any_stage(d, &[("COMPARE_JUDGE", "reconstructed")], "is the study's own judge");
 }
 
 /// Runs the stages without and with `asked` set to 1 (beside `base`): the optional `stage` runs
@@ -232,9 +243,7 @@ fn runs_after_when_asked(name: &str, base: &[(&str, &str)], asked: &str, stage: 
     let d = dir.path();
     let with: Vec<(&str, &str)> = base.iter().copied().chain([(asked, "1")]).collect();
     for (vars, wanted) in [(base, false), (&with[..], true)] {
-        let (out, calls) = stages(d, vars);
-        let log = format!("{}\n{}\n{calls:#?}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
-        assert!(out.status.success(), "{log}");
+        let (calls, log) = stages_ran(d, vars);
         let before = calls.iter().position(|c| c.starts_with(&format!("{after} "))).unwrap_or_else(|| panic!("no {after} stage: {log}"));
         match calls.iter().position(|c| c.starts_with(&format!("{stage} "))) {
             Some(at) => assert!(wanted && at > before, "{log}"),
@@ -258,36 +267,26 @@ fn the_own_stage_follows_the_teacher_when_asked() {
 fn the_last_steps_weights_are_studied_beside_their_average_when_asked() {
     let dir = common::temp_dir("gpu-ema");
     let d = dir.path();
-    let (out, calls) = stages(d, &[("EMA_DECAY", "0.999"), ("COMPARE_EMA", "1")]);
-    let log = format!("{}\n{}\n{calls:#?}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
-    assert!(out.status.success(), "{log}");
+    let (calls, log) = stages_ran(d, &[("EMA_DECAY", "0.999"), ("COMPARE_EMA", "1")]);
     let studies: Vec<&String> = calls.iter().filter(|c| c.starts_with("study ")).collect();
     assert_eq!(studies, ["study judge=reconstructed study=runs/x/study ema=0.999", "study judge=reconstructed study=runs/x/study-last ema="], "{log}");
     assert!(d.join("runs/x/study-last/study.json").is_file(), "{log}");
     fs::remove_dir_all(d.join("runs")).unwrap();
     // Without an average there is nothing to compare: refused before any stage.
-    let (out, calls) = stages(d, &[("COMPARE_EMA", "1")]);
-    assert_eq!(out.status.code(), Some(2), "{calls:?}");
-    assert!(String::from_utf8_lossy(&out.stderr).contains("set EMA_DECAY"));
-    assert!(calls.is_empty(), "{calls:?}");
+    refused_before_any_stage(d, &[("COMPARE_EMA", "1")], "set EMA_DECAY");
 }
 
 #[test]
 fn other_held_out_seeds_are_studied_after_the_study_when_asked() {
     let dir = common::temp_dir("gpu-other-seeds");
     let d = dir.path();
-    let (out, calls) = stages(d, &[("OTHER_SEEDS", "200000"), ("STUDY_DIR", "runs/x/mine")]);
-    let log = format!("{}\n{}\n{calls:#?}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
-    assert!(out.status.success(), "{log}");
+    let (calls, log) = stages_ran(d, &[("OTHER_SEEDS", "200000"), ("STUDY_DIR", "runs/x/mine")]);
     let study = calls.iter().position(|c| c.starts_with("study ")).unwrap_or_else(|| panic!("{log}"));
     let other = calls.iter().position(|c| c == "other-seeds runs/x data truth study VAL_SEED_START=200000 RUN=runs/x/seeds-200000 study=").unwrap_or_else(|| panic!("{log}"));
     assert!(study < other, "{log}");
     fs::remove_dir_all(d.join("runs")).unwrap();
     // Seeds among the training ones are refused before any stage.
-    let (out, calls) = stages(d, &[("OTHER_SEEDS", "5")]);
-    assert_eq!(out.status.code(), Some(2), "{calls:?}");
-    assert!(String::from_utf8_lossy(&out.stderr).contains("VAL_SEED_START=5 must be a whole number of at least TRAIN_EPISODES"));
-    assert!(calls.is_empty(), "{calls:?}");
+    refused_before_any_stage(d, &[("OTHER_SEEDS", "5")], "VAL_SEED_START=5 must be a whole number of at least TRAIN_EPISODES");
 }
 
 /// Removes detached.sh's folder of a name when the test ends, also on failure.

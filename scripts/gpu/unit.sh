@@ -3,20 +3,21 @@
 # CUDA graphs (cuda-graph/: a replayed forward and backward pass against the eager one, a capture
 # that fails), and the VAE's and the DiT's training with the step replayed from a graph against
 # the eager training (trainer/: `vae_train` and tests/training.rs), and rollouts whose sampler
-# replays a recorded forward pass against eager ones (inference/: `graphed`). From the repo root of a lent
+# replays a recorded forward pass against eager ones (inference/: `graphed`), and the fused AdamW kernels
+# against the tensor path and the accumulator (trainer/: `optim`). From the repo root of a lent
 # machine, carry [".carry-tests"] as scripts/gpu/carry.sh prepares it (alone: beside the wheels it
 # passes the device tool's 64 MiB):
 #   bash scripts/gpu/unit.sh [GROUP ...]
 # GROUP: `vae` (cuda-graph's tests and the VAE's graphed training: what the recipe's VAE_GRAPH
-# relies on), `dit` (the DiT's graphed training, `train.cuda_graph`) or `rollout` (the graphed
-# sampler, `--cuda-graph`); default all three. (The recipe
+# relies on), `dit` (the DiT's graphed training, `train.cuda_graph`), `rollout` (the graphed
+# sampler, `--cuda-graph`) or `optim` (the fused AdamW kernels, `optim.fused`); default all four. (The recipe
 # needs no fallback of its own: with VAE_GRAPH=auto it trains the VAE eagerly should the graph fail.)
 # Exits non-zero when a test failed; the output is also in $OUT/unit.log.
 set -uo pipefail
 source "$(dirname "$0")/common.sh"
-groups=("$@"); [ ${#groups[@]} -gt 0 ] || groups=(vae dit rollout)
+groups=("$@"); [ ${#groups[@]} -gt 0 ] || groups=(vae dit rollout optim)
 for g in "${groups[@]}"; do
-  case "$g" in vae|dit|rollout) ;; *) echo "unit: unknown group '$g' (groups: vae dit rollout)" >&2; exit 2 ;; esac
+  case "$g" in vae|dit|rollout|optim) ;; *) echo "unit: unknown group '$g' (groups: vae dit rollout optim)" >&2; exit 2 ;; esac
 done
 mkdir -p dist
 status=0
@@ -33,6 +34,8 @@ status=0
       dist/test-trainer the_cuda_graph --test-threads 1 || status=1
     elif [ "$g" = dit ]; then
       dist/test-training cuda_graph --test-threads 1 || status=1
+    elif [ "$g" = optim ]; then
+      dist/test-trainer --ignored optim::tests::fused_update optim::tests::the_update_reads --test-threads 1 || status=1
     else
       dist/test-inference graphed --test-threads 1 || status=1
     fi

@@ -1,8 +1,11 @@
 //! AdamW's update of a slice of the flat fp32 state in one CUDA kernel, compiled with NVRTC at
 //! first use: it reads the gradient, the moments and the master weights once and writes them
 //! once, where the tensor path makes about a dozen element-wise passes over 20 GB buffers per 5B
-//! step (tch 0.24 exposes no `_fused_adamw_`). It runs on libtorch's stream (the legacy default
-//! stream, see `dist::nccl`), in order with the tensor operations around it.
+//! step (tch 0.24 exposes no `_fused_adamw_`). The gradient is either the flat fp32 accumulator
+//! or, when a step has one micro-step on one rank, the model's own bf16 gradient tensors, read
+//! where autograd left them ([`GradTable`]): that skips the accumulator's copy, its norm pass in
+//! fp32 and its zeroing. The kernels run on libtorch's stream (the legacy default stream, see
+//! `dist::nccl`), in order with the tensor operations around them.
 
 use std::sync::{Arc, Mutex, OnceLock};
 
@@ -21,26 +24,74 @@ __device__ unsigned short to_bf16(float x) {
   return (unsigned short)((u + 0x7fffu + ((u >> 16) & 1u)) >> 16);
 }
 
-extern "C" __global__ void adamw_update(const float* g, float* m, float* v, float* w, float* ema,
-    float* out_f32, unsigned short* out_bf16, long long n, float grad_scale, float one_minus_b1,
-    float b2, float one_minus_b2, float decay, float eps, float sqrt_bc2, float lr_over_bc1,
-    float ema_weight) {
+__device__ float from_bf16(unsigned short h) { return __uint_as_float(((unsigned int)h) << 16); }
+
+#define HYPER float grad_scale, float one_minus_b1, float b2, float one_minus_b2, float decay, \
+    float eps, float sqrt_bc2, float lr_over_bc1, float ema_weight
+#define STATE float* m, float* v, float* w, float* ema, float* out_f32, unsigned short* out_bf16
+
+// Element i of the state, from its (unscaled) gradient g.
+__device__ __forceinline__ void adamw_one(long long i, float g, STATE, HYPER) {
+  float gi = g * grad_scale;
+  float mi = m[i] + one_minus_b1 * (gi - m[i]);
+  float vi = v[i] * b2 + gi * (gi * one_minus_b2);
+  float denom = sqrtf(vi) / sqrt_bc2 + eps;
+  float wi = w[i] * decay - mi / denom * lr_over_bc1;
+  m[i] = mi;
+  v[i] = vi;
+  w[i] = wi;
+  if (ema) ema[i] = ema[i] + ema_weight * (wi - ema[i]);
+  if (out_f32) out_f32[i] = wi;
+  if (out_bf16) out_bf16[i] = to_bf16(wi);
+}
+
+extern "C" __global__ void adamw_update(const float* g, STATE, long long n, HYPER) {
   for (long long i = blockIdx.x * (long long)blockDim.x + threadIdx.x; i < n;
        i += (long long)gridDim.x * blockDim.x) {
-    float gi = g[i] * grad_scale;
-    float mi = m[i] + one_minus_b1 * (gi - m[i]);
-    float vi = v[i] * b2 + gi * (gi * one_minus_b2);
-    float denom = sqrtf(vi) / sqrt_bc2 + eps;
-    float wi = w[i] * decay - mi / denom * lr_over_bc1;
-    m[i] = mi;
-    v[i] = vi;
-    w[i] = wi;
-    if (ema) ema[i] = ema[i] + ema_weight * (wi - ema[i]);
-    if (out_f32) out_f32[i] = wi;
-    if (out_bf16) out_bf16[i] = to_bf16(wi);
+    adamw_one(i, g[i], m, v, w, ema, out_f32, out_bf16, grad_scale, one_minus_b1, b2, one_minus_b2,
+              decay, eps, sqrt_bc2, lr_over_bc1, ema_weight);
   }
 }
+
+// One block per item (tensor, first element, count) of the gradient table: grads[tensor] is a
+// contiguous bf16 gradient, offsets[tensor] the flat state's index of its first element.
+extern "C" __global__ void adamw_update_bf16_tensors(const unsigned long long* grads,
+    const long long* items, const long long* offsets, STATE, HYPER) {
+  const long long* item = items + 3 * (long long)blockIdx.x;
+  const unsigned short* g = (const unsigned short*)grads[item[0]] + item[1];
+  long long first = offsets[item[0]] + item[1];
+  for (long long j = threadIdx.x; j < item[2]; j += blockDim.x) {
+    adamw_one(first + j, from_bf16(g[j]), m, v, w, ema, out_f32, out_bf16, grad_scale, one_minus_b1,
+              b2, one_minus_b2, decay, eps, sqrt_bc2, lr_over_bc1, ema_weight);
+  }
+}
+
+// partial[item] = the sum of the item's squared gradients, in f64, summed in a fixed order (the
+// same gradients give the same sum on every run).
+extern "C" __global__ void sum_squares_bf16_tensors(const unsigned long long* grads,
+    const long long* items, double* partial) {
+  __shared__ double part[256];
+  const long long* item = items + 3 * (long long)blockIdx.x;
+  const unsigned short* g = (const unsigned short*)grads[item[0]] + item[1];
+  double acc = 0.0;
+  for (long long j = threadIdx.x; j < item[2]; j += blockDim.x) {
+    double x = from_bf16(g[j]);
+    acc += x * x;
+  }
+  part[threadIdx.x] = acc;
+  __syncthreads();
+  for (int k = 128; k > 0; k >>= 1) {
+    if (threadIdx.x < k) part[threadIdx.x] += part[threadIdx.x + k];
+    __syncthreads();
+  }
+  if (threadIdx.x == 0) partial[blockIdx.x] = part[0];
+}
 "#;
+
+/// Threads per block of every kernel (`sum_squares_bf16_tensors` reduces over exactly this many).
+const THREADS: u32 = 256;
+/// Elements per item of a [`GradTable`]: 256 per thread.
+const ITEM: i64 = 1 << 16;
 
 /// The hyper-parameters of one update.
 #[derive(Clone, Copy, Debug)]
@@ -60,11 +111,67 @@ pub struct Update {
 
 pub struct FusedAdamW {
     ctx: Arc<CudaContext>,
-    function: CudaFunction,
+    update: CudaFunction,
+    update_tensors: CudaFunction,
+    sum_squares: CudaFunction,
+}
+
+/// Where each trained tensor's gradient lies, for the kernels that read the model's bf16
+/// gradients in place: the tensors cut into items of at most `ITEM` elements (one CUDA block
+/// each), built once per layout; the gradients' addresses are given per step.
+pub struct GradTable {
+    /// (tensor, first element, count) triples, on the device.
+    items: Tensor,
+    /// Each tensor's first element in the flat state, on the device.
+    offsets: Tensor,
+    numels: Vec<i64>,
+    count: u32,
+    /// One past the last element of the flat state the table reaches.
+    end: i64,
+}
+
+impl GradTable {
+    /// The table of tensors of `numels` elements starting at `offsets` in the flat state.
+    pub fn new(offsets: &[i64], numels: &[i64], device: Device) -> Result<Self> {
+        ensure!(offsets.len() == numels.len(), "gradient table: {} offsets for {} tensors", offsets.len(), numels.len());
+        let mut items = Vec::new();
+        for (k, &n) in numels.iter().enumerate() {
+            for start in (0..n).step_by(ITEM as usize) {
+                items.extend([k as i64, start, ITEM.min(n - start)]);
+            }
+        }
+        let count = u32::try_from(items.len() / 3).context("gradient table: too many items for one launch")?;
+        Ok(Self {
+            items: Tensor::from_slice(&items).to_device(device),
+            offsets: Tensor::from_slice(offsets).to_device(device),
+            numels: numels.to_vec(),
+            count,
+            end: offsets.iter().zip(numels).map(|(o, n)| o + n).max().unwrap_or(0),
+        })
+    }
+
+    /// The addresses of `grads` (one per tensor of the table: contiguous bf16 of its length), on
+    /// the device.
+    fn addresses(&self, grads: &[Tensor]) -> Result<Tensor> {
+        ensure!(grads.len() == self.numels.len(), "gradient table: {} gradients for {} tensors", grads.len(), self.numels.len());
+        let device = self.items.device();
+        let mut addresses = Vec::with_capacity(grads.len());
+        for (k, (g, &n)) in grads.iter().zip(&self.numels).enumerate() {
+            ensure!(
+                g.kind() == Kind::BFloat16 && g.is_contiguous() && g.numel() as i64 == n && g.device() == device,
+                "gradient table: tensor {k}'s gradient must be contiguous bf16 of {n} elements on {device:?}, got {:?} {:?} on {:?}",
+                g.kind(),
+                g.size(),
+                g.device()
+            );
+            addresses.push(g.data_ptr() as i64);
+        }
+        Ok(Tensor::from_slice(&addresses).to_device(device))
+    }
 }
 
 impl FusedAdamW {
-    /// The kernel for `device`, compiled once per device; an error says why it is unavailable
+    /// The kernels for `device`, compiled once per device; an error says why they are unavailable
     /// (no NVRTC library on the library path, a CPU device, ...).
     pub fn for_device(device: Device) -> Result<Arc<FusedAdamW>> {
         type Kernels = Mutex<Vec<(usize, Arc<FusedAdamW>)>>;
@@ -80,8 +187,13 @@ impl FusedAdamW {
         let ptx = cudarc::nvrtc::compile_ptx(SOURCE).context("compiling the fused AdamW kernel with NVRTC")?;
         let ctx = CudaContext::new(index).context("binding the CUDA context")?;
         let module = ctx.load_module(ptx).context("loading the fused AdamW kernel")?;
-        let function = module.load_function("adamw_update").context("the fused AdamW kernel")?;
-        let k = Arc::new(FusedAdamW { ctx, function });
+        let function = |name: &str| module.load_function(name).with_context(|| format!("the fused AdamW kernel {name}"));
+        let k = Arc::new(FusedAdamW {
+            update: function("adamw_update")?,
+            update_tensors: function("adamw_update_bf16_tensors")?,
+            sum_squares: function("sum_squares_bf16_tensors")?,
+            ctx,
+        });
         kernels.push((index, k.clone()));
         Ok(k)
     }
@@ -91,38 +203,130 @@ impl FusedAdamW {
     /// the updated weights `w` in its dtype, saving a pass over `w` to copy them.
     pub fn update(&self, g: &Tensor, m: &Tensor, v: &Tensor, w: &Tensor, ema: Option<&Tensor>, publish: Option<&Tensor>, u: &Update) -> Result<()> {
         let n = g.numel();
-        for t in [g, m, v, w].into_iter().chain(ema) {
-            ensure!(t.kind() == Kind::Float && t.is_contiguous() && t.numel() == n && t.device() == g.device(), "fused AdamW: tensors must be contiguous f32 of one length and device");
-        }
-        if let Some(t) = publish {
-            ensure!(
-                matches!(t.kind(), Kind::Float | Kind::BFloat16) && t.is_contiguous() && t.numel() == n && t.device() == g.device(),
-                "fused AdamW: the published weights must be contiguous f32 or bf16 of the state's length and device"
-            );
-        }
+        ensure!(g.kind() == Kind::Float && g.is_contiguous() && g.numel() == n, "fused AdamW: the gradient must be contiguous f32");
+        let state = State::new(m, v, w, ema, publish, n, g.device())?;
         if n == 0 {
             return Ok(());
         }
         self.ctx.bind_to_thread()?;
-        let ptr = |t: &Tensor| t.data_ptr() as u64;
-        let (pg, pm, pv, pw, pe) = (ptr(g), ptr(m), ptr(v), ptr(w), ema.map_or(0, ptr));
-        let published = |kind: Kind| publish.filter(|t| t.kind() == kind).map_or(0, ptr);
-        let (out_f32, out_bf16) = (published(Kind::Float), published(Kind::BFloat16));
-        let n = n as i64;
-        let f = |x: f64| x as f32;
-        let decay = if u.weight_decay > 0.0 { 1.0 - u.lr * u.weight_decay } else { 1.0 };
-        let (scale, one_minus_b1, b2, one_minus_b2, decay, eps) = (f(u.grad_scale), f(1.0 - u.b1), f(u.b2), f(1.0 - u.b2), f(decay), f(u.eps));
-        let (sqrt_bc2, lr_over_bc1, ema_weight) = (f(u.bc2.sqrt()), f(u.lr / u.bc1), f(1.0 - u.ema_decay.unwrap_or(1.0)));
-        let blocks = (n as u64).div_ceil(256).min(65_535 * 8) as u32;
-        let cfg = LaunchConfig { grid_dim: (blocks, 1, 1), block_dim: (256, 1, 1), shared_mem_bytes: 0 };
+        let (pg, n) = (g.data_ptr() as u64, n as i64);
+        let blocks = (n as u64).div_ceil(THREADS as u64).min(65_535 * 8) as u32;
         let stream = self.ctx.default_stream();
-        let mut launch = stream.launch_builder(&self.function);
-        launch.arg(&pg).arg(&pm).arg(&pv).arg(&pw).arg(&pe).arg(&out_f32).arg(&out_bf16).arg(&n);
-        launch.arg(&scale).arg(&one_minus_b1).arg(&b2).arg(&one_minus_b2).arg(&decay).arg(&eps).arg(&sqrt_bc2).arg(&lr_over_bc1).arg(&ema_weight);
+        let mut launch = stream.launch_builder(&self.update);
+        launch.arg(&pg);
+        state.args(&mut launch);
+        launch.arg(&n);
+        let hyper = Hyper::new(u);
+        hyper.args(&mut launch);
         // SAFETY: the pointers are live contiguous CUDA buffers of n elements of their types (checked above)
         // that outlive the kernel (tch's caching allocator reuses memory in stream order, and the
         // kernel is on libtorch's stream); the arguments match the kernel's signature.
-        unsafe { launch.launch(cfg) }.context("launching the fused AdamW kernel")?;
+        unsafe { launch.launch(Self::config(blocks)) }.context("launching the fused AdamW kernel")?;
         Ok(())
+    }
+
+    /// The sum of the squares of `grads` (the table's tensors' bf16 gradients) as a one-element
+    /// f64 tensor on the device, the same on every run for the same gradients.
+    pub fn sum_squares(&self, table: &GradTable, grads: &[Tensor]) -> Result<Tensor> {
+        let addresses = table.addresses(grads)?;
+        let partial = Tensor::zeros([table.count as i64], (Kind::Double, addresses.device()));
+        if table.count > 0 {
+            self.ctx.bind_to_thread()?;
+            let (pa, pi, pp) = (addresses.data_ptr() as u64, table.items.data_ptr() as u64, partial.data_ptr() as u64);
+            let stream = self.ctx.default_stream();
+        let mut launch = stream.launch_builder(&self.sum_squares);
+            launch.arg(&pa).arg(&pi).arg(&pp);
+            // SAFETY: the address table holds live contiguous bf16 gradients of the lengths the items
+            // cover (checked by `addresses`); the tables and `partial` (one f64 per item) are live
+            // CUDA tensors that outlive the kernel on libtorch's stream.
+            unsafe { launch.launch(Self::config(table.count)) }.context("launching the gradient norm kernel")?;
+        }
+        Ok(partial.sum(Kind::Double).reshape([1]))
+    }
+
+    /// `update` with the gradient read from the table's bf16 gradient tensors `grads`; `m`, `v`,
+    /// `w`, `ema` and `publish` cover the flat state the table's offsets index.
+    #[allow(clippy::too_many_arguments)]
+    pub fn update_from_tensors(&self, table: &GradTable, grads: &[Tensor], m: &Tensor, v: &Tensor, w: &Tensor, ema: Option<&Tensor>, publish: Option<&Tensor>, u: &Update) -> Result<()> {
+        let addresses = table.addresses(grads)?;
+        let state = State::new(m, v, w, ema, publish, m.numel(), addresses.device())?;
+        ensure!(table.end as usize <= m.numel(), "fused AdamW: the gradient table reaches element {} of a state of {}", table.end, m.numel());
+        if table.count == 0 {
+            return Ok(());
+        }
+        self.ctx.bind_to_thread()?;
+        let (pa, pi, po) = (addresses.data_ptr() as u64, table.items.data_ptr() as u64, table.offsets.data_ptr() as u64);
+        let stream = self.ctx.default_stream();
+        let mut launch = stream.launch_builder(&self.update_tensors);
+        launch.arg(&pa).arg(&pi).arg(&po);
+        state.args(&mut launch);
+        let hyper = Hyper::new(u);
+        hyper.args(&mut launch);
+        // SAFETY: as `update`, with the gradients behind the address table checked by `addresses`
+        // and every item inside the state (checked above).
+        unsafe { launch.launch(Self::config(table.count)) }.context("launching the fused AdamW kernel")?;
+        Ok(())
+    }
+
+    fn config(blocks: u32) -> LaunchConfig {
+        LaunchConfig { grid_dim: (blocks, 1, 1), block_dim: (THREADS, 1, 1), shared_mem_bytes: 0 }
+    }
+}
+
+/// The state pointers of a launch (the kernels' STATE arguments).
+struct State {
+    m: u64,
+    v: u64,
+    w: u64,
+    ema: u64,
+    out_f32: u64,
+    out_bf16: u64,
+}
+
+impl State {
+    fn new(m: &Tensor, v: &Tensor, w: &Tensor, ema: Option<&Tensor>, publish: Option<&Tensor>, n: usize, device: Device) -> Result<Self> {
+        for t in [m, v, w].into_iter().chain(ema) {
+            ensure!(t.kind() == Kind::Float && t.is_contiguous() && t.numel() == n && t.device() == device, "fused AdamW: tensors must be contiguous f32 of one length and device");
+        }
+        if let Some(t) = publish {
+            ensure!(
+                matches!(t.kind(), Kind::Float | Kind::BFloat16) && t.is_contiguous() && t.numel() == n && t.device() == device,
+                "fused AdamW: the published weights must be contiguous f32 or bf16 of the state's length and device"
+            );
+        }
+        let ptr = |t: &Tensor| t.data_ptr() as u64;
+        let published = |kind: Kind| publish.filter(|t| t.kind() == kind).map_or(0, ptr);
+        Ok(Self { m: ptr(m), v: ptr(v), w: ptr(w), ema: ema.map_or(0, ptr), out_f32: published(Kind::Float), out_bf16: published(Kind::BFloat16) })
+    }
+
+    fn args<'a>(&'a self, launch: &mut cudarc::driver::LaunchArgs<'a>) {
+        launch.arg(&self.m).arg(&self.v).arg(&self.w).arg(&self.ema).arg(&self.out_f32).arg(&self.out_bf16);
+    }
+}
+
+/// The update's scalars as the kernels take them (HYPER), rounded to f32 from f64.
+struct Hyper([f32; 9]);
+
+impl Hyper {
+    fn new(u: &Update) -> Self {
+        let f = |x: f64| x as f32;
+        let decay = if u.weight_decay > 0.0 { 1.0 - u.lr * u.weight_decay } else { 1.0 };
+        Self([
+            f(u.grad_scale),
+            f(1.0 - u.b1),
+            f(u.b2),
+            f(1.0 - u.b2),
+            f(decay),
+            f(u.eps),
+            f(u.bc2.sqrt()),
+            f(u.lr / u.bc1),
+            f(1.0 - u.ema_decay.unwrap_or(1.0)),
+        ])
+    }
+
+    fn args<'a>(&'a self, launch: &mut cudarc::driver::LaunchArgs<'a>) {
+        for x in &self.0 {
+            launch.arg(x);
+        }
     }
 }

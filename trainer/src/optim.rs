@@ -1,7 +1,11 @@
 //! The trained parameter set and AdamW with fp32 master weights, on flat buffers: the trained
 //! tensors are packed end to end (in the model dtype; the model's parameters become views of that
-//! buffer), their gradients are added after each micro-step into one fp32 flat accumulator, and
-//! the optimizer state (fp32 master, moments, optional EMA) covers the slice this rank owns.
+//! buffer), their gradients are handed after each micro-step into one fp32 flat accumulator (the
+//! step's first hand-off of a tensor copies, later ones add, so the accumulator is never zeroed),
+//! and the optimizer state (fp32 master, moments, optional EMA) covers the slice this rank owns.
+//! A step of one micro-step on one rank with the fused kernel skips the accumulator: the model's
+//! bf16 gradients are kept as autograd made them and the kernels read them in place
+//! ([`AdamW::take_grads`]).
 //! The step reduces the accumulated gradients (each element summed into the rank that owns it when
 //! the state is sharded across data-parallel ranks, into every rank when it is replicated), clips
 //! by the global norm, updates the slice with a few whole-buffer operations, and all-gathers the
@@ -16,7 +20,7 @@ use bwm_checkpoints::optimizer_shards::{Layout, OptimizerState};
 use tch::{Device, Kind, Tensor};
 
 use crate::config::{LrSchedule, OptimSection};
-use crate::fused_adamw::{FusedAdamW, Update};
+use crate::fused_adamw::{FusedAdamW, GradTable, Update};
 use crate::dist::{Collective, FlatBuffer};
 
 pub struct TrainParam {
@@ -63,6 +67,20 @@ pub struct AdamW {
     pub ema: Option<Tensor>,
     /// The one-kernel update (CUDA, `optim.fused`); None: tensor operations.
     fused: Option<std::sync::Arc<FusedAdamW>>,
+    /// Per trained tensor: whether its accumulator holds a gradient of this step yet.
+    written: Vec<bool>,
+    /// The model-dtype gradients of this step's only micro-step, for the fused kernel to read.
+    pending: Option<Vec<Tensor>>,
+    /// Where each trained tensor lies in the flat state, for reading `pending` (built at first use).
+    table: Option<GradTable>,
+}
+
+/// The gradient a step updates from.
+enum StepGradient {
+    /// This rank's slice of the reduced fp32 accumulator.
+    Flat(Tensor),
+    /// The model-dtype gradient of each trained tensor (one micro-step on one rank).
+    Tensors(Vec<Tensor>),
 }
 
 /// What one optimizer step did.
@@ -224,6 +242,9 @@ impl AdamW {
             slice,
             started: Vec::new(),
             fused,
+            written: vec![false; picked.len()],
+            pending: None,
+            table: None,
         })
     }
 
@@ -249,29 +270,92 @@ impl AdamW {
         self.slice.clone()
     }
 
-    /// Moves the model gradients of the last micro-step into the fp32 accumulators.
+    /// Moves the model gradients of the last micro-step (their `.grad`) into the fp32
+    /// accumulators and zeroes them (`.grad` keeps its memory, which a replayed CUDA graph writes).
     pub fn collect_grads(&mut self) {
-        tch::no_grad(|| {
-            for p in &mut self.params {
-                let mut g = p.param.grad();
-                if g.defined() {
-                    let _ = p.grad.g_add_(&g);
+        for k in 0..self.params.len() {
+            let mut g = self.params[k].param.grad();
+            if g.defined() {
+                self.accumulate(k, &g);
+                tch::no_grad(|| {
                     let _ = g.zero_();
-                }
+                });
             }
+        }
+    }
+
+    /// Hands trained tensor `k`'s gradient of one micro-step into its fp32 accumulator: copied
+    /// when it is the step's first, added otherwise. An undefined gradient (the tensor was not
+    /// used) counts as zeros.
+    pub fn accumulate(&mut self, k: usize, g: &Tensor) {
+        self.flush_pending();
+        let first = !std::mem::replace(&mut self.written[k], true);
+        let mut acc = self.params[k].grad.shallow_clone();
+        tch::no_grad(|| match (g.defined(), first) {
+            (true, true) => acc.copy_(g),
+            (true, false) => drop(acc.g_add_(g)),
+            (false, true) => drop(acc.zero_()),
+            (false, false) => {}
         });
+    }
+
+    /// Takes one micro-step's gradients of every trained tensor, in order (undefined for a tensor
+    /// not used). With `last_micro_step` on the step's first micro-step, on one rank, with the
+    /// fused kernel and bf16 weights, they are kept as they are for the step to read in place;
+    /// otherwise they go into the accumulators.
+    pub fn take_grads(&mut self, grads: Vec<Tensor>, last_micro_step: bool) -> Result<()> {
+        ensure!(grads.len() == self.params.len(), "{} gradients for {} trained tensors", grads.len(), self.params.len());
+        let direct = last_micro_step
+            && self.fused.is_some()
+            && self.sharding.world == 1
+            && self.pending.is_none()
+            && !self.written.iter().any(|&w| w)
+            && self.weights.flat().kind() == Kind::BFloat16
+            && grads.iter().zip(&self.params).all(|(g, p)| !g.defined() || (g.kind() == Kind::BFloat16 && g.size() == p.param.size()));
+        if !direct {
+            for (k, g) in grads.iter().enumerate() {
+                self.accumulate(k, g);
+            }
+            return Ok(());
+        }
+        let kept = grads
+            .into_iter()
+            .zip(&self.params)
+            .map(|(g, p)| if g.defined() { g.contiguous() } else { p.param.zeros_like() })
+            .collect();
+        self.pending = Some(kept);
+        Ok(())
+    }
+
+    /// Moves kept model-dtype gradients into the accumulators (a hand-off that cannot read them in
+    /// place came after them).
+    fn flush_pending(&mut self) {
+        if let Some(grads) = self.pending.take() {
+            for (k, g) in grads.iter().enumerate() {
+                self.accumulate(k, g);
+            }
+        }
+    }
+
+    /// Zeroes the accumulators no hand-off of this step wrote (they hold an earlier step's sum).
+    fn zero_unwritten(&mut self) {
+        self.flush_pending();
+        for k in 0..self.params.len() {
+            if !self.written[k] {
+                self.accumulate(k, &Tensor::new());
+            }
+        }
     }
 
     /// Drops the accumulated gradients (a skipped step). Reductions started early must be
     /// finished first (`comm.finish_started()` or any collective).
     pub fn discard_grads(&mut self) {
         self.started.clear();
-        tch::no_grad(|| {
-            let _ = self.grads.flat_mut().zero_();
-            for p in &mut self.params {
-                p.param.zero_grad();
-            }
-        });
+        self.pending = None;
+        self.written.fill(false);
+        for p in &mut self.params {
+            p.param.zero_grad();
+        }
     }
 
     /// The learning rate of optimizer step `step` (1-based).
@@ -371,19 +455,44 @@ impl AdamW {
         comm: &mut dyn Collective,
     ) -> Result<Option<StepReport>> {
         let scale = 1.0 / grad_divisor;
-        let g = self.reduce(comm)?;
-        let chunks = chunk_ranges(g.numel());
-        // Summed on the device: the one host sync of the step is reading the norm below.
-        let mut sq = Tensor::zeros([1], (Kind::Double, g.device()));
-        // One read of each chunk (its norm in fp32, squared and summed in f64): square().sum()
-        // made three passes over the 20 GB gradient of a 5B step.
-        for &(start, len) in &chunks {
-            sq += g.narrow(0, start, len).norm().to_kind(Kind::Double).square();
-        }
-        if self.is_sharded() {
-            comm.all_reduce_sum(&mut sq)
-                .context("all-reduce of the gradient norm")?;
-        }
+        let direct = match (self.pending.take(), &self.fused) {
+            (Some(grads), Some(kernel)) => {
+                if self.table.is_none() {
+                    let (offsets, numels): (Vec<i64>, Vec<i64>) = (0..self.params.len())
+                        .map(|k| self.grads.range(k).map(|r| (r.start as i64, r.len() as i64)).with_context(|| format!("no trained tensor {k}")))
+                        .collect::<Result<Vec<_>>>()?
+                        .into_iter()
+                        .unzip();
+                    self.table = Some(GradTable::new(&offsets, &numels, self.master.device())?);
+                }
+                let table = self.table.as_ref().context("the gradient table")?;
+                let sq = kernel.sum_squares(table, &grads)?;
+                Some((grads, sq))
+            }
+            (pending, _) => {
+                self.pending = pending;
+                None
+            }
+        };
+        let (g, sq) = match direct {
+            Some((grads, sq)) => (StepGradient::Tensors(grads), sq),
+            None => {
+                self.zero_unwritten();
+                let g = self.reduce(comm)?;
+                // Summed on the device: the one host sync of the step is reading the norm below.
+                let mut sq = Tensor::zeros([1], (Kind::Double, g.device()));
+                // One read of each chunk (its norm in fp32, squared and summed in f64): square().sum()
+                // made three passes over the 20 GB gradient of a 5B step.
+                for &(start, len) in &chunk_ranges(g.numel()) {
+                    sq += g.narrow(0, start, len).norm().to_kind(Kind::Double).square();
+                }
+                if self.is_sharded() {
+                    comm.all_reduce_sum(&mut sq)
+                        .context("all-reduce of the gradient norm")?;
+                }
+                (StepGradient::Flat(g), sq)
+            }
+        };
         let grad_norm = sq.double_value(&[0]).sqrt() * scale;
         if !grad_norm.is_finite() {
             self.discard_grads();
@@ -402,49 +511,65 @@ impl AdamW {
         let bc1 = 1.0 - b1.powi(self.step as i32);
         let bc2 = 1.0 - b2.powi(self.step as i32);
         let (wd, eps, ema) = (self.cfg.weight_decay, self.cfg.eps, self.cfg.ema_decay);
-        let mut published = false;
-        if let Some(kernel) = &self.fused {
-            let u = Update { grad_scale, b1, b2, lr, weight_decay: wd, eps, bc1, bc2, ema_decay: ema };
-            // Unsharded, the kernel writes the weights itself; sharded, they are all-gathered.
-            let publish = (!self.is_sharded()).then(|| self.weights.flat());
-            kernel.update(&g, &self.exp_avg, &self.exp_avg_sq, &self.master, self.ema.as_ref(), publish, &u)?;
-            published = publish.is_some();
-        } else {
-            // Whole-buffer operations, in chunks so that the temporaries stay small.
-            tch::no_grad(|| {
-                for &(start, len) in &chunks {
-                    let part = |t: &Tensor| t.narrow(0, start, len);
-                    let (mut master, mut m, mut v) = (
-                        part(&self.master),
-                        part(&self.exp_avg),
-                        part(&self.exp_avg_sq),
-                    );
-                    let g = part(&g) * grad_scale;
-                    let _ = m.lerp_(&g, 1.0 - b1);
-                    let _ = v.g_mul_scalar_(b2);
-                    let _ = v.addcmul_(&g, &(&g * (1.0 - b2)));
-                    let denom = (v.sqrt() / bc2.sqrt()) + eps;
-                    if wd > 0.0 {
-                        let _ = master.g_mul_scalar_(1.0 - lr * wd);
-                    }
-                    let _ = master.g_sub_(&(&m / denom * (lr / bc1)));
-                    if let (Some(e), Some(d)) = (self.ema.as_ref(), ema) {
-                        let _ = part(e).lerp_(&master, 1.0 - d);
-                    }
-                }
-            });
-        }
+        let u = Update { grad_scale, b1, b2, lr, weight_decay: wd, eps, bc1, bc2, ema_decay: ema };
+        // Unsharded, the kernel writes the weights itself; sharded, they are all-gathered.
+        let publish = (!self.is_sharded()).then(|| self.weights.flat());
+        let (state, ema_state) = ((&self.exp_avg, &self.exp_avg_sq, &self.master), self.ema.as_ref());
+        let published = match (&g, &self.fused) {
+            (StepGradient::Tensors(grads), Some(kernel)) => {
+                let table = self.table.as_ref().context("the gradient table")?;
+                kernel.update_from_tensors(table, grads, state.0, state.1, state.2, ema_state, publish, &u)?;
+                publish.is_some()
+            }
+            (StepGradient::Flat(g), Some(kernel)) => {
+                kernel.update(g, state.0, state.1, state.2, ema_state, publish, &u)?;
+                publish.is_some()
+            }
+            (StepGradient::Flat(g), None) => {
+                self.tensor_update(g, &u);
+                false
+            }
+            (StepGradient::Tensors(_), None) => bail!("model-dtype gradients were kept without the fused kernel to read them"),
+        };
         if !published {
             self.publish_weights(comm)?;
         }
-        tch::no_grad(|| {
-            let _ = self.grads.flat_mut().zero_();
-        });
+        // The next step's first hand-off of each tensor overwrites its accumulator.
+        self.written.fill(false);
         Ok(Some(StepReport {
             lr,
             grad_norm,
             clipped,
         }))
+    }
+
+    /// The update of `step` as whole-buffer tensor operations, in chunks so that the temporaries
+    /// stay small.
+    fn tensor_update(&self, g: &Tensor, u: &Update) {
+        let [b1, b2] = [u.b1, u.b2];
+        let (lr, wd, eps) = (u.lr, u.weight_decay, u.eps);
+        tch::no_grad(|| {
+            for &(start, len) in &chunk_ranges(g.numel()) {
+                let part = |t: &Tensor| t.narrow(0, start, len);
+                let (mut master, mut m, mut v) = (
+                    part(&self.master),
+                    part(&self.exp_avg),
+                    part(&self.exp_avg_sq),
+                );
+                let g = part(g) * u.grad_scale;
+                let _ = m.lerp_(&g, 1.0 - b1);
+                let _ = v.g_mul_scalar_(b2);
+                let _ = v.addcmul_(&g, &(&g * (1.0 - b2)));
+                let denom = (v.sqrt() / u.bc2.sqrt()) + eps;
+                if wd > 0.0 {
+                    let _ = master.g_mul_scalar_(1.0 - lr * wd);
+                }
+                let _ = master.g_sub_(&(&m / denom * (lr / u.bc1)));
+                if let (Some(e), Some(d)) = (self.ema.as_ref(), u.ema_decay) {
+                    let _ = part(e).lerp_(&master, 1.0 - d);
+                }
+            }
+        });
     }
 
     /// Writes the masters into the model's weights on every rank (all-gather when sharded).
@@ -558,7 +683,7 @@ mod tests {
         let mut c = cfg();
         c.grad_clip = 1.0;
         let mut opt = AdamW::new(&named, &["*".into()], &[], &c, 10, Sharding::SINGLE).unwrap();
-        let _ = opt.params[0].grad.fill_(3.0);
+        opt.accumulate(0, &Tensor::full([4], 3.0, (Kind::Float, Device::Cpu)));
         let r = opt.step(1.0, &mut LocalCollective::new()).unwrap().unwrap();
         assert!(r.clipped && (r.grad_norm - 6.0).abs() < 1e-9);
         // After clipping the gradient is 0.5 per element; Adam's first step moves by lr regardless,
@@ -572,17 +697,44 @@ mod tests {
         let w = Tensor::ones([2], (Kind::Float, Device::Cpu));
         let named = vec![("w".to_string(), w.shallow_clone())];
         let mut opt = AdamW::new(&named, &["*".into()], &[], &cfg(), 10, Sharding::SINGLE).unwrap();
-        let _ = opt.params[0].grad.fill_(f64::NAN);
+        opt.accumulate(0, &Tensor::from_slice(&[f32::NAN, 1.0]));
         assert!(opt
             .step(1.0, &mut LocalCollective::new())
             .unwrap()
             .is_none());
         assert_eq!(opt.step, 0);
         assert!(w.equal(&Tensor::ones([2], (Kind::Float, Device::Cpu))));
-        assert_eq!(
-            opt.params[0].grad.abs().sum(Kind::Float).double_value(&[]),
-            0.0
-        );
+        // The dropped sum does not reach the next step: its first hand-off replaces it.
+        opt.accumulate(0, &Tensor::from_slice(&[2.0f32, -2.0]));
+        let r = opt.step(1.0, &mut LocalCollective::new()).unwrap().unwrap();
+        assert!((r.grad_norm - 8f64.sqrt()).abs() < 1e-6, "{}", r.grad_norm);
+    }
+
+    /// A step's first hand-off of a tensor replaces what its accumulator held, later ones add, and
+    /// a tensor no hand-off of a step reaches counts as zeros, whatever the step before left.
+    #[test]
+    fn each_step_sums_only_its_own_hand_offs() {
+        let named: Vec<(String, Tensor)> = ["a", "b"].iter().map(|n| (n.to_string(), Tensor::zeros([2], (Kind::Float, Device::Cpu)))).collect();
+        let mut opt = AdamW::new(&named, &["*".into()], &[], &cfg(), 10, Sharding::SINGLE).unwrap();
+        let t = |x: [f32; 2]| Tensor::from_slice(&x);
+        opt.accumulate(0, &t([1.0, 2.0]));
+        opt.accumulate(1, &t([4.0, 0.0]));
+        opt.accumulate(0, &t([2.0, 2.0]));
+        let r = opt.step(1.0, &mut LocalCollective::new()).unwrap().unwrap();
+        assert!((r.grad_norm - 41f64.sqrt()).abs() < 1e-6, "first step: |(3, 4, 4, 0)| = sqrt(41), got {}", r.grad_norm);
+        // Second step: `a` through `.grad` (as after a plain backward), `b` unused.
+        (&opt.params[0].param * t([0.0, 5.0])).sum(Kind::Float).backward();
+        opt.collect_grads();
+        assert_eq!(opt.params[0].param.grad(), t([0.0, 0.0]), "collecting zeroes `.grad`");
+        let r = opt.step(1.0, &mut LocalCollective::new()).unwrap().unwrap();
+        assert!((r.grad_norm - 5.0).abs() < 1e-6, "second step: only (0, 5) of `a`, got {}", r.grad_norm);
+        // Third: all at once (`take_grads`), `b` undefined; accumulated on CPU (no fused kernel).
+        opt.take_grads(vec![t([0.0, 1.0]), Tensor::new()], true).unwrap();
+        assert!(opt.pending.is_none());
+        let r = opt.step(1.0, &mut LocalCollective::new()).unwrap().unwrap();
+        assert!((r.grad_norm - 1.0).abs() < 1e-6, "third step: {}", r.grad_norm);
+        let err = opt.take_grads(vec![t([0.0, 1.0])], true).unwrap_err();
+        assert!(format!("{err:#}").contains("1 gradients for 2 trained tensors"), "{err:#}");
     }
 
     /// Rank 0 of a pretend job of `world` ranks whose other ranks contribute zeros: records each
@@ -683,7 +835,7 @@ mod tests {
             let mut opt = AdamW::new(&named, &["*".into()], &[], &c, 10, Sharding::SINGLE).unwrap();
             assert_eq!(opt.fused.is_some(), fused, "the fused kernel must be in use when asked for");
             for g in &grads {
-                let _ = opt.params[0].grad.copy_(&g.to_kind(kind));
+                opt.accumulate(0, &g.to_device(device).to_kind(kind));
                 opt.step(2.0, &mut LocalCollective::new()).unwrap().unwrap();
             }
             let mut state: Vec<_> = opt.state_tensors().into_iter().map(|(n, t)| (n, t.to_device(Device::Cpu))).collect();
@@ -702,6 +854,70 @@ mod tests {
             // The kernel's own rounding of its masters is PyTorch's.
             let (master, published) = (&a[0].1, &a.last().unwrap().1);
             assert_eq!(master.to_kind(kind), *published, "{kind:?}: the kernel's published weights are its masters, rounded as PyTorch rounds");
+        }
+    }
+
+    /// On a GPU machine, as the test above. The model's bf16 gradients read in place
+    /// (`take_grads` on a step's only micro-step) against the same gradients handed into the fp32
+    /// accumulator: the same update (bit for bit without clipping; the norm is summed in another
+    /// order, so a clipped step may differ in the last bits), over tensors that cross the kernels'
+    /// item boundary and one that no step uses.
+    #[test]
+    #[ignore = "needs a CUDA device and NVRTC"]
+    fn the_update_reads_bf16_gradients_in_place_as_it_reads_the_accumulator_on_cuda() {
+        crate::dist::ensure_torch_cuda_loaded().unwrap();
+        let device = Device::Cuda(0);
+        tch::manual_seed(5);
+        let sizes = [70_001i64, 3, 65_536, 131_073];
+        let inits: Vec<Tensor> = sizes.iter().map(|&n| Tensor::randn([n], (Kind::Float, Device::Cpu))).collect();
+        let steps: Vec<Vec<Tensor>> = (0..3)
+            .map(|_| {
+                sizes
+                    .iter()
+                    .enumerate()
+                    .map(|(k, &n)| if k == 1 { Tensor::new() } else { Tensor::randn([n], (Kind::Float, Device::Cpu)).to_kind(Kind::BFloat16) })
+                    .collect()
+            })
+            .collect();
+        for clip in [0.0, 1.0] {
+            let run = |direct: bool| {
+                let mut c = cfg();
+                c.ema_decay = Some(0.9);
+                c.grad_clip = clip;
+                let named: Vec<(String, Tensor)> = inits.iter().enumerate().map(|(k, t)| (format!("p{k}"), t.to_device(device).to_kind(Kind::BFloat16))).collect();
+                let mut opt = AdamW::new(&named, &["*".into()], &[], &c, 10, Sharding::SINGLE).unwrap();
+                assert!(opt.fused.is_some(), "the fused kernel must be in use");
+                let mut norms = Vec::new();
+                for grads in &steps {
+                    let grads: Vec<Tensor> = grads.iter().map(|g| if g.defined() { g.to_device(device) } else { Tensor::new() }).collect();
+                    if direct {
+                        opt.take_grads(grads, true).unwrap();
+                        assert!(opt.pending.is_some(), "the gradients must be kept for the kernel");
+                    } else {
+                        for (k, g) in grads.iter().enumerate() {
+                            opt.accumulate(k, g);
+                        }
+                    }
+                    norms.push(opt.step(1.0, &mut LocalCollective::new()).unwrap().unwrap().grad_norm);
+                }
+                let mut state: Vec<_> = opt.state_tensors().into_iter().map(|(n, t)| (n, t.to_device(Device::Cpu))).collect();
+                state.extend(opt.params.iter().map(|p| (format!("published {}", p.name), p.param.to_device(Device::Cpu))));
+                (state, norms)
+            };
+            let ((a, na), (b, nb)) = (run(true), run(false));
+            for (x, y) in na.iter().zip(&nb) {
+                assert!((x - y).abs() <= 1e-6 * y, "clip {clip}: gradient norms {na:?} against {nb:?}");
+            }
+            for ((name, x), (_, y)) in a.iter().zip(&b) {
+                if clip == 0.0 {
+                    assert!(x.equal(y), "clip {clip}: {name} differs between the two paths");
+                } else {
+                    let (x, y) = (x.to_kind(Kind::Float), y.to_kind(Kind::Float));
+                    let rel = (&x - &y).abs().max().double_value(&[]) / y.abs().max().double_value(&[]);
+                    let tol = if name.starts_with("published") { 1e-2 } else { 1e-6 };
+                    assert!(rel < tol, "clip {clip}: {name} differs by {rel} (relative to the max)");
+                }
+            }
         }
     }
 

@@ -36,13 +36,23 @@ enum Saved {
     Graph { input: Tensor, output: Tensor },
 }
 
-/// Receives the gradients of the DiT blocks' parameters during the recomputing backward walk.
+/// Receives the gradients of the DiT blocks' parameters during the recomputing backward walk,
+/// and all gradients at once when nothing is recomputed.
 pub trait BlockGradSink {
     /// The parameters of block `block` whose gradients go to `block_grads` (the others, and all
     /// parameters outside the blocks, accumulate in `.grad`).
     fn block_params(&self, block: usize) -> Vec<Tensor>;
     /// Gradients of `block_params(block)`, in order; undefined for a parameter the block did not use.
     fn block_grads(&mut self, block: usize, grads: &[Tensor]) -> Result<()>;
+    /// Without recomputation: the parameters whose gradients go to `all_grads` when the backward
+    /// pass ends, instead of accumulating in `.grad` (empty: every gradient goes to `.grad`).
+    fn all_params(&self) -> Vec<Tensor> {
+        Vec::new()
+    }
+    /// Gradients of `all_params()`, in order; undefined for a parameter the step did not use.
+    fn all_grads(&mut self, _grads: Vec<Tensor>) -> Result<()> {
+        Ok(())
+    }
 }
 
 /// Every gradient accumulates in `.grad`; the blocks' backward order is recorded.
@@ -86,8 +96,8 @@ pub fn forward_backward_per_sample(
 }
 
 /// Runs forward and backward; returns the detached loss. `loss_fn` maps the model's prediction
-/// [B, C, F, H, W] to a scalar. Without recomputation (`Recompute::Off`) every gradient
-/// accumulates in `.grad` and `sink` is not called.
+/// [B, C, F, H, W] to a scalar. Without recomputation (`Recompute::Off`) the gradients of
+/// `sink.all_params()` go to `sink.all_grads`, every other one accumulates in `.grad`.
 pub fn forward_backward(
     model: &BwmModel,
     latents: &Tensor,
@@ -101,7 +111,14 @@ pub fn forward_backward(
     let Recompute::Blocks { keep_last } = recompute else {
         let prediction = model.forward_keeping(latents, frame_timesteps, actions, action_keep)?;
         let loss = loss_fn(&prediction);
-        loss.f_backward()?;
+        let params = sink.all_params();
+        if params.is_empty() {
+            loss.f_backward()?;
+        } else {
+            // Returned rather than accumulated: no `.grad` to zero and add into each micro-step.
+            let grads = Tensor::f_run_backward(&[&loss], &params, false, false)?;
+            sink.all_grads(grads)?;
+        }
         return Ok(loss.detach());
     };
 

@@ -371,7 +371,7 @@ impl Trainer {
                 None => {
                     let objective = &self.objective;
                     let last_micro = micro + 1 == accum && world > 1 && cfg.train.overlap_grad_reduce;
-                    let mut sink = BlockAccumulators { opt: &mut self.opt, blocks: &self.block_params, reduce: last_micro.then_some(self.comm.as_mut()) };
+                    let mut sink = BlockAccumulators { opt: &mut self.opt, blocks: &self.block_params, reduce: last_micro.then_some(self.comm.as_mut()), last_micro_step: micro + 1 == accum };
                     let loss = |pred: &Tensor| objective.per_sample_loss(pred, &prepared);
                     forward_backward_per_sample(&self.model, &input, &prepared.frame_timesteps, &batch.actions, batch.action_keep.as_ref(), recompute, &loss, &mut sink)?
                 }
@@ -627,14 +627,16 @@ impl validation::ValidationRun for Trainer {
     }
 }
 
-/// Adds each block's gradients into the fp32 accumulators as the recomputing backward walk
+/// Hands each block's gradients into the fp32 accumulators as the recomputing backward walk
 /// produces them, so no model-dtype gradient of a block outlives its backward; on the step's last
 /// micro-batch, with `reduce`, it then starts reducing the block's gradients across the ranks
-/// while the walk goes on to the earlier blocks.
+/// while the walk goes on to the earlier blocks. Without recomputation it takes every gradient at
+/// the end of the backward pass (`AdamW::take_grads`).
 struct BlockAccumulators<'a> {
     opt: &'a mut AdamW,
     blocks: &'a [Vec<usize>],
     reduce: Option<&'a mut dyn Collective>,
+    last_micro_step: bool,
 }
 
 impl BlockGradSink for BlockAccumulators<'_> {
@@ -643,17 +645,21 @@ impl BlockGradSink for BlockAccumulators<'_> {
     }
 
     fn block_grads(&mut self, block: usize, grads: &[Tensor]) -> Result<()> {
-        tch::no_grad(|| {
-            for (&k, g) in self.blocks[block].iter().zip(grads) {
-                if g.defined() {
-                    let _ = self.opt.params[k].grad.shallow_clone().g_add_(g);
-                }
-            }
-        });
+        for (&k, g) in self.blocks[block].iter().zip(grads) {
+            self.opt.accumulate(k, g);
+        }
         if let Some(comm) = self.reduce.as_deref_mut() {
             self.opt.reduce_early(&self.blocks[block], comm).with_context(|| format!("reducing the gradients of block {block}"))?;
         }
         Ok(())
+    }
+
+    fn all_params(&self) -> Vec<Tensor> {
+        self.opt.params.iter().map(|p| p.param.shallow_clone()).collect()
+    }
+
+    fn all_grads(&mut self, grads: Vec<Tensor>) -> Result<()> {
+        self.opt.take_grads(grads, self.last_micro_step)
     }
 }
 

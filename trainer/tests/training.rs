@@ -102,6 +102,26 @@ fn batch_two_equals_batch_one_with_accumulation_two() {
     }
 }
 
+/// The trainer's two gradient routes over whole runs: without recomputation every gradient comes
+/// back from one backward pass at once (`AdamW::take_grads`); with it, block by block
+/// (`BlockGradSink::block_grads`) and the rest through `.grad`. With accumulation the first
+/// micro-step's hand-off replaces what the accumulator held from the step before and the second
+/// adds to it, so a step that summed a stale gradient, or lost one, would move the weights apart.
+#[test]
+fn training_with_and_without_recomputation_updates_alike() {
+    let dir = tmp_dir("routes");
+    let cache = write_cache(&dir.join("cache"), 4, 5);
+    for accum in [1, 2] {
+        let run = |recompute: bool| trained(&cache, &dir.join(format!("recompute-{recompute}-{accum}")), &format!("[train]\nsteps = 3\ngrad_accum = {accum}\nrecompute = {recompute}"));
+        let (plain, recomputed) = (run(false), run(true));
+        assert_same(&weights(&plain), &weights(&recomputed), 1e-5, &format!("accumulation {accum}: without against with recomputation"));
+        for (a, b) in plain.history.iter().zip(&recomputed.history) {
+            let (a, b) = (a.grad_norm.unwrap(), b.grad_norm.unwrap());
+            assert!((a - b).abs() <= 1e-5 * b, "accumulation {accum}: gradient norms {a} and {b}");
+        }
+    }
+}
+
 #[test]
 fn recomputation_gives_the_same_gradients() {
     recomputation_matches(false);

@@ -292,6 +292,31 @@ fn bench_train_breakdown_accounts_for_the_step() {
     assert!((parts.iter().sum::<f64>() - step).abs() <= 0.0025 + 1e-9, "{parts:?} vs {step}: {stdout}");
 }
 
+/// `--profile`: the steps after the first go into a Chrome trace of the host's operators (no GPU
+/// here, so nothing is busy on one), and the step's summary says so.
+#[test]
+fn bench_train_profiles_the_steps_after_the_first() {
+    let dir = temp_dir("bench-profile");
+    let trace = dir.join("trace.json");
+    let out = Command::new(bwm())
+        .args(["bench-train", "--config", "configs/tiny.toml", "--height", "32", "--width", "64", "--history", "4", "--future", "4", "--steps", "3"])
+        .args(["--set", "objective.condition_latents=2", "--profile"])
+        .arg(&trace)
+        .arg("--out")
+        .arg(&dir)
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
+    assert!(stdout.contains("profile of 2 step(s), per step: ") && stdout.contains("GPU busy 0.0 ms (0.0%)"), "{stdout}");
+    let json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&trace).unwrap()).unwrap();
+    let events = json["traceEvents"].as_array().unwrap();
+    let count = |name: &str| events.iter().filter(|e| e["name"] == name).count();
+    // Two steps' optimizer updates and backward passes: the AdamW chain's lerp_ runs once per step.
+    assert!(count("aten::lerp_") >= 2 && count("aten::lerp_") % 2 == 0, "{} lerp_ events", count("aten::lerp_"));
+}
+
 #[test]
 fn a_lora_run_exports_and_rolls_out_through_the_cli() {
     let dir = temp_dir("lora-cli");

@@ -27,6 +27,10 @@ pub struct BenchTrainArgs {
     /// (attention, linear layers, norms/elementwise, the rest; collectives).
     #[arg(long)]
     breakdown: bool,
+    /// Record the steps after the first with libtorch's profiler into this Chrome trace (JSON,
+    /// for chrome://tracing or Perfetto) and print where their GPU time went.
+    #[arg(long, value_name = "TRACE")]
+    profile: Option<PathBuf>,
     /// Scratch folder for the synthetic cache and the run's logs.
     #[arg(long, default_value = "runs/bench-train")]
     out: PathBuf,
@@ -42,6 +46,7 @@ pub fn run(a: BenchTrainArgs) -> Result<()> {
         width: a.width,
         steps: a.steps,
         breakdown: a.breakdown,
+        profile: a.profile,
         out: a.out,
     })
 }

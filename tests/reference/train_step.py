@@ -48,6 +48,8 @@ def parse():
     p.add_argument("--grad-clip", type=float, default=None,
                    help="global-norm clip; default 1.0 in master mode (the Rust config), 0 = off in plain mode (DiffSynth)")
     p.add_argument("--history-sigma", type=float, default=0.2083)
+    p.add_argument("--profile", default=None, metavar="TRACE",
+                   help="record the timed steps with torch.profiler into this Chrome trace and print the kernels with the most GPU time")
     p.add_argument("--lora-rank", type=int, default=0, help="LoRA rank on --lora-targets (0 = full fine-tuning)")
     p.add_argument("--lora-targets", default="q,k,v,o,ffn.0,ffn.2",
                    help="DiffSynth's --lora_target_modules default: every attention and FFN linear of the blocks")
@@ -177,9 +179,14 @@ def main():
         return float(norm)
 
     times = []
+    prof = None
     for i in range(a.warmup + a.steps):
         if i == a.warmup:
             common.reset_peak(device)
+            if a.profile:
+                torch.cuda.synchronize(device)
+                prof = torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU, torch.profiler.ProfilerActivity.CUDA])
+                prof.__enter__()
         with common.Timer(device) as tm:
             losses = [micro_step() for _ in range(a.grad_accum)]
             norm = optimizer_step()
@@ -188,6 +195,12 @@ def main():
             times.append(tm.seconds)
         print(f"train step {i}{'' if timed else ' (warm-up)'}: {tm.seconds:.3f} s, loss {sum(losses) / len(losses):.5f}, "
               f"grad norm {norm:.3f}", flush=True)
+    if prof is not None:
+        torch.cuda.synchronize(device)
+        prof.__exit__(None, None, None)
+        prof.export_chrome_trace(a.profile)
+        print(prof.key_averages().table(sort_by="cuda_time_total", row_limit=25, max_name_column_width=110), flush=True)
+        print(f"reference train: trace of the {a.steps} timed steps in {a.profile}", flush=True)
     s = common.mean(times)
     print(f"reference train: {s:.3f} s/step (min {min(times):.3f}), {a.batch * a.grad_accum / s:.3f} samples/s, "
           f"{tokens * a.grad_accum / s:.0f} tokens/s, {step_flops / s / 1e12:.1f} TFLOP/s, {common.peak_text(device)} "

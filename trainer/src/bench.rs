@@ -27,6 +27,9 @@ pub struct BenchTrainOptions {
     pub steps: u64,
     /// After the steps, time one DiT block and its parts and print the step's breakdown.
     pub breakdown: bool,
+    /// Record the steps after the first with libtorch's profiler into this Chrome trace and print
+    /// where their GPU time went.
+    pub profile: Option<PathBuf>,
     /// Scratch folder for the synthetic cache and the run's logs (a rank's own `rank-N` below it
     /// when `RANK` is set).
     pub out: PathBuf,
@@ -88,10 +91,26 @@ pub fn run(a: &BenchTrainOptions) -> Result<()> {
         tch::get_num_threads()
     );
     let mut timed = Vec::new();
-    for _ in 0..a.steps {
+    // The first step holds the warm-up (allocator, autotuning); a one-step run profiles it anyway.
+    let profile_from = a.steps.min(2);
+    let mut profiler = None;
+    for step in 1..=a.steps {
+        if step == profile_from && a.profile.is_some() {
+            crate::devices::synchronize(t.device);
+            profiler = Some(bwm_profiler::Profiler::start(t.device.is_cuda())?);
+        }
         let m = t.train_step()?;
         println!("{}", m.summary_line(a.steps));
         timed.push((m.seconds, m.collective_s));
+    }
+    if let (Some(p), Some(path)) = (profiler, &a.profile) {
+        crate::devices::synchronize(t.device);
+        p.finish(path)?;
+        let steps = (a.steps + 1 - profile_from) as f64;
+        for line in profile_lines(&bwm_profiler::gpu_summary(path)?, steps) {
+            println!("{line}");
+        }
+        println!("  trace (Chrome JSON, for chrome://tracing or Perfetto): {}", path.display());
     }
     if a.breakdown {
         // The first step includes warm-up (allocator, autotuning); the median of the others.
@@ -106,4 +125,22 @@ pub fn run(a: &BenchTrainOptions) -> Result<()> {
         }
     }
     Ok(())
+}
+
+/// What a profile of `steps` steps says per step: the span, the GPU's busy and idle time, and
+/// the kernels with the most GPU time.
+fn profile_lines(s: &bwm_profiler::GpuSummary, steps: f64) -> Vec<String> {
+    let ms = |us: f64| us / 1e3 / steps;
+    let mut lines = vec![format!(
+        "profile of {steps} step(s), per step: {:.1} ms traced, GPU busy {:.1} ms ({:.1}%), idle {:.1} ms",
+        ms(s.span_us),
+        ms(s.busy_us),
+        100.0 * s.busy_us / s.span_us.max(f64::MIN_POSITIVE),
+        ms(s.span_us - s.busy_us)
+    )];
+    for (name, calls, us) in s.kernels.iter().take(25) {
+        let short: String = name.chars().take(110).collect();
+        lines.push(format!("  {:8.2} ms  {:6.1} calls  {short}", ms(*us), *calls as f64 / steps));
+    }
+    lines
 }

@@ -30,13 +30,21 @@ __device__ float from_bf16(unsigned short h) { return __uint_as_float(((unsigned
     float eps, float sqrt_bc2, float lr_over_bc1, float ema_weight
 #define STATE float* m, float* v, float* w, float* ema, float* out_f32, unsigned short* out_bf16
 
+// One element's update from its (unscaled) gradient g: m and v in place, the new weight returned.
+__device__ __forceinline__ float adamw_math(float g, float& m, float& v, float w, HYPER) {
+  float gi = g * grad_scale;
+  m = m + one_minus_b1 * (gi - m);
+  v = v * b2 + gi * (gi * one_minus_b2);
+  float denom = sqrtf(v) / sqrt_bc2 + eps;
+  return w * decay - m / denom * lr_over_bc1;
+}
+
+#define HYPER_ARGS grad_scale, one_minus_b1, b2, one_minus_b2, decay, eps, sqrt_bc2, lr_over_bc1, ema_weight
+
 // Element i of the state, from its (unscaled) gradient g.
 __device__ __forceinline__ void adamw_one(long long i, float g, STATE, HYPER) {
-  float gi = g * grad_scale;
-  float mi = m[i] + one_minus_b1 * (gi - m[i]);
-  float vi = v[i] * b2 + gi * (gi * one_minus_b2);
-  float denom = sqrtf(vi) / sqrt_bc2 + eps;
-  float wi = w[i] * decay - mi / denom * lr_over_bc1;
+  float mi = m[i], vi = v[i];
+  float wi = adamw_math(g, mi, vi, w[i], HYPER_ARGS);
   m[i] = mi;
   v[i] = vi;
   w[i] = wi;
@@ -45,11 +53,36 @@ __device__ __forceinline__ void adamw_one(long long i, float g, STATE, HYPER) {
   if (out_bf16) out_bf16[i] = to_bf16(wi);
 }
 
+// Elements i..i+3 (i a multiple of 4, so every pointer is aligned for vector loads) from four
+// bf16 gradients packed in g: the memory traffic of `adamw_one` in 16-byte accesses.
+__device__ __forceinline__ void adamw_four(long long i, uint2 g, STATE, HYPER) {
+  float gs[4] = {__uint_as_float(g.x << 16), __uint_as_float(g.x & 0xffff0000u),
+                 __uint_as_float(g.y << 16), __uint_as_float(g.y & 0xffff0000u)};
+  float4 m4 = *(const float4*)(m + i), v4 = *(const float4*)(v + i), w4 = *(const float4*)(w + i);
+  float ms[4] = {m4.x, m4.y, m4.z, m4.w}, vs[4] = {v4.x, v4.y, v4.z, v4.w}, ws[4] = {w4.x, w4.y, w4.z, w4.w};
+  for (int h = 0; h < 4; h++) ws[h] = adamw_math(gs[h], ms[h], vs[h], ws[h], HYPER_ARGS);
+  *(float4*)(m + i) = make_float4(ms[0], ms[1], ms[2], ms[3]);
+  *(float4*)(v + i) = make_float4(vs[0], vs[1], vs[2], vs[3]);
+  float4 wn = make_float4(ws[0], ws[1], ws[2], ws[3]);
+  *(float4*)(w + i) = wn;
+  if (ema) {
+    float4 e = *(const float4*)(ema + i);
+    *(float4*)(ema + i) = make_float4(e.x + ema_weight * (ws[0] - e.x), e.y + ema_weight * (ws[1] - e.y),
+                                      e.z + ema_weight * (ws[2] - e.z), e.w + ema_weight * (ws[3] - e.w));
+  }
+  if (out_f32) *(float4*)(out_f32 + i) = wn;
+  if (out_bf16) {
+    uint2 o;
+    o.x = (unsigned int)to_bf16(ws[0]) | ((unsigned int)to_bf16(ws[1]) << 16);
+    o.y = (unsigned int)to_bf16(ws[2]) | ((unsigned int)to_bf16(ws[3]) << 16);
+    *(uint2*)(out_bf16 + i) = o;
+  }
+}
+
 extern "C" __global__ void adamw_update(const float* g, STATE, long long n, HYPER) {
   for (long long i = blockIdx.x * (long long)blockDim.x + threadIdx.x; i < n;
        i += (long long)gridDim.x * blockDim.x) {
-    adamw_one(i, g[i], m, v, w, ema, out_f32, out_bf16, grad_scale, one_minus_b1, b2, one_minus_b2,
-              decay, eps, sqrt_bc2, lr_over_bc1, ema_weight);
+    adamw_one(i, g[i], m, v, w, ema, out_f32, out_bf16, HYPER_ARGS);
   }
 }
 
@@ -59,22 +92,39 @@ extern "C" __global__ void adamw_update_bf16_tensors(const unsigned long long* g
     const long long* items, const long long* offsets, STATE, HYPER) {
   const long long* item = items + 3 * (long long)blockIdx.x;
   const unsigned short* g = (const unsigned short*)grads[item[0]] + item[1];
-  long long first = offsets[item[0]] + item[1];
-  for (long long j = threadIdx.x; j < item[2]; j += blockDim.x) {
-    adamw_one(first + j, from_bf16(g[j]), m, v, w, ema, out_f32, out_bf16, grad_scale, one_minus_b1,
-              b2, one_minus_b2, decay, eps, sqrt_bc2, lr_over_bc1, ema_weight);
+  long long first = offsets[item[0]] + item[1], n = item[2], done = 0;
+  if ((first & 3) == 0 && ((unsigned long long)g & 7) == 0) {
+    done = n / 4 * 4;
+    for (long long q = threadIdx.x; q < n / 4; q += blockDim.x) {
+      adamw_four(first + 4 * q, ((const uint2*)g)[q], m, v, w, ema, out_f32, out_bf16, HYPER_ARGS);
+    }
+  }
+  for (long long j = done + threadIdx.x; j < n; j += blockDim.x) {
+    adamw_one(first + j, from_bf16(g[j]), m, v, w, ema, out_f32, out_bf16, HYPER_ARGS);
   }
 }
 
 // partial[item] = the sum of the item's squared gradients, in f64, summed in a fixed order (the
-// same gradients give the same sum on every run).
+// same gradients give the same sum on every run); 16-byte loads where the item is aligned.
 extern "C" __global__ void sum_squares_bf16_tensors(const unsigned long long* grads,
     const long long* items, double* partial) {
   __shared__ double part[256];
   const long long* item = items + 3 * (long long)blockIdx.x;
   const unsigned short* g = (const unsigned short*)grads[item[0]] + item[1];
+  long long n = item[2], done = 0;
   double acc = 0.0;
-  for (long long j = threadIdx.x; j < item[2]; j += blockDim.x) {
+  if (((unsigned long long)g & 15) == 0) {
+    done = n / 8 * 8;
+    for (long long q = threadIdx.x; q < n / 8; q += blockDim.x) {
+      uint4 p = ((const uint4*)g)[q];
+      unsigned int words[4] = {p.x, p.y, p.z, p.w};
+      for (int h = 0; h < 4; h++) {
+        double lo = __uint_as_float(words[h] << 16), hi = __uint_as_float(words[h] & 0xffff0000u);
+        acc += lo * lo + hi * hi;
+      }
+    }
+  }
+  for (long long j = done + threadIdx.x; j < n; j += blockDim.x) {
     double x = from_bf16(g[j]);
     acc += x * x;
   }
@@ -184,7 +234,12 @@ impl FusedAdamW {
         crate::dist::ensure_torch_cuda_loaded()?;
         // SAFETY: probing a shared library by name.
         ensure!(unsafe { cudarc::nvrtc::sys::is_culib_present() }, "NVRTC (libnvrtc.so) is not on the library path");
-        let ptx = cudarc::nvrtc::compile_ptx(SOURCE).context("compiling the fused AdamW kernel with NVRTC")?;
+        // No multiply-add contraction: each operation rounds as the tensor path's do, and the
+        // update's inlined copies cannot contract differently (with it, the vector loop's second
+        // moment became fma(g, g(1-b2), v b2) and the element loop's fma(v, b2, g g(1-b2)), so an
+        // element's update depended on its tensor's alignment).
+        let options = cudarc::nvrtc::CompileOptions { fmad: Some(false), ..Default::default() };
+        let ptx = cudarc::nvrtc::compile_ptx_with_opts(SOURCE, options).context("compiling the fused AdamW kernel with NVRTC")?;
         let ctx = CudaContext::new(index).context("binding the CUDA context")?;
         let module = ctx.load_module(ptx).context("loading the fused AdamW kernel")?;
         let function = |name: &str| module.load_function(name).with_context(|| format!("the fused AdamW kernel {name}"));

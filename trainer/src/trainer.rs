@@ -460,19 +460,24 @@ impl Trainer {
         let shape: Vec<i64> = std::iter::once(indices.len() as i64).chain(self.cache.index.latent_shape.iter().copied()).collect();
         let (latents, actions) = staged.clips.tensors(&self.cache);
         let d = self.device;
+        // On CUDA through pinned memory without waiting: a plain copy from pageable memory waits
+        // for the GPU to finish the previous step's update, and the host's work between such
+        // copies then leaves the GPU idle (about 6 ms of a 5B step, measured with --profile).
+        // `_pin_memory`, as `pin_memory` given a device warns on every call that it is deprecated.
+        let upload = |t: Tensor| if d.is_cuda() { t.internal_pin_memory(d).to_device_(d, t.kind(), true, false) } else { t.to_device(d) };
         let latents = match (latents, staged.clips.frames(&self.cache)) {
-            (Some(l), _) => l.to_device(d),
+            (Some(l), _) => upload(l),
             (None, Some(frames)) => self.encode_frames(&frames)?,
             (None, None) => bail!("the loader returned neither latents nor frames"),
         };
         Ok(Batch {
             latents,
-            actions: actions.to_device(d),
-            noise: Tensor::from_slice(&staged.noise).view(shape.as_slice()).to_device(d),
-            history_noise: Tensor::from_slice(&staged.history_noise).view(shape.as_slice()).to_device(d),
+            actions: upload(actions),
+            noise: upload(Tensor::from_slice(&staged.noise).view(shape.as_slice())),
+            history_noise: upload(Tensor::from_slice(&staged.history_noise).view(shape.as_slice())),
             action_keep: (self.objective.action_dropout > 0.0).then(|| {
                 let keep: Vec<f32> = staged.keep_actions.iter().map(|&k| if k { 1.0 } else { 0.0 }).collect();
-                Tensor::from_slice(&keep).to_device(d)
+                upload(Tensor::from_slice(&keep))
             }),
             tids: staged.tids,
         })

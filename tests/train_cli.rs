@@ -267,18 +267,26 @@ fn stats_writes_a_stat_json_that_normalization_reads() {
     assert!(stats.p01.iter().zip(&stats.p99).all(|(a, b)| a <= b));
 }
 
-#[test]
-fn bench_train_breakdown_accounts_for_the_step() {
-    let dir = temp_dir("bench-breakdown");
+/// `bwm bench-train` of three steps of the tiny config at 64x32 with `extra` arguments, scratch in
+/// `dir`; its stdout, after checking that it succeeded.
+fn bench_train_tiny(dir: &Path, extra: &[&std::ffi::OsStr]) -> String {
     let out = Command::new(bwm())
-        .args(["bench-train", "--config", "configs/tiny.toml", "--height", "32", "--width", "64", "--history", "4", "--future", "4", "--steps", "3", "--breakdown"])
+        .args(["bench-train", "--config", "configs/tiny.toml", "--height", "32", "--width", "64", "--history", "4", "--future", "4", "--steps", "3"])
         .args(["--set", "objective.condition_latents=2", "--out"])
-        .arg(&dir)
+        .arg(dir)
+        .args(extra)
         .current_dir(env!("CARGO_MANIFEST_DIR"))
         .output()
         .unwrap();
-    let stdout = String::from_utf8_lossy(&out.stdout);
+    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
     assert!(out.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
+    stdout
+}
+
+#[test]
+fn bench_train_breakdown_accounts_for_the_step() {
+    let dir = temp_dir("bench-breakdown");
+    let stdout = bench_train_tiny(&dir, &["--breakdown".as_ref()]);
     let seconds = |label: &str| -> f64 {
         let line = stdout.lines().find(|l| l.trim_start().starts_with(label)).unwrap_or_else(|| panic!("no '{label}' line in {stdout}"));
         line.trim_start()[label.len()..].split_whitespace().next().unwrap().parse().unwrap()
@@ -298,17 +306,7 @@ fn bench_train_breakdown_accounts_for_the_step() {
 fn bench_train_profiles_the_steps_after_the_first() {
     let dir = temp_dir("bench-profile");
     let trace = dir.join("trace.json");
-    let out = Command::new(bwm())
-        .args(["bench-train", "--config", "configs/tiny.toml", "--height", "32", "--width", "64", "--history", "4", "--future", "4", "--steps", "3"])
-        .args(["--set", "objective.condition_latents=2", "--profile"])
-        .arg(&trace)
-        .arg("--out")
-        .arg(&dir)
-        .current_dir(env!("CARGO_MANIFEST_DIR"))
-        .output()
-        .unwrap();
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    assert!(out.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
+    let stdout = bench_train_tiny(&dir, &["--profile".as_ref(), trace.as_os_str()]);
     assert!(stdout.contains("profile of 2 step(s), per step: ") && stdout.contains("GPU busy 0.0 ms (0.0%)"), "{stdout}");
     let json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&trace).unwrap()).unwrap();
     let events = json["traceEvents"].as_array().unwrap();

@@ -10,22 +10,7 @@
 #include <exception>
 #include <string>
 
-namespace {
-thread_local std::string last_error;
-
-template <class F>
-bool guarded(F f) {
-  try {
-    f();
-    return true;
-  } catch (const std::exception& e) {
-    last_error = e.what();
-  } catch (...) {
-    last_error = "unknown C++ exception";
-  }
-  return false;
-}
-}  // namespace
+#include "bwm_guarded.h"
 
 #ifdef BWM_CUDA
 namespace {

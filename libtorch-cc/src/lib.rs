@@ -5,7 +5,8 @@
 use std::path::{Path, PathBuf};
 
 /// Compiles `source` (relative to the crate being built) into the static library `name`, against
-/// the headers beside the lib folder of the libtorch torch-sys links.
+/// the headers beside the lib folder of the libtorch torch-sys links and this crate's own
+/// (`include/bwm_guarded.h`: the shims' exception-to-message guard).
 pub fn compile(source: &str, name: &str) {
     compile_with(source, name, None, &[]);
 }
@@ -14,6 +15,8 @@ pub fn compile(source: &str, name: &str) {
 /// symbols defined.
 pub fn compile_with(source: &str, name: &str, include: Option<&Path>, defines: &[&str]) {
     println!("cargo:rerun-if-changed={source}");
+    let own = Path::new(env!("CARGO_MANIFEST_DIR")).join("include");
+    println!("cargo:rerun-if-changed={}", own.join("bwm_guarded.h").display());
     println!("cargo:rerun-if-env-changed=DEP_TCH_LIBTORCH_LIB");
     let lib = std::env::var("DEP_TCH_LIBTORCH_LIB").expect("torch-sys did not report its libtorch (DEP_TCH_LIBTORCH_LIB)");
     let root = Path::new(&lib).parent().expect("libtorch lib folder has a parent");
@@ -23,6 +26,7 @@ pub fn compile_with(source: &str, name: &str, include: Option<&Path>, defines: &
         .file(source)
         .include(root.join("include"))
         .include(root.join("include/torch/csrc/api/include"))
+        .include(&own)
         .flag("-std=c++17")
         .flag("-D_GLIBCXX_USE_CXX11_ABI=1")
         .warnings(false);

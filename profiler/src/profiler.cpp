@@ -4,22 +4,7 @@
 #include <set>
 #include <string>
 
-namespace {
-thread_local std::string last_error;
-
-template <class F>
-bool guarded(F f) {
-  try {
-    f();
-    return true;
-  } catch (const std::exception& e) {
-    last_error = e.what();
-  } catch (...) {
-    last_error = "unknown C++ exception";
-  }
-  return false;
-}
-}  // namespace
+#include "bwm_guarded.h"
 
 extern "C" {
 const char* bwm_profiler_last_error() { return last_error.c_str(); }

@@ -180,6 +180,13 @@ pub struct GradTable {
     end: i64,
 }
 
+/// A step's gradients of a [`GradTable`]'s tensors and the table of their addresses the kernels
+/// read (`GradTable::gradients`); holding the gradients keeps the addresses valid.
+pub struct TableGradients {
+    addresses: Tensor,
+    grads: Vec<Tensor>,
+}
+
 impl GradTable {
     /// The table of tensors of `numels` elements starting at `offsets` in the flat state.
     pub fn new(offsets: &[i64], numels: &[i64], device: Device) -> Result<Self> {
@@ -200,9 +207,9 @@ impl GradTable {
         })
     }
 
-    /// The addresses of `grads` (one per tensor of the table: contiguous bf16 of its length), on
-    /// the device.
-    fn addresses(&self, grads: &[Tensor]) -> Result<Tensor> {
+    /// `grads` (one per tensor of the table: contiguous bf16 of its length) with their addresses
+    /// on the device, made once per step for both kernels that read them.
+    pub fn gradients(&self, grads: Vec<Tensor>) -> Result<TableGradients> {
         ensure!(grads.len() == self.numels.len(), "gradient table: {} gradients for {} tensors", grads.len(), self.numels.len());
         let device = self.items.device();
         let mut addresses = Vec::with_capacity(grads.len());
@@ -216,7 +223,13 @@ impl GradTable {
             );
             addresses.push(g.data_ptr() as i64);
         }
-        Ok(Tensor::from_slice(&addresses).to_device(device))
+        Ok(TableGradients { addresses: Tensor::from_slice(&addresses).to_device(device), grads })
+    }
+
+    /// The address table of `grads`, made by a table of as many tensors.
+    fn check<'a>(&self, grads: &'a TableGradients) -> Result<&'a Tensor> {
+        ensure!(grads.grads.len() == self.numels.len(), "gradient table: gradients of {} tensors for a table of {}", grads.grads.len(), self.numels.len());
+        Ok(&grads.addresses)
     }
 }
 
@@ -282,17 +295,17 @@ impl FusedAdamW {
 
     /// The sum of the squares of `grads` (the table's tensors' bf16 gradients) as a one-element
     /// f64 tensor on the device, the same on every run for the same gradients.
-    pub fn sum_squares(&self, table: &GradTable, grads: &[Tensor]) -> Result<Tensor> {
-        let addresses = table.addresses(grads)?;
+    pub fn sum_squares(&self, table: &GradTable, grads: &TableGradients) -> Result<Tensor> {
+        let addresses = table.check(grads)?;
         let partial = Tensor::zeros([table.count as i64], (Kind::Double, addresses.device()));
         if table.count > 0 {
             self.ctx.bind_to_thread()?;
             let (pa, pi, pp) = (addresses.data_ptr() as u64, table.items.data_ptr() as u64, partial.data_ptr() as u64);
             let stream = self.ctx.default_stream();
-        let mut launch = stream.launch_builder(&self.sum_squares);
+            let mut launch = stream.launch_builder(&self.sum_squares);
             launch.arg(&pa).arg(&pi).arg(&pp);
             // SAFETY: the address table holds live contiguous bf16 gradients of the lengths the items
-            // cover (checked by `addresses`); the tables and `partial` (one f64 per item) are live
+            // cover (checked by `gradients`); the tables and `partial` (one f64 per item) are live
             // CUDA tensors that outlive the kernel on libtorch's stream.
             unsafe { launch.launch(Self::config(table.count)) }.context("launching the gradient norm kernel")?;
         }
@@ -302,8 +315,8 @@ impl FusedAdamW {
     /// `update` with the gradient read from the table's bf16 gradient tensors `grads`; `m`, `v`,
     /// `w`, `ema` and `publish` cover the flat state the table's offsets index.
     #[allow(clippy::too_many_arguments)]
-    pub fn update_from_tensors(&self, table: &GradTable, grads: &[Tensor], m: &Tensor, v: &Tensor, w: &Tensor, ema: Option<&Tensor>, publish: Option<&Tensor>, u: &Update) -> Result<()> {
-        let addresses = table.addresses(grads)?;
+    pub fn update_from_tensors(&self, table: &GradTable, grads: &TableGradients, m: &Tensor, v: &Tensor, w: &Tensor, ema: Option<&Tensor>, publish: Option<&Tensor>, u: &Update) -> Result<()> {
+        let addresses = table.check(grads)?;
         let state = State::new(m, v, w, ema, publish, m.numel(), addresses.device())?;
         ensure!(table.end as usize <= m.numel(), "fused AdamW: the gradient table reaches element {} of a state of {}", table.end, m.numel());
         if table.count == 0 {
@@ -317,7 +330,7 @@ impl FusedAdamW {
         state.args(&mut launch);
         let hyper = Hyper::new(u);
         hyper.args(&mut launch);
-        // SAFETY: as `update`, with the gradients behind the address table checked by `addresses`
+        // SAFETY: as `update`, with the gradients behind the address table checked by `gradients`
         // and every item inside the state (checked above).
         unsafe { launch.launch(Self::config(table.count)) }.context("launching the fused AdamW kernel")?;
         Ok(())

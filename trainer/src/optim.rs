@@ -20,7 +20,7 @@ use bwm_checkpoints::optimizer_shards::{Layout, OptimizerState};
 use tch::{Device, Kind, Tensor};
 
 use crate::config::{LrSchedule, OptimSection};
-use crate::fused_adamw::{FusedAdamW, GradTable, Update};
+use crate::fused_adamw::{FusedAdamW, GradTable, TableGradients, Update};
 use crate::dist::{Collective, FlatBuffer};
 
 pub struct TrainParam {
@@ -80,7 +80,7 @@ enum StepGradient {
     /// This rank's slice of the reduced fp32 accumulator.
     Flat(Tensor),
     /// The model-dtype gradient of each trained tensor (one micro-step on one rank).
-    Tensors(Vec<Tensor>),
+    Tensors(TableGradients),
 }
 
 /// What one optimizer step did.
@@ -466,6 +466,7 @@ impl AdamW {
                     self.table = Some(GradTable::new(&offsets, &numels, self.master.device())?);
                 }
                 let table = self.table.as_ref().context("the gradient table")?;
+                let grads = table.gradients(grads)?;
                 let sq = kernel.sum_squares(table, &grads)?;
                 Some((grads, sq))
             }

@@ -223,7 +223,7 @@ impl GradTable {
             );
             addresses.push(g.data_ptr() as i64);
         }
-        Ok(TableGradients { addresses: Tensor::from_slice(&addresses).to_device(device), grads })
+        Ok(TableGradients { addresses: crate::devices::upload(&Tensor::from_slice(&addresses), device), grads })
     }
 
     /// The address table of `grads`, made by a table of as many tensors.

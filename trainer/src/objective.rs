@@ -10,6 +10,7 @@ use bwm_model::FlowSchedule;
 use tch::{Kind, Tensor};
 
 use crate::config::{ObjectiveSection, TimestepSampling};
+use crate::devices::upload;
 use crate::keyed_rng::{self, Purpose};
 use crate::motion;
 
@@ -91,7 +92,7 @@ impl Objective {
         ensure!(noise.size() == s && history_noise.size() == s, "noise must have the latents' shape {s:?}");
         let clean = clean.to_kind(Kind::Float);
         let sigmas: Vec<f32> = tids.iter().map(|&i| self.schedule.sigmas[i] as f32).collect();
-        let sigma = Tensor::from_slice(&sigmas).to_device(clean.device()).view([b, 1, 1, 1, 1]);
+        let sigma = upload(&Tensor::from_slice(&sigmas), clean.device()).view([b, 1, 1, 1, 1]);
         let sh = self.history_sigma;
         let x0 = clean.narrow(2, 0, 1);
         let history = clean.narrow(2, 1, p - 1) * (1.0 - sh) + history_noise.narrow(2, 1, p - 1).to_kind(Kind::Float) * sh;
@@ -100,14 +101,14 @@ impl Objective {
         let noised = &future * (1.0 - &sigma) + &future_noise * &sigma;
         let input = Tensor::cat(&[x0, history, noised], 2);
         let t: Vec<f32> = tids.iter().map(|&i| self.schedule.timesteps[i] as f32).collect();
-        let t = Tensor::from_slice(&t).to_device(clean.device());
+        let t = upload(&Tensor::from_slice(&t), clean.device());
         let frame_timesteps = bwm_model::frame_timesteps(&t, f, p);
         let w: Vec<f32> = tids.iter().map(|&i| self.schedule.weights[i] as f32).collect();
         Ok(Prepared {
             input,
             frame_timesteps,
             target: future_noise - future,
-            weights: Tensor::from_slice(&w).to_device(clean.device()),
+            weights: upload(&Tensor::from_slice(&w), clean.device()),
             cell_weights: (self.motion_weight > 0.0).then(|| self.cell_weights(&clean)),
             timestep_indices: tids.to_vec(),
         })

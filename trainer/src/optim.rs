@@ -76,6 +76,13 @@ pub struct AdamW {
 }
 
 /// The gradient a step updates from.
+/// A step between [`AdamW::begin_step`] and [`AdamW::finish_step`].
+pub struct BegunStep {
+    gradient: StepGradient,
+    /// The sum of the squares of the (reduced, undivided) gradient: one f64 on the device.
+    pub sum_of_squares: Tensor,
+}
+
 enum StepGradient {
     /// This rank's slice of the reduced fp32 accumulator.
     Flat(Tensor),
@@ -448,13 +455,23 @@ impl AdamW {
 
     /// One AdamW step on the gradients accumulated on every rank, divided by `grad_divisor`
     /// (micro-steps times ranks). Returns `None` (and drops the gradients) when their norm is not
-    /// finite; every rank takes the same decision.
+    /// finite; every rank takes the same decision. [`AdamW::begin_step`] then
+    /// [`AdamW::finish_step`], with the norm read in between.
     pub fn step(
         &mut self,
         grad_divisor: f64,
         comm: &mut dyn Collective,
     ) -> Result<Option<StepReport>> {
-        let scale = 1.0 / grad_divisor;
+        let begun = self.begin_step(comm)?;
+        let sq = begun.sum_of_squares.double_value(&[0]);
+        self.finish_step(begun, sq, grad_divisor, comm)
+    }
+
+    /// The first half of a step, without waiting for the device: the gradients reduced across
+    /// ranks and their sum of squares on the device. The caller reads it (with whatever else it
+    /// reads at the step's end, in one transfer) and passes it to [`AdamW::finish_step`], or drops
+    /// the step with [`AdamW::discard_grads`].
+    pub fn begin_step(&mut self, comm: &mut dyn Collective) -> Result<BegunStep> {
         let direct = match (self.pending.take(), &self.fused) {
             (Some(grads), Some(kernel)) => {
                 if self.table.is_none() {
@@ -475,12 +492,11 @@ impl AdamW {
                 None
             }
         };
-        let (g, sq) = match direct {
+        let (gradient, sum_of_squares) = match direct {
             Some((grads, sq)) => (StepGradient::Tensors(grads), sq),
             None => {
                 self.zero_unwritten();
                 let g = self.reduce(comm)?;
-                // Summed on the device: the one host sync of the step is reading the norm below.
                 let mut sq = Tensor::zeros([1], (Kind::Double, g.device()));
                 // One read of each chunk (its norm in fp32, squared and summed in f64): square().sum()
                 // made three passes over the 20 GB gradient of a 5B step.
@@ -494,7 +510,21 @@ impl AdamW {
                 (StepGradient::Flat(g), sq)
             }
         };
-        let grad_norm = sq.double_value(&[0]).sqrt() * scale;
+        Ok(BegunStep { gradient, sum_of_squares })
+    }
+
+    /// The second half of a step begun by [`AdamW::begin_step`], whose `sum_of_squares` the caller
+    /// read as `sq`.
+    pub fn finish_step(
+        &mut self,
+        begun: BegunStep,
+        sq: f64,
+        grad_divisor: f64,
+        comm: &mut dyn Collective,
+    ) -> Result<Option<StepReport>> {
+        let scale = 1.0 / grad_divisor;
+        let g = begun.gradient;
+        let grad_norm = sq.sqrt() * scale;
         if !grad_norm.is_finite() {
             self.discard_grads();
             return Ok(None);

@@ -15,7 +15,7 @@ use anyhow::{ensure, Result};
 use tch::{Device, Kind, Tensor};
 
 use crate::config::DitConfig;
-use crate::nn::{attention, layer_norm, modulate, AffineLayerNorm, Linear, RmsNorm};
+use crate::nn::{attention, frame_addcmul, layer_norm, modulate, AffineLayerNorm, Linear, RmsNorm};
 use crate::rope::Rope;
 use crate::vb::{Init, Vb};
 use crate::weights::WeightsError;
@@ -109,7 +109,7 @@ impl Block {
     }
 
     /// x: tokens [B, L, D] of the residual stream (fp32 or the parameters' dtype, see
-    /// `WanDit::residual`) -> tokens of the same dtype. Each gate and residual add is one `addcmul`.
+    /// `WanDit::residual`) -> tokens of the same dtype. Each gate and residual add is one multiply-add.
     pub fn forward(&self, x: &Tensor, cond: &Conditioning) -> Tensor {
         let (b, l, d) = x.size3().expect("[B, L, D]");
         let f = cond.e0.size()[1];
@@ -122,14 +122,14 @@ impl Block {
 
         let h = modulate(&per_frame(&layer_norm(x, None, self.eps)), &m[0], &m[1]);
         let y = self.self_attn.self_attention(&tokens(h), &cond.rope);
-        let x = tokens(per_frame(x).addcmul(&per_frame(&y), &m[2]));
+        let x = tokens(frame_addcmul(&per_frame(x), &per_frame(&y), &m[2]));
 
         let y = self.cross_attn.cross_attention(&self.norm3.forward(&x), &cond.context, cond.cross_rope.as_ref());
         let x = &x + y;
 
         let h = tokens(modulate(&per_frame(&layer_norm(&x, None, self.eps)), &m[3], &m[4]));
         let y = self.ffn.l2.forward(&self.ffn.l0.forward(&h).gelu("tanh"));
-        tokens(per_frame(&x).addcmul(&per_frame(&y), &m[5]))
+        tokens(frame_addcmul(&per_frame(&x), &per_frame(&y), &m[5]))
     }
 }
 

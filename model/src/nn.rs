@@ -120,5 +120,15 @@ pub fn attention(q: &Tensor, k: &Tensor, v: &Tensor, num_heads: i64) -> Tensor {
 
 /// `x * (1 + scale) + shift`, one kernel over x (`shift` and `scale` broadcast).
 pub fn modulate(x: &Tensor, shift: &Tensor, scale: &Tensor) -> Tensor {
-    shift.addcmul(x, &(scale + 1.0))
+    frame_addcmul(shift, x, &(scale + 1.0))
+}
+
+/// `a + b * c` with b [B, F, P, D], c [B, F, 1, D] and a either: on a CUDA device, where the three
+/// share a dtype, `bwm_fused_ops::frame_addcmul` (one pass each way; its backward sums c's
+/// gradient in fp32), else libtorch's broadcasting addcmul.
+pub fn frame_addcmul(a: &Tensor, b: &Tensor, c: &Tensor) -> Tensor {
+    if b.device().is_cuda() && bwm_fused_ops::frame_addcmul_takes(a, b, c) {
+        return bwm_fused_ops::frame_addcmul(a, b, c).expect("the frame multiply-add failed on operands it takes");
+    }
+    a.addcmul(b, c)
 }

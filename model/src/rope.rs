@@ -63,11 +63,11 @@ impl Rope {
 
     /// Rotates x [B, L, heads, head_dim] in fp32 and returns it in x's dtype: each pair
     /// (x0, x1) as the complex number x0 + i x1, times its rotation. On a CUDA device one kernel
-    /// reads and writes x once each way (`bwm_fused_rope`); on the CPU, or where that kernel cannot
+    /// reads and writes x once each way (`bwm_fused_ops::rotate`); on the CPU, or where that kernel cannot
     /// be compiled, the complex product of libtorch's tensors (three passes each way).
     pub fn apply(&self, x: &Tensor) -> Tensor {
-        if x.device().is_cuda() && bwm_fused_rope::available(x.device()) {
-            return bwm_fused_rope::rotate(x, &self.rotations).expect("the rotary kernel failed on the rotations made for x's token grid");
+        if x.device().is_cuda() && bwm_fused_ops::available(x.device()) {
+            return bwm_fused_ops::rotate(x, &self.rotations).expect("the rotary kernel failed on the rotations made for x's token grid");
         }
         self.apply_tensors(x)
     }

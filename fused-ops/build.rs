@@ -7,7 +7,7 @@ fn main() {
     let lib = std::env::var("DEP_TCH_LIBTORCH_LIB").expect("torch-sys did not report its libtorch (DEP_TCH_LIBTORCH_LIB)");
     let dir = std::path::Path::new(&lib);
     let cuda = bwm_libtorch_cc::cuda_include(dir).filter(|_| dir.join("libtorch_cuda.so").exists());
-    bwm_libtorch_cc::compile_with("src/rope.cpp", "bwm_fused_rope", cuda.as_deref(), if cuda.is_some() { &["BWM_CUDA"] } else { &[] });
+    bwm_libtorch_cc::compile_with("src/ops.cpp", "bwm_fused_ops", cuda.as_deref(), if cuda.is_some() { &["BWM_CUDA"] } else { &[] });
     if cuda.is_some() {
         println!("cargo:rustc-link-search=native={lib}");
         println!("cargo:rustc-link-lib=dylib=c10_cuda");

@@ -1,0 +1,236 @@
+//! The CUDA kernels, compiled with NVRTC once per device and launched on the stream
+//! the C++ side reports as libtorch's current one (so that they also run inside a CUDA graph's
+//! capture).
+
+use std::ffi::c_void;
+use std::sync::{Arc, Mutex, OnceLock};
+
+use anyhow::{anyhow, ensure, Context, Result};
+use cudarc::driver::{CudaContext, CudaFunction, CudaModule};
+
+use crate::{FrameShape, Shape};
+
+/// One block per token. Where a head's pairs are a multiple of 4, each thread reads and writes 4
+/// pairs at once (16 bytes of bf16); else one pair.
+const SOURCE: &str = r#"
+// fp32 -> bf16, rounding to nearest even (as c10::BFloat16 and __float2bfloat16_rn).
+__device__ unsigned short to_bf16(float x) {
+  unsigned int u = __float_as_uint(x);
+  if ((u & 0x7fffffffu) > 0x7f800000u) return (unsigned short)((u >> 16) | 0x40u);
+  return (unsigned short)((u + 0x7fffu + ((u >> 16) & 1u)) >> 16);
+}
+
+__device__ __forceinline__ void load(const float* x, long long g, int n, float* v) {
+  if (n == 4) {
+    float4 a = ((const float4*)x)[2 * g], b = ((const float4*)x)[2 * g + 1];
+    v[0] = a.x; v[1] = a.y; v[2] = a.z; v[3] = a.w; v[4] = b.x; v[5] = b.y; v[6] = b.z; v[7] = b.w;
+  } else {
+    float2 a = ((const float2*)x)[g];
+    v[0] = a.x; v[1] = a.y;
+  }
+}
+
+__device__ __forceinline__ void load(const unsigned short* x, long long g, int n, float* v) {
+  if (n == 4) {
+    uint4 u = ((const uint4*)x)[g];
+    unsigned int w[4] = {u.x, u.y, u.z, u.w};
+    for (int h = 0; h < 4; h++) {
+      v[2 * h] = __uint_as_float(w[h] << 16);
+      v[2 * h + 1] = __uint_as_float(w[h] & 0xffff0000u);
+    }
+  } else {
+    unsigned int u = ((const unsigned int*)x)[g];
+    v[0] = __uint_as_float(u << 16);
+    v[1] = __uint_as_float(u & 0xffff0000u);
+  }
+}
+
+__device__ __forceinline__ void store(float* out, long long g, int n, const float* v) {
+  if (n == 4) {
+    ((float4*)out)[2 * g] = make_float4(v[0], v[1], v[2], v[3]);
+    ((float4*)out)[2 * g + 1] = make_float4(v[4], v[5], v[6], v[7]);
+  } else {
+    ((float2*)out)[g] = make_float2(v[0], v[1]);
+  }
+}
+
+__device__ __forceinline__ void store(unsigned short* out, long long g, int n, const float* v) {
+  unsigned int w[4];
+  for (int h = 0; h < n; h++) w[h] = (unsigned int)to_bf16(v[2 * h]) | ((unsigned int)to_bf16(v[2 * h + 1]) << 16);
+  if (n == 4) {
+    ((uint4*)out)[g] = make_uint4(w[0], w[1], w[2], w[3]);
+  } else {
+    ((unsigned int*)out)[g] = w[0];
+  }
+}
+
+// Token blockIdx.x's groups of N pairs: `groups` per token, `per_head` per head; its rotations are
+// row (token % len) of `rot`, pairs = per_head * N wide. sign -1 rotates back.
+template <typename T, int N>
+__device__ void rotate(const T* x, const float2* rot, T* out, int len, int groups, int per_head, float sign) {
+  long long token = blockIdx.x;
+  const float2* r = rot + (long long)(token % len) * per_head * N;
+  for (int j = threadIdx.x; j < groups; j += blockDim.x) {
+    long long g = token * groups + j;
+    const float2* rj = r + (j % per_head) * N;
+    float v[2 * N];
+    load(x, g, N, v);
+    for (int h = 0; h < N; h++) {
+      float c = rj[h].x, s = sign * rj[h].y, a = v[2 * h], b = v[2 * h + 1];
+      v[2 * h] = a * c - b * s;
+      v[2 * h + 1] = a * s + b * c;
+    }
+    store(out, g, N, v);
+  }
+}
+
+// Every parameter is 64 bits wide (the launcher passes an array of u64).
+#define ARGS(T) const T* x, const float2* rot, T* out, long long len, long long groups, long long per_head, long long inverse
+#define CALL(T, N) rotate<T, N>(x, rot, out, (int)len, (int)groups, (int)per_head, inverse ? -1.0f : 1.0f)
+extern "C" __global__ void rope_f32_4(ARGS(float)) { CALL(float, 4); }
+extern "C" __global__ void rope_f32_1(ARGS(float)) { CALL(float, 1); }
+extern "C" __global__ void rope_bf16_4(ARGS(unsigned short)) { CALL(unsigned short, 4); }
+extern "C" __global__ void rope_bf16_1(ARGS(unsigned short)) { CALL(unsigned short, 1); }
+
+// a + b * c over `frames` frames of `rows` rows of 8 * dim8 channels, 8 channels per thread; c (and
+// a where a_per_frame) hold one row per frame.
+template <typename T>
+__device__ void frame_forward(const T* a, long long a_per_frame, const T* b, const T* c, T* out, long long frames, long long rows, long long dim8) {
+  long long groups = frames * rows * dim8;
+  for (long long i = blockIdx.x * (long long)blockDim.x + threadIdx.x; i < groups; i += (long long)gridDim.x * blockDim.x) {
+    long long row = i / dim8, d8 = i - row * dim8;
+    long long ci = (row / rows) * dim8 + d8;
+    float av[8], bv[8], cv[8];
+    load(a, a_per_frame ? ci : i, 4, av);
+    load(b, i, 4, bv);
+    load(c, ci, 4, cv);
+    for (int k = 0; k < 8; k++) av[k] = av[k] + bv[k] * cv[k];
+    store(out, i, 4, av);
+  }
+}
+
+// The backward of a + b * c from the output's gradient g: db = g * c, and the sums of g * b and of
+// g (where pa is not null) over each run of `run` rows of a frame (block (frame, run)) in fp32,
+// [frames, runs, 8 * dim8]; the caller sums the runs.
+template <typename T>
+__device__ void frame_backward(const T* g, const T* b, const T* c, T* db, float* pc, float* pa, long long rows, long long dim8, long long run) {
+  long long frame = blockIdx.x;
+  long long r0 = blockIdx.y * run, r1 = min(rows, r0 + run);
+  for (long long d8 = threadIdx.x; d8 < dim8; d8 += blockDim.x) {
+    float cv[8], sc[8], sa[8];
+    load(c, frame * dim8 + d8, 4, cv);
+    for (int k = 0; k < 8; k++) { sc[k] = 0.0f; sa[k] = 0.0f; }
+    for (long long r = r0; r < r1; r++) {
+      long long i = (frame * rows + r) * dim8 + d8;
+      float gv[8], bv[8], out[8];
+      load(g, i, 4, gv);
+      load(b, i, 4, bv);
+      for (int k = 0; k < 8; k++) {
+        out[k] = gv[k] * cv[k];
+        sc[k] = sc[k] + gv[k] * bv[k];
+        sa[k] = sa[k] + gv[k];
+      }
+      store(db, i, 4, out);
+    }
+    long long p = ((frame * gridDim.y + blockIdx.y) * dim8 + d8) * 8;
+    for (int k = 0; k < 8; k++) pc[p + k] = sc[k];
+    if (pa) for (int k = 0; k < 8; k++) pa[p + k] = sa[k];
+  }
+}
+
+#define FWD(T) const T* a, long long a_per_frame, const T* b, const T* c, T* out, long long frames, long long rows, long long dim8
+#define BWD(T) const T* g, const T* b, const T* c, T* db, float* pc, float* pa, long long rows, long long dim8, long long run
+extern "C" __global__ void frame_forward_f32(FWD(float)) { frame_forward<float>(a, a_per_frame, b, c, out, frames, rows, dim8); }
+extern "C" __global__ void frame_forward_bf16(FWD(unsigned short)) { frame_forward<unsigned short>(a, a_per_frame, b, c, out, frames, rows, dim8); }
+extern "C" __global__ void frame_backward_f32(BWD(float)) { frame_backward<float>(g, b, c, db, pc, pa, rows, dim8, run); }
+extern "C" __global__ void frame_backward_bf16(BWD(unsigned short)) { frame_backward<unsigned short>(g, b, c, db, pc, pa, rows, dim8, run); }
+"#;
+
+pub(crate) struct Kernels {
+    ctx: Arc<CudaContext>,
+    // Holds the functions' module loaded.
+    _module: Arc<CudaModule>,
+    /// [f32, bf16] x [one pair, four pairs] per thread.
+    rope: [[CudaFunction; 2]; 2],
+    /// [f32, bf16].
+    frame_forward: [CudaFunction; 2],
+    frame_backward: [CudaFunction; 2],
+}
+
+impl Kernels {
+    /// The kernels of CUDA device `index`, compiled at first use; the error (NVRTC missing, ...)
+    /// is kept and repeated.
+    pub(crate) fn for_device(index: usize) -> Result<Arc<Kernels>> {
+        type Cache = Mutex<Vec<(usize, Result<Arc<Kernels>, String>)>>;
+        static CACHE: OnceLock<Cache> = OnceLock::new();
+        let mut cache = CACHE.get_or_init(Default::default).lock().map_err(|_| anyhow!("the fused kernels' cache is poisoned"))?;
+        if let Some((_, k)) = cache.iter().find(|(i, _)| *i == index) {
+            return k.clone().map_err(|e| anyhow!(e));
+        }
+        let made = Self::compile(index).map(Arc::new).map_err(|e| format!("{e:#}"));
+        cache.push((index, made.clone()));
+        made.map_err(|e| anyhow!(e))
+    }
+
+    fn compile(index: usize) -> Result<Kernels> {
+        // SAFETY: probing a shared library by name.
+        ensure!(unsafe { cudarc::nvrtc::sys::is_culib_present() }, "NVRTC (libnvrtc.so) is not on the library path");
+        // No multiply-add contraction: each product rounds as the CPU arithmetic's does.
+        let options = cudarc::nvrtc::CompileOptions { fmad: Some(false), ..Default::default() };
+        let ptx = cudarc::nvrtc::compile_ptx_with_opts(SOURCE, options).context("compiling the fused kernels with NVRTC")?;
+        let ctx = CudaContext::new(index).context("binding the CUDA context")?;
+        let module = ctx.load_module(ptx).context("loading the fused kernels")?;
+        let function = |name: &str| module.load_function(name).with_context(|| format!("the fused kernel {name}"));
+        Ok(Kernels {
+            rope: [[function("rope_f32_1")?, function("rope_f32_4")?], [function("rope_bf16_1")?, function("rope_bf16_4")?]],
+            frame_forward: [function("frame_forward_f32")?, function("frame_forward_bf16")?],
+            frame_backward: [function("frame_backward_f32")?, function("frame_backward_bf16")?],
+            ctx,
+            _module: module,
+        })
+    }
+
+    /// Launches `f` on `stream` (a CUstream) with `args`, each 64 bits wide as the kernels declare
+    /// them.
+    fn launch(&self, f: &CudaFunction, stream: *mut c_void, grid: (u32, u32), threads: u32, mut args: Vec<u64>) -> Result<()> {
+        self.ctx.bind_to_thread().context("binding the CUDA context")?;
+        let mut params: Vec<*mut c_void> = args.iter_mut().map(|a| a as *mut u64 as *mut c_void).collect();
+        // SAFETY: the callers pass live contiguous device buffers of the sizes their kernels read and
+        // write (checked by the C++ side), used in order on libtorch's current stream, and one
+        // 64-bit value per kernel parameter.
+        unsafe { cudarc::driver::result::launch_kernel(f.cu_function(), (grid.0, grid.1, 1), (threads, 1, 1), 0, stream as cudarc::driver::sys::CUstream, &mut params) }
+            .context("launching a fused kernel")
+    }
+
+    /// Rotates x into out (device addresses of contiguous buffers of `s`'s pairs, bf16 or f32)
+    /// by the complex64 table at `rotations`: one block per token.
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn rotate(&self, stream: *mut c_void, bf16: bool, x: u64, rotations: u64, out: u64, s: Shape, inverse: bool) -> Result<()> {
+        let n = if s.pairs % 4 == 0 { 4 } else { 1 };
+        let (groups, per_head) = (s.heads * s.pairs / n, s.pairs / n);
+        ensure!(groups <= i32::MAX as i64 && s.len <= i32::MAX as i64, "rotary kernel: too many pairs per token or tokens");
+        let blocks = u32::try_from(s.tokens).ok().filter(|&b| b < 1 << 31).context("rotary kernel: too many tokens for one launch")?;
+        let threads = (groups as u32).div_ceil(32).clamp(1, 4) * 32;
+        let f = &self.rope[bf16 as usize][(n == 4) as usize];
+        self.launch(f, stream, (blocks, 1), threads, vec![x, rotations, out, s.len as u64, groups as u64, per_head as u64, inverse as u64])
+    }
+
+    /// out = a + b * c; `buffers` = [a, b, c, out].
+    pub(crate) fn frame_forward(&self, stream: *mut c_void, bf16: bool, buffers: [u64; 4], a_per_frame: bool, s: FrameShape) -> Result<()> {
+        let groups = (s.frames * s.rows * s.dim / 8) as u64;
+        let blocks = groups.div_ceil(256).clamp(1, 132 * 16) as u32;
+        let [a, b, c, out] = buffers;
+        self.launch(&self.frame_forward[bf16 as usize], stream, (blocks, 1), 256, vec![a, a_per_frame as u64, b, c, out, s.frames as u64, s.rows as u64, s.dim as u64 / 8])
+    }
+
+    /// db = g * c and the runs' partial sums of g * b (and of g unless that address is 0);
+    /// `buffers` = [g, b, c, db, partial sums of g * b, partial sums of g].
+    pub(crate) fn frame_backward(&self, stream: *mut c_void, bf16: bool, buffers: [u64; 6], s: FrameShape) -> Result<()> {
+        let runs = (s.rows + s.rows_per_sum - 1) / s.rows_per_sum;
+        let frames = u32::try_from(s.frames).ok().filter(|&f| f < 1 << 31).context("frame kernel: too many frames for one launch")?;
+        let runs = u32::try_from(runs).ok().filter(|&r| r < 65_536).context("frame kernel: too many rows per frame for one launch")?;
+        let threads = ((s.dim / 8) as u32).div_ceil(32).clamp(1, 16) * 32;
+        let [g, b, c, db, pc, pa] = buffers;
+        self.launch(&self.frame_backward[bf16 as usize], stream, (frames, runs), threads, vec![g, b, c, db, pc, pa, s.rows as u64, s.dim as u64 / 8, s.rows_per_sum as u64])
+    }
+}

@@ -1,0 +1,405 @@
+//! The DiT's element-wise steps that libtorch runs as several passes over the tokens, each as one
+//! pass each way, as autograd functions (libtorch's autograd takes no custom backward from tch, so
+//! they are C++: src/ops.cpp; the passes are this crate's: CUDA kernels compiled with NVRTC at first
+//! use, src/kernel.rs):
+//! - [`rotate`], Wan's rotary embedding. The tensor path (`x.to_kind(f32)`, a complex product, the
+//!   cast back) makes three passes over q and k each way and holds them in fp32 in between; here
+//!   each pair (x0, x1) is read once in its own dtype, rotated in fp32 and written once, and the
+//!   backward pass rotates the incoming gradient back. On the CPU the same arithmetic is a loop.
+//! - [`frame_addcmul`], a + b * c with c (and a, for the modulation's shift) one value per frame
+//!   and channel: the modulation and the gates. libtorch broadcasts c through its unvectorized
+//!   kernel, and its backward makes the product g * b in bf16, then sums it in another pass; here
+//!   the backward reads g and b once, writes b's gradient and sums c's (and a's) in fp32. On the
+//!   CPU the same arithmetic is libtorch's tensors in fp32.
+
+mod kernel;
+
+use std::ffi::{c_char, c_int, c_void, CStr};
+use std::sync::Once;
+
+use anyhow::{bail, Result};
+use tch::{Device, Kind, Tensor};
+use torch_sys::C_tensor;
+
+type RopePass = extern "C" fn(*mut c_void, c_int, c_int, *const c_void, *const c_void, *mut c_void, i64, i64, i64, i64, c_int, *mut c_char, usize) -> c_int;
+type FramePass = extern "C" fn(*mut c_void, c_int, c_int, *const c_void, c_int, *const c_void, *const c_void, *mut c_void, *const c_void, *const c_void, *const c_void, *mut c_void, *mut f32, *mut f32, i64, i64, i64, i64, *mut c_char, usize) -> c_int;
+
+extern "C" {
+    fn bwm_fused_ops_set_passes(rope: RopePass, frame: FramePass);
+    fn bwm_fused_rope(x: *const C_tensor, rotations: *const C_tensor, out: *mut *mut C_tensor) -> *const c_char;
+    fn bwm_fused_frame_addcmul(a: *const C_tensor, b: *const C_tensor, c: *const C_tensor, out: *mut *mut C_tensor) -> *const c_char;
+}
+
+/// Whether the operations run on `device`: always on the CPU; on a CUDA device once its kernels
+/// compiled (NVRTC must be on the library path).
+pub fn available(device: Device) -> bool {
+    match device {
+        Device::Cpu => true,
+        Device::Cuda(index) => kernel::Kernels::for_device(index).is_ok(),
+        _ => false,
+    }
+}
+
+/// Calls a C++ entry point that writes a new tensor or returns an error message.
+fn call(what: &str, f: impl FnOnce(*mut *mut C_tensor) -> *const c_char) -> Result<Tensor> {
+    static SET: Once = Once::new();
+    // SAFETY: hands the C++ side functions of the signatures it declares.
+    SET.call_once(|| unsafe { bwm_fused_ops_set_passes(rope_pass, frame_pass) });
+    let mut out: *mut C_tensor = std::ptr::null_mut();
+    let err = f(&mut out);
+    if !err.is_null() {
+        bail!("{what}: {}", unsafe { CStr::from_ptr(err) }.to_string_lossy());
+    }
+    // SAFETY: on success the C++ side wrote a new at::Tensor*, which this takes ownership of.
+    Ok(unsafe { Tensor::from_ptr(out) })
+}
+
+/// x [B, L, heads, head_dim] (f32 or bf16) with each channel pair (2j, 2j+1) of token l rotated
+/// by `rotations` [L, 1, head_dim / 2] (complex64) as (x0 + i x1) r, computed in fp32 and returned
+/// in x's dtype; differentiable in x.
+pub fn rotate(x: &Tensor, rotations: &Tensor) -> Result<Tensor> {
+    // SAFETY: both pointers are live tch tensors (at::Tensor*).
+    call("rotary embedding", |out| unsafe { bwm_fused_rope(x.as_ptr(), rotations.as_ptr(), out) })
+}
+
+/// a + b * c computed in fp32 and returned in their dtype (f32 or bf16, the same for all three):
+/// b [B, F, P, D] (F frames of P tokens), c [B, F, 1, D], a either b's shape (a gate's residual)
+/// or c's (the modulation's shift); D a multiple of 8. Differentiable in a, b and c.
+pub fn frame_addcmul(a: &Tensor, b: &Tensor, c: &Tensor) -> Result<Tensor> {
+    // SAFETY: the pointers are live tch tensors (at::Tensor*).
+    call("frame multiply-add", |out| unsafe { bwm_fused_frame_addcmul(a.as_ptr(), b.as_ptr(), c.as_ptr(), out) })
+}
+
+/// Whether [`frame_addcmul`] takes these operands (shapes, one dtype of f32 or bf16, one device
+/// where [`available`]).
+pub fn frame_addcmul_takes(a: &Tensor, b: &Tensor, c: &Tensor) -> bool {
+    let s = b.size();
+    let kind = b.kind();
+    s.len() == 4
+        && s[3] % 8 == 0
+        && c.size() == [s[0], s[1], 1, s[3]]
+        && (a.size() == s || a.size() == c.size())
+        && matches!(kind, Kind::Float | Kind::BFloat16)
+        && a.kind() == kind
+        && c.kind() == kind
+        && a.device() == b.device()
+        && c.device() == b.device()
+        && available(b.device())
+}
+
+/// The shape of one pass: `tokens` rows (B * L) of `heads` heads of `pairs` pairs; token t's
+/// rotations are row t % `len` of the table.
+#[derive(Clone, Copy)]
+struct Shape {
+    tokens: i64,
+    len: i64,
+    heads: i64,
+    pairs: i64,
+}
+
+/// Writes `e` into the C++ side's error buffer of err_len + 1 zeroed bytes; returns 1.
+fn report(e: anyhow::Error, err: *mut c_char, err_len: usize) -> c_int {
+    let message = format!("{e:#}");
+    let n = message.len().min(err_len);
+    // SAFETY: `err` holds err_len + 1 zeroed bytes (src/ops.cpp); at most err_len are written.
+    unsafe { std::ptr::copy_nonoverlapping(message.as_ptr(), err as *mut u8, n) };
+    1
+}
+
+/// The rotation's pass the C++ side calls (`RopePass` in src/ops.cpp), which has checked the
+/// shapes, dtypes, contiguity, alignment and devices.
+extern "C" fn rope_pass(stream: *mut c_void, device: c_int, dtype: c_int, x: *const c_void, rotations: *const c_void, out: *mut c_void, tokens: i64, len: i64, heads: i64, pairs: i64, inverse: c_int, err: *mut c_char, err_len: usize) -> c_int {
+    let shape = Shape { tokens, len, heads, pairs };
+    let bf16 = dtype == 1;
+    if device < 0 {
+        cpu_rotate(bf16, x, rotations, out, shape, inverse != 0);
+        return 0;
+    }
+    match kernel::Kernels::for_device(device as usize).and_then(|k| k.rotate(stream, bf16, x as u64, rotations as u64, out as u64, shape, inverse != 0)) {
+        Ok(()) => 0,
+        Err(e) => report(e, err, err_len),
+    }
+}
+
+/// The frame operation's passes on CUDA (`FramePass` in src/ops.cpp: the forward when `a` is
+/// set, else the backward), checked there as the rotation's are.
+#[allow(clippy::too_many_arguments)]
+extern "C" fn frame_pass(
+    stream: *mut c_void,
+    device: c_int,
+    dtype: c_int,
+    a: *const c_void,
+    a_per_frame: c_int,
+    b: *const c_void,
+    c: *const c_void,
+    out: *mut c_void,
+    g: *const c_void,
+    gb: *const c_void,
+    gc: *const c_void,
+    db: *mut c_void,
+    partial_c: *mut f32,
+    partial_a: *mut f32,
+    frames: i64,
+    rows: i64,
+    dim: i64,
+    rows_per_sum: i64,
+    err: *mut c_char,
+    err_len: usize,
+) -> c_int {
+    let shape = FrameShape { frames, rows, dim, rows_per_sum };
+    let bf16 = dtype == 1;
+    let result = if device < 0 {
+        Err(anyhow::anyhow!("the frame operation's CPU pass is libtorch's"))
+    } else {
+        kernel::Kernels::for_device(device as usize).and_then(|k| {
+            if !a.is_null() {
+                k.frame_forward(stream, bf16, [a as u64, b as u64, c as u64, out as u64], a_per_frame != 0, shape)
+            } else {
+                k.frame_backward(stream, bf16, [g as u64, gb as u64, gc as u64, db as u64, partial_c as u64, partial_a as u64], shape)
+            }
+        })
+    };
+    match result {
+        Ok(()) => 0,
+        Err(e) => report(e, err, err_len),
+    }
+}
+
+/// The frame operation's shape: `frames` (B * F) of `rows` tokens (P) of `dim` channels (D); the
+/// backward sums each frame's rows in runs of `rows_per_sum`.
+#[derive(Clone, Copy)]
+struct FrameShape {
+    frames: i64,
+    rows: i64,
+    dim: i64,
+    rows_per_sum: i64,
+}
+
+fn from_bf16(h: u16) -> f32 {
+    f32::from_bits((h as u32) << 16)
+}
+
+/// fp32 -> bf16 rounding to nearest even, as the kernel and c10::BFloat16 round.
+fn to_bf16(x: f32) -> u16 {
+    let u = x.to_bits();
+    if u & 0x7fff_ffff > 0x7f80_0000 {
+        return ((u >> 16) | 0x40) as u16;
+    }
+    ((u + 0x7fff + ((u >> 16) & 1)) >> 16) as u16
+}
+
+/// The rotation kernel's arithmetic on the CPU, pair by pair.
+fn cpu_rotate(bf16: bool, x: *const c_void, rotations: *const c_void, out: *mut c_void, s: Shape, inverse: bool) {
+    let n = (s.tokens * s.heads * s.pairs) as usize;
+    // SAFETY: the C++ side passes contiguous buffers of 2n elements of x's dtype (x, out) and
+    // len * pairs complex64 values (the rotations), which outlive this call.
+    let r = unsafe { std::slice::from_raw_parts(rotations as *const [f32; 2], (s.len * s.pairs) as usize) };
+    let load = |i: usize| -> [f32; 2] {
+        unsafe {
+            if bf16 {
+                let p = x as *const u16;
+                [from_bf16(*p.add(2 * i)), from_bf16(*p.add(2 * i + 1))]
+            } else {
+                let p = x as *const f32;
+                [*p.add(2 * i), *p.add(2 * i + 1)]
+            }
+        }
+    };
+    for i in 0..n {
+        let pair = i as i64 % s.pairs;
+        let token = i as i64 / (s.pairs * s.heads);
+        let [c, mut sn] = r[((token % s.len) * s.pairs + pair) as usize];
+        if inverse {
+            sn = -sn;
+        }
+        let [a, b] = load(i);
+        let (y0, y1) = (a * c - b * sn, a * sn + b * c);
+        unsafe {
+            if bf16 {
+                let p = out as *mut u16;
+                *p.add(2 * i) = to_bf16(y0);
+                *p.add(2 * i + 1) = to_bf16(y1);
+            } else {
+                let p = out as *mut f32;
+                *p.add(2 * i) = y0;
+                *p.add(2 * i + 1) = y1;
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tch::Kind;
+
+    /// The tensor path this replaces (`bwm_model::rope::Rope::apply` before it): pairs as complex
+    /// numbers in fp32, times the rotations, cast back.
+    fn tensor_path(x: &Tensor, rotations: &Tensor) -> Tensor {
+        let s = x.size();
+        let pairs = x.to_kind(Kind::Float).view([s[0], s[1], s[2], s[3] / 2, 2]).view_as_complex();
+        (pairs * rotations).view_as_real().view(s.as_slice()).to_kind(x.kind())
+    }
+
+    fn rotations(len: i64, pairs: i64, device: Device) -> Tensor {
+        let angle = Tensor::rand([len, 1, pairs], (Kind::Float, device)) * 6.3;
+        Tensor::complex(&angle.cos(), &angle.sin())
+    }
+
+    /// Forward and gradient against the tensor path for shapes of 1 and 4 pairs per thread,
+    /// returning the largest differences (forward, gradient) relative to the values' largest.
+    fn compare(device: Device, kind: Kind, shape: [i64; 4]) -> (f64, f64) {
+        tch::manual_seed(7);
+        let [b, l, n, d] = shape;
+        let r = rotations(l, d / 2, device);
+        let x0 = Tensor::randn(shape, (Kind::Float, device)).to_kind(kind);
+        let up = Tensor::randn(shape, (Kind::Float, device));
+        let run = |f: &dyn Fn(&Tensor) -> Tensor| {
+            let x = x0.copy().set_requires_grad(true);
+            let y = f(&x);
+            (y.to_kind(Kind::Float) * &up).sum(Kind::Float).backward();
+            (y.detach().to_kind(Kind::Float), x.grad().to_kind(Kind::Float))
+        };
+        let (y, g) = run(&|x| {
+            let y = rotate(x, &r).unwrap();
+            assert_eq!((y.size(), y.kind(), y.device()), (vec![b, l, n, d], kind, device));
+            y
+        });
+        let (y0, g0) = run(&|x| tensor_path(x, &r));
+        let rel = |a: &Tensor, b: &Tensor| (a - b).abs().max().double_value(&[]) / b.abs().max().double_value(&[]);
+        (rel(&y, &y0), rel(&g, &g0))
+    }
+
+    #[test]
+    fn rotates_and_rotates_back_as_the_tensor_path_on_the_cpu() {
+        // head_dim 16: 8 pairs, four at a time on CUDA; head_dim 6: 3 pairs, one at a time.
+        for shape in [[2, 5, 3, 16], [1, 7, 2, 6]] {
+            let (y, g) = compare(Device::Cpu, Kind::Float, shape);
+            assert!(y < 1e-6 && g < 1e-6, "{shape:?} f32: forward {y:e}, gradient {g:e}");
+            // bf16 out: both round the same fp32 value once.
+            let (y, g) = compare(Device::Cpu, Kind::BFloat16, shape);
+            assert!(y < 1e-2 && g < 1e-2, "{shape:?} bf16: forward {y:e}, gradient {g:e}");
+        }
+    }
+
+    #[test]
+    fn the_rotation_is_undone_by_its_backward() {
+        // A rotation's gradient is the inverse rotation: y's gradient rotated back is x's.
+        let r = rotations(4, 4, Device::Cpu);
+        let x = Tensor::randn([1, 4, 2, 8], (Kind::Float, Device::Cpu)).set_requires_grad(true);
+        let y = rotate(&x, &r).unwrap();
+        (&y * y.detach()).sum(Kind::Float).backward();
+        let back = x.grad();
+        assert!((&back - x.detach()).abs().max().double_value(&[]) < 1e-6, "rotating back did not give x");
+    }
+
+    #[test]
+    fn bad_shapes_are_errors() {
+        let r = rotations(4, 4, Device::Cpu);
+        let err = |x: Tensor, r: &Tensor| format!("{:#}", rotate(&x, r).unwrap_err());
+        let x = |s: [i64; 4]| Tensor::zeros(s, (Kind::Float, Device::Cpu));
+        assert!(err(x([1, 5, 2, 8]), &r).contains("values for 5 tokens"), "{}", err(x([1, 5, 2, 8]), &r));
+        assert!(err(x([1, 4, 2, 7]), &r).contains("must be even"));
+        assert!(err(Tensor::zeros([4, 8], (Kind::Float, Device::Cpu)), &r).contains("[B, L, heads, head_dim]"));
+        assert!(err(x([1, 4, 2, 8]).to_kind(Kind::Half), &r).contains("f32 or bf16"));
+        assert!(err(x([1, 4, 2, 8]), &r.real()).contains("complex64"));
+    }
+
+    /// On a GPU (`bash scripts/gpu/unit.sh fused`): the kernels against the tensor path, and bit
+    /// for bit against the CPU loop (both without multiply-add contraction).
+    #[test]
+    #[ignore = "needs a CUDA device"]
+    fn the_kernels_rotate_as_the_tensor_path_and_the_cpu_loop_on_cuda() {
+        let device = Device::Cuda(0);
+        assert!(available(device), "{:#}", kernel::Kernels::for_device(0).err().map(|e| e.to_string()).unwrap_or_default());
+        for shape in [[2, 5, 3, 16], [1, 7, 2, 6], [1, 300, 24, 128]] {
+            let (y, g) = compare(device, Kind::Float, shape);
+            assert!(y < 1e-6 && g < 1e-6, "{shape:?} f32: forward {y:e}, gradient {g:e}");
+            let (y, g) = compare(device, Kind::BFloat16, shape);
+            assert!(y < 1e-2 && g < 1e-2, "{shape:?} bf16: forward {y:e}, gradient {g:e}");
+            for kind in [Kind::Float, Kind::BFloat16] {
+                let [_, l, _, d] = shape;
+                let r = rotations(l, d / 2, device);
+                let x = Tensor::randn(shape, (Kind::Float, device)).to_kind(kind);
+                let on_gpu = rotate(&x, &r).unwrap().to_device(Device::Cpu);
+                let on_cpu = rotate(&x.to_device(Device::Cpu), &r.to_device(Device::Cpu)).unwrap();
+                assert!(on_gpu.equal(&on_cpu), "{shape:?} {kind:?}: the kernel and the CPU loop differ");
+            }
+        }
+        // Offset by one element: the C++ side copies to an aligned buffer first.
+        let r = rotations(3, 4, device);
+        let base = Tensor::randn([1 + 3 * 8], (Kind::BFloat16, device));
+        let x = base.narrow(0, 1, 24).view([1, 3, 1, 8]);
+        let diff = (rotate(&x, &r).unwrap().to_kind(Kind::Float) - tensor_path(&x, &r).to_kind(Kind::Float)).abs().max().double_value(&[]);
+        assert!(diff < 2e-2, "misaligned input: {diff}");
+    }
+
+    /// Forward, and the gradients of a, b and c, of `frame_addcmul` and of libtorch's addcmul on
+    /// the same operands (a whole or per frame); returns the largest differences relative to the
+    /// largest values of each.
+    fn frame_differences(device: Device, kind: Kind, shape: [i64; 4], a_whole: bool, against_cpu: bool) -> [f64; 4] {
+        tch::manual_seed(11);
+        let [b, f, _, d] = shape;
+        let per_frame = [b, f, 1, d];
+        let init = |s: &[i64]| Tensor::randn(s, (Kind::Float, device)).to_kind(kind);
+        let (a0, b0, c0) = (init(if a_whole { &shape } else { &per_frame }), init(&shape), init(&per_frame));
+        let up = Tensor::randn(shape, (Kind::Float, device));
+        let run = |on: Device, f: &dyn Fn(&Tensor, &Tensor, &Tensor) -> Tensor| {
+            let leaf = |t: &Tensor| t.to_device(on).copy().set_requires_grad(true);
+            let (a, b, c) = (leaf(&a0), leaf(&b0), leaf(&c0));
+            let y = f(&a, &b, &c);
+            (y.to_kind(Kind::Float) * up.to_device(on)).sum(Kind::Float).backward();
+            [y.detach(), a.grad(), b.grad(), c.grad()].map(|t| t.to_device(Device::Cpu).to_kind(Kind::Float))
+        };
+        let got = run(device, &|a, b, c| frame_addcmul(a, b, c).unwrap());
+        let want = if against_cpu { run(Device::Cpu, &|a, b, c| frame_addcmul(a, b, c).unwrap()) } else { run(device, &|a, b, c| a.addcmul(b, c)) };
+        std::array::from_fn(|i| (&got[i] - &want[i]).abs().max().double_value(&[]) / want[i].abs().max().double_value(&[]))
+    }
+
+    #[test]
+    fn the_frame_multiply_add_and_its_gradients_follow_addcmul_on_the_cpu() {
+        for a_whole in [true, false] {
+            let e = frame_differences(Device::Cpu, Kind::Float, [2, 3, 5, 16], a_whole, false);
+            assert!(e.iter().all(|&x| x < 1e-5), "f32, a whole {a_whole}: {e:?}");
+            // bf16: libtorch's backward rounds g * b to bf16 before summing; here it is summed in fp32.
+            let e = frame_differences(Device::Cpu, Kind::BFloat16, [2, 3, 5, 16], a_whole, false);
+            assert!(e.iter().all(|&x| x < 2e-2), "bf16, a whole {a_whole}: {e:?}");
+        }
+    }
+
+    #[test]
+    fn frame_operands_are_checked() {
+        let z = |s: &[i64], k: Kind| Tensor::zeros(s, (k, Device::Cpu));
+        let f = Kind::Float;
+        let err = |a: Tensor, b: Tensor, c: Tensor| {
+            assert!(!frame_addcmul_takes(&a, &b, &c));
+            format!("{:#}", frame_addcmul(&a, &b, &c).unwrap_err())
+        };
+        assert!(err(z(&[1, 2, 3, 8], f), z(&[1, 2, 3, 8], f), z(&[1, 2, 3, 8], f)).contains("c must be [1, 2, 1, 8]"));
+        assert!(err(z(&[1, 2, 2, 8], f), z(&[1, 2, 3, 8], f), z(&[1, 2, 1, 8], f)).contains("a must be"));
+        assert!(err(z(&[1, 2, 3, 6], f), z(&[1, 2, 3, 6], f), z(&[1, 2, 1, 6], f)).contains("multiple of 8"));
+        assert!(err(z(&[1, 2, 3, 8], f), z(&[1, 2, 3, 8], Kind::BFloat16), z(&[1, 2, 1, 8], f)).contains("share a dtype"));
+        assert!(frame_addcmul_takes(&z(&[1, 2, 1, 8], f), &z(&[1, 2, 3, 8], f), &z(&[1, 2, 1, 8], f)));
+    }
+
+    /// On a GPU (`bash scripts/gpu/unit.sh fused`): the frame kernels against the CPU arithmetic
+    /// (the forward and b's gradient bit for bit; the sums within their order's rounding) and
+    /// against libtorch's addcmul, at the 5B's width and at a width under one warp of threads.
+    #[test]
+    #[ignore = "needs a CUDA device"]
+    fn the_frame_kernels_follow_the_cpu_arithmetic_and_addcmul_on_cuda() {
+        let device = Device::Cuda(0);
+        assert!(available(device));
+        for (shape, kind) in [([2, 3, 37, 16], Kind::Float), ([2, 3, 37, 16], Kind::BFloat16), ([1, 21, 300, 3072], Kind::BFloat16)] {
+            for a_whole in [true, false] {
+                let e = frame_differences(device, kind, shape, a_whole, true);
+                assert!(e[0] == 0.0 && e[2] == 0.0, "{shape:?} {kind:?}, a whole {a_whole}: forward / b's gradient not bit for bit: {e:?}");
+                let bound = if kind == Kind::Float { 1e-5 } else { 1e-2 };
+                assert!(e[1] < bound && e[3] < bound, "{shape:?} {kind:?}, a whole {a_whole}: sums {e:?}");
+                let e = frame_differences(device, kind, shape, a_whole, false);
+                let bound = if kind == Kind::Float { 1e-5 } else { 2e-2 };
+                assert!(e.iter().all(|&x| x < bound), "{shape:?} {kind:?}, a whole {a_whole}, against addcmul: {e:?}");
+            }
+        }
+    }
+}

@@ -39,6 +39,23 @@ pub fn compile_with(source: &str, name: &str, include: Option<&Path>, defines: &
     build.compile(name);
 }
 
+/// [`compile_with`] for a shim that reaches libtorch's CUDA API where the libtorch torch-sys links
+/// has it (`libtorch_cuda.so` and CUDA's headers, [`cuda_include`]): compiled with `BWM_CUDA`
+/// defined and linked against `torch_cuda` and `c10_cuda`. Without them (a CPU-only libtorch) it
+/// is compiled without `BWM_CUDA`, for the shim to report that. Returns whether CUDA is in.
+pub fn compile_cuda_shim(source: &str, name: &str) -> bool {
+    let lib = std::env::var("DEP_TCH_LIBTORCH_LIB").expect("torch-sys did not report its libtorch (DEP_TCH_LIBTORCH_LIB)");
+    let dir = Path::new(&lib);
+    let cuda = cuda_include(dir).filter(|_| dir.join("libtorch_cuda.so").exists());
+    compile_with(source, name, cuda.as_deref(), if cuda.is_some() { &["BWM_CUDA"] } else { &[] });
+    if cuda.is_some() {
+        println!("cargo:rustc-link-search=native={lib}");
+        println!("cargo:rustc-link-lib=dylib=torch_cuda");
+        println!("cargo:rustc-link-lib=dylib=c10_cuda");
+    }
+    cuda.is_some()
+}
+
 /// The folder holding CUDA's runtime headers (`cuda_runtime_api.h` and the `crt/` headers it
 /// includes) for the libtorch in `lib`: `$CUDA_HOME/include`, else the wheels beside a PyPI torch
 /// (`nvidia/cu13/include` or, for CUDA 12, `nvidia/cuda_runtime/include`, when they hold `crt/`;

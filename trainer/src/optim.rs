@@ -75,7 +75,6 @@ pub struct AdamW {
     table: Option<GradTable>,
 }
 
-/// The gradient a step updates from.
 /// A step between [`AdamW::begin_step`] and [`AdamW::finish_step`].
 pub struct BegunStep {
     gradient: StepGradient,
@@ -83,6 +82,7 @@ pub struct BegunStep {
     pub sum_of_squares: Tensor,
 }
 
+/// The gradient a step updates from.
 enum StepGradient {
     /// This rank's slice of the reduced fp32 accumulator.
     Flat(Tensor),

@@ -146,6 +146,19 @@ extern "C" __global__ void frame_backward_f32(BWD(float)) { frame_backward<float
 extern "C" __global__ void frame_backward_bf16(BWD(unsigned short)) { frame_backward<unsigned short>(g, b, c, db, pc, pa, rows, dim8, run); }
 "#;
 
+/// `source` compiled with NVRTC without multiply-add contraction (each operation rounds on its
+/// own, as CPU arithmetic and libtorch's tensor operations do) and loaded on CUDA device `index`;
+/// `what` names it in errors.
+pub fn load_module(index: usize, source: &str, what: &str) -> Result<(Arc<CudaContext>, Arc<CudaModule>)> {
+    // SAFETY: probing a shared library by name.
+    ensure!(unsafe { cudarc::nvrtc::sys::is_culib_present() }, "NVRTC (libnvrtc.so) is not on the library path");
+    let options = cudarc::nvrtc::CompileOptions { fmad: Some(false), ..Default::default() };
+    let ptx = cudarc::nvrtc::compile_ptx_with_opts(source, options).with_context(|| format!("compiling {what} with NVRTC"))?;
+    let ctx = CudaContext::new(index).context("binding the CUDA context")?;
+    let module = ctx.load_module(ptx).with_context(|| format!("loading {what}"))?;
+    Ok((ctx, module))
+}
+
 pub(crate) struct Kernels {
     ctx: Arc<CudaContext>,
     // Holds the functions' module loaded.
@@ -173,13 +186,8 @@ impl Kernels {
     }
 
     fn compile(index: usize) -> Result<Kernels> {
-        // SAFETY: probing a shared library by name.
-        ensure!(unsafe { cudarc::nvrtc::sys::is_culib_present() }, "NVRTC (libnvrtc.so) is not on the library path");
-        // No multiply-add contraction: each product rounds as the CPU arithmetic's does.
-        let options = cudarc::nvrtc::CompileOptions { fmad: Some(false), ..Default::default() };
-        let ptx = cudarc::nvrtc::compile_ptx_with_opts(SOURCE, options).context("compiling the fused kernels with NVRTC")?;
-        let ctx = CudaContext::new(index).context("binding the CUDA context")?;
-        let module = ctx.load_module(ptx).context("loading the fused kernels")?;
+        // Without contraction each product rounds as the CPU arithmetic's does.
+        let (ctx, module) = load_module(index, SOURCE, "the fused kernels")?;
         let function = |name: &str| module.load_function(name).with_context(|| format!("the fused kernel {name}"));
         Ok(Kernels {
             rope: [[function("rope_f32_1")?, function("rope_f32_4")?], [function("rope_bf16_1")?, function("rope_bf16_4")?]],

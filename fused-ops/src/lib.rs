@@ -14,6 +14,8 @@
 
 mod kernel;
 
+pub use kernel::load_module;
+
 use std::ffi::{c_char, c_int, c_void, CStr};
 use std::sync::Once;
 

@@ -245,16 +245,11 @@ impl FusedAdamW {
             return Ok(k.clone());
         }
         crate::dist::ensure_torch_cuda_loaded()?;
-        // SAFETY: probing a shared library by name.
-        ensure!(unsafe { cudarc::nvrtc::sys::is_culib_present() }, "NVRTC (libnvrtc.so) is not on the library path");
-        // No multiply-add contraction: each operation rounds as the tensor path's do, and the
+        // Without multiply-add contraction: each operation rounds as the tensor path's do, and the
         // update's inlined copies cannot contract differently (with it, the vector loop's second
         // moment became fma(g, g(1-b2), v b2) and the element loop's fma(v, b2, g g(1-b2)), so an
         // element's update depended on its tensor's alignment).
-        let options = cudarc::nvrtc::CompileOptions { fmad: Some(false), ..Default::default() };
-        let ptx = cudarc::nvrtc::compile_ptx_with_opts(SOURCE, options).context("compiling the fused AdamW kernel with NVRTC")?;
-        let ctx = CudaContext::new(index).context("binding the CUDA context")?;
-        let module = ctx.load_module(ptx).context("loading the fused AdamW kernel")?;
+        let (ctx, module) = bwm_fused_ops::load_module(index, SOURCE, "the fused AdamW kernel")?;
         let function = |name: &str| module.load_function(name).with_context(|| format!("the fused AdamW kernel {name}"));
         let k = Arc::new(FusedAdamW {
             update: function("adamw_update")?,

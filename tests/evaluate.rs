@@ -81,18 +81,25 @@ fn pearson(x: &[f64], y: &[f64]) -> f64 {
 
 #[test]
 fn policies_are_evaluated_in_closed_loop_and_failed_episodes_are_reported() {
-    closed_loop_scenario(1);
+    closed_loop_scenario(1, 1);
 }
 
 /// The same evaluation with four episodes in flight: batches that mix policies, tasks and
 /// episodes that fail mid-way give every episode what it gets alone, recorded in the config's order.
 #[test]
 fn episodes_in_flight_together_give_what_each_gets_alone() {
-    closed_loop_scenario(4);
+    closed_loop_scenario(4, 1);
 }
 
-fn closed_loop_scenario(in_flight: usize) {
-    let dir = temp_dir(&format!("evaluate-{in_flight}"));
+/// Five episodes in flight in two lanes (three and two) that take turns, each lane's chunk
+/// queued before the other's is read back: the same records as one episode at a time.
+#[test]
+fn episodes_in_flight_in_two_streams_give_what_each_gets_alone() {
+    closed_loop_scenario(5, 2);
+}
+
+fn closed_loop_scenario(in_flight: usize, streams: usize) {
+    let dir = temp_dir(&format!("evaluate-{in_flight}-{streams}"));
     let vae = dir.join("vae.safetensors");
     write_random_vae(&vae, 4);
     let x0 = bwm_model::vb::with_seed(1, || Tensor::rand([3, 1, 32, 32], (Kind::Float, Device::Cpu))) * 2.0 - 1.0;
@@ -208,7 +215,7 @@ prompt = "stack the cube (drop)"
     let out = dir.join("out");
     let mut cmd = Command::new(bwm());
     cmd.arg("evaluate").arg("--config").arg(dir.join("eval.toml")).arg("--out").arg(&out);
-    cmd.arg("--episodes-in-flight").arg(in_flight.to_string());
+    cmd.arg("--episodes-in-flight").arg(in_flight.to_string()).arg("--streams").arg(streams.to_string());
     world_model_flags(&mut cmd, &vae);
     let t0 = Instant::now();
     let (ok, stdout, stderr) = run_limited(cmd, &dir, "evaluate", Duration::from_secs(240));
@@ -222,7 +229,7 @@ prompt = "stack the cube (drop)"
     }
     assert_eq!(stdout.matches("FAILED").count(), 6, "{stdout}");
     assert!(stdout.contains("server metadata"), "{stdout}");
-    assert!(stdout.contains(&format!("{in_flight} episode(s) in flight")), "{stdout}");
+    assert!(stdout.contains(&format!("{in_flight} episode(s) in flight in {streams} stream(s)")), "{stdout}");
 
     let records = read_jsonl(&out.join("episodes.jsonl"));
     assert_eq!(records.len(), 15);

@@ -76,10 +76,17 @@ fn fidelity_report_scores_rollouts_and_baselines_per_frame_and_horizon() {
     let videos: Vec<_> = std::fs::read_dir(out.join("videos")).unwrap().collect();
     assert_eq!(videos.len(), 1, "one side-by-side video per task (--videos 1)");
 
-    // Episodes rolled out two at a time (four rollouts per batch, then two) score what they score alone.
-    let together = fidelity(&["--vae", vae.to_str().unwrap(), "--data", data.to_str().unwrap(), "--out", dir.join("together").to_str().unwrap(), "--episodes-in-flight", "2"]);
-    assert!(together.status.success());
+    // Episodes rolled out two at a time (four rollouts, then two) in three lanes taking turns (two
+    // rollouts, one and one; then one and one) score what they score alone.
+    let together = fidelity(&[
+        "--vae", vae.to_str().unwrap(), "--data", data.to_str().unwrap(), "--out", dir.join("together").to_str().unwrap(), "--episodes-in-flight", "2", "--streams", "3",
+    ]);
+    assert!(together.status.success(), "{}", String::from_utf8_lossy(&together.stderr));
     assert!(String::from_utf8_lossy(&together.stdout).contains("for 2 episodes together"));
+    assert!(String::from_utf8_lossy(&together.stdout).contains("2 episode(s) in flight in 3 stream(s)"));
+    let too_many = fidelity(&["--vae", vae.to_str().unwrap(), "--data", data.to_str().unwrap(), "--out", dir.join("lanes").to_str().unwrap(), "--streams", "3"]);
+    assert!(!too_many.status.success());
+    assert!(String::from_utf8_lossy(&too_many.stderr).contains("2 episode(s) in flight cannot fill 3 streams"), "{}", String::from_utf8_lossy(&too_many.stderr));
     let together: Vec<Value> =
         std::fs::read_to_string(dir.join("together/episodes.jsonl")).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect();
     assert_eq!(together.len(), 3);

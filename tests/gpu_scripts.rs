@@ -1,8 +1,10 @@
 //! The lent-GPU orchestration scripts on the CPU: scripts/gpu/variants.sh with a stub recipe and a
 //! stub nvidia-smi (which variants make data, which share it, and when they start),
 //! scripts/gpu/metaworld-stages.sh over a stub bench/metaworld/recipe.sh (which judge each stage
-//! and study gets, and where each study writes), and scripts/gpu/detached.sh's start/wait protocol
-//! (exit codes, the logs' progress, the archive).
+//! and study gets, and where each study writes), scripts/gpu/sweep_split.sh over a stub
+//! scripts/gpu/metaworld.sh (which GPU each chain of settings gets, and that the later chains start
+//! once the model is trained, with its truth and verdicts), and scripts/gpu/detached.sh's
+//! start/wait protocol (exit codes, the logs' progress, the archive).
 
 mod common;
 
@@ -300,6 +302,66 @@ impl Drop for Detached {
         }
         let _ = fs::remove_dir_all(dir);
     }
+}
+
+/// A stub of scripts/gpu/metaworld.sh's `sweep`: the chain that finds no model trains it (the
+/// truth and the verdicts appear after a second), then each setting says where it ran and whether
+/// the truth was in its study folder when it began; fails at once with FAIL=1.
+const STUB_SWEEP: &str = r#"
+[ "${FAIL:-0}" = 1 ] && { echo "stub: failing"; exit 1; }
+mkdir -p "$OUT"
+if [ ! -f "$RUN/study/judged.json" ]; then
+  sleep 1; mkdir -p "$RUN/study"; echo t > "$RUN/study/truth.json"; echo j > "$RUN/study/judged.json"
+  echo "trained by $SETTINGS" >> "$MADE"
+fi
+for s in $SETTINGS; do
+  echo "sweep: $s" >> "$OUT/sweep.log"
+  found=no; [ -f "$RUN/sweep/$s/study/truth.json" ] && [ -f "$RUN/sweep/$s/study/judged.json" ] && found=yes
+  echo "$s on GPU $CUDA_VISIBLE_DEVICES, truth $found" >> "$MADE"
+done
+"#;
+
+fn sweep_split(dir: &Path, vars: &[(&str, &str)]) -> Output {
+    fs::create_dir_all(dir.join("scripts/gpu")).unwrap();
+    fs::copy(Path::new(ROOT).join("scripts/gpu/sweep_split.sh"), dir.join("scripts/gpu/sweep_split.sh")).unwrap();
+    fs::write(dir.join("scripts/gpu/metaworld.sh"), STUB_SWEEP).unwrap();
+    Command::new("bash")
+        .arg(dir.join("scripts/gpu/sweep_split.sh"))
+        .current_dir(dir)
+        .env("OUT", dir.join("out"))
+        .env("MADE", dir.join("made.txt"))
+        .env("RUN", "runs/s")
+        .envs(vars.iter().copied())
+        .output()
+        .unwrap()
+}
+
+#[test]
+fn the_sweeps_chains_start_on_their_gpus_once_the_first_has_trained_the_model() {
+    let dir = common::temp_dir("gpu-sweep-split");
+    let d = dir.path();
+    let out = sweep_split(d, &[("CHAINS", "0:euler-50,euler-8 0:euler-4 1:euler-20,euler-12")]);
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
+    assert!(stdout.contains("sweep_split: trained at") && stdout.contains("(status 0)"), "{stdout}");
+    assert_eq!(
+        lines(&d.join("made.txt")),
+        [
+            "euler-12 on GPU 1, truth yes",
+            "euler-20 on GPU 1, truth yes",
+            "euler-4 on GPU 0, truth yes",
+            "euler-50 on GPU 0, truth no",
+            "euler-8 on GPU 0, truth no",
+            "trained by euler-50 euler-8",
+        ]
+    );
+    for c in 0..3 {
+        assert!(d.join(format!("out/c{c}/sweep.log")).is_file(), "chain {c} has its own log folder");
+    }
+
+    let failed = sweep_split(&d.join("f"), &[("FAIL", "1")]);
+    assert_eq!(failed.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&failed.stdout).contains("the first chain ended before its sweep began"));
 }
 
 #[test]

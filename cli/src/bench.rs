@@ -105,8 +105,12 @@ pub struct BenchRolloutArgs {
     /// Rollouts advanced together, one batch per chunk (as `bwm evaluate`'s episodes in flight).
     #[arg(long, default_value_t = 1)]
     batch: usize,
+    /// Lanes the rollouts are split into, taking turns, each on a CUDA stream of its own (as
+    /// `bwm evaluate --streams`).
+    #[arg(long, default_value_t = 1)]
+    streams: usize,
 }
 
 pub fn rollout(args: BenchRolloutArgs) -> Result<()> {
-    bwm_inference::bench::rollout(&args.wm.load()?, args.height, args.width, args.chunks, args.batch)
+    bwm_inference::bench::rollout(&args.wm.load()?, args.height, args.width, args.chunks, args.batch, args.streams)
 }

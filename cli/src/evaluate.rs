@@ -23,5 +23,5 @@ pub struct EvaluateArgs {
 }
 
 pub fn run(a: EvaluateArgs) -> Result<()> {
-    bwm_inference::evaluate::run(&a.wm.options(), &a.config, &a.out, a.in_flight.get())
+    bwm_inference::evaluate::run(&a.wm.options(), &a.config, &a.out, a.in_flight.get(), a.in_flight.streams())
 }

@@ -47,6 +47,7 @@ pub fn run(a: FidelityArgs) -> Result<()> {
         horizons: a.horizons,
         videos: a.videos,
         in_flight: a.in_flight.get(),
+        streams: a.in_flight.streams(),
         out: a.out,
     };
     bwm_inference::fidelity::run(&a.wm.options(), &options)

@@ -67,6 +67,7 @@ pub fn run(a: RolloutArgs) -> Result<()> {
         out: a.out,
         resume: a.resume,
         in_flight: a.in_flight.get(),
+        streams: a.in_flight.streams(),
     };
     bwm_inference::rollout::run(&a.wm.options(), &options)
 }

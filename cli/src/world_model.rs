@@ -130,11 +130,21 @@ pub struct InFlightArgs {
     /// (more keep the GPU busier; every episode gets what it gets alone, in the usual order).
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..))]
     pub episodes_in_flight: u64,
+    /// Lanes the episodes in flight are split into, taking turns, each on a CUDA stream of its
+    /// own: one lane's chunk runs on the GPU while the host reads, judges and drives another's,
+    /// and one lane's decode can run beside another's DiT steps (at most the episodes in flight;
+    /// not with --cuda-graph).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..))]
+    pub streams: u64,
 }
 
 impl InFlightArgs {
     pub fn get(&self) -> usize {
         self.episodes_in_flight as usize
+    }
+
+    pub fn streams(&self) -> usize {
+        self.streams as usize
     }
 }
 

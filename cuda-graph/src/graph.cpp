@@ -4,10 +4,13 @@
 #include <c10/cuda/CUDAFunctions.h>
 #include <c10/cuda/CUDAStream.h>
 #include <optional>
+#include <utility>
+#include <vector>
 // Only non-inline libtorch functions are called: c10/cuda/CUDAGuard.h and CUDAStream::synchronize
 // are inline calls into cudart, which this library would then have to link and find at run time.
 #endif
 #include <exception>
+#include <stdexcept>
 #include <string>
 
 #include "bwm_guarded.h"
@@ -36,6 +39,16 @@ struct BwmGraph {
   // The device and stream that were current before the graph's were made current.
   c10::DeviceIndex device_before = 0;
   std::optional<c10::cuda::CUDAStream> before;
+#endif
+};
+
+// A stream of libtorch's pool that the caller makes current around work of its own
+// (`CudaStream::scope`); the streams and devices current before are kept for nested scopes.
+struct BwmStream {
+#ifdef BWM_CUDA
+  explicit BwmStream(int device) : stream(c10::cuda::getStreamFromPool(false, static_cast<c10::DeviceIndex>(device))) {}
+  c10::cuda::CUDAStream stream;
+  std::vector<std::pair<c10::DeviceIndex, c10::cuda::CUDAStream>> before;
 #endif
 };
 
@@ -122,7 +135,46 @@ void bwm_graph_free(BwmGraph* g) {
   guarded([&] { delete g; });
 }
 
+BwmStream* bwm_stream_new(int device) {
+  BwmStream* s = nullptr;
+  guarded([&] { s = new BwmStream(device); });
+  return s;
+}
+
+bool bwm_stream_enter(BwmStream* s) {
+  return guarded([&] {
+    c10::DeviceIndex device = c10::cuda::current_device();
+    c10::cuda::set_device(s->stream.device_index());
+    s->before.emplace_back(device, c10::cuda::getCurrentCUDAStream(s->stream.device_index()));
+    c10::cuda::setCurrentCUDAStream(s->stream);
+  });
+}
+
+bool bwm_stream_leave(BwmStream* s) {
+  return guarded([&] {
+    if (s->before.empty()) {
+      throw std::runtime_error("leaving a CUDA stream that was not entered");
+    }
+    auto [device, stream] = s->before.back();
+    s->before.pop_back();
+    c10::cuda::setCurrentCUDAStream(stream);
+    c10::cuda::set_device(device);
+  });
+}
+
+void bwm_stream_free(BwmStream* s) {
+  guarded([&] { delete s; });
+}
+
 #else
+
+BwmStream* bwm_stream_new(int) {
+  last_error = "this build's libtorch has no CUDA (libtorch_cuda.so), so it has no CUDA streams";
+  return nullptr;
+}
+bool bwm_stream_enter(BwmStream*) { return false; }
+bool bwm_stream_leave(BwmStream*) { return false; }
+void bwm_stream_free(BwmStream*) {}
 
 BwmGraph* bwm_graph_new(int) {
   last_error = "this build's libtorch has no CUDA (libtorch_cuda.so), so it cannot record CUDA graphs";

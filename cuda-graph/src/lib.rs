@@ -8,6 +8,9 @@
 //! capture read (`copy_`), and the outputs are read from what the closure returned. The recorded
 //! work must not read tensor values on the host (`double_value`, `int64_value`, copies to the
 //! CPU) nor take decisions from them, and nothing it reads may be reallocated between replays.
+//!
+//! [`CudaStream`] runs libtorch work on a stream of its own (libtorch's current stream, which tch
+//! cannot set either), so that independent work can be queued beside other work.
 
 use std::ffi::{c_char, c_int, CStr};
 use std::panic::{catch_unwind, AssertUnwindSafe};
@@ -17,6 +20,11 @@ use tch::{Device, Tensor};
 
 #[repr(C)]
 struct RawGraph {
+    _private: [u8; 0],
+}
+
+#[repr(C)]
+struct RawStream {
     _private: [u8; 0],
 }
 
@@ -30,6 +38,10 @@ extern "C" {
     fn bwm_graph_capture_abort(g: *mut RawGraph);
     fn bwm_graph_replay(g: *mut RawGraph) -> bool;
     fn bwm_graph_free(g: *mut RawGraph);
+    fn bwm_stream_new(device: c_int) -> *mut RawStream;
+    fn bwm_stream_enter(s: *mut RawStream) -> bool;
+    fn bwm_stream_leave(s: *mut RawStream) -> bool;
+    fn bwm_stream_free(s: *mut RawStream);
 }
 
 fn shim_error(what: &str) -> anyhow::Error {
@@ -141,6 +153,51 @@ impl Drop for CudaGraph {
     }
 }
 
+/// A CUDA stream of libtorch's pool. What libtorch launches inside [`CudaStream::scope`] (kernels,
+/// copies, and the host's waits for copies to the CPU) is queued on it, in order with itself and
+/// beside the work of other streams; tensors made inside one scope should be used inside scopes of
+/// the same stream.
+pub struct CudaStream {
+    raw: *mut RawStream,
+}
+
+impl CudaStream {
+    /// A stream on `device`; an error on a CPU device or a libtorch without CUDA.
+    pub fn new(device: Device) -> Result<Self> {
+        let Device::Cuda(index) = device else { bail!("CUDA streams need a CUDA device, not {device:?}") };
+        // SAFETY: the shim allocates a stream holder (null and an error message on failure).
+        let raw = unsafe { bwm_stream_new(index as c_int) };
+        if raw.is_null() {
+            return Err(shim_error("taking a CUDA stream"));
+        }
+        Ok(Self { raw })
+    }
+
+    /// Runs `body` with this stream current on its device, then makes the stream and device that
+    /// were current before current again (also when `body` fails or panics).
+    pub fn scope<T>(&self, body: impl FnOnce() -> Result<T>) -> Result<T> {
+        // SAFETY: `raw` is this stream's live holder.
+        if !unsafe { bwm_stream_enter(self.raw) } {
+            return Err(shim_error("making a CUDA stream current"));
+        }
+        let out = run(body);
+        // SAFETY: as above, entered just before.
+        let left = unsafe { bwm_stream_leave(self.raw) };
+        let out = out?;
+        if !left {
+            return Err(shim_error("making the CUDA stream before current again"));
+        }
+        Ok(out)
+    }
+}
+
+impl Drop for CudaStream {
+    fn drop(&mut self) {
+        // SAFETY: `raw` came from `bwm_stream_new` and is freed once, here.
+        unsafe { bwm_stream_free(self.raw) };
+    }
+}
+
 /// A step of fixed shapes run through a [`CudaGraph`]: eager on the graph's stream for the first
 /// `warm_ups` calls, recorded on the next and replayed from then on, each call's inputs copied
 /// into the tensors the recording read.
@@ -195,6 +252,47 @@ mod tests {
     fn a_cpu_device_is_refused_by_name() {
         let err = CudaGraph::new(Device::Cpu).err().expect("a CPU graph must be refused").to_string();
         assert!(err.contains("CUDA graphs need a CUDA device"), "{err}");
+        let err = CudaStream::new(Device::Cpu).err().expect("a CPU stream must be refused").to_string();
+        assert!(err.contains("CUDA streams need a CUDA device"), "{err}");
+    }
+
+    /// On a CUDA machine: work queued on two streams in turn, each read back inside its own
+    /// scope, gives what the same work gives on the default stream; a failing body still leaves
+    /// its scope, so the stream before is current again. Without CUDA it says so.
+    #[test]
+    fn work_on_two_streams_in_turn_gives_the_default_streams_results() {
+        if !tch::Cuda::is_available() {
+            eprintln!("no CUDA device: streams are checked on the GPU machines only");
+            return;
+        }
+        let dev = Device::Cuda(0);
+        tch::manual_seed(0);
+        let w = Tensor::randn([512, 512], (Kind::Float, dev));
+        let inputs: Vec<Tensor> = (0..2).map(|_| Tensor::randn([256, 512], (Kind::Float, dev))).collect();
+        tch::Cuda::synchronize(0);
+        let work = |x: &Tensor| -> Tensor {
+            let mut y = x.shallow_clone();
+            for _ in 0..20 {
+                y = y.matmul(&w).tanh();
+            }
+            y
+        };
+        let want: Vec<Tensor> = inputs.iter().map(|x| work(x).to_device(Device::Cpu)).collect();
+        let streams = [CudaStream::new(dev).unwrap(), CudaStream::new(dev).unwrap()];
+        // Both queued before either is read, as the pipelined rollouts do.
+        let queued: Vec<Tensor> = streams.iter().zip(&inputs).map(|(s, x)| s.scope(|| Ok(work(x))).unwrap()).collect();
+        for ((s, y), want) in streams.iter().zip(queued).zip(&want) {
+            let got = s.scope(|| Ok(y.to_device(Device::Cpu))).unwrap();
+            assert!(got.allclose(want, 1e-5, 1e-6, false), "a stream's result differs from the default stream's");
+        }
+        let err = streams[0].scope(|| -> Result<()> { bail!("inside") }).unwrap_err();
+        assert!(err.to_string().contains("inside"), "{err}");
+        let err = streams[0].scope(|| -> Result<()> { panic!("panicked inside") }).unwrap_err();
+        assert!(err.to_string().contains("panicked inside"), "{err}");
+        // Nested scopes unwind in order, and the default stream works as before.
+        let v = streams[0].scope(|| streams[1].scope(|| Ok(work(&inputs[0]).to_device(Device::Cpu)))).unwrap();
+        assert!(v.allclose(&want[0], 1e-5, 1e-6, false));
+        assert!(work(&inputs[1]).to_device(Device::Cpu).allclose(&want[1], 1e-5, 1e-6, false));
     }
 
     /// On a CUDA machine: the graph replays the recorded arithmetic and the backward pass on the

@@ -175,8 +175,14 @@ pub fn vae(args: &VaeBenchOptions) -> Result<()> {
 /// Times `chunks` whole rollout chunks (condition encode, the sampler's DiT steps, decode) of
 /// `batch` rollouts advanced together (as the evaluator's episodes in flight) of `wm` at `width` x
 /// `height` on random x0s and random actions; the first includes one-time CUDA start-up costs.
-pub fn rollout(wm: &WorldModel, height: i64, width: i64, chunks: usize, batch: usize) -> Result<()> {
+/// With `streams` > 1 the rollouts are split into that many lanes taking turns, each on a CUDA
+/// stream of its own (`crate::lanes`), and each chunk's line gives when the last lane finished it
+/// and the frames per second since the chunk before (the phases overlap, so they are not timed
+/// apart).
+pub fn rollout(wm: &WorldModel, height: i64, width: i64, chunks: usize, batch: usize, streams: usize) -> Result<()> {
     ensure!(batch >= 1, "--batch must be at least 1");
+    let lanes = wm.lanes(streams)?;
+    lanes.shares(batch).map_err(|e| e.context("--batch and --streams"))?;
     let d = wm.action_dim() as i64;
     tch::manual_seed(0);
     let a0 = Tensor::zeros([d], (Kind::Float, Device::Cpu));
@@ -190,7 +196,7 @@ pub fn rollout(wm: &WorldModel, height: i64, width: i64, chunks: usize, batch: u
     let dit = &wm.model.cfg.dit;
     let kernel = bwm_sdp::kernel_for_shape(dit.num_heads, dit.head_dim(), 1024, wm.model.store.kind(), wm.device)?;
     println!(
-        "bench-rollout: {:?} {:?}, {}x{}, {batch} rollout(s) at once, x0 + {} history frames, {} frames per chunk, {} {} steps, attention backend {} ({kernel}), libtorch CPU threads {}, {}, sampler forward {}",
+        "bench-rollout: {:?} {:?}, {}x{}, {batch} rollout(s) at once in {streams} stream(s), x0 + {} history frames, {} frames per chunk, {} {} steps, attention backend {} ({kernel}), libtorch CPU threads {}, {}, sampler forward {}",
         wm.device,
         wm.model.store.kind(),
         width,
@@ -204,20 +210,45 @@ pub fn rollout(wm: &WorldModel, height: i64, width: i64, chunks: usize, batch: u
         wm.fp8.map_or("block linears in the weights' dtype".to_string(), |s| format!("block linears in FP8 ({s} scaling)")),
         if wm.graphed.is_some() { "replayed from a CUDA graph (warm-up and capture in the first chunk)" } else { "eager" }
     );
-    for i in 0..chunks {
-        let actions: Vec<Tensor> = (0..batch).map(|_| Tensor::rand([spec.future as i64, d], (Kind::Float, Device::Cpu)) * 2.0 - 1.0).collect();
-        let start = Instant::now();
-        let c = Rollout::next_chunks(&mut rollouts.iter_mut().collect::<Vec<_>>(), &actions)?.remove(0);
-        let total = start.elapsed().as_secs_f64();
-        println!(
-            "chunk {i}: {total:.2} s = encode {:.2} s + DiT {:.2} s ({:.3} s/step) + decode {:.2} s; {} frames; device memory {}",
-            c.encode_seconds,
-            c.dit_seconds,
-            c.dit_seconds / spec.steps as f64,
-            c.decode_seconds,
-            c.frames.size()[1],
-            bwm_trainer::device_memory::used_mib(wm.device).map_or("n/a".to_string(), |m| format!("{m:.0} MiB used"))
-        );
+    let memory = || bwm_trainer::device_memory::used_mib(wm.device).map_or("n/a".to_string(), |m| format!("{m:.0} MiB used"));
+    let frames_per_chunk = (batch * spec.future) as f64;
+    if streams == 1 {
+        for i in 0..chunks {
+            let actions: Vec<Tensor> = (0..batch).map(|_| Tensor::rand([spec.future as i64, d], (Kind::Float, Device::Cpu)) * 2.0 - 1.0).collect();
+            let start = Instant::now();
+            let c = Rollout::next_chunks(&mut rollouts.iter_mut().collect::<Vec<_>>(), &actions)?.remove(0);
+            let total = start.elapsed().as_secs_f64();
+            println!(
+                "chunk {i}: {total:.2} s = encode {:.2} s + DiT {:.2} s ({:.3} s/step) + decode {:.2} s; {} frames; {:.1} generated frames/s; device memory {}",
+                c.encode_seconds,
+                c.dit_seconds,
+                c.dit_seconds / spec.steps as f64,
+                c.decode_seconds,
+                c.frames.size()[1],
+                frames_per_chunk / total,
+                memory()
+            );
+        }
+        return Ok(());
     }
-    Ok(())
+    let actions: Vec<Tensor> = (0..batch).map(|_| Tensor::rand([(chunks * spec.future) as i64, d], (Kind::Float, Device::Cpu)) * 2.0 - 1.0).collect();
+    let mut done = vec![0usize; chunks];
+    let start = Instant::now();
+    let mut last = 0.0;
+    crate::lanes::run_together(&lanes, &mut rollouts.iter_mut().collect::<Vec<_>>(), &actions, &mut |_, chunk| {
+        done[chunk.index] += 1;
+        if done[chunk.index] == batch {
+            let at = start.elapsed().as_secs_f64();
+            println!(
+                "chunk {}: all {batch} rollouts' frames at {at:.2} s, {:.2} s after chunk {}'s; {:.1} generated frames/s; device memory {}",
+                chunk.index,
+                at - last,
+                chunk.index as i64 - 1,
+                frames_per_chunk / (at - last),
+                memory()
+            );
+            last = at;
+        }
+        Ok(())
+    })
 }

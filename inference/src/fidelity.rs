@@ -47,6 +47,9 @@ pub struct FidelityOptions {
     /// Episodes rolled out at once (both of each one's rollouts), their chunks generated as one
     /// batch; the scores are what each episode gets alone.
     pub in_flight: usize,
+    /// Lanes the rollouts in flight are split into, each on a CUDA stream of its own
+    /// (`crate::lanes`).
+    pub streams: usize,
     /// Output folder: fidelity.json, episodes.jsonl (and episodes.key.json, the settings it was
     /// scored with: a later run with the same ones resumes it), `psnr_<task>.svg`, `ssim_<task>.svg`, videos/.
     pub out: PathBuf,
@@ -79,14 +82,17 @@ pub fn run(options: &WorldModelOptions, a: &FidelityOptions) -> Result<()> {
         ensure!(e < infos.len(), "--episodes {e}: the dataset has {} episodes", infos.len());
     }
     let wm = options.load()?;
+    let lanes = wm.lanes(a.streams)?;
+    lanes.shares(2 * a.in_flight)?;
     println!(
-        "fidelity: {} episodes of {}; chunks of {} frames, {} history frames, {} sampler steps, {} episode(s) in flight",
+        "fidelity: {} episodes of {}; chunks of {} frames, {} history frames, {} sampler steps, {} episode(s) in flight in {} stream(s)",
         episodes.len(),
         source.describe(),
         wm.spec.future,
         wm.spec.history,
         wm.spec.steps,
-        a.in_flight
+        a.in_flight,
+        a.streams
     );
     std::fs::create_dir_all(a.out.join("videos")).with_context(|| format!("creating {}", a.out.display()))?;
     // Episodes scored by an earlier run of the same settings into the same folder (one cut short)
@@ -159,7 +165,7 @@ pub fn run(options: &WorldModelOptions, a: &FidelityOptions) -> Result<()> {
             .flat_map(|(_, _, _, truth, own, others)| [(&truth[0], own.shallow_clone()), (&truth[0], others.shallow_clone())])
             .collect();
         let names: Vec<String> = group.iter().map(|&(_, e)| infos[e].index.to_string()).collect();
-        let mut generated = generate_frames_together(&wm, &jobs, &mut |chunk: usize, total: usize, made: usize| {
+        let mut generated = generate_frames_together(&wm, &lanes, &jobs, &mut |chunk: usize, total: usize, made: usize| {
             print!("\r  episode(s) {}: chunk {chunk} ({made}/{total} frames, own and other actions)   ", names.join(", "));
             let _ = std::io::stdout().flush();
         })?

@@ -28,6 +28,7 @@ pub mod demo;
 pub mod evaluate;
 pub mod fidelity;
 pub mod graphed;
+pub mod lanes;
 pub mod msgpack_numpy;
 pub mod rollout;
 pub mod server;

@@ -13,13 +13,13 @@ use bwm_data::lerobot_writer::{DatasetFeatures, LeRobotWriter};
 use bwm_data::{open_dataset, CameraSelection};
 use bwm_data::{ActionSpec, ResizeMode};
 use bwm_model::keyed_rng::{self, Purpose};
-use bwm_model::rollout::Rollout;
 use bwm_trainer::image_metrics::{psnr, ssim};
 use image::RgbImage;
 use serde::Deserialize;
 use tch::Tensor;
 
 use bwm_data::frames::parse_resolution;
+use crate::lanes::Lanes;
 use crate::world_model::{WorldModel, WorldModelOptions};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -81,6 +81,9 @@ pub struct RolloutOptions {
     /// Episodes generated at once, their chunks one batch (each gets what it gets alone); they are
     /// written in order once the group is done.
     pub in_flight: usize,
+    /// Lanes the episodes in flight are split into, each on a CUDA stream of its own, taking
+    /// turns (`crate::lanes`).
+    pub streams: usize,
     /// Continue an interrupted run into --out (finished episodes are kept).
     pub resume: bool,
 }
@@ -121,14 +124,17 @@ pub fn run(options: &WorldModelOptions, a: &RolloutOptions) -> Result<()> {
     ensure!(a.perturb_std >= 0.0 && a.perturb_std.is_finite(), "--perturb-std must be a non-negative number");
     ensure!(a.in_flight >= 1, "episodes in flight must be at least 1");
     let wm = options.load()?;
+    let lanes = wm.lanes(a.streams)?;
+    lanes.shares(a.in_flight)?;
     println!(
-        "rollout: {} on {:?}; chunks of {} frames, {} history frames, {} sampler steps, {} episode(s) in flight",
+        "rollout: {} on {:?}; chunks of {} frames, {} history frames, {} sampler steps, {} episode(s) in flight in {} stream(s)",
         if options.checkpoint.is_some() { "trained model" } else { "random weights" },
         wm.device,
         wm.spec.future,
         wm.spec.history,
         wm.spec.steps,
-        a.in_flight
+        a.in_flight,
+        a.streams
     );
     let jobs = plan(a, options.seed, &wm, size)?;
     ensure!(!jobs.is_empty(), "nothing to roll out");
@@ -153,7 +159,7 @@ pub fn run(options: &WorldModelOptions, a: &RolloutOptions) -> Result<()> {
         let t0 = Instant::now();
         let names: Vec<&str> = group.iter().map(|j| j.name.as_str()).collect();
         let inputs: Vec<(&RgbImage, Tensor)> = group.iter().map(|j| (&j.x0, j.normalized.shallow_clone())).collect();
-        let generated = generate_frames_together(&wm, &inputs, &mut |chunk, total, made| {
+        let generated = generate_frames_together(&wm, &lanes, &inputs, &mut |chunk, total, made| {
             print!("\r  {}: chunk {chunk} ({made}/{total} frames, {:.1} s)   ", names.join(", "), t0.elapsed().as_secs_f64());
             let _ = std::io::stdout().flush();
         })?;
@@ -195,11 +201,12 @@ pub fn run(options: &WorldModelOptions, a: &RolloutOptions) -> Result<()> {
 }
 
 /// Episodes generated from their `x0` driven by `normalized` actions [T, d_a] each (row 0 belongs
-/// to x0): x0, then one frame per action after the first. All are advanced chunk by chunk as one
-/// batch (those with actions left); each gets what it would alone. `progress(chunk, frames asked
-/// in all, frames made in all)`.
+/// to x0): x0, then one frame per action after the first. All are advanced chunk by chunk, each
+/// lane's share as one batch (those with actions left), the lanes in turn; each gets what it
+/// would alone. `progress(chunk, frames asked in all, frames made in all)`.
 pub fn generate_frames_together(
     wm: &WorldModel,
+    lanes: &Lanes,
     episodes: &[(&RgbImage, Tensor)],
     progress: &mut dyn FnMut(usize, usize, usize),
 ) -> Result<Vec<Vec<RgbImage>>> {
@@ -215,7 +222,7 @@ pub fn generate_frames_together(
     let mut frames: Vec<Vec<RgbImage>> = episodes.iter().map(|(x0, _)| vec![(*x0).clone()]).collect();
     let total: usize = episodes.iter().map(|(_, a)| a.size()[0] as usize).sum();
     let mut made = frames.len();
-    Rollout::run_together(&mut rollouts.iter_mut().collect::<Vec<_>>(), &after_x0, &mut |i, chunk| {
+    crate::lanes::run_together(lanes, &mut rollouts.iter_mut().collect::<Vec<_>>(), &after_x0, &mut |i, chunk| {
         frames[i].extend(tensor_to_frames(&chunk.frames)?);
         made += chunk.actions.size()[0] as usize;
         progress(chunk.index, total, made);

@@ -259,6 +259,16 @@ impl WorldModel {
         self.rollout_with(self.spec.clone(), x0, a0)
     }
 
+    /// `n` lanes of rollouts on this model's device (`--streams`), each on a CUDA stream of its own
+    /// when there are several.
+    pub fn lanes(&self, n: usize) -> Result<crate::lanes::Lanes> {
+        ensure!(
+            n <= 1 || self.graphed.is_none(),
+            "--streams {n} with --cuda-graph: the recorded sampler step's buffers are shared by every rollout, so the lanes would write each other's; use one or the other"
+        );
+        crate::lanes::Lanes::new(self.device, n)
+    }
+
     /// `rollout` with other settings than the loaded ones (a request's seed).
     pub fn rollout_with(&self, spec: RolloutSpec, x0: &Tensor, a0: &Tensor) -> Result<Rollout<'_>> {
         let rollout = Rollout::new(&self.model, &self.vae, spec, x0, a0)?;

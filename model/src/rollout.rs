@@ -80,10 +80,23 @@ pub struct Chunk {
     pub frames: Tensor,
     /// [n, d_a] f32 on the CPU.
     pub actions: Tensor,
-    /// Seconds in the encode of the condition clip, the sampler (DiT) and the decode.
+    /// Seconds in the encode of the condition clip, the sampler (DiT) and the decode (with the
+    /// copy to the host); NaN for a chunk begun with [`Rollout::begin_chunks`], whose phases were
+    /// queued without waiting for them.
     pub encode_seconds: f64,
     pub dit_seconds: f64,
     pub decode_seconds: f64,
+}
+
+/// A batch's chunk queued on the device by [`Rollout::begin_chunks`], not yet read back.
+pub struct PendingChunks {
+    /// [B, 3, K, H, W] f32 in [-1, 1], where the model runs.
+    frames: Tensor,
+    /// Each rollout's actions [n, d_a] (CPU).
+    applied: Vec<Tensor>,
+    encode_seconds: f64,
+    dit_seconds: f64,
+    decode_seconds: f64,
 }
 
 pub struct Rollout<'m> {
@@ -213,9 +226,25 @@ impl<'m> Rollout<'m> {
     }
 
     fn next_chunks_traced(rollouts: &mut [&mut Rollout<'m>], actions: &[Tensor], on_step: &mut dyn FnMut(usize, &Tensor, &Tensor)) -> Result<Vec<Chunk>> {
+        let shared: Vec<&Rollout<'m>> = rollouts.iter().map(|r| &**r).collect();
+        let pending = Self::begin_traced(&shared, actions, true, on_step)?;
+        Self::finish_chunks(rollouts, pending)
+    }
+
+    /// The first half of [`Rollout::next_chunks`]: queues the batch's encode, sampler and decode
+    /// on the device and returns without waiting for them (on CUDA, on the current stream); the
+    /// host reads nothing back but the condition clip's finiteness check. [`Rollout::finish_chunks`]
+    /// with the same rollouts, not advanced in between, reads the frames. Meanwhile the host is
+    /// free for other work, such as another batch's policies or another stream's chunk. The
+    /// chunks' phase seconds are NaN: the phases are not timed apart.
+    pub fn begin_chunks(rollouts: &[&Rollout<'m>], actions: &[Tensor]) -> Result<PendingChunks> {
+        Self::begin_traced(rollouts, actions, false, &mut |_, _, _| {})
+    }
+
+    fn begin_traced(rollouts: &[&Rollout<'m>], actions: &[Tensor], timed: bool, on_step: &mut dyn FnMut(usize, &Tensor, &Tensor)) -> Result<PendingChunks> {
         ensure!(!rollouts.is_empty(), "no rollouts to advance");
         ensure!(rollouts.len() == actions.len(), "{} rollouts but {} action windows", rollouts.len(), actions.len());
-        let first = &rollouts[0];
+        let first = rollouts[0];
         let (model, vae) = (first.model, first.vae);
         for (i, r) in rollouts.iter().enumerate().skip(1) {
             ensure!(
@@ -257,24 +286,26 @@ impl<'m> Rollout<'m> {
         let conditions: Vec<(Tensor, Tensor)> = rollouts.iter().map(|r| r.condition()).collect();
         let device = model.store.device();
         let kind = model.store.kind();
-        let sync = &first.sync;
-
-        let start = Instant::now();
-        let cond_frames = Tensor::stack(&conditions.iter().map(|c| c.0.shallow_clone()).collect::<Vec<_>>(), 0);
-        let clean = tch::no_grad(|| vae.encode(&cond_frames.to_device(device)))
-            .context("encoding the condition clip [x0, history]")?
-            .to_kind(Kind::Float);
-        sync();
-        let encode_seconds = start.elapsed().as_secs_f64();
-
-        let cs = clean.size();
-        let one = |r: &Rollout, purpose: Purpose, frames: i64| keyed_rng::normal(&[1, cs[1], frames, cs[3], cs[4]], r.spec.seed, r.chunks as u64, purpose);
-        let prefix = match history_sigma {
-            Some(sh) if p > 1 => {
-                let eps = Tensor::cat(&rollouts.iter().map(|r| one(r, Purpose::RolloutHistoryNoise, p - 1)).collect::<Vec<_>>(), 0).to_device(device);
-                Tensor::cat(&[clean.narrow(2, 0, 1), FlowSchedule::add_noise(&clean.narrow(2, 1, p - 1), &eps, sh)], 2)
+        let sync = || {
+            if timed {
+                (first.sync)()
             }
-            _ => clean,
+        };
+        let seconds_since = |start: Instant| if timed { start.elapsed().as_secs_f64() } else { f64::NAN };
+
+        // Every upload before the first kernel: a copy from pageable host memory waits for the
+        // work queued on its stream, which would hold the host until the encode ended.
+        let start = Instant::now();
+        let cond_frames = Tensor::stack(&conditions.iter().map(|c| c.0.shallow_clone()).collect::<Vec<_>>(), 0).to_device(device);
+        let (cs, lh, lw) = {
+            let f = cond_frames.size();
+            let l = vae.cfg.latent_shape(f[2], f[3], f[4]);
+            (l[0], l[2], l[3])
+        };
+        let one = |r: &Rollout, purpose: Purpose, frames: i64| keyed_rng::normal(&[1, cs, frames, lh, lw], r.spec.seed, r.chunks as u64, purpose);
+        let history_noise = match history_sigma {
+            Some(sh) if p > 1 => Some((sh, Tensor::cat(&rollouts.iter().map(|r| one(r, Purpose::RolloutHistoryNoise, p - 1)).collect::<Vec<_>>(), 0).to_device(device))),
+            _ => None,
         };
         let noise = Tensor::cat(&rollouts.iter().map(|r| one(r, Purpose::RolloutNoise, p + k / 4)).collect::<Vec<_>>(), 0).to_device(device);
         let all_actions = Tensor::stack(
@@ -282,6 +313,22 @@ impl<'m> Rollout<'m> {
             0,
         )
         .to_device(device);
+        let clean = tch::no_grad(|| vae.encode(&cond_frames))
+            .context("encoding the condition clip [x0, history]")?
+            .to_kind(Kind::Float);
+        ensure!(
+            clean.size() == [rollouts.len() as i64, cs, p, lh, lw],
+            "the VAE encoded the condition clip to {:?}; expected [{}, {cs}, {p}, {lh}, {lw}]",
+            clean.size(),
+            rollouts.len()
+        );
+        sync();
+        let encode_seconds = seconds_since(start);
+
+        let prefix = match history_noise {
+            Some((sh, eps)) => Tensor::cat(&[clean.narrow(2, 0, 1), FlowSchedule::add_noise(&clean.narrow(2, 1, p - 1), &eps, sh)], 2),
+            None => clean,
+        };
         let start = Instant::now();
         let mut eager = Eager;
         let mut shared = first.denoiser.as_ref().map(|d| d.borrow_mut());
@@ -294,12 +341,12 @@ impl<'m> Rollout<'m> {
         })?;
         drop(shared);
         sync();
-        let dit_seconds = start.elapsed().as_secs_f64();
+        let dit_seconds = seconds_since(start);
 
         // The causal decoder runs through the prefix latents for its cache; their pixels are dropped.
-        // Widened, joined and clamped where they were decoded, then moved once: on the host these
-        // passes over every pixel ran on libtorch's CPU pool (0.4 s of a 5B chunk's decode with
-        // one thread, docs/performance.md).
+        // Widened, joined and clamped where they were decoded: on the host these passes over
+        // every pixel ran on libtorch's CPU pool (0.4 s of a 5B chunk's decode with one thread,
+        // docs/performance.md).
         let start = Instant::now();
         let frames = tch::no_grad(|| -> Result<Tensor> {
             let mut stream = vae.decoder_stream();
@@ -312,12 +359,29 @@ impl<'m> Rollout<'m> {
             }
             let mut pixels = Tensor::cat(&future, 2).to_kind(Kind::Float);
             let _ = pixels.clamp_(-1.0, 1.0);
-            Ok(pixels.to_device(Device::Cpu))
+            Ok(pixels)
         })
         .context("decoding the generated chunk")?;
         sync();
-        let decode_seconds = start.elapsed().as_secs_f64();
+        let decode_seconds = seconds_since(start);
+        Ok(PendingChunks { frames, applied, encode_seconds, dit_seconds, decode_seconds })
+    }
 
+    /// The second half of [`Rollout::next_chunks`]: waits for the chunk [`Rollout::begin_chunks`]
+    /// queued for these rollouts (on CUDA, for the current stream: the stream it was queued on),
+    /// moves its frames to the host and advances each rollout by it.
+    pub fn finish_chunks(rollouts: &mut [&mut Rollout<'m>], pending: PendingChunks) -> Result<Vec<Chunk>> {
+        let PendingChunks { frames, applied, encode_seconds, dit_seconds, decode_seconds } = pending;
+        ensure!(
+            rollouts.len() == applied.len(),
+            "a chunk begun for {} rollouts is finished for {}",
+            applied.len(),
+            rollouts.len()
+        );
+        let start = Instant::now();
+        let frames = frames.to_device(Device::Cpu);
+        // The copy to the host belongs to the decode's time where that was timed.
+        let decode_seconds = decode_seconds + start.elapsed().as_secs_f64();
         let mut chunks = Vec::with_capacity(rollouts.len());
         for (b, (r, actions)) in rollouts.iter_mut().zip(applied).enumerate() {
             let n = actions.size()[0];

@@ -192,6 +192,41 @@ fn rollouts_advanced_together_generate_what_each_generates_alone() {
     assert!(Rollout::next_chunks(&mut [&mut r0], &[]).is_err(), "one window per rollout");
 }
 
+/// Chunks queued for two batches before either is read back, and read back in the other order,
+/// are what `next_chunk` gives each rollout; their phases are not timed apart. A chunk is read
+/// back for as many rollouts as it was begun for.
+#[test]
+fn chunks_begun_for_two_batches_and_finished_in_turn_are_what_each_gets_alone() {
+    let (model, vae) = parts(Kind::Float);
+    let d = model.cfg.action.action_dim;
+    let (x0, a0, actions) = inputs(d, 8);
+    let alone: Vec<Vec<Tensor>> = [5, 6]
+        .iter()
+        .map(|&seed| {
+            let mut r = Rollout::new(&model, &vae, spec(4, 4, seed), &x0, &a0).unwrap();
+            (0..2).map(|c| r.next_chunk(&actions.narrow(0, 4 * c, 4)).unwrap().frames).collect()
+        })
+        .collect();
+    let mut r0 = Rollout::new(&model, &vae, spec(4, 4, 5), &x0, &a0).unwrap();
+    let mut r1 = Rollout::new(&model, &vae, spec(4, 4, 6), &x0, &a0).unwrap();
+    for c in 0..2 {
+        let window = [actions.narrow(0, 4 * c, 4)];
+        let p0 = Rollout::begin_chunks(&[&r0], &window).unwrap();
+        let p1 = Rollout::begin_chunks(&[&r1], &window).unwrap();
+        for (b, (r, p)) in [(&mut r1, p1), (&mut r0, p0)].into_iter().enumerate() {
+            let chunk = Rollout::finish_chunks(&mut [r], p).unwrap().remove(0);
+            let want = &alone[1 - b][c as usize];
+            assert_eq!(chunk.index, c as usize);
+            assert!(chunk.encode_seconds.is_nan() && chunk.dit_seconds.is_nan() && chunk.decode_seconds.is_nan());
+            let diff = (&chunk.frames - want).abs().max().double_value(&[]);
+            assert!(diff < 1e-6, "rollout {}, chunk {c}: begun beside another batch, {diff} from alone", 1 - b);
+        }
+    }
+    let p = Rollout::begin_chunks(&[&r0, &r1], &[actions.narrow(0, 0, 4), actions.narrow(0, 0, 4)]).unwrap();
+    let e = Rollout::finish_chunks(&mut [&mut r0], p).err().expect("a chunk of two rollouts finished for one");
+    assert!(e.to_string().contains("begun for 2 rollouts is finished for 1"), "{e}");
+}
+
 #[test]
 fn bad_inputs_are_errors() {
     let (model, vae) = parts(Kind::Float);

@@ -22,7 +22,7 @@ use anyhow::{ensure, Context, Result};
 use bwm_data::frames::{frames_to_tensor, tensor_to_frames};
 use image::RgbImage;
 
-use bwm_model::rollout::{Chunk, Rollout};
+use bwm_model::rollout::{PendingChunks, Rollout};
 use tch::Tensor;
 
 use crate::world_model::{WorldModel, WorldModelOptions};
@@ -36,10 +36,12 @@ use tasks::{Start, Task};
 /// Runs the evaluation that `config` (TOML: policies, tasks, observation layout, adapters, judge;
 /// `configs/evaluate-example.toml`) describes with the world model `options` opens, and writes
 /// videos/, episodes.jsonl, success_rates.csv, policies.csv and summary.json into `out`.
-/// `in_flight` episodes run at once, their chunks generated as one batch (a new episode starts
-/// as one ends); each episode's frames are what it would get alone, and the records keep the
-/// config's order.
-pub fn run(options: &WorldModelOptions, config: &Path, out: &Path, in_flight: usize) -> Result<()> {
+/// `in_flight` episodes run at once (a new episode starts as one ends), split into `streams`
+/// lanes that take turns (`crate::lanes`): each lane's chunks are generated as one batch on a
+/// CUDA stream of its own while the host judges another lane's frames and asks its policies for
+/// actions. Each episode's frames are what it would get alone, and the records keep the config's
+/// order.
+pub fn run(options: &WorldModelOptions, config: &Path, out: &Path, in_flight: usize, streams: usize) -> Result<()> {
     ensure!(in_flight >= 1, "episodes in flight must be at least 1");
     let cfg = EvalConfig::read(config)?;
     ensure!(
@@ -80,6 +82,8 @@ pub fn run(options: &WorldModelOptions, config: &Path, out: &Path, in_flight: us
         }
     }
     let wm = options.load()?;
+    let lanes = wm.lanes(streams)?;
+    let capacities = lanes.shares(in_flight)?;
     let d = wm.action_dim();
     for t in &tasks {
         for s in &t.starts {
@@ -101,12 +105,13 @@ pub fn run(options: &WorldModelOptions, config: &Path, out: &Path, in_flight: us
     let per_policy: usize = tasks.iter().map(|t| t.starts.len()).sum();
     let total = per_policy * cfg.policies.len();
     println!(
-        "evaluate: {} policies x {} tasks ({per_policy} episodes per policy), horizon {} frames, chunks of K = {} frames, {} episode(s) in flight, {}",
+        "evaluate: {} policies x {} tasks ({per_policy} episodes per policy), horizon {} frames, chunks of K = {} frames, {} episode(s) in flight in {} stream(s), {}",
         cfg.policies.len(),
         tasks.len(),
         cfg.horizon,
         wm.spec.future,
         in_flight,
+        streams,
         judge.describe()
     );
     let jobs: Vec<(&PolicyConfig, &Task, usize)> = cfg
@@ -116,21 +121,31 @@ pub fn run(options: &WorldModelOptions, config: &Path, out: &Path, in_flight: us
         .collect();
     let mut records = Vec::new();
     let mut metadata_shown = vec![false; cfg.policies.len()];
-    // Episodes in flight in the order they started; finished ones wait in `finished` until every
-    // earlier one is recorded.
-    let mut live: Vec<Episode> = Vec::new();
+    // Each lane's episodes in the order they started, and the chunk it has queued for those of
+    // them it drives; finished episodes wait in `finished` until every earlier one is recorded.
+    let mut lane_state: Vec<Lane> = capacities.into_iter().map(|capacity| Lane { capacity, live: Vec::new(), pending: None }).collect();
     let mut finished: std::collections::BTreeMap<usize, Episode> = std::collections::BTreeMap::new();
     let mut next_job = 0;
+    let mut turn = 0;
     while records.len() < jobs.len() {
-        while live.len() < in_flight && next_job < jobs.len() {
-            let (policy, task, i) = jobs[next_job];
-            live.push(Episode::start(next_job, &cfg, &wm, fk.as_mut(), policy, task, i));
-            next_job += 1;
-        }
-        step(&cfg, &wm, &judge, fk.as_mut(), &jobs, &mut live);
-        for e in live.extract_if(.., |e| e.driving.is_none()) {
-            finished.insert(e.job, e);
-        }
+        let l = turn % lane_state.len();
+        turn += 1;
+        let lane = &mut lane_state[l];
+        lanes.on(l, || {
+            if let Some((positions, pending)) = lane.pending.take() {
+                finish(&cfg, &judge, &jobs, &mut lane.live, &positions, pending);
+            }
+            for e in lane.live.extract_if(.., |e| e.driving.is_none()) {
+                finished.insert(e.job, e);
+            }
+            while lane.live.len() < lane.capacity && next_job < jobs.len() {
+                let (policy, task, i) = jobs[next_job];
+                lane.live.push(Episode::start(next_job, &cfg, &wm, fk.as_mut(), policy, task, i));
+                next_job += 1;
+            }
+            lane.pending = begin(&cfg, &wm, fk.as_mut(), &jobs, &mut lane.live);
+            Ok(())
+        })?;
         while let Some(e) = finished.remove(&records.len()) {
             let (policy, task, i) = jobs[e.job];
             let start = &task.starts[i];
@@ -279,35 +294,67 @@ impl<'w> Episode<'w> {
     }
 }
 
-/// One chunk of every episode in `live`: the policies' actions for each, one batched world-model
-/// chunk for all, then the judge. Episodes that end (success, horizon, error) lose `driving`.
-fn step(cfg: &EvalConfig, wm: &WorldModel, judge: &Judge, mut fk: Option<&mut Fk>, jobs: &[(&PolicyConfig, &Task, usize)], live: &mut [Episode]) {
-    let mut windows = Vec::new();
-    for e in live.iter_mut().filter(|e| e.driving.is_some()) {
+/// The episodes in flight of one lane (`crate::lanes`).
+struct Lane<'w> {
+    capacity: usize,
+    live: Vec<Episode<'w>>,
+    /// The chunk queued for the episodes at these positions of `live`.
+    pending: Option<(Vec<usize>, PendingChunks)>,
+}
+
+/// The policies' next actions for every episode in `live` that is still driven, then one
+/// batched world-model chunk for all of them, queued (`Rollout::begin_chunks`): the positions of
+/// those episodes and their chunk. Episodes whose policy or chunk fails end here.
+fn begin(cfg: &EvalConfig, wm: &WorldModel, mut fk: Option<&mut Fk>, jobs: &[(&PolicyConfig, &Task, usize)], live: &mut [Episode]) -> Option<(Vec<usize>, PendingChunks)> {
+    let (mut windows, mut positions) = (Vec::new(), Vec::new());
+    for (pos, e) in live.iter_mut().enumerate().filter(|(_, e)| e.driving.is_some()) {
         let (policy, task, i) = jobs[e.job];
         match next_poses(cfg, wm, fk.as_deref_mut(), policy, &task.starts[i], e) {
-            Ok(poses) => windows.push(poses),
+            Ok(poses) => {
+                windows.push(poses);
+                positions.push(pos);
+            }
             Err(err) => e.end(Some(err)),
         }
     }
-    let mut driven: Vec<&mut Episode> = live.iter_mut().filter(|e| e.driving.is_some()).collect();
-    if driven.is_empty() {
-        return;
+    if positions.is_empty() {
+        return None;
     }
-    let mut rollouts: Vec<&mut Rollout> = driven.iter_mut().filter_map(|e| e.driving.as_mut().map(|d| &mut d.rollout)).collect();
-    let chunks: Result<Vec<Chunk>> = Rollout::next_chunks(&mut rollouts, &windows);
+    let rollouts: Vec<&Rollout> = positions.iter().filter_map(|&p| live[p].driving.as_ref().map(|d| &d.rollout)).collect();
+    match Rollout::begin_chunks(&rollouts, &windows) {
+        Ok(pending) => Some((positions, pending)),
+        Err(err) => {
+            end_all(live, &positions, &err);
+            None
+        }
+    }
+}
+
+/// Ends the episodes at `positions` of `live` with the world model's error.
+fn end_all(live: &mut [Episode], positions: &[usize], err: &anyhow::Error) {
+    let text = format!("world model: {err:#}");
+    for &p in positions {
+        live[p].end(Some(anyhow::anyhow!("{text}")));
+    }
+}
+
+/// Reads back the chunk `begin` queued for the episodes at `positions` of `live`, adds its frames
+/// to each and asks the judge. Episodes that end (success, horizon, error) lose `driving`.
+fn finish(cfg: &EvalConfig, judge: &Judge, jobs: &[(&PolicyConfig, &Task, usize)], live: &mut [Episode], positions: &[usize], pending: PendingChunks) {
+    let mut rollouts: Vec<&mut Rollout> = live
+        .iter_mut()
+        .enumerate()
+        .filter(|(p, _)| positions.contains(p))
+        .filter_map(|(_, e)| e.driving.as_mut().map(|d| &mut d.rollout))
+        .collect();
+    let chunks = Rollout::finish_chunks(&mut rollouts, pending);
     drop(rollouts);
     let chunks = match chunks {
         Ok(c) => c,
-        Err(err) => {
-            let text = format!("world model: {err:#}");
-            for e in driven {
-                e.end(Some(anyhow::anyhow!("{text}")));
-            }
-            return;
-        }
+        Err(err) => return end_all(live, positions, &err),
     };
-    for (e, chunk) in driven.into_iter().zip(chunks) {
+    for (&p, chunk) in positions.iter().zip(chunks) {
+        let e = &mut live[p];
         let (policy, task, i) = jobs[e.job];
         let start = &task.starts[i];
         let subject = Subject { policy: &policy.name, task: &task.cfg.name, prompt: &start.prompt, episode: i, rules: &task.cfg.rules };

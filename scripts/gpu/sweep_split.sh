@@ -1,0 +1,46 @@
+#!/usr/bin/env bash
+# The sampler sweep (bench/metaworld/sweep.sh) over the GPUs of one lent host, from the repo root,
+# run detached: the first chain of settings trains the recipe's model on its GPU
+# (`scripts/gpu/metaworld.sh sweep`, stages up to train, truth and judge) and then measures its
+# settings; once the model is trained, the simulator's truth and the judge's verdicts are copied
+# into every other setting's study folder and the other chains start beside it. Each chain is
+# `GPU:SETTING,SETTING,...`; the default spreads the issue's grid over two GPUs, two chains each:
+#   bash scripts/gpu/detached.sh start sw bash scripts/gpu/sweep_split.sh
+#   bash scripts/gpu/detached.sh wait sw 560 runs/metaworld/sweep   (in each call, back to back)
+# Every call of the chain must carry the same paths, [".whl", ".gl", ".carry"]: the device tool
+# removes a carried path that a later call does not name, and a chain started in such a call finds
+# no bwm binary (run 43 of docs/fidelity.md lost five settings so). With a 30-minute device budget,
+# training (about 13 minutes on an H200) and one round of chains (about 5 minutes each) fit; the
+# second settings of the chains may not. SWEEP_EPISODES (default here 10 per task) and the
+# recipe's variables apply; the table: `python3 bench/metaworld/sweep.py $RUN/sweep` on the
+# returned folders.
+set -uo pipefail
+R=${RUN:-runs/metaworld}
+export RUN=$R SWEEP_EPISODES=${SWEEP_EPISODES:-10}
+CHAINS=${CHAINS:-"0:euler-50,euler-8 0:euler-4,euler-30 1:euler-20,euler-16 1:euler-12"}
+base=${OUT:-/tmp/out}
+read -r -a chains <<< "$CHAINS"
+chain() { # $1 = index, $2 = GPU:SETTING,...
+  mkdir -p "$base/c$1"
+  CUDA_VISIBLE_DEVICES=${2%%:*} OUT=$base/c$1 SETTINGS="$(tr , ' ' <<< "${2#*:}")" bash scripts/gpu/metaworld.sh sweep > "$base/c$1.log" 2>&1
+}
+chain 0 "${chains[0]}" &
+first=$!
+until grep -q "^sweep: " "$base/c0/sweep.log" 2>/dev/null; do
+  kill -0 $first 2>/dev/null || { echo "sweep_split: the first chain ended before its sweep began ($base/c0.log)"; exit 1; }
+  sleep 2
+done
+echo "sweep_split: trained at $(date +%H:%M:%S)"
+pids=($first)
+for i in $(seq 1 $((${#chains[@]} - 1))); do
+  for s in $(tr , ' ' <<< "${chains[$i]#*:}"); do
+    mkdir -p "$R/sweep/$s/study"
+    cp "$R/study/truth.json" "$R/study/judged.json" "$R/sweep/$s/study/"
+  done
+  chain "$i" "${chains[$i]}" &
+  pids+=($!)
+done
+status=0
+for p in "${pids[@]}"; do wait "$p" || status=1; done
+echo "sweep_split: done at $(date +%H:%M:%S) (status $status)"
+exit $status

@@ -147,6 +147,7 @@ fn variants_with_the_same_data_variables_share_one_dataset() {
 const STUB_STAGES: &str = r#"
 study=${STUDY_DIR:-$RUN/study} judge=${JUDGE_FRAMES:-reconstructed}
 echo "$* judge=$judge study=$study ema=${EMA_DECAY:-}" >> "$CALLS"
+[ -z "${STUDY_STREAMS:-}" ] || echo "streams $STUDY_STREAMS study=$study" >> "$CALLS"
 for s in "$@"; do
   if [ "$s" = study ]; then mkdir -p "$study"; echo "{\"judge\": \"$judge\"}" > "$study/study.json"; fi
 done
@@ -276,6 +277,20 @@ fn the_last_steps_weights_are_studied_beside_their_average_when_asked() {
     fs::remove_dir_all(d.join("runs")).unwrap();
     // Without an average there is nothing to compare: refused before any stage.
     refused_before_any_stage(d, &[("COMPARE_EMA", "1")], "set EMA_DECAY");
+}
+
+#[test]
+fn the_study_in_lanes_follows_the_study_when_asked() {
+    let dir = common::temp_dir("gpu-streams");
+    let d = dir.path();
+    let (calls, log) = stages_ran(d, &[("COMPARE_STREAMS", "2")]);
+    let studies: Vec<&String> = calls.iter().filter(|c| c.starts_with("study ") || c.starts_with("streams ")).collect();
+    assert_eq!(
+        studies,
+        ["study judge=reconstructed study=runs/x/study ema=", "study judge=reconstructed study=runs/x/study-streams2 ema=", "streams 2 study=runs/x/study-streams2"],
+        "{log}"
+    );
+    assert!(d.join("runs/x/study-streams2/study.json").is_file(), "{log}");
 }
 
 #[test]

@@ -115,6 +115,7 @@ JUDGE="$RUN/$JUDGE_NAME.pt"
 STUDY_EPISODES="${STUDY_EPISODES:-50}"    # per task and variant, the first held-out episodes
 STUDY_JOBS="${STUDY_JOBS:-8}"             # bwm evaluate processes at once
 STUDY_IN_FLIGHT="${STUDY_IN_FLIGHT:-16}"  # episodes each of them runs at once (one batch per chunk)
+STUDY_STREAMS="${STUDY_STREAMS:-1}"       # lanes each splits them into, on CUDA streams of their own (bwm evaluate --streams)
 STUDY_HORIZON="${STUDY_HORIZON:-$FRAMES}" # frames after x0, in the simulator and the world model
 STUDY_VARIANTS="${STUDY_VARIANTS:-}"      # comma-separated (default: all)
 STUDY_DIR="${STUDY_DIR:-$RUN/study}"      # where the study writes (another, to compare sampler settings)
@@ -155,7 +156,7 @@ timed() { # $1 = stage name; the rest runs, its wall time appended to $RUN/timin
 # other file: of its bytes; a dataset: of its meta/ files; a checkpoint: of its weights). Code
 # (*.py, the bwm binary) is not an input.
 not_in_record() { # $1 = a flag whose value changes nothing the command makes (or names the program)
-  case "$1" in --device|--judge-device|--workers|--jobs|--episodes-in-flight|--batch|--out|--bwm) return 0 ;; esac
+  case "$1" in --device|--judge-device|--workers|--jobs|--episodes-in-flight|--streams|--batch|--out|--bwm) return 0 ;; esac
   return 1
 }
 record_of() { # the command's words, its program first; one line per flag with its values
@@ -358,7 +359,7 @@ fi
 if wants study; then
   world_model
   timed study "$PYTHON" bench/metaworld/study.py "${STUDY_ARGS[@]}" --judge "$JUDGE" --bwm "$BWM" \
-    --jobs "$STUDY_JOBS" --episodes-in-flight "$STUDY_IN_FLIGHT" -- "${WM[@]}"
+    --jobs "$STUDY_JOBS" --episodes-in-flight "$STUDY_IN_FLIGHT" --streams "$STUDY_STREAMS" -- "${WM[@]}"
 fi
 
 if wants teacher; then
@@ -389,6 +390,6 @@ fi
 if wants probe; then
   world_model
   timed probe "$PYTHON" bench/metaworld/study.py "${COMMON_STUDY_ARGS[@]}" --variants "$PROBE_VARIANTS" --out "$RUN/probe" \
-    --judge "$JUDGE" --bwm "$BWM" --jobs "$STUDY_JOBS" --episodes-in-flight "$STUDY_IN_FLIGHT" -- "${WM[@]}"
+    --judge "$JUDGE" --bwm "$BWM" --jobs "$STUDY_JOBS" --episodes-in-flight "$STUDY_IN_FLIGHT" --streams "$STUDY_STREAMS" -- "${WM[@]}"
 fi
 echo "recipe: done; stage times in $RUN/timings.tsv"

@@ -551,7 +551,8 @@ def run_evaluations(groups, a, ports, judge_url, episodes) -> dict:
         os.makedirs(out, exist_ok=True)
         config = os.path.join(out, "evaluate.toml")
         write_config(config, variants, ports, judge_url, a.data, episodes, a)
-        cmd = [a.bwm, "evaluate", "--config", config, "--out", out, "--episodes-in-flight", str(a.episodes_in_flight), *a.wm]
+        cmd = [a.bwm, "evaluate", "--config", config, "--out", out, "--episodes-in-flight", str(a.episodes_in_flight),
+               "--streams", str(a.streams), *a.wm]
         log = open(os.path.join(out, "evaluate.log"), "w")
         print(f"study: evaluate {g}: {', '.join(variants)}: {shlex.join(cmd)}", flush=True)
         env = evaluate_env(a.wm, len(groups), os.environ)
@@ -681,6 +682,9 @@ def main(argv=None) -> None:
     ap.add_argument("--jobs", type=at_least_one, default=4, help="bwm evaluate processes at once (variants split among them)")
     ap.add_argument("--episodes-in-flight", type=at_least_one, default=1,
                     help="episodes each bwm evaluate process runs at once, its chunks generated as one batch")
+    ap.add_argument("--streams", type=at_least_one, default=1,
+                    help="lanes each bwm evaluate process splits its episodes in flight into, taking turns on CUDA streams "
+                         "of their own (bwm evaluate --streams)")
     ap.add_argument("--truth-only", action="store_true", help="measure (or find cached) the true rates in DIR/truth.json and stop")
     ap.add_argument("--judged-only", action="store_true",
                     help="judge the simulator's frames of the episodes (or find them cached) in DIR/judged.json and stop")
@@ -759,7 +763,7 @@ def main(argv=None) -> None:
     if a.rescore:
         replayed = replay_world_model(estimates, episodes, a.resolution, a.workers)
         summary = summarize(truth, estimates, found["judged"], tasks, variants, a.chunk, replayed)
-        for k in ("episodes_per_rate", "horizon", "world_model_flags", "episodes_in_flight"):
+        for k in ("episodes_per_rate", "horizon", "world_model_flags", "episodes_in_flight", "streams"):
             summary[k] = before.get(k)
         if cut:
             summary["cut"] = {"episodes_finished": finished, "episodes_scored": scored, "episodes_planned": planned,
@@ -808,6 +812,7 @@ def main(argv=None) -> None:
     summary["horizon"] = a.horizon
     summary["world_model_flags"] = wm
     summary["episodes_in_flight"] = a.episodes_in_flight
+    summary["streams"] = a.streams
     write_summary(a.out, summary, tasks, a.chunk)
 
 

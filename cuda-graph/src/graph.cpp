@@ -3,7 +3,6 @@
 #include <ATen/cuda/CUDAGraph.h>
 #include <c10/cuda/CUDAFunctions.h>
 #include <c10/cuda/CUDAStream.h>
-#include <optional>
 #include <utility>
 #include <vector>
 // Only non-inline libtorch functions are called: c10/cuda/CUDAGuard.h and CUDAStream::synchronize
@@ -30,44 +29,50 @@ struct Recorder : at::cuda::CUDAGraph {
 }  // namespace
 #endif
 
-struct BwmGraph {
-#ifdef BWM_CUDA
-  explicit BwmGraph(int device) : stream(c10::cuda::getStreamFromPool(false, static_cast<c10::DeviceIndex>(device))) {}
-  Recorder graph;
-  // Captures cannot run on the default stream, so warm-up runs and the capture use this one.
-  c10::cuda::CUDAStream stream;
-  // The device and stream that were current before the graph's were made current.
-  c10::DeviceIndex device_before = 0;
-  std::optional<c10::cuda::CUDAStream> before;
-#endif
-};
-
-// A stream of libtorch's pool that the caller makes current around work of its own
-// (`CudaStream::scope`); the streams and devices current before are kept for nested scopes.
+// A stream of libtorch's pool made current around work of its own (`CudaStream::scope`, and a
+// graph's warm-up runs and capture); the streams and devices current before are kept for nested
+// scopes.
 struct BwmStream {
 #ifdef BWM_CUDA
   explicit BwmStream(int device) : stream(c10::cuda::getStreamFromPool(false, static_cast<c10::DeviceIndex>(device))) {}
   c10::cuda::CUDAStream stream;
   std::vector<std::pair<c10::DeviceIndex, c10::cuda::CUDAStream>> before;
+
+  void enter() {
+    c10::DeviceIndex device = c10::cuda::current_device();
+    c10::cuda::set_device(stream.device_index());
+    before.emplace_back(device, c10::cuda::getCurrentCUDAStream(stream.device_index()));
+    c10::cuda::setCurrentCUDAStream(stream);
+  }
+
+  // False when nothing was entered.
+  bool leave() {
+    if (before.empty()) {
+      return false;
+    }
+    auto [device, previous] = before.back();
+    before.pop_back();
+    c10::cuda::setCurrentCUDAStream(previous);
+    c10::cuda::set_device(device);
+    return true;
+  }
+#endif
+};
+
+struct BwmGraph {
+#ifdef BWM_CUDA
+  explicit BwmGraph(int device) : stream(device) {}
+  Recorder graph;
+  // Captures cannot run on the default stream, so warm-up runs and the capture use this one.
+  BwmStream stream;
 #endif
 };
 
 #ifdef BWM_CUDA
 namespace {
-void make_current(BwmGraph* g) {
-  g->device_before = c10::cuda::current_device();
-  c10::cuda::set_device(g->stream.device_index());
-  g->before = c10::cuda::getCurrentCUDAStream(g->stream.device_index());
-  c10::cuda::setCurrentCUDAStream(g->stream);
-}
+void make_current(BwmGraph* g) { g->stream.enter(); }
 
-void restore(BwmGraph* g) {
-  if (g->before) {
-    c10::cuda::setCurrentCUDAStream(*g->before);
-    c10::cuda::set_device(g->device_before);
-  }
-  g->before.reset();
-}
+void restore(BwmGraph* g) { g->stream.leave(); }
 }  // namespace
 #endif
 
@@ -142,23 +147,14 @@ BwmStream* bwm_stream_new(int device) {
 }
 
 bool bwm_stream_enter(BwmStream* s) {
-  return guarded([&] {
-    c10::DeviceIndex device = c10::cuda::current_device();
-    c10::cuda::set_device(s->stream.device_index());
-    s->before.emplace_back(device, c10::cuda::getCurrentCUDAStream(s->stream.device_index()));
-    c10::cuda::setCurrentCUDAStream(s->stream);
-  });
+  return guarded([&] { s->enter(); });
 }
 
 bool bwm_stream_leave(BwmStream* s) {
   return guarded([&] {
-    if (s->before.empty()) {
+    if (!s->leave()) {
       throw std::runtime_error("leaving a CUDA stream that was not entered");
     }
-    auto [device, stream] = s->before.back();
-    s->before.pop_back();
-    c10::cuda::setCurrentCUDAStream(stream);
-    c10::cuda::set_device(device);
   });
 }
 

@@ -58,6 +58,21 @@ fn run<T>(body: impl FnOnce() -> Result<T>) -> Result<T> {
     })
 }
 
+/// `body` between the shim's `enter` and `leave` (each false on failure, with the shim's error),
+/// its panics caught; `leave` runs also when `body` fails.
+fn between<T>(enter: impl FnOnce() -> bool, entering: &str, leave: impl FnOnce() -> bool, leaving: &str, body: impl FnOnce() -> Result<T>) -> Result<T> {
+    if !enter() {
+        return Err(shim_error(entering));
+    }
+    let out = run(body);
+    let left = leave();
+    let out = out?;
+    if !left {
+        return Err(shim_error(leaving));
+    }
+    Ok(out)
+}
+
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum State {
     Empty,
@@ -88,18 +103,15 @@ impl CudaGraph {
     /// per-stream state (cuBLAS workspaces, the autograd engine's streams) on first use, which a
     /// capture cannot do: run the work once or twice this way before [`CudaGraph::capture`].
     pub fn warm_up<T>(&mut self, body: impl FnOnce() -> Result<T>) -> Result<T> {
-        // SAFETY: `raw` is this graph's live object.
-        if !unsafe { bwm_graph_enter(self.raw) } {
-            return Err(shim_error("switching to the graph's stream"));
-        }
-        let out = run(body);
-        // SAFETY: as above; leaving restores the stream that was current before.
-        let left = unsafe { bwm_graph_leave(self.raw) };
-        let out = out?;
-        if !left {
-            return Err(shim_error("waiting for the graph's stream"));
-        }
-        Ok(out)
+        between(
+            // SAFETY: `raw` is this graph's live object.
+            || unsafe { bwm_graph_enter(self.raw) },
+            "switching to the graph's stream",
+            // SAFETY: as above; leaving restores the stream that was current before.
+            || unsafe { bwm_graph_leave(self.raw) },
+            "waiting for the graph's stream",
+            body,
+        )
     }
 
     /// Records what `body` launches, without running it; [`CudaGraph::replay`] runs it. The
@@ -176,18 +188,15 @@ impl CudaStream {
     /// Runs `body` with this stream current on its device, then makes the stream and device that
     /// were current before current again (also when `body` fails or panics).
     pub fn scope<T>(&self, body: impl FnOnce() -> Result<T>) -> Result<T> {
-        // SAFETY: `raw` is this stream's live holder.
-        if !unsafe { bwm_stream_enter(self.raw) } {
-            return Err(shim_error("making a CUDA stream current"));
-        }
-        let out = run(body);
-        // SAFETY: as above, entered just before.
-        let left = unsafe { bwm_stream_leave(self.raw) };
-        let out = out?;
-        if !left {
-            return Err(shim_error("making the CUDA stream before current again"));
-        }
-        Ok(out)
+        between(
+            // SAFETY: `raw` is this stream's live holder.
+            || unsafe { bwm_stream_enter(self.raw) },
+            "making a CUDA stream current",
+            // SAFETY: as above, entered just before.
+            || unsafe { bwm_stream_leave(self.raw) },
+            "making the CUDA stream before current again",
+            body,
+        )
     }
 }
 

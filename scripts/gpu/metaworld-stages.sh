@@ -82,6 +82,12 @@ else
       JUDGE_FRAMES=$COMPARE_JUDGE STUDY_DIR=$(study_dir "$COMPARE_JUDGE") recipe study 2>&1 | tee -a "$OUT/recipe.log"
       [ "${PIPESTATUS[0]}" = 0 ] || status=1
     fi
+    if [ $status = 0 ] && [ -n "${COMPARE_STREAMS:-}" ]; then
+      # The same study with the episodes in flight in lanes on CUDA streams of their own (the same
+      # estimates; what changes is the time).
+      STUDY_STREAMS=$COMPARE_STREAMS STUDY_DIR=$R/study-streams$COMPARE_STREAMS recipe study 2>&1 | tee -a "$OUT/recipe.log"
+      [ "${PIPESTATUS[0]}" = 0 ] || status=1
+    fi
     if [ $status = 0 ] && [ -n "${COMPARE_SOLVER:-}" ]; then
       SOLVER=$COMPARE_SOLVER STUDY_DIR=$R/study-$COMPARE_SOLVER recipe study 2>&1 | tee -a "$OUT/recipe.log"
       [ "${PIPESTATUS[0]}" = 0 ] || status=1

@@ -18,7 +18,10 @@
 # (graded `wrong` variants, after the study); TEACHER=1 adds the teacher stage after the study
 # (each chunk drawn from the simulator's real history: $RUN/teacher/teacher.json; TEACHER_VARIANTS
 # picks variants); OWN=1 the own stage after that (the same over the training and held-out
-# datasets' own near misses: $RUN/own/{train,val}/; OWN_BEHAVIOURS, OWN_EPISODES). COMPARE_SOLVER=dpm++2m studies the same model a
+# datasets' own near misses: $RUN/own/{train,val}/; OWN_BEHAVIOURS, OWN_EPISODES). COMPARE_STREAMS=2
+# studies the same model a second time with each evaluate process's episodes in flight in 2 lanes
+# on CUDA streams of their own ($RUN/study-streams2: the same estimates, its own time in the
+# timings). COMPARE_SOLVER=dpm++2m studies the same model a
 # second time with that sampler ($RUN/study-dpm++2m); COMPARE_GUIDANCE="2 3" once more per
 # action-guidance value ($RUN/study-g2, ...; the model trained with objective.action_dropout > 0);
 # COMPARE_EMA=1 (with EMA_DECAY) once more with the newest checkpoint's last step's weights instead

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The unit tests that only check something where there is a GPU (on CPU they say so and pass):
 # CUDA graphs (cuda-graph/: a replayed forward and backward pass against the eager one, a capture
-# that fails), and the VAE's and the DiT's training with the step replayed from a graph against
+# that fails, and work queued on two CUDA streams in turn, as `--streams` does), and the VAE's
+# and the DiT's training with the step replayed from a graph against
 # the eager training (trainer/: `vae_train` and tests/training.rs), and rollouts whose sampler
 # replays a recorded forward pass against eager ones (inference/: `graphed`), and the fused AdamW kernels
 # against the tensor path and the accumulator (trainer/: `optim`), and the rotary embedding's kernels
@@ -11,7 +12,8 @@
 # passes the device tool's 64 MiB):
 #   bash scripts/gpu/unit.sh [GROUP ...]
 # GROUP: `vae` (cuda-graph's tests and the VAE's graphed training: what the recipe's VAE_GRAPH
-# relies on), `dit` (the DiT's graphed training, `train.cuda_graph`), `rollout` (the graphed
+# relies on; the streams of `--streams` too), `dit` (the DiT's graphed training,
+# `train.cuda_graph`), `rollout` (the graphed
 # sampler, `--cuda-graph`), `optim` (the fused AdamW kernels, `optim.fused`) or `fused` (the DiT's
 # fused element-wise kernels, used on CUDA); default all five. (The recipe
 # needs no fallback of its own: with VAE_GRAPH=auto it trains the VAE eagerly should the graph fail.)

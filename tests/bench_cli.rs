@@ -62,7 +62,7 @@ fn bench_rollout_times_each_chunk() {
         "bench-rollout", "--random-weights", "tiny", "--vae", vae.to_str().unwrap(), "--device", "cpu", "--height", "32", "--width", "32", "--history", "4", "--future", "4",
         "--sample-steps", "2", "--chunks", "2",
     ]);
-    assert!(line(&out, "bench-rollout:").contains("1 rollout(s) at once, x0 + 4 history frames, 4 frames per chunk, 2 euler steps, attention backend auto"), "{out}");
+    assert!(line(&out, "bench-rollout:").contains("1 rollout(s) at once in 1 stream(s), x0 + 4 history frames, 4 frames per chunk, 2 euler steps, attention backend auto"), "{out}");
     for i in 0..2 {
         let l = line(&out, &format!("chunk {i}:"));
         assert!(l.contains("; 4 frames;"), "{l}");
@@ -78,6 +78,19 @@ fn bench_rollout_times_each_chunk() {
     assert!(line(&out, "chunk 0:").contains("; 4 frames;"), "{out}");
     let failed = Command::new(bwm()).args(["bench-rollout", "--random-weights", "tiny", "--vae", vae.to_str().unwrap(), "--device", "cpu", "--batch", "0"]).output().unwrap();
     assert!(!failed.status.success() && String::from_utf8_lossy(&failed.stderr).contains("--batch must be at least 1"), "{failed:?}");
+    // In two lanes taking turns: each chunk's line says when the last lane finished it.
+    let out = run(&[
+        "bench-rollout", "--random-weights", "tiny", "--vae", vae.to_str().unwrap(), "--device", "cpu", "--height", "32", "--width", "32", "--history", "4", "--future", "4",
+        "--sample-steps", "2", "--chunks", "2", "--batch", "3", "--streams", "2",
+    ]);
+    assert!(line(&out, "bench-rollout:").contains("3 rollout(s) at once in 2 stream(s)"), "{out}");
+    assert!(line(&out, "chunk 0:").contains("all 3 rollouts' frames at") && line(&out, "chunk 0:").contains("after the start"), "{out}");
+    assert!(line(&out, "chunk 1:").contains("after chunk 0's"), "{out}");
+    let failed = Command::new(bwm())
+        .args(["bench-rollout", "--random-weights", "tiny", "--vae", vae.to_str().unwrap(), "--device", "cpu", "--batch", "1", "--streams", "2"])
+        .output()
+        .unwrap();
+    assert!(!failed.status.success() && String::from_utf8_lossy(&failed.stderr).contains("cannot fill 2 streams"), "{failed:?}");
 }
 
 #[test]

@@ -239,11 +239,11 @@ pub fn rollout(wm: &WorldModel, height: i64, width: i64, chunks: usize, batch: u
         done[chunk.index] += 1;
         if done[chunk.index] == batch {
             let at = start.elapsed().as_secs_f64();
+            let since = if chunk.index == 0 { "the start".to_string() } else { format!("chunk {}'s", chunk.index - 1) };
             println!(
-                "chunk {}: all {batch} rollouts' frames at {at:.2} s, {:.2} s after chunk {}'s; {:.1} generated frames/s; device memory {}",
+                "chunk {}: all {batch} rollouts' frames at {at:.2} s, {:.2} s after {since}; {:.1} generated frames/s; device memory {}",
                 chunk.index,
                 at - last,
-                chunk.index as i64 - 1,
                 frames_per_chunk / (at - last),
                 memory()
             );

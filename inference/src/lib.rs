@@ -8,7 +8,8 @@
 //! as a LeRobot dataset), the fidelity report ([`fidelity::run`]: whole-episode rollouts scored
 //! against the real frames) and the policy evaluator ([`evaluate::run`]: policies served over
 //! openpi's websocket protocol in closed loop, judged, with per-task success rates); each is what
-//! the `bwm` subcommand of the same name runs. [`bench`](mod@bench) times the DiT, the VAE and whole rollout
+//! the `bwm` subcommand of the same name runs; [`lanes`] splits their episodes in flight into lanes
+//! that take turns on CUDA streams of their own. [`bench`](mod@bench) times the DiT, the VAE and whole rollout
 //! chunks; [`demo`] is `bwm demo`. `examples/step.rs` steps a tiny random model twice and writes
 //! the frames:
 //!

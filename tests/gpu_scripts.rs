@@ -379,6 +379,67 @@ fn the_sweeps_chains_start_on_their_gpus_once_the_first_has_trained_the_model() 
     assert!(String::from_utf8_lossy(&failed.stdout).contains("the first chain ended before its sweep began"));
 }
 
+/// A stub of bench/metaworld/recipe.sh's fidelity and study stages for bench/metaworld/sweep.sh:
+/// records the sampler settings each stage got and writes the outputs sweep.py reads (the same
+/// for every setting).
+const STUB_SWEEP_RECIPE: &str = r#"
+echo "$1 solver=$SOLVER steps=$SAMPLE_STEPS fp8=$FP8 streams=$FIDELITY_STREAMS/$STUDY_STREAMS" >> "$CALLS"
+if [ "$1" = fidelity ]; then
+  mkdir -p "$FIDELITY_DIR"
+  echo '{"all": {"horizons": {"32": {"model": {"psnr": 27.0}}}}, "tasks": {"t": {"horizons": {"32": {"model": {"psnr": 27.0}}}}}}' > "$FIDELITY_DIR/fidelity.json"
+else
+  mkdir -p "$STUDY_DIR"
+  echo '{"rates": [{"task": "t", "variant": "x", "estimated": 0.5}], "all": {"pearson_r": 0.9, "best_ranked_first": true}}' > "$STUDY_DIR/study.json"
+fi
+"#;
+
+#[test]
+fn the_sweep_times_each_settings_stages_and_passes_fp8_and_lanes_on() {
+    let dir = common::temp_dir("gpu-sweep");
+    let d = dir.path();
+    fs::create_dir_all(d.join("bench/metaworld")).unwrap();
+    for f in ["sweep.sh", "sweep.py"] {
+        fs::copy(Path::new(ROOT).join("bench/metaworld").join(f), d.join("bench/metaworld").join(f)).unwrap();
+    }
+    fs::write(d.join("bench/metaworld/recipe.sh"), STUB_SWEEP_RECIPE).unwrap();
+    fs::create_dir_all(d.join("runs/w/data/val/meta")).unwrap();
+    fs::write(d.join("runs/w/data/val/meta/info.json"), r#"{"total_tasks": 1}"#).unwrap();
+    let out = Command::new("bash")
+        .arg(d.join("bench/metaworld/sweep.sh"))
+        .current_dir(d)
+        .env("RUN", "runs/w")
+        .env("CALLS", d.join("calls.txt"))
+        .env("STEPS", "8 50")
+        .env("SOLVERS", "euler")
+        .env("EXTRA_SETTINGS", "euler-8-fp8row-streams2")
+        .env("PYTHON", common::python())
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
+    assert_eq!(
+        fs::read_to_string(d.join("calls.txt")).unwrap().lines().collect::<Vec<_>>(),
+        [
+            "fidelity solver=euler steps=50 fp8= streams=1/1",
+            "study solver=euler steps=50 fp8= streams=1/1",
+            "fidelity solver=euler steps=8 fp8= streams=1/1",
+            "study solver=euler steps=8 fp8= streams=1/1",
+            "fidelity solver=euler steps=8 fp8=row streams=2/2",
+            "study solver=euler steps=8 fp8=row streams=2/2",
+        ]
+    );
+    assert!(stdout.contains("sweep: euler, 8 steps, FP8 (row scaling), 2 streams"), "{stdout}");
+    let timings = fs::read_to_string(d.join("runs/w/sweep/euler-8-fp8row-streams2/timings.tsv")).unwrap();
+    let stages: Vec<(&str, f64)> = timings.lines().map(|l| l.split_once('\t').unwrap()).map(|(s, v)| (s, v.parse().unwrap())).collect();
+    assert_eq!(stages.iter().map(|s| s.0).collect::<Vec<_>>(), ["fidelity", "study"], "{timings}");
+    assert!(stages.iter().all(|s| s.1 >= 0.0), "{timings}");
+    let report: serde_json::Value = serde_json::from_str(&fs::read_to_string(d.join("runs/w/sweep/sweep.json")).unwrap()).unwrap();
+    assert_eq!(report["default"], "euler-8", "{report}");
+    let lanes = report["settings"].as_array().unwrap().iter().find(|r| r["setting"] == "euler-8-fp8row-streams2").unwrap();
+    assert_eq!((lanes["fp8"].as_str(), lanes["streams"].as_u64()), (Some("row"), Some(2)), "{lanes}");
+    assert!(lanes["seconds"]["study"].is_number(), "{lanes}");
+}
+
 #[test]
 fn detached_work_is_followed_across_waits_and_packed() {
     let name = Detached(format!("test-{}", std::process::id()));

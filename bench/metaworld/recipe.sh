@@ -122,6 +122,7 @@ STUDY_DIR="${STUDY_DIR:-$RUN/study}"      # where the study writes (another, to 
 FIDELITY_DIR="${FIDELITY_DIR:-$RUN/fidelity}"  # where the fidelity report goes
 FIDELITY_EPISODES="${FIDELITY_EPISODES:-}" # comma-separated positions in data/val (default: all)
 FIDELITY_IN_FLIGHT="${FIDELITY_IN_FLIGHT:-8}" # episodes rolled out at once (one batch per chunk)
+FIDELITY_STREAMS="${FIDELITY_STREAMS:-1}"     # lanes they are split into, on CUDA streams of their own (bwm fidelity --streams)
 PROBE_VARIANTS="${PROBE_VARIANTS:-wrong-0cm,wrong-1cm,wrong-2cm,wrong-3cm,wrong-4cm,wrong-5cm,wrong-6cm}"
 TEACHER_VARIANTS="${TEACHER_VARIANTS:-$STUDY_VARIANTS}"  # the teacher stage's variants (default: the study's)
 OWN_BEHAVIOURS="${OWN_BEHAVIOURS-miss}"   # the own stage's generator behaviours, comma-separated (empty: all)
@@ -304,7 +305,8 @@ world_model() {
 if wants fidelity; then
   world_model
   timed fidelity "$BWM" fidelity "${WM[@]}" --data "$RUN/data/val" --actions observation.state:0-3 --resolution "${RESOLUTION}x$RESOLUTION" \
-    --horizons 8,16,32,64 --videos 4 ${FIDELITY_EPISODES:+--episodes "$FIDELITY_EPISODES"} --episodes-in-flight "$FIDELITY_IN_FLIGHT" --out "$FIDELITY_DIR"
+    --horizons 8,16,32,64 --videos 4 ${FIDELITY_EPISODES:+--episodes "$FIDELITY_EPISODES"} --episodes-in-flight "$FIDELITY_IN_FLIGHT" \
+    --streams "$FIDELITY_STREAMS" --out "$FIDELITY_DIR"
 fi
 
 COMMON_STUDY_ARGS=(--data "$RUN/data/val" --episodes "$STUDY_EPISODES" --horizon "$STUDY_HORIZON" --resolution "$RESOLUTION" --workers "$WORKERS")

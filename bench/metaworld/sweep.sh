@@ -5,8 +5,10 @@
 # and study stages with SOLVER / SAMPLE_STEPS), into $RUN/sweep/SOLVER-STEPS/{fidelity,study};
 # then sweep.py: a table and the default setting, the fewest steps whose PSNR at h = 32 stays
 # within 0.5 dB (every task) and whose success estimates stay within 2 points of 50 Euler steps.
-# EXTRA_SETTINGS names more, e.g. "dpm++2m-8-fp8row" (the DiT's linears in FP8 with row scaling),
-# measured after the rest. Settings already measured are skipped, so the sweep can run over
+# EXTRA_SETTINGS names more, e.g. "dpm++2m-8-fp8row" (the DiT's linears in FP8 with row scaling)
+# or "euler-4-streams2" (the episodes in flight of `bwm fidelity` and of each `bwm evaluate` in 2
+# lanes on CUDA streams of their own: the same sampler, timed), measured after the rest. Each
+# setting's stages are timed into its folder's timings.tsv (the table's last column). Settings already measured are skipped, so the sweep can run over
 # several device calls. SETTINGS (e.g. "euler-8 euler-12") measures those settings alone and
 # leaves the table out: a share of the sweep for one GPU of several, e.g.
 #   CUDA_VISIBLE_DEVICES=1 SETTINGS="euler-8 euler-12" bash bench/metaworld/sweep.sh &
@@ -38,15 +40,15 @@ done
 settings+=(${EXTRA_SETTINGS:-})
 [ -z "${SETTINGS:-}" ] || settings=($SETTINGS)
 for setting in "${settings[@]}"; do
-  fp8=
-  case "$setting" in *-fp8*) fp8=${setting##*-fp8} ;; esac
-  base=${setting%-fp8*}
+  base=$setting streams=1 fp8=
+  case "$base" in *-streams*) streams=${base##*-streams} base=${base%-streams*} ;; esac
+  case "$base" in *-fp8*) fp8=${base##*-fp8} base=${base%-fp8*} ;; esac
   solver=${base%-*} steps=${base##*-}
   dir="$RUN/sweep/$setting"
   if [ -f "$dir/fidelity/fidelity.json" ] && [ -f "$dir/study/study.json" ]; then
     echo "sweep: $setting measured"; continue
   fi
-  echo "sweep: $solver, $steps steps${fp8:+, FP8 ($fp8 scaling)} ($(date +%H:%M:%S))"
+  echo "sweep: $solver, $steps steps${fp8:+, FP8 ($fp8 scaling)}$([ "$streams" = 1 ] || echo ", $streams streams") ($(date +%H:%M:%S))"
   # The simulator's outcomes and the judge's verdicts on its frames do not depend on the sampler:
   # the baseline's are reused (study.py keys them by seeds, variants, the policies' code and judge, and measures
   # afresh where the key differs).
@@ -54,8 +56,12 @@ for setting in "${settings[@]}"; do
   for f in truth.json judged.json; do
     if [ ! -f "$dir/study/$f" ] && [ -f "$RUN/sweep/$baseline/study/$f" ]; then cp "$RUN/sweep/$baseline/study/$f" "$dir/study/$f"; fi
   done
-  RUN="$RUN" SOLVER="$solver" SAMPLE_STEPS="$steps" FP8="$fp8" FIDELITY_DIR="$dir/fidelity" FIDELITY_EPISODES="$episodes" \
-    STUDY_DIR="$dir/study" bash bench/metaworld/recipe.sh fidelity study
+  for stage in fidelity study; do
+    start=$(date +%s%N)
+    RUN="$RUN" SOLVER="$solver" SAMPLE_STEPS="$steps" FP8="$fp8" FIDELITY_DIR="$dir/fidelity" FIDELITY_EPISODES="$episodes" \
+      FIDELITY_STREAMS="$streams" STUDY_STREAMS="$streams" STUDY_DIR="$dir/study" bash bench/metaworld/recipe.sh "$stage"
+    printf '%s\t%s\n' "$stage" "$(( ($(date +%s%N) - start) / 1000000 ))e-3" >> "$dir/timings.tsv"
+  done
 done
 [ -n "${SETTINGS:-}" ] && { echo "sweep: $SETTINGS measured; the table comes from a plain sweep.sh"; exit 0; }
 "$PYTHON" bench/metaworld/sweep.py "$RUN/sweep" --baseline "$baseline"

@@ -181,8 +181,8 @@ pub fn vae(args: &VaeBenchOptions) -> Result<()> {
 /// apart).
 pub fn rollout(wm: &WorldModel, height: i64, width: i64, chunks: usize, batch: usize, streams: usize) -> Result<()> {
     ensure!(batch >= 1, "--batch must be at least 1");
+    crate::lanes::check(batch, streams).map_err(|e| e.context("--batch and --streams"))?;
     let lanes = wm.lanes(streams)?;
-    lanes.shares(batch).map_err(|e| e.context("--batch and --streams"))?;
     let d = wm.action_dim() as i64;
     tch::manual_seed(0);
     let a0 = Tensor::zeros([d], (Kind::Float, Device::Cpu));

@@ -71,6 +71,7 @@ pub fn run(options: &WorldModelOptions, a: &FidelityOptions) -> Result<()> {
     let size = parse_resolution(&a.resolution, 16)?;
     ensure!(a.horizons.iter().all(|&h| h > 0), "--horizons must be positive frame counts");
     ensure!(a.in_flight >= 1, "episodes in flight must be at least 1");
+    crate::lanes::check(2 * a.in_flight, a.streams)?;
     let options = options.with_stats_beside(Some(&a.data), "fidelity");
     let source = open_dataset(&a.data)?;
     let spec = ActionSpec::parse(&a.actions).context("--actions")?;
@@ -83,7 +84,6 @@ pub fn run(options: &WorldModelOptions, a: &FidelityOptions) -> Result<()> {
     }
     let wm = options.load()?;
     let lanes = wm.lanes(a.streams)?;
-    lanes.shares(2 * a.in_flight)?;
     println!(
         "fidelity: {} episodes of {}; chunks of {} frames, {} history frames, {} sampler steps, {} episode(s) in flight in {} stream(s)",
         episodes.len(),

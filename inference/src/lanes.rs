@@ -48,10 +48,16 @@ impl Lanes {
     /// How many of `in_flight` episodes each lane carries: as even as they divide, the first
     /// lanes one more. Every lane must carry one.
     pub fn shares(&self, in_flight: usize) -> Result<Vec<usize>> {
-        let n = self.len();
-        ensure!(in_flight >= n, "{in_flight} episode(s) in flight cannot fill {n} streams: each stream carries at least one");
-        Ok(shares(in_flight, n))
+        check(in_flight, self.len())?;
+        Ok(shares(in_flight, self.len()))
     }
+}
+
+/// Whether `in_flight` episodes fill `streams` lanes (before a model is loaded for them).
+pub fn check(in_flight: usize, streams: usize) -> Result<()> {
+    ensure!(streams >= 1, "streams must be at least 1");
+    ensure!(in_flight >= streams, "{in_flight} episode(s) in flight cannot fill {streams} streams: each stream carries at least one");
+    Ok(())
 }
 
 /// `in_flight` split over `n` lanes as evenly as it divides, the first lanes one more.
@@ -128,5 +134,6 @@ mod tests {
         let err = lanes.shares(2).unwrap_err().to_string();
         assert!(err.contains("cannot fill 3 streams"), "{err}");
         assert!(Lanes::new(Device::Cpu, 0).is_err());
+        assert!(check(4, 4).is_ok() && check(3, 4).is_err() && check(4, 0).is_err());
     }
 }

@@ -123,9 +123,9 @@ pub fn run(options: &WorldModelOptions, a: &RolloutOptions) -> Result<()> {
     }
     ensure!(a.perturb_std >= 0.0 && a.perturb_std.is_finite(), "--perturb-std must be a non-negative number");
     ensure!(a.in_flight >= 1, "episodes in flight must be at least 1");
+    crate::lanes::check(a.in_flight, a.streams)?;
     let wm = options.load()?;
     let lanes = wm.lanes(a.streams)?;
-    lanes.shares(a.in_flight)?;
     println!(
         "rollout: {} on {:?}; chunks of {} frames, {} history frames, {} sampler steps, {} episode(s) in flight in {} stream(s)",
         if options.checkpoint.is_some() { "trained model" } else { "random weights" },

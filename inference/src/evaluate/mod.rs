@@ -43,6 +43,7 @@ use tasks::{Start, Task};
 /// order.
 pub fn run(options: &WorldModelOptions, config: &Path, out: &Path, in_flight: usize, streams: usize) -> Result<()> {
     ensure!(in_flight >= 1, "episodes in flight must be at least 1");
+    crate::lanes::check(in_flight, streams)?;
     let cfg = EvalConfig::read(config)?;
     ensure!(
         options.stats.is_some(),

@@ -101,10 +101,9 @@ pub fn run_together(lanes: &Lanes, rollouts: &mut [&mut Rollout<'_>], actions: &
                 }
                 let (mut batch, mut windows, mut indices) = (Vec::new(), Vec::new(), Vec::new());
                 for i in range.clone() {
-                    let left = actions[i].size()[0] - applied[i];
-                    if left > 0 {
-                        let r: &Rollout = &*rollouts[i];
-                        windows.push(actions[i].narrow(0, applied[i], left.min(r.spec().future as i64)));
+                    let r: &Rollout = &*rollouts[i];
+                    if let Some(window) = r.next_window(&actions[i], applied[i]) {
+                        windows.push(window);
                         indices.push(i);
                         batch.push(r);
                     }

@@ -401,6 +401,13 @@ impl<'m> Rollout<'m> {
         Self::run_together(&mut [self], std::slice::from_ref(actions), &mut |_, chunk| on_chunk(chunk))
     }
 
+    /// The next chunk's rows of a whole action sequence [T, d_a] of which the first `applied` have
+    /// been applied: at most K of them, None when none are left.
+    pub fn next_window(&self, actions: &Tensor, applied: i64) -> Option<Tensor> {
+        let left = actions.size()[0] - applied;
+        (left > 0).then(|| actions.narrow(0, applied, left.min(self.spec.future as i64)))
+    }
+
     /// `run` for several rollouts, `actions[i]` driving `rollouts[i]`: each round advances those
     /// with actions left by one chunk as one batch (`next_chunks`) and hands the chunks over as
     /// `on_chunk(i, chunk)`.
@@ -410,9 +417,8 @@ impl<'m> Rollout<'m> {
         loop {
             let (mut batch, mut windows, mut indices) = (Vec::new(), Vec::new(), Vec::new());
             for (i, (r, a)) in rollouts.iter_mut().zip(actions).enumerate() {
-                let left = a.size()[0] - applied[i];
-                if left > 0 {
-                    windows.push(a.narrow(0, applied[i], left.min(r.spec.future as i64)));
+                if let Some(window) = r.next_window(a, applied[i]) {
+                    windows.push(window);
                     indices.push(i);
                     batch.push(&mut **r);
                 }

@@ -2,10 +2,15 @@
 // "tensorwise" training recipe does: x and W cast to e4m3 and the incoming gradient to e5m2, each
 // with one scale from its own absolute maximum on every call (dynamic scaling); products by
 // _scaled_mm, accumulated in fp32 and returned in the inputs' dtype. The bias and its gradient
-// stay in that dtype.
+// stay in that dtype. The cast (with the scale's arithmetic and the transposed copy the products
+// need) is the Rust side's pass, handed in once as a function pointer (`bwm_fp8_set_quantize_pass`):
+// bwm-fused-ops' kernel on CUDA, its loop on the CPU.
 #include <torch/torch.h>
+#ifdef BWM_CUDA
+#include <c10/cuda/CUDAStream.h>
+#endif
 
-#include <cfloat>
+#include <cstdint>
 #include <limits>
 #include <string>
 
@@ -14,36 +19,60 @@ namespace {
 constexpr double E4M3_MAX = 448.0;
 constexpr double E5M2_MAX = 57344.0;
 
+// stream (CUDA; null on the CPU), device index (-1: CPU), dtype (0: f32, 1: bf16), format (0:
+// e4m3fn, 1: e5m2), the multiplier's target, t, its largest magnitude (a scalar of t's dtype), q,
+// its transpose, the scale, rows, cols, the transpose's padded rows, error buffer, its size -> 0
+// or an error.
+using QuantizePass = int (*)(void*, int, int, int, double, const void*, const void*, uint8_t*, uint8_t*, float*, int64_t, int64_t, int64_t, char*, size_t);
+QuantizePass quantize_pass = nullptr;
+
 struct Quantized {
-  at::Tensor q;      // float8
+  at::Tensor q;      // float8 [rows, cols], where asked for
+  at::Tensor qt;     // its transpose [cols, padded rows], the padding zero, where asked for
   at::Tensor scale;  // f32 scalar: t ~= q * scale
 };
 
-// Two passes over t: its largest magnitude (the infinity norm, one reduction without a temporary),
-// then the product with the multiplier written straight into float8. The casts do not saturate,
-// so the multiplier aims a little under the format's largest value: rounded to t's dtype (2^-8
-// relative for bf16) and the product rounded again, |t| * multiplier stays under fmax. The scale is
-// the multiplier's exact inverse.
-Quantized quantize(const at::Tensor& t, at::ScalarType fp8, double fmax) {
-  constexpr double HEADROOM = 1.0 - 1.0 / 64;
-  auto amax = at::linalg_vector_norm(t, std::numeric_limits<double>::infinity()).to(at::kFloat);
-  auto multiplier = (fmax * HEADROOM / amax.clamp_min(1e-12)).clamp_max(FLT_MAX).to(t.scalar_type());
-  auto q = at::empty(t.sizes(), t.options().dtype(fp8));
-  at::mul_out(q, t, multiplier);
-  return {q, multiplier.to(at::kFloat).reciprocal()};
-}
-
-// [rows, cols] -> its transpose [cols, padded(rows)] row-major, the padding columns zero: the
-// operands of the weight's gradient, whose inner dimension (x's rows) CUDA's FP8 matmuls need a
-// multiple of 16 (zero rows of x and of the gradient add nothing to g^T x).
+// Rows of a transposed operand: the inner dimension of the weight's gradient (x's rows), which
+// CUDA's FP8 matmuls need a multiple of 16 (zero rows of x and of the gradient add nothing to g^T x).
 int64_t padded(int64_t m) { return (m + 15) / 16 * 16; }
-at::Tensor transposed_padded(const at::Tensor& q) {
-  const int64_t m = q.size(0), mp = padded(m);
-  if (mp == m) return q.t().contiguous();
-  auto t = at::empty({q.size(1), mp}, q.options());
-  t.narrow(1, 0, m).copy_(q.t());
-  t.narrow(1, m, mp - m).zero_();
-  return t;
+
+// t [rows, cols] in float8 `fp8` with one scale from its largest magnitude (the infinity norm, one
+// reduction), then the pass: the multiplier, each value's product and cast, the copies. The casts
+// do not saturate, so the multiplier aims a little under the format's largest value: rounded to
+// t's dtype (2^-8 relative for bf16) and the product rounded again, |t| * multiplier stays under
+// fmax. The scale is the multiplier's exact inverse.
+Quantized quantize(const at::Tensor& input, at::ScalarType fp8, double fmax, bool want_q, bool want_qt, bool pad) {
+  constexpr double HEADROOM = 1.0 - 1.0 / 64;
+  TORCH_CHECK(quantize_pass != nullptr, "the quantization pass was not set");
+  TORCH_CHECK(input.dim() == 2, "FP8 quantization takes [rows, cols], got ", input.sizes());
+  TORCH_CHECK(input.scalar_type() == at::kFloat || input.scalar_type() == at::kBFloat16, "FP8 quantization takes f32 or bf16, got ", input.scalar_type());
+  const auto t = input.contiguous();
+  const int64_t rows = t.size(0), cols = t.size(1), prows = pad ? padded(rows) : rows;
+  const auto amax = at::linalg_vector_norm(t, std::numeric_limits<double>::infinity());
+  Quantized out;
+  const auto f8 = t.options().dtype(fp8);
+  if (want_q) out.q = at::empty({rows, cols}, f8);
+  if (want_qt) out.qt = at::empty({cols, prows}, f8);
+  out.scale = at::empty({}, t.options().dtype(at::kFloat));
+  void* stream = nullptr;
+  int device = -1;
+  if (t.is_cuda()) {
+#ifdef BWM_CUDA
+    device = t.device().index();
+    stream = c10::cuda::getCurrentCUDAStream(static_cast<c10::DeviceIndex>(device)).stream();
+#else
+    TORCH_CHECK(false, "this build's libtorch has no CUDA");
+#endif
+  } else {
+    TORCH_CHECK(t.is_cpu(), "FP8 quantization runs on the CPU or a CUDA device, got ", t.device());
+  }
+  std::string err(512, '\0');
+  const int failed = quantize_pass(stream, device, t.scalar_type() == at::kBFloat16 ? 1 : 0, fp8 == at::kFloat8_e5m2 ? 1 : 0, fmax * HEADROOM,
+                                   t.const_data_ptr(), amax.const_data_ptr(), want_q ? static_cast<uint8_t*>(out.q.data_ptr()) : nullptr,
+                                   want_qt ? static_cast<uint8_t*>(out.qt.data_ptr()) : nullptr, out.scale.data_ptr<float>(), rows, cols, prows,
+                                   err.data(), err.size() - 1);
+  TORCH_CHECK(!failed, "FP8 quantization: ", err.c_str());
+  return out;
 }
 
 // _scaled_mm adds a bias of the output's dtype in its epilogue for bf16 and fp16 outputs only.
@@ -51,9 +80,11 @@ bool bias_in_product(const at::Tensor& x) { return x.scalar_type() == at::kBFloa
 
 struct Fp8Linear : public torch::autograd::Function<Fp8Linear> {
   static at::Tensor forward(torch::autograd::AutogradContext* ctx, const at::Tensor& x, const at::Tensor& w, const at::Tensor& b) {
-    auto xq = quantize(x.contiguous(), at::kFloat8_e4m3fn, E4M3_MAX);
-    auto wq = quantize(w, at::kFloat8_e4m3fn, E4M3_MAX);
-    ctx->save_for_backward({xq.q, xq.scale, wq.q, wq.scale});
+    // The backward needs x^T (padded) for W's gradient and W^T for x's: made in the same passes,
+    // and kept instead of x and W in float8.
+    auto xq = quantize(x, at::kFloat8_e4m3fn, E4M3_MAX, true, true, true);
+    auto wq = quantize(w, at::kFloat8_e4m3fn, E4M3_MAX, true, true, false);
+    ctx->save_for_backward({xq.qt, xq.scale, wq.qt, wq.scale});
     ctx->saved_data["w_dtype"] = static_cast<int64_t>(w.scalar_type());
     // y [m, out] = x [m, in] W^T; the second operand column-major, as _scaled_mm needs it.
     if (bias_in_product(x)) {
@@ -64,15 +95,15 @@ struct Fp8Linear : public torch::autograd::Function<Fp8Linear> {
 
   static torch::autograd::variable_list backward(torch::autograd::AutogradContext* ctx, torch::autograd::variable_list grads) {
     auto saved = ctx->get_saved_variables();
-    const auto &xq = saved[0], &x_scale = saved[1], &wq = saved[2], &w_scale = saved[3];
+    const auto &xqt = saved[0], &x_scale = saved[1], &wqt = saved[2], &w_scale = saved[3];
     const auto w_dtype = static_cast<at::ScalarType>(ctx->saved_data["w_dtype"].toInt());
     auto g = grads[0].contiguous();
     auto gb = g.sum(0).to(w_dtype);
-    auto gq = quantize(g, at::kFloat8_e5m2, E5M2_MAX);
+    auto gq = quantize(g, at::kFloat8_e5m2, E5M2_MAX, true, true, true);
     // dL/dx [m, in] = g [m, out] W [out, in] (W column-major: its transpose row-major);
-    // dL/dW [out, in] = g^T [out, m] x [m, in] (x column-major).
-    auto gx = at::_scaled_mm(gq.q, wq.t().contiguous().t(), gq.scale, w_scale, std::nullopt, std::nullopt, g.scalar_type(), false);
-    auto gw = at::_scaled_mm(transposed_padded(gq.q), transposed_padded(xq).t(), gq.scale, x_scale, std::nullopt, std::nullopt, w_dtype, false);
+    // dL/dW [out, in] = g^T [out, m] x [m, in] (x column-major: its transpose row-major).
+    auto gx = at::_scaled_mm(gq.q, wqt.t(), gq.scale, w_scale, std::nullopt, std::nullopt, g.scalar_type(), false);
+    auto gw = at::_scaled_mm(gq.qt, xqt.t(), gq.scale, x_scale, std::nullopt, std::nullopt, w_dtype, false);
     return {gx, gw, gb};
   }
 };
@@ -82,6 +113,8 @@ thread_local std::string last_error;
 }  // namespace
 
 extern "C" {
+
+void bwm_fp8_set_quantize_pass(QuantizePass pass) { quantize_pass = pass; }
 
 // x [m, in], w [out, in], b [out]; writes a new tensor [m, out] to *out and returns null, or
 // returns the error's message (valid until the thread's next call).

@@ -4,15 +4,21 @@
 //! e5m2, each scaled from its own absolute maximum on every call. The weights themselves (and any
 //! fp32 masters and optimizer state the trainer keeps) are untouched; only the products are FP8.
 //! libtorch's autograd cannot be given a custom backward from tch, so the function is C++
-//! (src/fp8_linear.cpp).
+//! (src/fp8_linear.cpp); each quantization (the scale, the cast, the transposed copy the backward
+//! products need) is one pass of `bwm_fused_ops::fp8_quantize_pass`.
 
-use std::ffi::{c_char, CStr};
+use std::ffi::{c_char, c_int, c_void, CStr};
+use std::sync::Once;
 
 use anyhow::{bail, ensure, Result};
 use tch::Tensor;
 use torch_sys::C_tensor;
 
+type QuantizePass =
+    extern "C" fn(*mut c_void, c_int, c_int, c_int, f64, *const c_void, *const c_void, *mut u8, *mut u8, *mut f32, i64, i64, i64, *mut c_char, usize) -> c_int;
+
 extern "C" {
+    fn bwm_fp8_set_quantize_pass(pass: QuantizePass);
     fn bwm_fp8_linear(x: *const C_tensor, w: *const C_tensor, b: *const C_tensor, out: *mut *mut C_tensor) -> *const c_char;
 }
 
@@ -34,6 +40,9 @@ pub fn linear(x: &Tensor, w: &Tensor, b: &Tensor) -> Result<Tensor> {
     let shape = x.size();
     ensure!(shape.last() == Some(&ws[1]), "the input's last dimension must be {}, got {shape:?}", ws[1]);
     let x2 = x.reshape([-1, ws[1]]);
+    static SET: Once = Once::new();
+    // SAFETY: hands the C++ side a function of the signature it declares.
+    SET.call_once(|| unsafe { bwm_fp8_set_quantize_pass(bwm_fused_ops::fp8_quantize_pass) });
     let mut out: *mut C_tensor = std::ptr::null_mut();
     // SAFETY: the pointers are live tch tensors (at::Tensor*), and `out` receives a new
     // at::Tensor* that `Tensor::from_ptr` takes ownership of.
@@ -61,14 +70,36 @@ mod tests {
     /// FP8's 3 (e4m3) and 2 (e5m2) mantissa bits leave a few percent of relative error, not more.
     #[test]
     fn the_products_and_gradients_follow_fp32() {
+        follow_fp32(Device::Cpu);
+    }
+
+    /// The same on a CUDA device (the quantization kernel and CUDA's FP8 matmuls), and its
+    /// results next to the CPU's: the same float8 operands, products summed in another order.
+    #[test]
+    #[ignore = "needs a CUDA device"]
+    fn the_products_and_gradients_follow_fp32_and_the_cpu_on_cuda() {
+        let device = Device::Cuda(0);
+        let gpu = follow_fp32(device);
+        let cpu = follow_fp32(Device::Cpu);
+        for (kind, (g, c)) in [Kind::Float, Kind::BFloat16].into_iter().zip(gpu.iter().zip(&cpu)) {
+            for (name, (a, b)) in ["y", "dx", "dW", "db"].into_iter().zip(g.iter().zip(c)) {
+                let e = rel_err(&a.to_device(Device::Cpu), b);
+                assert!(e < 0.01, "{kind:?} {name}: CUDA and CPU {e:.5} apart");
+            }
+        }
+    }
+
+    /// `the_products_and_gradients_follow_fp32` on `device`; each dtype's y and gradients.
+    fn follow_fp32(device: Device) -> Vec<[Tensor; 4]> {
+        let mut out = Vec::new();
         for kind in [Kind::Float, Kind::BFloat16] {
             tch::manual_seed(0);
             // 37 rows: not a multiple of 16, so the padding is exercised.
-            let leaf = |t: Tensor| t.to_kind(kind).set_requires_grad(true);
+            let leaf = |t: Tensor| t.to_kind(kind).to_device(device).set_requires_grad(true);
             let x = leaf(Tensor::randn([37, 64], (Kind::Float, Device::Cpu)));
             let w = leaf(Tensor::randn([32, 64], (Kind::Float, Device::Cpu)) * 0.1);
             let b = leaf(Tensor::randn([32], (Kind::Float, Device::Cpu)));
-            let up = Tensor::randn([37, 32], (Kind::Float, Device::Cpu));
+            let up = Tensor::randn([37, 32], (Kind::Float, Device::Cpu)).to_device(device);
 
             let y = linear(&x, &w, &b).unwrap();
             assert_eq!((y.size(), y.kind()), (vec![37, 32], kind));
@@ -87,7 +118,9 @@ mod tests {
             }
             // And not the same numbers: the products really went through float8.
             assert!(rel_err(&got[0], &want[0]) > 1e-3, "{kind:?}");
+            out.push(got);
         }
+        out
     }
 
     /// The casts to float8 do not saturate (a value past the format's largest becomes NaN), so the

@@ -8,7 +8,7 @@ use std::sync::{Arc, Mutex, OnceLock};
 use anyhow::{anyhow, ensure, Context, Result};
 use cudarc::driver::{CudaContext, CudaFunction, CudaModule};
 
-use crate::{FrameShape, Shape};
+use crate::{Fp8Shape, FrameShape, Shape};
 
 /// One block per token. Where a head's pairs are a multiple of 4, each thread reads and writes 4
 /// pairs at once (16 bytes of bf16); else one pair.
@@ -144,6 +144,74 @@ extern "C" __global__ void frame_forward_f32(FWD(float)) { frame_forward<float>(
 extern "C" __global__ void frame_forward_bf16(FWD(unsigned short)) { frame_forward<unsigned short>(a, a_per_frame, b, c, out, frames, rows, dim8); }
 extern "C" __global__ void frame_backward_f32(BWD(float)) { frame_backward<float>(g, b, c, db, pc, pa, rows, dim8, run); }
 extern "C" __global__ void frame_backward_bf16(BWD(unsigned short)) { frame_backward<unsigned short>(g, b, c, db, pc, pa, rows, dim8, run); }
+
+// fp32 -> float8, rounding to nearest even, as c10's conversions do for finite values: e4m3fn
+// (no infinities; past its range NaN) and e5m2 (past its range infinity). By hand: the cvt
+// instructions need sm_89, and the module is compiled for any device.
+__device__ unsigned char to_e4m3(float x) {
+  unsigned int u = __float_as_uint(x);
+  unsigned char sign = (unsigned char)((u >> 24) & 0x80u);
+  u &= 0x7fffffffu;
+  if (u > 0x7f800000u || u >= 0x43f00000u) return sign | 0x7fu;  // NaN, or at least 480
+  if (u < 0x3c800000u) return sign | (unsigned char)rintf(__uint_as_float(u) * 512.0f);  // under 2^-6: steps of 2^-9
+  return sign | (unsigned char)(((u + 0x7ffffu + ((u >> 20) & 1u)) >> 20) - (120u << 3));
+}
+
+__device__ unsigned char to_e5m2(float x) {
+  unsigned int u = __float_as_uint(x);
+  unsigned char sign = (unsigned char)((u >> 24) & 0x80u);
+  u &= 0x7fffffffu;
+  if (u > 0x7f800000u) return sign | 0x7fu;
+  if (u >= 0x47800000u) return sign | 0x7cu;  // at least 65536: infinity
+  if (u < 0x38800000u) return sign | (unsigned char)rintf(__uint_as_float(u) * 65536.0f);  // under 2^-14: steps of 2^-16
+  return sign | (unsigned char)(((u + 0xfffffu + ((u >> 21) & 1u)) >> 21) - (112u << 2));
+}
+
+__device__ __forceinline__ float value(float x) { return x; }
+__device__ __forceinline__ float value(unsigned short x) { return __uint_as_float((unsigned int)x << 16); }
+__device__ __forceinline__ float rounded(float x, const float*) { return x; }
+__device__ __forceinline__ float rounded(float x, const unsigned short*) { return __uint_as_float((unsigned int)to_bf16(x) << 16); }
+
+// q = float8(t * m) of t [rows, cols] and, where qt is set, its transpose [cols, padded_rows] (the
+// rows past `rows` zero), with m = headroom_max / max(amax, 1e-12) in t's dtype and scale = 1 / m:
+// the arithmetic of fp8-autograd's libtorch path (a reciprocal times the headroom, each in fp32;
+// the product rounded to t's dtype before the cast). A 32 x 32 tile per block of 32 x 8 threads;
+// blockIdx.x walks the rows, blockIdx.y the columns.
+template <typename T, bool E5M2>
+__device__ void fp8_quantize(const T* t, const T* amax, float headroom_max, unsigned char* q, unsigned char* qt, float* scale,
+                             long long rows, long long cols, long long padded_rows) {
+  __shared__ unsigned char tile[32][33];
+  float a = value(amax[0]);
+  a = a < 1e-12f ? 1e-12f : a;
+  float m = (1.0f / a) * headroom_max;
+  m = m > 3.40282346638528859812e+38f ? 3.40282346638528859812e+38f : m;
+  m = rounded(m, t);
+  if (scale && blockIdx.x == 0 && blockIdx.y == 0 && threadIdx.x == 0 && threadIdx.y == 0) scale[0] = 1.0f / m;
+  long long r0 = (long long)blockIdx.x * 32, c0 = (long long)blockIdx.y * 32;
+  for (int k = 0; k < 32; k += 8) {
+    long long r = r0 + threadIdx.y + k, c = c0 + threadIdx.x;
+    unsigned char v = 0;
+    if (r < rows && c < cols) {
+      float p = rounded(value(t[r * cols + c]) * m, t);
+      v = E5M2 ? to_e5m2(p) : to_e4m3(p);
+      if (q) q[r * cols + c] = v;
+    }
+    tile[threadIdx.y + k][threadIdx.x] = v;
+  }
+  if (!qt) return;  // the same for the whole block
+  __syncthreads();
+  for (int k = 0; k < 32; k += 8) {
+    long long c = c0 + threadIdx.y + k, r = r0 + threadIdx.x;
+    if (c < cols && r < padded_rows) qt[c * padded_rows + r] = tile[threadIdx.x][threadIdx.y + k];
+  }
+}
+
+#define QUANT(T) const T* t, const T* amax, double headroom_max, unsigned char* q, unsigned char* qt, float* scale, long long rows, long long cols, long long padded_rows
+#define QCALL(T, E) fp8_quantize<T, E>(t, amax, (float)headroom_max, q, qt, scale, rows, cols, padded_rows)
+extern "C" __global__ void fp8_quantize_f32_e4m3(QUANT(float)) { QCALL(float, false); }
+extern "C" __global__ void fp8_quantize_f32_e5m2(QUANT(float)) { QCALL(float, true); }
+extern "C" __global__ void fp8_quantize_bf16_e4m3(QUANT(unsigned short)) { QCALL(unsigned short, false); }
+extern "C" __global__ void fp8_quantize_bf16_e5m2(QUANT(unsigned short)) { QCALL(unsigned short, true); }
 "#;
 
 /// `source` compiled with NVRTC without multiply-add contraction (each operation rounds on its
@@ -168,6 +236,8 @@ pub(crate) struct Kernels {
     /// [f32, bf16].
     frame_forward: [CudaFunction; 2],
     frame_backward: [CudaFunction; 2],
+    /// [f32, bf16] x [e4m3, e5m2].
+    fp8_quantize: [[CudaFunction; 2]; 2],
 }
 
 impl Kernels {
@@ -193,6 +263,10 @@ impl Kernels {
             rope: [[function("rope_f32_1")?, function("rope_f32_4")?], [function("rope_bf16_1")?, function("rope_bf16_4")?]],
             frame_forward: [function("frame_forward_f32")?, function("frame_forward_bf16")?],
             frame_backward: [function("frame_backward_f32")?, function("frame_backward_bf16")?],
+            fp8_quantize: [
+                [function("fp8_quantize_f32_e4m3")?, function("fp8_quantize_f32_e5m2")?],
+                [function("fp8_quantize_bf16_e4m3")?, function("fp8_quantize_bf16_e5m2")?],
+            ],
             ctx,
             _module: module,
         })
@@ -200,13 +274,18 @@ impl Kernels {
 
     /// Launches `f` on `stream` (a CUstream) with `args`, each 64 bits wide as the kernels declare
     /// them.
-    fn launch(&self, f: &CudaFunction, stream: *mut c_void, grid: (u32, u32), threads: u32, mut args: Vec<u64>) -> Result<()> {
+    fn launch(&self, f: &CudaFunction, stream: *mut c_void, grid: (u32, u32), threads: u32, args: Vec<u64>) -> Result<()> {
+        self.launch_blocks(f, stream, grid, (threads, 1), args)
+    }
+
+    /// [`Kernels::launch`] with blocks of `threads.0` x `threads.1` threads.
+    fn launch_blocks(&self, f: &CudaFunction, stream: *mut c_void, grid: (u32, u32), threads: (u32, u32), mut args: Vec<u64>) -> Result<()> {
         self.ctx.bind_to_thread().context("binding the CUDA context")?;
         let mut params: Vec<*mut c_void> = args.iter_mut().map(|a| a as *mut u64 as *mut c_void).collect();
         // SAFETY: the callers pass live contiguous device buffers of the sizes their kernels read and
         // write (checked by the C++ side), used in order on libtorch's current stream, and one
         // 64-bit value per kernel parameter.
-        unsafe { cudarc::driver::result::launch_kernel(f.cu_function(), (grid.0, grid.1, 1), (threads, 1, 1), 0, stream as cudarc::driver::sys::CUstream, &mut params) }
+        unsafe { cudarc::driver::result::launch_kernel(f.cu_function(), (grid.0, grid.1, 1), (threads.0, threads.1, 1), 0, stream as cudarc::driver::sys::CUstream, &mut params) }
             .context("launching a fused kernel")
     }
 
@@ -240,5 +319,18 @@ impl Kernels {
         let threads = ((s.dim / 8) as u32).div_ceil(32).clamp(1, 16) * 32;
         let [g, b, c, db, pc, pa] = buffers;
         self.launch(&self.frame_backward[bf16 as usize], stream, (frames, runs), threads, vec![g, b, c, db, pc, pa, s.rows as u64, s.dim as u64 / 8, s.rows_per_sum as u64])
+    }
+
+    /// float8 values of t [rows, cols] (bf16 or f32) scaled by `headroom_max` over its largest
+    /// magnitude (a scalar of t's dtype at `amax`): row-major into `q` and transposed, zero-padded
+    /// to `padded_rows` columns, into `qt` (either address 0: not written), 1 / the multiplier into
+    /// the f32 at `scale`; `buffers` = [t, amax, q, qt, scale].
+    pub(crate) fn fp8_quantize(&self, stream: *mut c_void, bf16: bool, e5m2: bool, buffers: [u64; 5], headroom_max: f64, s: Fp8Shape) -> Result<()> {
+        ensure!(s.padded_rows >= s.rows, "FP8 quantization: {} padded rows for {} rows", s.padded_rows, s.rows);
+        let row_tiles = u32::try_from((s.padded_rows + 31) / 32).ok().filter(|&b| b < 1 << 31).context("FP8 quantization: too many rows for one launch")?;
+        let col_tiles = u32::try_from((s.cols + 31) / 32).ok().filter(|&b| b < 65_536).context("FP8 quantization: too many columns for one launch")?;
+        let [t, amax, q, qt, scale] = buffers;
+        let f = &self.fp8_quantize[bf16 as usize][e5m2 as usize];
+        self.launch_blocks(f, stream, (row_tiles, col_tiles), (32, 8), vec![t, amax, headroom_max.to_bits(), q, qt, scale, s.rows as u64, s.cols as u64, s.padded_rows as u64])
     }
 }

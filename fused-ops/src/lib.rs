@@ -11,6 +11,12 @@
 //!   kernel, and its backward makes the product g * b in bf16, then sums it in another pass; here
 //!   the backward reads g and b once, writes b's gradient and sums c's (and a's) in fp32. On the
 //!   CPU the same arithmetic is libtorch's tensors in fp32.
+//! - [`fp8_quantize_pass`], the quantization of `bwm-fp8-autograd`'s FP8 linear (which calls it
+//!   through a function pointer): a tensor scaled by its largest magnitude into float8, row-major
+//!   and transposed, in one pass with the scale computed where the values are. libtorch casts to
+//!   float8 and copies float8 tensors with its one-element-per-thread kernels and needs several
+//!   small kernels for the scale (docs/performance.md, "FP8 training"). On the CPU the same
+//!   arithmetic is a loop.
 
 mod kernel;
 
@@ -167,6 +173,123 @@ extern "C" fn frame_pass(
     }
 }
 
+/// An FP8 quantization's shape: t [rows, cols], its transpose [cols, padded_rows].
+#[derive(Clone, Copy)]
+struct Fp8Shape {
+    rows: i64,
+    cols: i64,
+    padded_rows: i64,
+}
+
+/// The float8 formats of the quantization.
+const E4M3: c_int = 0;
+const E5M2: c_int = 1;
+
+/// The FP8 quantization pass (`QuantizePass` in `bwm-fp8-autograd`'s src/fp8_linear.cpp, which
+/// checks the shapes, dtypes, contiguity and devices): t [rows, cols] of dtype `dtype` (0: f32, 1:
+/// bf16) at `t`, its largest magnitude (a scalar of the same dtype) at `amax`; writes
+/// float8(t * m) (`format` 0: e4m3fn, 1: e5m2) row-major to `q` and transposed, zero-padded to
+/// `padded_rows` columns, to `qt` (either null: not written), and 1 / m to the f32 at `scale`,
+/// with m = headroom_max / max(amax, 1e-12) rounded to t's dtype. The arithmetic is libtorch's
+/// tensor path's: a reciprocal times the headroom in fp32, clamped to f32's range; each product
+/// rounded to t's dtype, then to float8 (nearest even). `device` -1: the CPU (stream null).
+#[allow(clippy::too_many_arguments)]
+pub extern "C" fn fp8_quantize_pass(
+    stream: *mut c_void,
+    device: c_int,
+    dtype: c_int,
+    format: c_int,
+    headroom_max: f64,
+    t: *const c_void,
+    amax: *const c_void,
+    q: *mut u8,
+    qt: *mut u8,
+    scale: *mut f32,
+    rows: i64,
+    cols: i64,
+    padded_rows: i64,
+    err: *mut c_char,
+    err_len: usize,
+) -> c_int {
+    let shape = Fp8Shape { rows, cols, padded_rows };
+    let e5m2 = match format {
+        E4M3 => false,
+        E5M2 => true,
+        other => return report(anyhow::anyhow!("unknown float8 format {other}"), err, err_len),
+    };
+    let bf16 = dtype == 1;
+    if device < 0 {
+        cpu_fp8_quantize(bf16, e5m2, headroom_max as f32, t, amax, q, qt, scale, shape);
+        return 0;
+    }
+    let buffers = [t as u64, amax as u64, q as u64, qt as u64, scale as u64];
+    match kernel::Kernels::for_device(device as usize).and_then(|k| k.fp8_quantize(stream, bf16, e5m2, buffers, headroom_max, shape)) {
+        Ok(()) => 0,
+        Err(e) => report(e, err, err_len),
+    }
+}
+
+/// fp32 -> float8 e4m3fn, nearest even (NaN from 480 up: the format has no infinity), as the
+/// kernel and c10 convert.
+fn to_e4m3(x: f32) -> u8 {
+    let u = x.to_bits();
+    let sign = ((u >> 24) & 0x80) as u8;
+    let u = u & 0x7fff_ffff;
+    if u > 0x7f80_0000 || u >= 0x43f0_0000 {
+        return sign | 0x7f;
+    }
+    if u < 0x3c80_0000 {
+        return sign | (f32::from_bits(u) * 512.0).round_ties_even() as u8;
+    }
+    sign | (((u + 0x7_ffff + ((u >> 20) & 1)) >> 20) - (120 << 3)) as u8
+}
+
+/// fp32 -> float8 e5m2, nearest even (infinity from 65536 up), as the kernel and c10 convert.
+fn to_e5m2(x: f32) -> u8 {
+    let u = x.to_bits();
+    let sign = ((u >> 24) & 0x80) as u8;
+    let u = u & 0x7fff_ffff;
+    if u > 0x7f80_0000 {
+        return sign | 0x7f;
+    }
+    if u >= 0x4780_0000 {
+        return sign | 0x7c;
+    }
+    if u < 0x3880_0000 {
+        return sign | (f32::from_bits(u) * 65536.0).round_ties_even() as u8;
+    }
+    sign | (((u + 0xf_ffff + ((u >> 21) & 1)) >> 21) - (112 << 2)) as u8
+}
+
+/// The quantization kernel's arithmetic on the CPU, element by element.
+#[allow(clippy::too_many_arguments)]
+fn cpu_fp8_quantize(bf16: bool, e5m2: bool, headroom_max: f32, t: *const c_void, amax: *const c_void, q: *mut u8, qt: *mut u8, scale: *mut f32, s: Fp8Shape) {
+    let (rows, cols, padded) = (s.rows as usize, s.cols as usize, s.padded_rows as usize);
+    // SAFETY: the C++ side passes t of rows * cols elements and amax of one, of t's dtype; q of
+    // rows * cols bytes and qt of cols * padded_rows bytes where not null; one f32 at scale.
+    let load = |p: *const c_void, i: usize| -> f32 { unsafe { if bf16 { from_bf16(*(p as *const u16).add(i)) } else { *(p as *const f32).add(i) } } };
+    let round = |x: f32| if bf16 { from_bf16(to_bf16(x)) } else { x };
+    let a = load(amax, 0);
+    let a = if a < 1e-12 { 1e-12 } else { a };
+    let m = (1.0 / a) * headroom_max;
+    let m = round(if m > f32::MAX { f32::MAX } else { m });
+    unsafe { *scale = 1.0 / m };
+    let cast = if e5m2 { to_e5m2 } else { to_e4m3 };
+    for r in 0..padded {
+        for c in 0..cols {
+            let v = if r < rows { cast(round(load(t, r * cols + c) * m)) } else { 0 };
+            unsafe {
+                if r < rows && !q.is_null() {
+                    *q.add(r * cols + c) = v;
+                }
+                if !qt.is_null() {
+                    *qt.add(c * padded + r) = v;
+                }
+            }
+        }
+    }
+}
+
 /// The frame operation's shape: `frames` (B * F) of `rows` tokens (P) of `dim` channels (D); the
 /// backward sums each frame's rows in runs of `rows_per_sum`.
 #[derive(Clone, Copy)]
@@ -234,6 +357,105 @@ fn cpu_rotate(bf16: bool, x: *const c_void, rotations: *const c_void, out: *mut 
 mod tests {
     use super::*;
     use tch::Kind;
+
+    /// Quantized through the pass (on t's device): the float8 bytes row-major and transposed
+    /// ([cols, padded rows]) and the scale.
+    fn pass_quantize(t: &Tensor, e5m2: bool, pad: bool) -> (Vec<u8>, Vec<u8>, f32) {
+        let t = t.contiguous();
+        let (rows, cols) = (t.size()[0], t.size()[1]);
+        let padded = if pad { (rows + 15) / 16 * 16 } else { rows };
+        let amax = t.abs().max();
+        let device = t.device();
+        let q = Tensor::zeros([rows, cols], (Kind::Uint8, device));
+        let qt = Tensor::full([cols, padded], 0x55, (Kind::Uint8, device));
+        let scale = Tensor::zeros([], (Kind::Float, device));
+        let (stream, index) = match device {
+            // The kernels run on the default stream here: libtorch's current one in a test thread.
+            Device::Cuda(i) => (std::ptr::null_mut(), i as c_int),
+            _ => (std::ptr::null_mut(), -1),
+        };
+        let fmax = if e5m2 { 57344.0 } else { 448.0 };
+        let mut err = vec![0 as c_char; 513];
+        let failed = fp8_quantize_pass(
+            stream,
+            index,
+            (t.kind() == Kind::BFloat16) as c_int,
+            if e5m2 { E5M2 } else { E4M3 },
+            fmax * (1.0 - 1.0 / 64.0),
+            t.data_ptr(),
+            amax.data_ptr(),
+            q.data_ptr() as *mut u8,
+            qt.data_ptr() as *mut u8,
+            scale.data_ptr() as *mut f32,
+            rows,
+            cols,
+            padded,
+            err.as_mut_ptr(),
+            512,
+        );
+        assert_eq!(failed, 0, "{}", unsafe { CStr::from_ptr(err.as_ptr()) }.to_string_lossy());
+        let bytes = |x: &Tensor| Vec::<u8>::try_from(x.to_device(Device::Cpu).view([-1])).unwrap();
+        (bytes(&q), bytes(&qt), scale.to_device(Device::Cpu).double_value(&[]) as f32)
+    }
+
+    /// fp8-autograd's libtorch path before the pass: the infinity norm, a reciprocal times the
+    /// headroom in fp32, the multiplier in t's dtype, the product in t's dtype cast to float8.
+    fn tensor_quantize(t: &Tensor, e5m2: bool) -> (Vec<u8>, f32) {
+        let fmax = if e5m2 { 57344.0 } else { 448.0 };
+        let amax = t.abs().max().to_kind(Kind::Float);
+        let m = (amax.clamp_min(1e-12).reciprocal() * (fmax * (1.0 - 1.0 / 64.0))).clamp_max(f32::MAX as f64).to_kind(t.kind());
+        let q = (t * &m).to_kind(if e5m2 { Kind::Float8e5m2 } else { Kind::Float8e4m3fn });
+        let bytes = Vec::<u8>::try_from(q.view_dtype(Kind::Uint8).to_device(Device::Cpu).contiguous().view([-1])).unwrap();
+        (bytes, m.to_kind(Kind::Float).reciprocal().to_device(Device::Cpu).double_value(&[]) as f32)
+    }
+
+    /// Values spread over many binades (and exact zeros), so that the cast meets subnormals,
+    /// ties and the format's top.
+    fn spread(rows: i64, cols: i64, kind: Kind, device: Device, seed: i64) -> Tensor {
+        tch::manual_seed(seed);
+        let x = Tensor::randn([rows, cols], (Kind::Float, Device::Cpu)) * (Tensor::randn([rows, cols], (Kind::Float, Device::Cpu)) * 4.0).exp2();
+        let x = x.where_self(&Tensor::rand([rows, cols], (Kind::Float, Device::Cpu)).gt(0.05), &Tensor::zeros([], (Kind::Float, Device::Cpu)));
+        x.to_kind(kind).to_device(device)
+    }
+
+    /// The quantization's loop on the CPU against libtorch's tensor path, byte for byte, and its
+    /// transpose against the row-major values with zero padding rows.
+    fn check_quantize(device: Device) {
+        for kind in [Kind::Float, Kind::BFloat16] {
+            for e5m2 in [false, true] {
+                for (rows, cols, pad) in [(37, 48, true), (64, 16, false), (5, 3, true)] {
+                    let t = spread(rows, cols, kind, device, rows + cols);
+                    let (q, qt, scale) = pass_quantize(&t, e5m2, pad);
+                    let (want, want_scale) = tensor_quantize(&t, e5m2);
+                    let differ = q.iter().zip(&want).filter(|(a, b)| a != b).count();
+                    assert_eq!(differ, 0, "{kind:?} e5m2 {e5m2} {rows}x{cols} on {device:?}: {differ} of {} values differ from libtorch's cast", q.len());
+                    assert_eq!(scale.to_bits(), want_scale.to_bits(), "{kind:?} e5m2 {e5m2}: scale {scale} against {want_scale}");
+                    let padded = qt.len() / cols as usize;
+                    for c in 0..cols as usize {
+                        for r in 0..padded {
+                            let v = if r < rows as usize { q[r * cols as usize + c] } else { 0 };
+                            assert_eq!(qt[c * padded + r], v, "{kind:?} e5m2 {e5m2}: transposed ({c}, {r})");
+                        }
+                    }
+                }
+            }
+        }
+        // An all-zero tensor: the largest magnitude clamped, every value zero.
+        let (q, _, scale) = pass_quantize(&Tensor::zeros([4, 16], (Kind::BFloat16, device)), false, true);
+        assert!(q.iter().all(|&b| b == 0) && scale > 0.0 && scale.is_finite());
+    }
+
+    #[test]
+    fn the_fp8_quantization_casts_as_libtorch_and_transposes_on_the_cpu() {
+        check_quantize(Device::Cpu);
+        // Every e4m3 value round-trips through the conversion (NaN as NaN).
+        for b in 0u8..=255 {
+            let x = Tensor::from_slice(&[b]).view_dtype(Kind::Float8e4m3fn).to_kind(Kind::Float).double_value(&[0]) as f32;
+            assert!(to_e4m3(x) == b || (x.is_nan() && to_e4m3(x) & 0x7f == 0x7f), "e4m3 byte {b:#x} ({x}) -> {:#x}", to_e4m3(x));
+            let y = Tensor::from_slice(&[b]).view_dtype(Kind::Float8e5m2).to_kind(Kind::Float).double_value(&[0]) as f32;
+            assert!(to_e5m2(y) == b || (y.is_nan() && to_e5m2(y) & 0x7f > 0x7c), "e5m2 byte {b:#x} ({y}) -> {:#x}", to_e5m2(y));
+        }
+    }
 
     /// The tensor path this replaces (`bwm_model::rope::Rope::apply` before it): pairs as complex
     /// numbers in fp32, times the rotations, cast back.
@@ -387,6 +609,22 @@ mod tests {
     /// On a GPU (`bash scripts/gpu/unit.sh fused`): the frame kernels against the CPU arithmetic
     /// (the forward and b's gradient bit for bit; the sums within their order's rounding) and
     /// against libtorch's addcmul, at the 5B's width and at a width under one warp of threads.
+    /// The quantization kernel against libtorch's tensor path on the GPU and against its own
+    /// transpose, as on the CPU, and at the 5B's widest shape against the CPU loop.
+    #[test]
+    #[ignore = "needs a CUDA device"]
+    fn the_fp8_quantization_kernel_casts_as_libtorch_and_the_cpu_loop_on_cuda() {
+        let device = Device::Cuda(0);
+        assert!(available(device));
+        check_quantize(device);
+        for e5m2 in [false, true] {
+            let t = spread(6300, 14336, Kind::BFloat16, device, 7);
+            let gpu = pass_quantize(&t, e5m2, true);
+            let cpu = pass_quantize(&t.to_device(Device::Cpu), e5m2, true);
+            assert!(gpu == cpu, "e5m2 {e5m2}: the kernel and the CPU loop differ at the 5B's FFN width");
+        }
+    }
+
     #[test]
     #[ignore = "needs a CUDA device"]
     fn the_frame_kernels_follow_the_cpu_arithmetic_and_addcmul_on_cuda() {

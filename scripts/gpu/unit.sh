@@ -7,7 +7,9 @@
 # replays a recorded forward pass against eager ones (inference/: `graphed`), and the fused AdamW kernels
 # against the tensor path and the accumulator (trainer/: `optim`), and the rotary embedding's kernels
 # and the DiT's fused element-wise kernels (rotary embedding, per-frame multiply-add) against the
-# CPU arithmetic and libtorch's (fused-ops/: `fused`). From the repo root of a lent
+# CPU arithmetic and libtorch's, and the FP8 quantization kernel against libtorch's cast
+# (fused-ops/: `fused`), and the FP8 linear's training products on CUDA (fp8-autograd/: `fp8`).
+# From the repo root of a lent
 # machine, carry [".carry-tests"] as scripts/gpu/carry.sh prepares it (alone: beside the wheels it
 # passes the device tool's 64 MiB):
 #   bash scripts/gpu/unit.sh [GROUP ...]
@@ -15,19 +17,20 @@
 # relies on; the streams of `--streams` too), `dit` (the DiT's graphed training,
 # `train.cuda_graph`), `rollout` (the graphed
 # sampler, `--cuda-graph`), `optim` (the fused AdamW kernels, `optim.fused`) or `fused` (the DiT's
-# fused element-wise kernels, used on CUDA); default all five. (The recipe
+# fused element-wise kernels and the FP8 quantization, used on CUDA) or `fp8` (`train.fp8`'s
+# linear); default all six. (The recipe
 # needs no fallback of its own: with VAE_GRAPH=auto it trains the VAE eagerly should the graph fail.)
 # Exits non-zero when a test failed; the output is also in $OUT/unit.log.
 set -uo pipefail
 source "$(dirname "$0")/common.sh"
-groups=("$@"); [ ${#groups[@]} -gt 0 ] || groups=(vae dit rollout optim fused)
+groups=("$@"); [ ${#groups[@]} -gt 0 ] || groups=(vae dit rollout optim fused fp8)
 for g in "${groups[@]}"; do
-  case "$g" in vae|dit|rollout|optim|fused) ;; *) echo "unit: unknown group '$g' (groups: vae dit rollout optim fused)" >&2; exit 2 ;; esac
+  case "$g" in vae|dit|rollout|optim|fused|fp8) ;; *) echo "unit: unknown group '$g' (groups: vae dit rollout optim fused fp8)" >&2; exit 2 ;; esac
 done
 mkdir -p dist
 status=0
 {
-  for crate in cuda-graph trainer training inference fused-ops; do
+  for crate in cuda-graph trainer training inference fused-ops fp8-autograd; do
     [ -f ".carry-tests/test-$crate.xz" ] || { echo "unit: .carry-tests/test-$crate.xz is missing (scripts/gpu/carry.sh --rebuild; carry [\".carry-tests\"])"; exit 2; }
     xz -dc ".carry-tests/test-$crate.xz" > "dist/test-$crate" && chmod +x "dist/test-$crate"
   done
@@ -41,6 +44,8 @@ status=0
       dist/test-training cuda_graph --test-threads 1 || status=1
     elif [ "$g" = fused ]; then
       dist/test-fused-ops --ignored --test-threads 1 || status=1
+    elif [ "$g" = fp8 ]; then
+      dist/test-fp8-autograd --ignored --test-threads 1 || status=1
     elif [ "$g" = optim ]; then
       dist/test-trainer --ignored optim::tests::fused_update optim::tests::the_update_reads --test-threads 1 || status=1
     else

@@ -4,7 +4,9 @@ TL=$(python3 -c 'import torch,os;print(os.path.dirname(torch.__file__))')/lib
 export LD_LIBRARY_PATH=$TL:${LD_LIBRARY_PATH:-} NCCL_NVLS_ENABLE=0
 mem() { # $1 = log name; samples used memory every 50 ms while the rest of the arguments run
   local log=$1; shift
-  nvidia-smi --query-gpu=memory.used --format=csv,noheader,nounits -lms 50 > "$OUT/$log.mem" &
+  # nvidia-smi sees every GPU of the host whatever CUDA_VISIBLE_DEVICES says: sample the first visible one.
+  local gpu=(); [[ "${CUDA_VISIBLE_DEVICES:-}" =~ ^[0-9]+ ]] && gpu=(-i "${BASH_REMATCH[0]}")
+  nvidia-smi "${gpu[@]}" --query-gpu=memory.used --format=csv,noheader,nounits -lms 50 > "$OUT/$log.mem" &
   local pid=$!
   "$@" 2>&1 | tee "$OUT/$log.log"
   kill $pid

@@ -10,8 +10,8 @@
 # CPU arithmetic and libtorch's, and the FP8 quantization kernel against libtorch's cast
 # (fused-ops/: `fused`), and the FP8 linear's training products on CUDA (fp8-autograd/: `fp8`).
 # From the repo root of a lent
-# machine, carry [".carry-tests"] as scripts/gpu/carry.sh prepares it (alone: beside the wheels it
-# passes the device tool's 64 MiB):
+# machine, carry [".carry-tests"] as scripts/gpu/carry.sh prepares it (all six beside the wheels
+# pass the device tool's 64 MiB; the groups asked for need only their own test-*.xz):
 #   bash scripts/gpu/unit.sh [GROUP ...]
 # GROUP: `vae` (cuda-graph's tests and the VAE's graphed training: what the recipe's VAE_GRAPH
 # relies on; the streams of `--streams` too), `dit` (the DiT's graphed training,
@@ -30,7 +30,15 @@ done
 mkdir -p dist
 status=0
 {
-  for crate in cuda-graph trainer training inference fused-ops fp8-autograd; do
+  # Only the groups' own binaries need to travel (beside the wheels the six pass the 64 MiB).
+  crates=()
+  for g in "${groups[@]}"; do
+    case "$g" in
+      vae) crates+=(cuda-graph trainer) ;; dit) crates+=(training) ;; rollout) crates+=(inference) ;;
+      optim) crates+=(trainer) ;; fused) crates+=(fused-ops) ;; fp8) crates+=(fp8-autograd) ;;
+    esac
+  done
+  for crate in $(printf '%s\n' "${crates[@]}" | sort -u); do
     [ -f ".carry-tests/test-$crate.xz" ] || { echo "unit: .carry-tests/test-$crate.xz is missing (scripts/gpu/carry.sh --rebuild; carry [\".carry-tests\"])"; exit 2; }
     xz -dc ".carry-tests/test-$crate.xz" > "dist/test-$crate" && chmod +x "dist/test-$crate"
   done

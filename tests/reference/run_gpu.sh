@@ -43,7 +43,8 @@ run() { # $1 = log name, the rest = command
   echo "== $log: $*" | tee "$OUT/reference-$log.log"
   local pid=""
   if command -v nvidia-smi >/dev/null 2>&1; then
-    nvidia-smi --query-gpu=memory.used --format=csv,noheader,nounits -i 0 -lms 50 > "$OUT/reference-$log.mem" &
+    local gpu=0; [[ "${CUDA_VISIBLE_DEVICES:-}" =~ ^[0-9]+ ]] && gpu=${BASH_REMATCH[0]}  # the GPU the script sees
+    nvidia-smi --query-gpu=memory.used --format=csv,noheader,nounits -i "$gpu" -lms 50 > "$OUT/reference-$log.mem" &
     pid=$!
   fi
   "$@" 2>&1 | tee -a "$OUT/reference-$log.log"

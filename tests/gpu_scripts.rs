@@ -4,7 +4,8 @@
 //! and study gets, and where each study writes), scripts/gpu/sweep_split.sh over a stub
 //! scripts/gpu/metaworld.sh (which GPU each chain of settings gets, and that the later chains start
 //! once the model is trained, with its truth and verdicts), and scripts/gpu/detached.sh's
-//! start/wait protocol (exit codes, the logs' progress, the archive).
+//! start/wait protocol (exit codes, the logs' progress, the archive), and common.sh's `unpack`
+//! (a binary unpacked over the copy another script on the host is running).
 
 mod common;
 
@@ -498,4 +499,25 @@ fn detached_work_is_followed_across_waits_and_packed() {
     };
     assert_eq!(packed(None), [true, false, false]);
     assert_eq!(packed(Some("*/videos/wrong/*")), [false, false, true]);
+}
+
+#[test]
+fn a_binary_is_unpacked_over_the_copy_another_script_runs() {
+    let dir = common::temp_dir("gpu-unpack");
+    // The running copy is a real executable (`sleep`): writing over it fails with "Text file busy".
+    let script = format!(
+        r#"source {ROOT}/scripts/gpu/common.sh 2>/dev/null
+xz -c "$(command -v sleep)" > sleep.xz || exit 9
+unpack sleep.xz dist/bwm || exit 1
+dist/bwm 60 & pid=$!
+until [ "$(readlink /proc/$pid/exe)" = "$PWD/dist/bwm" ]; do sleep 0.05; done
+unpack sleep.xz dist/bwm; rc=$?
+kill -0 $pid || rc=3
+kill $pid
+[ "$(ls dist)" = bwm ] || rc=4
+dist/bwm 0 || rc=5
+exit $rc"#
+    );
+    let out = Command::new("bash").arg("-c").arg(&script).current_dir(dir.path()).env("OUT", dir.path().join("out")).output().unwrap();
+    assert_eq!(out.status.code(), Some(0), "{}", String::from_utf8_lossy(&out.stderr));
 }

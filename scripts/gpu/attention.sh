@@ -6,7 +6,7 @@
 #   run(carry=[".carry"], kind="nvidia-h100-x1", command="bash scripts/gpu/attention.sh")
 set -uo pipefail
 source "$(dirname "${BASH_SOURCE[0]}")/common.sh"
-mkdir -p dist && xz -dc .carry/bwm.xz > dist/bwm && chmod +x dist/bwm || exit 1
+unpack .carry/bwm.xz dist/bwm || exit 1
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$OUT/gpu.txt"
 python3 scripts/gpu/sdpa_backends.py 2>&1 | tee "$OUT/sdpa_backends.log"
 for b in ${BACKENDS:-auto cudnn efficient}; do

@@ -6,7 +6,7 @@
 # GPU, each with its breakdown (attention, linear layers, the rest) and its peak memory.
 set -uo pipefail
 source "$(dirname "${BASH_SOURCE[0]}")/common.sh"
-mkdir -p dist && xz -dc .carry/bwm.xz > dist/bwm && chmod +x dist/bwm || exit 1
+unpack .carry/bwm.xz dist/bwm || exit 1
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee "$OUT/gpu.txt"
 for mode in bf16 fp8; do
   sets=(--set 'run.device="cuda"' --set train.grad_accum=1 --set "train.recompute=${RECOMPUTE:-true}")

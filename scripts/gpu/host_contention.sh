@@ -10,7 +10,7 @@ set -uo pipefail
 source "$(dirname "$0")/common.sh"
 steps=${1:-150}; shift || true
 threads=("$@"); [ ${#threads[@]} -gt 0 ] || threads=("$(nproc)" 16 1)
-mkdir -p dist && xz -dc .carry/bwm.xz > dist/bwm && chmod +x dist/bwm || exit 1
+unpack .carry/bwm.xz dist/bwm || exit 1
 gpus=$(nvidia-smi -L | wc -l)
 bench() { # $1 = name, $2 = GPU, $3 = CPU threads
   CUDA_VISIBLE_DEVICES=$2 dist/bwm --cpu-threads "$3" bench-train --config configs/metaworld.toml \

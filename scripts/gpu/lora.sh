@@ -12,7 +12,7 @@
 #   run(carry=[".carry"], kind="nvidia-h200", command="FULL=1 bash scripts/gpu/lora.sh")
 set -uo pipefail
 source "$(dirname "${BASH_SOURCE[0]}")/common.sh"
-mkdir -p dist && xz -dc .carry/bwm.xz > dist/bwm && chmod +x dist/bwm || exit 1
+unpack .carry/bwm.xz dist/bwm || exit 1
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee "$OUT/gpu.txt"
 LORA=(--set 'model.lora={rank=64, targets=["blocks.*.self_attn.*", "blocks.*.cross_attn.*", "blocks.*.ffn.*"]}'
       --set 'train.trainable=["*.lora_A.weight", "*.lora_B.weight", "action_encoder.*"]')

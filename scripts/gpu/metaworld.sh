@@ -52,9 +52,7 @@ source "$(dirname "$0")/common.sh"
 ) 9> /tmp/metaworld-setup.lock || exit 1
 export MUJOCO_GL=egl PYOPENGL_PLATFORM=egl PYTHONUNBUFFERED=1
 export PYTHONPATH=/tmp/site
-# Unpacked beside and renamed: a second instance started while one runs would otherwise fail
-# writing the binary the first is executing ("Text file busy").
-mkdir -p dist && xz -dc .carry/bwm.xz > dist/bwm.$$ && chmod +x dist/bwm.$$ && mv -f dist/bwm.$$ dist/bwm || exit 1
+unpack .carry/bwm.xz dist/bwm || exit 1
 export BWM="$PWD/dist/bwm" PYTHON=python3
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$OUT/gpu.txt"
 python3 - <<'PY' || exit 1

@@ -9,8 +9,7 @@
 # $OUT/graph-*.log.
 set -uo pipefail
 source "$(dirname "$0")/common.sh"
-mkdir -p dist
-xz -dc .carry/bwm.xz > dist/bwm && chmod +x dist/bwm
+unpack .carry/bwm.xz dist/bwm || exit 1
 for steps in ${STEPS:-4 20}; do
   for g in 0 1; do
     [[ " ${MODELS:-5b mw} " == *" 5b "* ]] || break

@@ -12,7 +12,7 @@
 set -uo pipefail
 source "$(dirname "${BASH_SOURCE[0]}")/common.sh"
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee "$OUT/gpu.txt"
-mkdir -p dist && xz -dc .carry/bwm.xz > dist/bwm && chmod +x dist/bwm || exit 1
+unpack .carry/bwm.xz dist/bwm || exit 1
 sets=(--set 'run.device="cuda"' --set train.grad_accum=1 --set train.recompute=false)
 for s in ${SET:-}; do sets+=(--set "$s"); done
 mem bwm-profile dist/bwm bench-train --config configs/bwm-wan22-ti2v-5b.toml "${sets[@]}" --steps "${STEPS:-4}" \

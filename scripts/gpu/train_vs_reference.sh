@@ -16,7 +16,7 @@ nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee "$OUT
 mkdir -p dist
 for pair in ${BINARIES:-bwm:.carry/bwm.xz}; do
   name=${pair%%:*} xz=${pair#*:}
-  xz -dc "$xz" > "dist/$name" && chmod +x "dist/$name" || { echo "train_vs_reference: cannot unpack $xz" >&2; exit 1; }
+  unpack "$xz" "dist/$name" || exit 1
   for recompute in false true; do
     mem "train5b-$name-recompute-$recompute" "dist/$name" bench-train --config configs/bwm-wan22-ti2v-5b.toml \
       --set 'run.device="cuda"' --set train.grad_accum=1 --set "train.recompute=$recompute" \

@@ -40,7 +40,7 @@ status=0
   done
   for crate in $(printf '%s\n' "${crates[@]}" | sort -u); do
     [ -f ".carry-tests/test-$crate.xz" ] || { echo "unit: .carry-tests/test-$crate.xz is missing (scripts/gpu/carry.sh --rebuild; carry [\".carry-tests\"])"; exit 2; }
-    xz -dc ".carry-tests/test-$crate.xz" > "dist/test-$crate" && chmod +x "dist/test-$crate"
+    unpack ".carry-tests/test-$crate.xz" "dist/test-$crate" || exit 2
   done
   for g in "${groups[@]}"; do
     if [ "$g" = vae ]; then

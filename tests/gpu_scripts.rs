@@ -4,8 +4,9 @@
 //! and study gets, and where each study writes), scripts/gpu/sweep_split.sh over a stub
 //! scripts/gpu/metaworld.sh (which GPU each chain of settings gets, and that the later chains start
 //! once the model is trained, with its truth and verdicts), and scripts/gpu/detached.sh's
-//! start/wait protocol (exit codes, the logs' progress, the archive), and common.sh's `unpack`
-//! (a binary unpacked over the copy another script on the host is running).
+//! start/wait protocol (exit codes, the logs' progress, the archive), common.sh's `unpack` (a
+//! binary unpacked over the copy another script on the host is running), and fp8_train.sh's
+//! steps against the reference's (stub binaries).
 
 mod common;
 
@@ -520,4 +521,45 @@ exit $rc"#
     );
     let out = Command::new("bash").arg("-c").arg(&script).current_dir(dir.path()).env("OUT", dir.path().join("out")).output().unwrap();
     assert_eq!(out.status.code(), Some(0), "{}", String::from_utf8_lossy(&out.stderr));
+}
+
+#[test]
+fn the_fp8_timing_sets_each_step_against_the_reference_of_the_same_call() {
+    let dir = common::temp_dir("gpu-fp8-train");
+    let d = dir.path();
+    for f in ["common.sh", "fp8_train.sh"] {
+        fs::create_dir_all(d.join("scripts/gpu")).unwrap();
+        fs::copy(Path::new(ROOT).join("scripts/gpu").join(f), d.join("scripts/gpu").join(f)).unwrap();
+    }
+    // A stub bwm (as carry.sh packs it) whose FP8 step is the faster, a stub reference and nvidia-smi.
+    fs::create_dir_all(d.join("stub")).unwrap();
+    let bwm = d.join("stub/bwm");
+    write_executable(&bwm, "#!/bin/sh\ncase \"$*\" in *train.fp8=true*) s=0.410 ;; *) s=0.448 ;; esac\necho \"breakdown of a $s s step (1 micro-batches of 1)\"\n");
+    fs::create_dir_all(d.join(".carry")).unwrap();
+    let packed = Command::new("sh").arg("-c").arg(format!("xz -c {} > {}", bwm.display(), d.join(".carry/bwm.xz").display())).status().unwrap();
+    assert!(packed.success());
+    write_executable(&d.join("stub/nvidia-smi"), "#!/bin/sh\necho 100\n");
+    fs::create_dir_all(d.join("tests/reference")).unwrap();
+    fs::write(d.join("tests/reference/run_gpu.sh"), "echo \"$TRAIN_ARGS\" > \"$OUT/reference-args\"\necho 'reference train: 0.634 s/step (min 0.613), 1.576 samples/s' > \"$OUT/reference-train.log\"\n").unwrap();
+    let run = |reference: &str| -> String {
+        let path = format!("{}:{}", d.join("stub").display(), std::env::var("PATH").unwrap_or_default());
+        let out = Command::new("bash")
+            .arg("scripts/gpu/fp8_train.sh")
+            .current_dir(d)
+            .env("OUT", d.join("out"))
+            .env("PATH", path)
+            .env("REFERENCE", reference)
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        String::from_utf8_lossy(&out.stdout).into_owned()
+    };
+    let stdout = run("1");
+    assert!(stdout.contains("fp8_train: bf16 0.448 s per step, the reference 0.634 s: 1.42x"), "{stdout}");
+    assert!(stdout.contains("fp8_train: fp8 0.410 s per step, the reference 0.634 s: 1.55x"), "{stdout}");
+    assert_eq!(fs::read_to_string(d.join("out/reference-args")).unwrap().trim(), "--no-checkpointing");
+    fs::remove_dir_all(d.join("out")).unwrap();
+    let stdout = run("0");
+    assert!(stdout.contains("breakdown of a 0.410 s step") && !stdout.contains("fp8_train:"), "{stdout}");
+    assert!(!d.join("out/reference-args").exists());
 }

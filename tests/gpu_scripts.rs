@@ -385,14 +385,17 @@ fn the_sweeps_chains_start_on_their_gpus_once_the_first_has_trained_the_model() 
 /// records the sampler settings each stage got and writes the outputs sweep.py reads (the same
 /// for every setting).
 const STUB_SWEEP_RECIPE: &str = r#"
-echo "$1 solver=$SOLVER steps=$SAMPLE_STEPS fp8=$FP8 streams=$FIDELITY_STREAMS/$STUDY_STREAMS" >> "$CALLS"
-if [ "$1" = fidelity ]; then
-  mkdir -p "$FIDELITY_DIR"
-  echo '{"all": {"horizons": {"32": {"model": {"psnr": 27.0}}}}, "tasks": {"t": {"horizons": {"32": {"model": {"psnr": 27.0}}}}}}' > "$FIDELITY_DIR/fidelity.json"
-else
-  mkdir -p "$STUDY_DIR"
-  echo '{"rates": [{"task": "t", "variant": "x", "estimated": 0.5}], "all": {"pearson_r": 0.9, "best_ranked_first": true}}' > "$STUDY_DIR/study.json"
-fi
+for stage in "$@"; do
+  echo "$stage solver=$SOLVER steps=$SAMPLE_STEPS fp8=$FP8 streams=$FIDELITY_STREAMS/$STUDY_STREAMS" >> "$CALLS"
+  if [ "$stage" = fidelity ]; then
+    mkdir -p "$FIDELITY_DIR"
+    echo '{"all": {"horizons": {"32": {"model": {"psnr": 27.0}}}}, "tasks": {"t": {"horizons": {"32": {"model": {"psnr": 27.0}}}}}}' > "$FIDELITY_DIR/fidelity.json"
+  else
+    mkdir -p "$STUDY_DIR"
+    echo '{"rates": [{"task": "t", "variant": "x", "estimated": 0.5}], "all": {"pearson_r": 0.9, "best_ranked_first": true}}' > "$STUDY_DIR/study.json"
+  fi
+  printf '%s\t0.1\n' "$stage" >> "$TIMINGS"  # as the recipe's `timed` writes it
+done
 "#;
 
 #[test]

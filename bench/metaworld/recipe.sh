@@ -40,10 +40,12 @@
 # it started from.
 # Environment: RUN (output folder, default runs/metaworld), BWM (the bwm binary, default
 # $CARGO_TARGET_DIR/release/bwm or target/release/bwm), PYTHON (with bench/metaworld's
-# requirements), DEVICE (default cuda), and the sizes below. Stage times go to $RUN/timings.tsv.
+# requirements), DEVICE (default cuda), and the sizes below. Stage times go to TIMINGS (default
+# $RUN/timings.tsv).
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/../.."
 RUN="${RUN:-runs/metaworld}"
+TIMINGS="${TIMINGS:-$RUN/timings.tsv}"
 BWM="${BWM:-${CARGO_TARGET_DIR:-target}/release/bwm}"
 PYTHON="${PYTHON:-python3}"
 DEVICE="${DEVICE:-cuda}"
@@ -140,13 +142,13 @@ mkdir -p "$RUN"
 wants() { [[ " ${STAGES[*]} " == *" $1 "* ]]; }
 # A stage's commands run in a `||` context, where `set -e` does not stop them: a stage function
 # must return its first failure itself (`|| return 1`).
-timed() { # $1 = stage name; the rest runs, its wall time appended to $RUN/timings.tsv (as NAME-failed when it fails)
+timed() { # $1 = stage name; the rest runs, its wall time appended to $TIMINGS (as NAME-failed when it fails)
   local name=$1 t0 status=0; shift
   t0=$(date +%s.%N)
   echo "recipe: $name ($(date +%T))"
   "$@" || status=$?
   [ "$status" = 0 ] || name="$name-failed"
-  awk -v n="$name" -v a="$t0" -v b="$(date +%s.%N)" 'BEGIN { printf "%s\t%.1f\n", n, b - a }' | tee -a "$RUN/timings.tsv"
+  awk -v n="$name" -v a="$t0" -v b="$(date +%s.%N)" 'BEGIN { printf "%s\t%.1f\n", n, b - a }' | tee -a "$TIMINGS"
   return "$status"
 }
 
@@ -394,4 +396,4 @@ if wants probe; then
   timed probe "$PYTHON" bench/metaworld/study.py "${COMMON_STUDY_ARGS[@]}" --variants "$PROBE_VARIANTS" --out "$RUN/probe" \
     --judge "$JUDGE" --bwm "$BWM" --jobs "$STUDY_JOBS" --episodes-in-flight "$STUDY_IN_FLIGHT" --streams "$STUDY_STREAMS" -- "${WM[@]}"
 fi
-echo "recipe: done; stage times in $RUN/timings.tsv"
+echo "recipe: done; stage times in $TIMINGS"

@@ -8,7 +8,7 @@
 # EXTRA_SETTINGS names more, e.g. "dpm++2m-8-fp8row" (the DiT's linears in FP8 with row scaling)
 # or "euler-4-streams2" (the episodes in flight of `bwm fidelity` and of each `bwm evaluate` in 2
 # lanes on CUDA streams of their own: the same sampler, timed), measured after the rest. Each
-# setting's stages are timed into its folder's timings.tsv (the table's last column). Settings
+# setting's stages are timed (by the recipe) into its folder's timings.tsv (the table's last column). Settings
 # already measured are skipped, so the sweep can run over several device calls. SETTINGS (e.g. "euler-8 euler-12") measures those settings alone and
 # leaves the table out: a share of the sweep for one GPU of several, e.g.
 #   CUDA_VISIBLE_DEVICES=1 SETTINGS="euler-8 euler-12" bash bench/metaworld/sweep.sh &
@@ -56,12 +56,9 @@ for setting in "${settings[@]}"; do
   for f in truth.json judged.json; do
     if [ ! -f "$dir/study/$f" ] && [ -f "$RUN/sweep/$baseline/study/$f" ]; then cp "$RUN/sweep/$baseline/study/$f" "$dir/study/$f"; fi
   done
-  for stage in fidelity study; do
-    start=$(date +%s%N)
-    RUN="$RUN" SOLVER="$solver" SAMPLE_STEPS="$steps" FP8="$fp8" FIDELITY_DIR="$dir/fidelity" FIDELITY_EPISODES="$episodes" \
-      FIDELITY_STREAMS="$streams" STUDY_STREAMS="$streams" STUDY_DIR="$dir/study" bash bench/metaworld/recipe.sh "$stage"
-    printf '%s\t%s\n' "$stage" "$(( ($(date +%s%N) - start) / 1000000 ))e-3" >> "$dir/timings.tsv"
-  done
+  RUN="$RUN" SOLVER="$solver" SAMPLE_STEPS="$steps" FP8="$fp8" FIDELITY_DIR="$dir/fidelity" FIDELITY_EPISODES="$episodes" \
+    FIDELITY_STREAMS="$streams" STUDY_STREAMS="$streams" STUDY_DIR="$dir/study" TIMINGS="$dir/timings.tsv" \
+    bash bench/metaworld/recipe.sh fidelity study
 done
 [ -n "${SETTINGS:-}" ] && { echo "sweep: $SETTINGS measured; the table comes from a plain sweep.sh"; exit 0; }
 "$PYTHON" bench/metaworld/sweep.py "$RUN/sweep" --baseline "$baseline"

@@ -24,20 +24,17 @@
 set -uo pipefail
 source "$(dirname "$0")/common.sh"
 groups=("$@"); [ ${#groups[@]} -gt 0 ] || groups=(vae dit rollout optim fused fp8)
+crates=()  # the groups' own test binaries: only those need to travel (beside the wheels the six pass the 64 MiB)
 for g in "${groups[@]}"; do
-  case "$g" in vae|dit|rollout|optim|fused|fp8) ;; *) echo "unit: unknown group '$g' (groups: vae dit rollout optim fused fp8)" >&2; exit 2 ;; esac
+  case "$g" in
+    vae) crates+=(cuda-graph trainer) ;; dit) crates+=(training) ;; rollout) crates+=(inference) ;;
+    optim) crates+=(trainer) ;; fused) crates+=(fused-ops) ;; fp8) crates+=(fp8-autograd) ;;
+    *) echo "unit: unknown group '$g' (groups: vae dit rollout optim fused fp8)" >&2; exit 2 ;;
+  esac
 done
 mkdir -p dist
 status=0
 {
-  # Only the groups' own binaries need to travel (beside the wheels the six pass the 64 MiB).
-  crates=()
-  for g in "${groups[@]}"; do
-    case "$g" in
-      vae) crates+=(cuda-graph trainer) ;; dit) crates+=(training) ;; rollout) crates+=(inference) ;;
-      optim) crates+=(trainer) ;; fused) crates+=(fused-ops) ;; fp8) crates+=(fp8-autograd) ;;
-    esac
-  done
   for crate in $(printf '%s\n' "${crates[@]}" | sort -u); do
     [ -f ".carry-tests/test-$crate.xz" ] || { echo "unit: .carry-tests/test-$crate.xz is missing (scripts/gpu/carry.sh --rebuild; carry [\".carry-tests\"])"; exit 2; }
     unpack ".carry-tests/test-$crate.xz" "dist/test-$crate" || exit 2

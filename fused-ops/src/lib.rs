@@ -181,6 +181,16 @@ struct Fp8Shape {
     padded_rows: i64,
 }
 
+impl Fp8Shape {
+    /// Whether the pass can take whole groups of values (the kernel's vectorized form): rows of
+    /// whole groups of 8 values, transposed rows of whole groups of 16 bytes, and `buffers` ([t,
+    /// amax, q, qt, scale] addresses, 0 where not written) aligned to them.
+    fn vectorizes(&self, buffers: [u64; 5]) -> bool {
+        let [t, _, q, qt, _] = buffers;
+        self.cols % 8 == 0 && t % 16 == 0 && q % 8 == 0 && (qt == 0 || (self.padded_rows % 16 == 0 && qt % 16 == 0))
+    }
+}
+
 /// The float8 formats of the quantization.
 const E4M3: c_int = 0;
 const E5M2: c_int = 1;
@@ -423,7 +433,7 @@ mod tests {
     fn check_quantize(device: Device) {
         for kind in [Kind::Float, Kind::BFloat16] {
             for e5m2 in [false, true] {
-                for (rows, cols, pad) in [(37, 48, true), (64, 16, false), (5, 3, true)] {
+                for (rows, cols, pad) in [(37, 48, true), (64, 16, false), (5, 3, true), (37, 48, false), (100, 72, true)] {
                     let t = spread(rows, cols, kind, device, rows + cols);
                     let (q, qt, scale) = pass_quantize(&t, e5m2, pad);
                     let (want, want_scale) = tensor_quantize(&t, e5m2);
@@ -443,6 +453,19 @@ mod tests {
         // An all-zero tensor: the largest magnitude clamped, every value zero.
         let (q, _, scale) = pass_quantize(&Tensor::zeros([4, 16], (Kind::BFloat16, device)), false, true);
         assert!(q.iter().all(|&b| b == 0) && scale > 0.0 && scale.is_finite());
+    }
+
+    #[test]
+    fn whole_groups_of_aligned_values_take_the_vectorized_kernel() {
+        let shape = |rows, cols, padded_rows| Fp8Shape { rows, cols, padded_rows };
+        let aligned = [256, 512, 1024, 2048, 4096];
+        assert!(shape(6300, 14336, 6304).vectorizes(aligned));
+        assert!(shape(37, 48, 37).vectorizes([256, 512, 1024, 0, 4096]), "no transpose: its rows may be any number");
+        assert!(!shape(37, 48, 37).vectorizes(aligned), "transposed rows of 37 bytes");
+        assert!(!shape(5, 3, 16).vectorizes(aligned), "rows of 3 values");
+        assert!(!shape(64, 16, 64).vectorizes([264, 512, 1024, 2048, 4096]), "t off 16 bytes");
+        assert!(!shape(64, 16, 64).vectorizes([256, 512, 1028, 2048, 4096]), "q off 8 bytes");
+        assert!(!shape(64, 16, 64).vectorizes([256, 512, 1024, 2056, 4096]), "qt off 16 bytes");
     }
 
     #[test]
@@ -610,7 +633,8 @@ mod tests {
     /// (the forward and b's gradient bit for bit; the sums within their order's rounding) and
     /// against libtorch's addcmul, at the 5B's width and at a width under one warp of threads.
     /// The quantization kernel against libtorch's tensor path on the GPU and against its own
-    /// transpose, as on the CPU, and at the 5B's widest shape against the CPU loop.
+    /// transpose, as on the CPU (shapes that take the vectorized kernel and shapes that do not),
+    /// and at the 5B's widest shape (vectorized) against the CPU loop.
     #[test]
     #[ignore = "needs a CUDA device"]
     fn the_fp8_quantization_kernel_casts_as_libtorch_and_the_cpu_loop_on_cuda() {

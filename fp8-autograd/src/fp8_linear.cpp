@@ -11,7 +11,6 @@
 #endif
 
 #include <cstdint>
-#include <limits>
 #include <string>
 
 namespace {
@@ -20,10 +19,11 @@ constexpr double E4M3_MAX = 448.0;
 constexpr double E5M2_MAX = 57344.0;
 
 // stream (CUDA; null on the CPU), device index (-1: CPU), dtype (0: f32, 1: bf16), format (0:
-// e4m3fn, 1: e5m2), the multiplier's target, t, its largest magnitude (a scalar of t's dtype), q,
-// its transpose, the scale, rows, cols, the transpose's padded rows, error buffer, its size -> 0
-// or an error.
-using QuantizePass = int (*)(void*, int, int, int, double, const void*, const void*, uint8_t*, uint8_t*, float*, int64_t, int64_t, int64_t, char*, size_t);
+// e4m3fn, 1: e5m2), the multiplier's target, t, scratch for the largest magnitude's partial maxima
+// on t's device (f32) and their number, q, its transpose, the scale, rows, cols, the transpose's
+// padded rows, error buffer, its size -> 0 or an error.
+using QuantizePass = int (*)(void*, int, int, int, double, const void*, float*, int64_t, uint8_t*, uint8_t*, float*, int64_t, int64_t, int64_t, char*,
+                             size_t);
 QuantizePass quantize_pass = nullptr;
 
 struct Quantized {
@@ -36,8 +36,9 @@ struct Quantized {
 // CUDA's FP8 matmuls need a multiple of 16 (zero rows of x and of the gradient add nothing to g^T x).
 int64_t padded(int64_t m) { return (m + 15) / 16 * 16; }
 
-// t [rows, cols] in float8 `fp8` with one scale from its largest magnitude (the infinity norm, one
-// reduction), then the pass: the multiplier, each value's product and cast, the copies. The casts
+// t [rows, cols] in float8 `fp8` with one scale from its largest magnitude, all in the pass: on
+// CUDA a reduction into PARTIALS partial maxima, then one kernel that reduces them to the
+// multiplier and writes each value's product, cast, and the transpose. The casts
 // do not saturate, so the multiplier aims a little under the format's largest value: rounded to
 // t's dtype (2^-8 relative for bf16) and the product rounded again, |t| * multiplier stays under
 // fmax. The scale is the multiplier's exact inverse.
@@ -48,7 +49,8 @@ Quantized quantize(const at::Tensor& input, at::ScalarType fp8, double fmax, boo
   TORCH_CHECK(input.scalar_type() == at::kFloat || input.scalar_type() == at::kBFloat16, "FP8 quantization takes f32 or bf16, got ", input.scalar_type());
   const auto t = input.contiguous();
   const int64_t rows = t.size(0), cols = t.size(1), prows = pad ? padded(rows) : rows;
-  const auto amax = at::linalg_vector_norm(t, std::numeric_limits<double>::infinity());
+  constexpr int64_t PARTIALS = 256;
+  const auto partials = at::empty({t.is_cuda() ? PARTIALS : 0}, t.options().dtype(at::kFloat));
   Quantized out;
   const auto f8 = t.options().dtype(fp8);
   if (want_q) out.q = at::empty({rows, cols}, f8);
@@ -68,7 +70,7 @@ Quantized quantize(const at::Tensor& input, at::ScalarType fp8, double fmax, boo
   }
   std::string err(512, '\0');
   const int failed = quantize_pass(stream, device, t.scalar_type() == at::kBFloat16 ? 1 : 0, fp8 == at::kFloat8_e5m2 ? 1 : 0, fmax * HEADROOM,
-                                   t.const_data_ptr(), amax.const_data_ptr(), want_q ? static_cast<uint8_t*>(out.q.data_ptr()) : nullptr,
+                                   t.const_data_ptr(), partials.data_ptr<float>(), PARTIALS, want_q ? static_cast<uint8_t*>(out.q.data_ptr()) : nullptr,
                                    want_qt ? static_cast<uint8_t*>(out.qt.data_ptr()) : nullptr, out.scale.data_ptr<float>(), rows, cols, prows,
                                    err.data(), err.size() - 1);
   TORCH_CHECK(!failed, "FP8 quantization: ", err.c_str());

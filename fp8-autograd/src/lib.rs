@@ -15,7 +15,7 @@ use tch::Tensor;
 use torch_sys::C_tensor;
 
 type QuantizePass =
-    extern "C" fn(*mut c_void, c_int, c_int, c_int, f64, *const c_void, *const c_void, *mut u8, *mut u8, *mut f32, i64, i64, i64, *mut c_char, usize) -> c_int;
+    extern "C" fn(*mut c_void, c_int, c_int, c_int, f64, *const c_void, *mut f32, i64, *mut u8, *mut u8, *mut f32, i64, i64, i64, *mut c_char, usize) -> c_int;
 
 extern "C" {
     fn bwm_fp8_set_quantize_pass(pass: QuantizePass);

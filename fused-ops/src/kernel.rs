@@ -172,30 +172,68 @@ __device__ __forceinline__ float value(unsigned short x) { return __uint_as_floa
 __device__ __forceinline__ float rounded(float x, const float*) { return x; }
 __device__ __forceinline__ float rounded(float x, const unsigned short*) { return __uint_as_float((unsigned int)to_bf16(x) << 16); }
 
-// q = float8(t * m) of t [rows, cols] and, where qt is set, its transpose [cols, padded_rows] (the
-// rows past `rows` zero), with m = headroom_max / max(amax, 1e-12) in t's dtype and scale = 1 / m:
-// the arithmetic of fp8-autograd's libtorch path (a reciprocal times the headroom, each in fp32;
-// the product rounded to t's dtype before the cast). A 32 x 32 tile per block of 32 x 8 threads;
-// blockIdx.x walks the rows, blockIdx.y the columns.
+// The larger of two magnitudes, NaN if either is (as libtorch's maximum and norms propagate it).
+__device__ __forceinline__ float nan_max(float a, float b) { return (a > b || a != a) ? a : b; }
+
+// The largest magnitude of t's n values, in `partials`: one per block of 256 threads (gridDim.x
+// of them), which the quantization kernels reduce. vec: n a multiple of 8 and t 16-byte aligned,
+// 8 values per load.
 template <typename T>
-__device__ __forceinline__ float multiplier(const T* amax, float headroom_max, float* scale) {
-  float a = value(amax[0]);
-  a = a < 1e-12f ? 1e-12f : a;
+__device__ void fp8_amax(const T* __restrict__ t, long long n, float* __restrict__ partials, bool vec) {
+  __shared__ float warps[8];
+  float a = 0.0f;
+  const long long stride = (long long)gridDim.x * blockDim.x, first = (long long)blockIdx.x * blockDim.x + threadIdx.x;
+  if (vec) {
+#pragma unroll 4
+    for (long long g = first; g < n / 8; g += stride) {
+      float v[8];
+      load(t, g, 4, v);
+      for (int k = 0; k < 8; k++) a = nan_max(a, fabsf(v[k]));
+    }
+  } else {
+    for (long long i = first; i < n; i += stride) a = nan_max(a, fabsf(value(t[i])));
+  }
+  for (int o = 16; o > 0; o >>= 1) a = nan_max(a, __shfl_xor_sync(0xffffffffu, a, o));
+  if ((threadIdx.x & 31) == 0) warps[threadIdx.x >> 5] = a;
+  __syncthreads();
+  if (threadIdx.x == 0) {
+    for (int w = 1; w < 8; w++) a = nan_max(a, warps[w]);
+    partials[blockIdx.x] = a;
+  }
+}
+
+// q = float8(t * m) of t [rows, cols] and, where qt is set, its transpose [cols, padded_rows] (the
+// rows past `rows` zero), with m = headroom_max / max(amax, 1e-12) in t's dtype and scale = 1 / m,
+// amax the largest of the n partial maxima fp8_amax left: the arithmetic of fp8-autograd's
+// libtorch path (the infinity norm; a reciprocal times the headroom, each in fp32; the product
+// rounded to t's dtype before the cast). Every thread of the block must call it (it syncs them).
+template <typename T>
+__device__ __forceinline__ float multiplier(const T*, const float* __restrict__ partials, long long n, float headroom_max, float* scale) {
+  __shared__ float amax;
+  if (threadIdx.x < 32 && threadIdx.y == 0) {
+    float a = 0.0f;
+    for (long long i = threadIdx.x; i < n; i += 32) a = nan_max(a, partials[i]);
+    for (int o = 16; o > 0; o >>= 1) a = nan_max(a, __shfl_xor_sync(0xffffffffu, a, o));
+    if (threadIdx.x == 0) amax = a;
+  }
+  __syncthreads();
+  float a = amax < 1e-12f ? 1e-12f : amax;
   float m = (1.0f / a) * headroom_max;
   m = m > 3.40282346638528859812e+38f ? 3.40282346638528859812e+38f : m;
-  m = rounded(m, amax);
+  m = rounded(m, (const T*)nullptr);
   if (scale && blockIdx.x == 0 && blockIdx.y == 0 && threadIdx.x == 0 && threadIdx.y == 0) scale[0] = 1.0f / m;
   return m;
 }
 
+// A 32 x 32 tile per block of 32 x 8 threads; blockIdx.x walks the rows, blockIdx.y the columns.
 template <bool E5M2>
 __device__ __forceinline__ unsigned char to_fp8(float p) { return E5M2 ? to_e5m2(p) : to_e4m3(p); }
 
 template <typename T, bool E5M2>
-__device__ void fp8_quantize(const T* t, const T* amax, float headroom_max, unsigned char* q, unsigned char* qt, float* scale,
-                             long long rows, long long cols, long long padded_rows) {
+__device__ void fp8_quantize(const T* t, const float* partials, long long n_partials, float headroom_max, unsigned char* q, unsigned char* qt,
+                             float* scale, long long rows, long long cols, long long padded_rows) {
   __shared__ unsigned char tile[32][33];
-  float m = multiplier(amax, headroom_max, scale);
+  float m = multiplier(t, partials, n_partials, headroom_max, scale);
   long long r0 = (long long)blockIdx.x * 32, c0 = (long long)blockIdx.y * 32;
   for (int k = 0; k < 32; k += 8) {
     long long r = r0 + threadIdx.y + k, c = c0 + threadIdx.x;
@@ -222,11 +260,11 @@ __device__ void fp8_quantize(const T* t, const T* amax, float headroom_max, unsi
 // most of the memory's bandwidth unused), writes each group's 8 float8 bytes with one store, and
 // one 16-byte row segment of the transpose.
 template <typename T, bool E5M2>
-__device__ void fp8_quantize_vec(const T* __restrict__ t, const T* __restrict__ amax, float headroom_max,
+__device__ void fp8_quantize_vec(const T* __restrict__ t, const float* __restrict__ partials, long long n_partials, float headroom_max,
                                  unsigned char* __restrict__ q, unsigned char* __restrict__ qt, float* __restrict__ scale,
                                  long long rows, long long cols, long long padded_rows) {
   __shared__ unsigned char tile[64][68];
-  float m = multiplier(amax, headroom_max, scale);
+  float m = multiplier(t, partials, n_partials, headroom_max, scale);
   const int tid = threadIdx.x;
   const long long r0 = (long long)blockIdx.x * 64, c0 = (long long)blockIdx.y * 64;
   float v[2][8];
@@ -260,17 +298,19 @@ __device__ void fp8_quantize_vec(const T* __restrict__ t, const T* __restrict__ 
   }
 }
 
-#define QUANT(T) const T* t, const T* amax, double headroom_max, unsigned char* q, unsigned char* qt, float* scale, long long rows, long long cols, long long padded_rows
-#define QCALL(T, E) fp8_quantize<T, E>(t, amax, (float)headroom_max, q, qt, scale, rows, cols, padded_rows)
+#define QUANT(T) const T* t, const float* partials, long long n_partials, double headroom_max, unsigned char* q, unsigned char* qt, float* scale, long long rows, long long cols, long long padded_rows
+#define QCALL(T, E) fp8_quantize<T, E>(t, partials, n_partials, (float)headroom_max, q, qt, scale, rows, cols, padded_rows)
 extern "C" __global__ void fp8_quantize_f32_e4m3(QUANT(float)) { QCALL(float, false); }
 extern "C" __global__ void fp8_quantize_f32_e5m2(QUANT(float)) { QCALL(float, true); }
 extern "C" __global__ void fp8_quantize_bf16_e4m3(QUANT(unsigned short)) { QCALL(unsigned short, false); }
 extern "C" __global__ void fp8_quantize_bf16_e5m2(QUANT(unsigned short)) { QCALL(unsigned short, true); }
-#define QVEC(T, E) fp8_quantize_vec<T, E>(t, amax, (float)headroom_max, q, qt, scale, rows, cols, padded_rows)
+#define QVEC(T, E) fp8_quantize_vec<T, E>(t, partials, n_partials, (float)headroom_max, q, qt, scale, rows, cols, padded_rows)
 extern "C" __global__ void __launch_bounds__(256) fp8_quantize_vec_f32_e4m3(QUANT(float)) { QVEC(float, false); }
 extern "C" __global__ void __launch_bounds__(256) fp8_quantize_vec_f32_e5m2(QUANT(float)) { QVEC(float, true); }
 extern "C" __global__ void __launch_bounds__(256) fp8_quantize_vec_bf16_e4m3(QUANT(unsigned short)) { QVEC(unsigned short, false); }
 extern "C" __global__ void __launch_bounds__(256) fp8_quantize_vec_bf16_e5m2(QUANT(unsigned short)) { QVEC(unsigned short, true); }
+extern "C" __global__ void __launch_bounds__(256) fp8_amax_f32(const float* t, long long n, float* partials, long long vec) { fp8_amax(t, n, partials, vec != 0); }
+extern "C" __global__ void __launch_bounds__(256) fp8_amax_bf16(const unsigned short* t, long long n, float* partials, long long vec) { fp8_amax(t, n, partials, vec != 0); }
 "#;
 
 /// `source` compiled with NVRTC without multiply-add contraction (each operation rounds on its
@@ -298,6 +338,8 @@ pub(crate) struct Kernels {
     /// [f32, bf16] x [e4m3, e5m2]: any shape, and whole groups of values (`Fp8Shape::vectorizes`).
     fp8_quantize: [[CudaFunction; 2]; 2],
     fp8_quantize_vec: [[CudaFunction; 2]; 2],
+    /// [f32, bf16].
+    fp8_amax: [CudaFunction; 2],
 }
 
 impl Kernels {
@@ -331,6 +373,7 @@ impl Kernels {
                 [function("fp8_quantize_vec_f32_e4m3")?, function("fp8_quantize_vec_f32_e5m2")?],
                 [function("fp8_quantize_vec_bf16_e4m3")?, function("fp8_quantize_vec_bf16_e5m2")?],
             ],
+            fp8_amax: [function("fp8_amax_f32")?, function("fp8_amax_bf16")?],
             ctx,
             _module: module,
         })
@@ -386,11 +429,18 @@ impl Kernels {
     }
 
     /// float8 values of t [rows, cols] (bf16 or f32) scaled by `headroom_max` over its largest
-    /// magnitude (a scalar of t's dtype at `amax`): row-major into `q` and transposed, zero-padded
-    /// to `padded_rows` columns, into `qt` (either address 0: not written), 1 / the multiplier into
-    /// the f32 at `scale`; `buffers` = [t, amax, q, qt, scale].
-    pub(crate) fn fp8_quantize(&self, stream: *mut c_void, bf16: bool, e5m2: bool, buffers: [u64; 5], headroom_max: f64, s: Fp8Shape) -> Result<()> {
+    /// magnitude: row-major into `q` and transposed, zero-padded to `padded_rows` columns, into
+    /// `qt` (either address 0: not written), 1 / the multiplier into the f32 at `scale`; `buffers`
+    /// = [t, partials, q, qt, scale], `partials` room for `n_partials` f32 (the largest magnitude's
+    /// partial maxima, one per block of the first kernel, which the second reduces).
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn fp8_quantize(&self, stream: *mut c_void, bf16: bool, e5m2: bool, buffers: [u64; 5], n_partials: i64, headroom_max: f64, s: Fp8Shape) -> Result<()> {
         ensure!(s.padded_rows >= s.rows, "FP8 quantization: {} padded rows for {} rows", s.padded_rows, s.rows);
+        let blocks = u32::try_from(n_partials).ok().filter(|b| (1..=65_535).contains(b)).context("FP8 quantization: 1 to 65535 partial maxima")?;
+        let [t, partials, q, qt, scale] = buffers;
+        let n = s.rows * s.cols;
+        let whole_groups = n % 8 == 0 && t % 16 == 0;
+        self.launch(&self.fp8_amax[bf16 as usize], stream, (blocks, 1), 256, vec![t, n as u64, partials, whole_groups as u64])?;
         let vec = s.vectorizes(buffers);
         let (f, tile, threads) = if vec {
             (&self.fp8_quantize_vec[bf16 as usize][e5m2 as usize], 64, (256, 1))
@@ -399,7 +449,7 @@ impl Kernels {
         };
         let row_tiles = u32::try_from((s.padded_rows + tile - 1) / tile).ok().filter(|&b| b < 1 << 31).context("FP8 quantization: too many rows for one launch")?;
         let col_tiles = u32::try_from((s.cols + tile - 1) / tile).ok().filter(|&b| b < 65_536).context("FP8 quantization: too many columns for one launch")?;
-        let [t, amax, q, qt, scale] = buffers;
-        self.launch_blocks(f, stream, (row_tiles, col_tiles), threads, vec![t, amax, headroom_max.to_bits(), q, qt, scale, s.rows as u64, s.cols as u64, s.padded_rows as u64])
+        let args = vec![t, partials, n_partials as u64, headroom_max.to_bits(), q, qt, scale, s.rows as u64, s.cols as u64, s.padded_rows as u64];
+        self.launch_blocks(f, stream, (row_tiles, col_tiles), threads, args)
     }
 }

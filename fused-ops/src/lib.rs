@@ -184,7 +184,7 @@ struct Fp8Shape {
 impl Fp8Shape {
     /// Whether the pass can take whole groups of values (the kernel's vectorized form): rows of
     /// whole groups of 8 values, transposed rows of whole groups of 16 bytes, and `buffers` ([t,
-    /// amax, q, qt, scale] addresses, 0 where not written) aligned to them.
+    /// partials, q, qt, scale] addresses, 0 where not written) aligned to them.
     fn vectorizes(&self, buffers: [u64; 5]) -> bool {
         let [t, _, q, qt, _] = buffers;
         self.cols % 8 == 0 && t % 16 == 0 && q % 8 == 0 && (qt == 0 || (self.padded_rows % 16 == 0 && qt % 16 == 0))
@@ -197,12 +197,14 @@ const E5M2: c_int = 1;
 
 /// The FP8 quantization pass (`QuantizePass` in `bwm-fp8-autograd`'s src/fp8_linear.cpp, which
 /// checks the shapes, dtypes, contiguity and devices): t [rows, cols] of dtype `dtype` (0: f32, 1:
-/// bf16) at `t`, its largest magnitude (a scalar of the same dtype) at `amax`; writes
-/// float8(t * m) (`format` 0: e4m3fn, 1: e5m2) row-major to `q` and transposed, zero-padded to
-/// `padded_rows` columns, to `qt` (either null: not written), and 1 / m to the f32 at `scale`,
-/// with m = headroom_max / max(amax, 1e-12) rounded to t's dtype. The arithmetic is libtorch's
-/// tensor path's: a reciprocal times the headroom in fp32, clamped to f32's range; each product
-/// rounded to t's dtype, then to float8 (nearest even). `device` -1: the CPU (stream null).
+/// bf16) at `t`; writes float8(t * m) (`format` 0: e4m3fn, 1: e5m2) row-major to `q` and
+/// transposed, zero-padded to `padded_rows` columns, to `qt` (either null: not written), and 1 / m
+/// to the f32 at `scale`, with m = headroom_max / max(amax, 1e-12) rounded to t's dtype, amax t's
+/// largest magnitude (NaN if t holds one). On CUDA `partials` is scratch for `n_partials` f32 on
+/// t's device (1 to 65535; the largest magnitude's partial maxima, one per block of the first of
+/// two kernels); the CPU does not use it. The arithmetic is libtorch's tensor path's (the infinity
+/// norm; a reciprocal times the headroom in fp32, clamped to f32's range; each product rounded to
+/// t's dtype, then to float8, nearest even). `device` -1: the CPU (stream null).
 #[allow(clippy::too_many_arguments)]
 pub extern "C" fn fp8_quantize_pass(
     stream: *mut c_void,
@@ -211,7 +213,8 @@ pub extern "C" fn fp8_quantize_pass(
     format: c_int,
     headroom_max: f64,
     t: *const c_void,
-    amax: *const c_void,
+    partials: *mut f32,
+    n_partials: i64,
     q: *mut u8,
     qt: *mut u8,
     scale: *mut f32,
@@ -229,11 +232,11 @@ pub extern "C" fn fp8_quantize_pass(
     };
     let bf16 = dtype == 1;
     if device < 0 {
-        cpu_fp8_quantize(bf16, e5m2, headroom_max as f32, t, amax, q, qt, scale, shape);
+        cpu_fp8_quantize(bf16, e5m2, headroom_max as f32, t, q, qt, scale, shape);
         return 0;
     }
-    let buffers = [t as u64, amax as u64, q as u64, qt as u64, scale as u64];
-    match kernel::Kernels::for_device(device as usize).and_then(|k| k.fp8_quantize(stream, bf16, e5m2, buffers, headroom_max, shape)) {
+    let buffers = [t as u64, partials as u64, q as u64, qt as u64, scale as u64];
+    match kernel::Kernels::for_device(device as usize).and_then(|k| k.fp8_quantize(stream, bf16, e5m2, buffers, n_partials, headroom_max, shape)) {
         Ok(()) => 0,
         Err(e) => report(e, err, err_len),
     }
@@ -273,13 +276,13 @@ fn to_e5m2(x: f32) -> u8 {
 
 /// The quantization kernel's arithmetic on the CPU, element by element.
 #[allow(clippy::too_many_arguments)]
-fn cpu_fp8_quantize(bf16: bool, e5m2: bool, headroom_max: f32, t: *const c_void, amax: *const c_void, q: *mut u8, qt: *mut u8, scale: *mut f32, s: Fp8Shape) {
+fn cpu_fp8_quantize(bf16: bool, e5m2: bool, headroom_max: f32, t: *const c_void, q: *mut u8, qt: *mut u8, scale: *mut f32, s: Fp8Shape) {
     let (rows, cols, padded) = (s.rows as usize, s.cols as usize, s.padded_rows as usize);
-    // SAFETY: the C++ side passes t of rows * cols elements and amax of one, of t's dtype; q of
-    // rows * cols bytes and qt of cols * padded_rows bytes where not null; one f32 at scale.
+    // SAFETY: the C++ side passes t of rows * cols elements of t's dtype; q of rows * cols bytes
+    // and qt of cols * padded_rows bytes where not null; one f32 at scale.
     let load = |p: *const c_void, i: usize| -> f32 { unsafe { if bf16 { from_bf16(*(p as *const u16).add(i)) } else { *(p as *const f32).add(i) } } };
     let round = |x: f32| if bf16 { from_bf16(to_bf16(x)) } else { x };
-    let a = load(amax, 0);
+    let a = (0..rows * cols).map(|i| load(t, i).abs()).fold(0.0f32, |a, v| if a > v || a.is_nan() { a } else { v });
     let a = if a < 1e-12 { 1e-12 } else { a };
     let m = (1.0 / a) * headroom_max;
     let m = round(if m > f32::MAX { f32::MAX } else { m });
@@ -371,11 +374,20 @@ mod tests {
     /// Quantized through the pass (on t's device): the float8 bytes row-major and transposed
     /// ([cols, padded rows]) and the scale.
     fn pass_quantize(t: &Tensor, e5m2: bool, pad: bool) -> (Vec<u8>, Vec<u8>, f32) {
+        pass_quantize_in(t, e5m2, pad, PARTIALS)
+    }
+
+    /// As fp8-autograd's src/fp8_linear.cpp calls it.
+    const PARTIALS: i64 = 256;
+
+    /// [`pass_quantize`] with the largest magnitude reduced over `partials` blocks on CUDA.
+    fn pass_quantize_in(t: &Tensor, e5m2: bool, pad: bool, partials: i64) -> (Vec<u8>, Vec<u8>, f32) {
         let t = t.contiguous();
         let (rows, cols) = (t.size()[0], t.size()[1]);
         let padded = if pad { (rows + 15) / 16 * 16 } else { rows };
-        let amax = t.abs().max();
         let device = t.device();
+        let n_partials = partials;
+        let partials = Tensor::full([partials], f64::NAN, (Kind::Float, device));
         let q = Tensor::zeros([rows, cols], (Kind::Uint8, device));
         let qt = Tensor::full([cols, padded], 0x55, (Kind::Uint8, device));
         let scale = Tensor::zeros([], (Kind::Float, device));
@@ -393,7 +405,8 @@ mod tests {
             if e5m2 { E5M2 } else { E4M3 },
             fmax * (1.0 - 1.0 / 64.0),
             t.data_ptr(),
-            amax.data_ptr(),
+            partials.data_ptr() as *mut f32,
+            n_partials,
             q.data_ptr() as *mut u8,
             qt.data_ptr() as *mut u8,
             scale.data_ptr() as *mut f32,
@@ -453,6 +466,13 @@ mod tests {
         // An all-zero tensor: the largest magnitude clamped, every value zero.
         let (q, _, scale) = pass_quantize(&Tensor::zeros([4, 16], (Kind::BFloat16, device)), false, true);
         assert!(q.iter().all(|&b| b == 0) && scale > 0.0 && scale.is_finite());
+        // A NaN anywhere: the largest magnitude NaN, as libtorch's norm gives it, so every value NaN.
+        for kind in [Kind::Float, Kind::BFloat16] {
+            let t = spread(40, 48, kind, device, 3);
+            let _ = t.get(31).get(5).fill_(f64::NAN);
+            let (q, qt, scale) = pass_quantize(&t, false, true);
+            assert!(scale.is_nan() && q.iter().chain(&qt[..40]).all(|&b| b & 0x7f == 0x7f), "{kind:?}: a NaN did not spread");
+        }
     }
 
     #[test]
@@ -643,9 +663,11 @@ mod tests {
         check_quantize(device);
         for e5m2 in [false, true] {
             let t = spread(6300, 14336, Kind::BFloat16, device, 7);
-            let gpu = pass_quantize(&t, e5m2, true);
             let cpu = pass_quantize(&t.to_device(Device::Cpu), e5m2, true);
-            assert!(gpu == cpu, "e5m2 {e5m2}: the kernel and the CPU loop differ at the 5B's FFN width");
+            for partials in [PARTIALS, 1, 7] {
+                let gpu = pass_quantize_in(&t, e5m2, true, partials);
+                assert!(gpu == cpu, "e5m2 {e5m2}, {partials} partial maxima: the kernels and the CPU loop differ at the 5B's FFN width");
+            }
         }
     }
 

@@ -49,8 +49,8 @@ Quantized quantize(const at::Tensor& input, at::ScalarType fp8, double fmax, boo
   TORCH_CHECK(input.scalar_type() == at::kFloat || input.scalar_type() == at::kBFloat16, "FP8 quantization takes f32 or bf16, got ", input.scalar_type());
   const auto t = input.contiguous();
   const int64_t rows = t.size(0), cols = t.size(1), prows = pad ? padded(rows) : rows;
-  constexpr int64_t PARTIALS = 256;
-  const auto partials = at::empty({t.is_cuda() ? PARTIALS : 0}, t.options().dtype(at::kFloat));
+  const int64_t partials_n = t.is_cuda() ? 256 : 0;  // the CPU loop needs none
+  const auto partials = at::empty({partials_n}, t.options().dtype(at::kFloat));
   Quantized out;
   const auto f8 = t.options().dtype(fp8);
   if (want_q) out.q = at::empty({rows, cols}, f8);
@@ -70,7 +70,7 @@ Quantized quantize(const at::Tensor& input, at::ScalarType fp8, double fmax, boo
   }
   std::string err(512, '\0');
   const int failed = quantize_pass(stream, device, t.scalar_type() == at::kBFloat16 ? 1 : 0, fp8 == at::kFloat8_e5m2 ? 1 : 0, fmax * HEADROOM,
-                                   t.const_data_ptr(), partials.data_ptr<float>(), PARTIALS, want_q ? static_cast<uint8_t*>(out.q.data_ptr()) : nullptr,
+                                   t.const_data_ptr(), partials.data_ptr<float>(), partials_n, want_q ? static_cast<uint8_t*>(out.q.data_ptr()) : nullptr,
                                    want_qt ? static_cast<uint8_t*>(out.qt.data_ptr()) : nullptr, out.scale.data_ptr<float>(), rows, cols, prows,
                                    err.data(), err.size() - 1);
   TORCH_CHECK(!failed, "FP8 quantization: ", err.c_str());

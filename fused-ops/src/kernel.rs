@@ -263,7 +263,7 @@ template <typename T, bool E5M2>
 __device__ void fp8_quantize_vec(const T* __restrict__ t, const float* __restrict__ partials, long long n_partials, float headroom_max,
                                  unsigned char* __restrict__ q, unsigned char* __restrict__ qt, float* __restrict__ scale,
                                  long long rows, long long cols, long long padded_rows) {
-  __shared__ unsigned char tile[64][68];
+  __shared__ __align__(16) unsigned char tile[64][68];  // written a word at a time
   float m = multiplier(t, partials, n_partials, headroom_max, scale);
   const int tid = threadIdx.x;
   const long long r0 = (long long)blockIdx.x * 64, c0 = (long long)blockIdx.y * 64;
@@ -447,8 +447,9 @@ impl Kernels {
         } else {
             (&self.fp8_quantize[bf16 as usize][e5m2 as usize], 32, (32, 8))
         };
-        let row_tiles = u32::try_from((s.padded_rows + tile - 1) / tile).ok().filter(|&b| b < 1 << 31).context("FP8 quantization: too many rows for one launch")?;
-        let col_tiles = u32::try_from((s.cols + tile - 1) / tile).ok().filter(|&b| b < 65_536).context("FP8 quantization: too many columns for one launch")?;
+        // At least one block, also for an empty t: it writes the scale (as the CPU loop does).
+        let row_tiles = u32::try_from((s.padded_rows + tile - 1) / tile).ok().filter(|&b| b < 1 << 31).context("FP8 quantization: too many rows for one launch")?.max(1);
+        let col_tiles = u32::try_from((s.cols + tile - 1) / tile).ok().filter(|&b| b < 65_536).context("FP8 quantization: too many columns for one launch")?.max(1);
         let args = vec![t, partials, n_partials as u64, headroom_max.to_bits(), q, qt, scale, s.rows as u64, s.cols as u64, s.padded_rows as u64];
         self.launch_blocks(f, stream, (row_tiles, col_tiles), threads, args)
     }

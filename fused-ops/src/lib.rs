@@ -466,6 +466,9 @@ mod tests {
         // An all-zero tensor: the largest magnitude clamped, every value zero.
         let (q, _, scale) = pass_quantize(&Tensor::zeros([4, 16], (Kind::BFloat16, device)), false, true);
         assert!(q.iter().all(|&b| b == 0) && scale > 0.0 && scale.is_finite());
+        // An empty tensor: nothing to write but the scale.
+        let (q, qt, scale) = pass_quantize(&Tensor::zeros([0, 16], (Kind::BFloat16, device)), false, true);
+        assert!(q.is_empty() && qt.is_empty() && scale > 0.0 && scale.is_finite());
         // A NaN anywhere: the largest magnitude NaN, as libtorch's norm gives it, so every value NaN.
         for kind in [Kind::Float, Kind::BFloat16] {
             let t = spread(40, 48, kind, device, 3);

@@ -175,17 +175,24 @@ __device__ __forceinline__ float rounded(float x, const unsigned short*) { retur
 // The larger of two magnitudes, NaN if either is (as libtorch's maximum and norms propagate it).
 __device__ __forceinline__ float nan_max(float a, float b) { return (a > b || a != a) ? a : b; }
 
-// The largest magnitude of t's n values, in `partials`: one per block of 256 threads (gridDim.x
+// The largest magnitude of t's n values, in `partials`: one per block of 1024 threads (gridDim.x
 // of them), which the quantization kernels reduce. vec: n a multiple of 8 and t 16-byte aligned,
-// 8 values per load.
+// 8 values per load, four loads in flight per thread (one leaves most of the bandwidth unused).
 template <typename T>
 __device__ void fp8_amax(const T* __restrict__ t, long long n, float* __restrict__ partials, bool vec) {
-  __shared__ float warps[8];
+  __shared__ float warps[32];
   float a = 0.0f;
   const long long stride = (long long)gridDim.x * blockDim.x, first = (long long)blockIdx.x * blockDim.x + threadIdx.x;
   if (vec) {
-#pragma unroll 4
-    for (long long g = first; g < n / 8; g += stride) {
+    const long long groups = n / 8;
+    long long g = first;
+    for (; g + 3 * stride < groups; g += 4 * stride) {
+      float v[4][8];
+      for (int j = 0; j < 4; j++) load(t, g + j * stride, 4, v[j]);
+      for (int j = 0; j < 4; j++)
+        for (int k = 0; k < 8; k++) a = nan_max(a, fabsf(v[j][k]));
+    }
+    for (; g < groups; g += stride) {
       float v[8];
       load(t, g, 4, v);
       for (int k = 0; k < 8; k++) a = nan_max(a, fabsf(v[k]));
@@ -196,9 +203,10 @@ __device__ void fp8_amax(const T* __restrict__ t, long long n, float* __restrict
   for (int o = 16; o > 0; o >>= 1) a = nan_max(a, __shfl_xor_sync(0xffffffffu, a, o));
   if ((threadIdx.x & 31) == 0) warps[threadIdx.x >> 5] = a;
   __syncthreads();
-  if (threadIdx.x == 0) {
-    for (int w = 1; w < 8; w++) a = nan_max(a, warps[w]);
-    partials[blockIdx.x] = a;
+  if (threadIdx.x < 32) {
+    a = threadIdx.x < (blockDim.x >> 5) ? warps[threadIdx.x] : 0.0f;
+    for (int o = 16; o > 0; o >>= 1) a = nan_max(a, __shfl_xor_sync(0xffffffffu, a, o));
+    if (threadIdx.x == 0) partials[blockIdx.x] = a;
   }
 }
 
@@ -206,12 +214,14 @@ __device__ void fp8_amax(const T* __restrict__ t, long long n, float* __restrict
 // rows past `rows` zero), with m = headroom_max / max(amax, 1e-12) in t's dtype and scale = 1 / m,
 // amax the largest of the n partial maxima fp8_amax left: the arithmetic of fp8-autograd's
 // libtorch path (the infinity norm; a reciprocal times the headroom, each in fp32; the product
-// rounded to t's dtype before the cast). Every thread of the block must call it (it syncs them).
+// rounded to t's dtype before the cast). Every thread of the block must call it (it syncs them);
+// the kernels issue their loads of t before it, so that they wait on one latency, not two.
 template <typename T>
 __device__ __forceinline__ float multiplier(const T*, const float* __restrict__ partials, long long n, float headroom_max, float* scale) {
   __shared__ float amax;
   if (threadIdx.x < 32 && threadIdx.y == 0) {
     float a = 0.0f;
+#pragma unroll 8
     for (long long i = threadIdx.x; i < n; i += 32) a = nan_max(a, partials[i]);
     for (int o = 16; o > 0; o >>= 1) a = nan_max(a, __shfl_xor_sync(0xffffffffu, a, o));
     if (threadIdx.x == 0) amax = a;
@@ -233,17 +243,21 @@ template <typename T, bool E5M2>
 __device__ void fp8_quantize(const T* t, const float* partials, long long n_partials, float headroom_max, unsigned char* q, unsigned char* qt,
                              float* scale, long long rows, long long cols, long long padded_rows) {
   __shared__ unsigned char tile[32][33];
+  const long long r0 = (long long)blockIdx.x * 32, c0 = (long long)blockIdx.y * 32;
+  float x[4];
+  for (int k = 0; k < 4; k++) {
+    long long r = r0 + threadIdx.y + 8 * k, c = c0 + threadIdx.x;
+    x[k] = r < rows && c < cols ? value(t[r * cols + c]) : 0.0f;
+  }
   float m = multiplier(t, partials, n_partials, headroom_max, scale);
-  long long r0 = (long long)blockIdx.x * 32, c0 = (long long)blockIdx.y * 32;
-  for (int k = 0; k < 32; k += 8) {
-    long long r = r0 + threadIdx.y + k, c = c0 + threadIdx.x;
+  for (int k = 0; k < 4; k++) {
+    long long r = r0 + threadIdx.y + 8 * k, c = c0 + threadIdx.x;
     unsigned char v = 0;
     if (r < rows && c < cols) {
-      float p = rounded(value(t[r * cols + c]) * m, t);
-      v = to_fp8<E5M2>(p);
+      v = to_fp8<E5M2>(rounded(x[k] * m, t));
       if (q) q[r * cols + c] = v;
     }
-    tile[threadIdx.y + k][threadIdx.x] = v;
+    tile[threadIdx.y + 8 * k][threadIdx.x] = v;
   }
   if (!qt) return;  // the same for the whole block
   __syncthreads();
@@ -264,7 +278,6 @@ __device__ void fp8_quantize_vec(const T* __restrict__ t, const float* __restric
                                  unsigned char* __restrict__ q, unsigned char* __restrict__ qt, float* __restrict__ scale,
                                  long long rows, long long cols, long long padded_rows) {
   __shared__ __align__(16) unsigned char tile[64][68];  // written a word at a time
-  float m = multiplier(t, partials, n_partials, headroom_max, scale);
   const int tid = threadIdx.x;
   const long long r0 = (long long)blockIdx.x * 64, c0 = (long long)blockIdx.y * 64;
   float v[2][8];
@@ -275,6 +288,7 @@ __device__ void fp8_quantize_vec(const T* __restrict__ t, const float* __restric
     in[i] = r < rows && c < cols;
     if (in[i]) load(t, (r * cols + c) >> 3, 4, v[i]);
   }
+  float m = multiplier(t, partials, n_partials, headroom_max, scale);
   for (int i = 0; i < 2; i++) {
     int g = tid + 256 * i, tr = g >> 3, tc = (g & 7) * 8;
     unsigned int w[2] = {0u, 0u};
@@ -309,8 +323,8 @@ extern "C" __global__ void __launch_bounds__(256) fp8_quantize_vec_f32_e4m3(QUAN
 extern "C" __global__ void __launch_bounds__(256) fp8_quantize_vec_f32_e5m2(QUANT(float)) { QVEC(float, true); }
 extern "C" __global__ void __launch_bounds__(256) fp8_quantize_vec_bf16_e4m3(QUANT(unsigned short)) { QVEC(unsigned short, false); }
 extern "C" __global__ void __launch_bounds__(256) fp8_quantize_vec_bf16_e5m2(QUANT(unsigned short)) { QVEC(unsigned short, true); }
-extern "C" __global__ void __launch_bounds__(256) fp8_amax_f32(const float* t, long long n, float* partials, long long vec) { fp8_amax(t, n, partials, vec != 0); }
-extern "C" __global__ void __launch_bounds__(256) fp8_amax_bf16(const unsigned short* t, long long n, float* partials, long long vec) { fp8_amax(t, n, partials, vec != 0); }
+extern "C" __global__ void __launch_bounds__(1024) fp8_amax_f32(const float* t, long long n, float* partials, long long vec) { fp8_amax(t, n, partials, vec != 0); }
+extern "C" __global__ void __launch_bounds__(1024) fp8_amax_bf16(const unsigned short* t, long long n, float* partials, long long vec) { fp8_amax(t, n, partials, vec != 0); }
 "#;
 
 /// `source` compiled with NVRTC without multiply-add contraction (each operation rounds on its
@@ -440,7 +454,7 @@ impl Kernels {
         let [t, partials, q, qt, scale] = buffers;
         let n = s.rows * s.cols;
         let whole_groups = n % 8 == 0 && t % 16 == 0;
-        self.launch(&self.fp8_amax[bf16 as usize], stream, (blocks, 1), 256, vec![t, n as u64, partials, whole_groups as u64])?;
+        self.launch(&self.fp8_amax[bf16 as usize], stream, (blocks, 1), 1024, vec![t, n as u64, partials, whole_groups as u64])?;
         let vec = s.vectorizes(buffers);
         let (f, tile, threads) = if vec {
             (&self.fp8_quantize_vec[bf16 as usize][e5m2 as usize], 64, (256, 1))

@@ -10,6 +10,7 @@
 #include <c10/cuda/CUDAStream.h>
 #endif
 
+#include <algorithm>
 #include <cstdint>
 #include <string>
 
@@ -20,16 +21,18 @@ constexpr double E5M2_MAX = 57344.0;
 
 // stream (CUDA; null on the CPU), device index (-1: CPU), dtype (0: f32, 1: bf16), format (0:
 // e4m3fn, 1: e5m2), the multiplier's target, t, scratch for the largest magnitude's partial maxima
-// on t's device (f32) and their number, q, its transpose, the scale, rows, cols, the transpose's
+// on t's device (f32) and their number, q, its transpose, the scale, scratch for the column sums
+// (f32) and its size, the column sums (f32 [cols]; null: none), rows, cols, the transpose's
 // padded rows, error buffer, its size -> 0 or an error.
-using QuantizePass = int (*)(void*, int, int, int, double, const void*, float*, int64_t, uint8_t*, uint8_t*, float*, int64_t, int64_t, int64_t, char*,
-                             size_t);
+using QuantizePass = int (*)(void*, int, int, int, double, const void*, float*, int64_t, uint8_t*, uint8_t*, float*, float*, int64_t, float*, int64_t,
+                             int64_t, int64_t, char*, size_t);
 QuantizePass quantize_pass = nullptr;
 
 struct Quantized {
   at::Tensor q;      // float8 [rows, cols], where asked for
   at::Tensor qt;     // its transpose [cols, padded rows], the padding zero, where asked for
   at::Tensor scale;  // f32 scalar: t ~= q * scale
+  at::Tensor sums;   // f32 [cols]: t's column sums, where asked for
 };
 
 // Rows of a transposed operand: the inner dimension of the weight's gradient (x's rows), which
@@ -41,8 +44,9 @@ int64_t padded(int64_t m) { return (m + 15) / 16 * 16; }
 // multiplier and writes each value's product, cast, and the transpose. The casts
 // do not saturate, so the multiplier aims a little under the format's largest value: rounded to
 // t's dtype (2^-8 relative for bf16) and the product rounded again, |t| * multiplier stays under
-// fmax. The scale is the multiplier's exact inverse.
-Quantized quantize(const at::Tensor& input, at::ScalarType fp8, double fmax, bool want_q, bool want_qt, bool pad) {
+// fmax. The scale is the multiplier's exact inverse. want_sums: t's column sums too (a bias's
+// gradient), read in the same pass instead of a reduction of its own.
+Quantized quantize(const at::Tensor& input, at::ScalarType fp8, double fmax, bool want_q, bool want_qt, bool pad, bool want_sums = false) {
   constexpr double HEADROOM = 1.0 - 1.0 / 64;
   TORCH_CHECK(quantize_pass != nullptr, "the quantization pass was not set");
   TORCH_CHECK(input.dim() == 2, "FP8 quantization takes [rows, cols], got ", input.sizes());
@@ -56,6 +60,10 @@ Quantized quantize(const at::Tensor& input, at::ScalarType fp8, double fmax, boo
   if (want_q) out.q = at::empty({rows, cols}, f8);
   if (want_qt) out.qt = at::empty({cols, prows}, f8);
   out.scale = at::empty({}, t.options().dtype(at::kFloat));
+  // Scratch of the column sums on CUDA: a row of cols per tile of 32 (padded) rows, at least one.
+  const int64_t sum_partials_n = want_sums && t.is_cuda() ? std::max<int64_t>(1, (prows + 31) / 32) * cols : 0;
+  const auto sum_partials = at::empty({sum_partials_n}, t.options().dtype(at::kFloat));
+  if (want_sums) out.sums = at::empty({cols}, t.options().dtype(at::kFloat));
   void* stream = nullptr;
   int device = -1;
   if (t.is_cuda()) {
@@ -71,8 +79,9 @@ Quantized quantize(const at::Tensor& input, at::ScalarType fp8, double fmax, boo
   std::string err(512, '\0');
   const int failed = quantize_pass(stream, device, t.scalar_type() == at::kBFloat16 ? 1 : 0, fp8 == at::kFloat8_e5m2 ? 1 : 0, fmax * HEADROOM,
                                    t.const_data_ptr(), partials.data_ptr<float>(), partials_n, want_q ? static_cast<uint8_t*>(out.q.data_ptr()) : nullptr,
-                                   want_qt ? static_cast<uint8_t*>(out.qt.data_ptr()) : nullptr, out.scale.data_ptr<float>(), rows, cols, prows,
-                                   err.data(), err.size() - 1);
+                                   want_qt ? static_cast<uint8_t*>(out.qt.data_ptr()) : nullptr, out.scale.data_ptr<float>(),
+                                   sum_partials.data_ptr<float>(), sum_partials_n, want_sums ? out.sums.data_ptr<float>() : nullptr, rows, cols,
+                                   prows, err.data(), err.size() - 1);
   TORCH_CHECK(!failed, "FP8 quantization: ", err.c_str());
   return out;
 }
@@ -100,8 +109,8 @@ struct Fp8Linear : public torch::autograd::Function<Fp8Linear> {
     const auto &xqt = saved[0], &x_scale = saved[1], &wqt = saved[2], &w_scale = saved[3];
     const auto w_dtype = static_cast<at::ScalarType>(ctx->saved_data["w_dtype"].toInt());
     auto g = grads[0].contiguous();
-    auto gb = g.sum(0).to(w_dtype);
-    auto gq = quantize(g, at::kFloat8_e5m2, E5M2_MAX, true, true, true);
+    auto gq = quantize(g, at::kFloat8_e5m2, E5M2_MAX, true, true, true, true);
+    auto gb = gq.sums.to(w_dtype);
     // dL/dx [m, in] = g [m, out] W [out, in] (W column-major: its transpose row-major);
     // dL/dW [out, in] = g^T [out, m] x [m, in] (x column-major: its transpose row-major).
     auto gx = at::_scaled_mm(gq.q, wqt.t(), gq.scale, w_scale, std::nullopt, std::nullopt, g.scalar_type(), false);

@@ -7,18 +7,15 @@
 //! (src/fp8_linear.cpp); each quantization (the scale, the cast, the transposed copy the backward
 //! products need) is one pass of `bwm_fused_ops::fp8_quantize_pass`.
 
-use std::ffi::{c_char, c_int, c_void, CStr};
+use std::ffi::{c_char, CStr};
 use std::sync::Once;
 
 use anyhow::{bail, ensure, Result};
 use tch::Tensor;
 use torch_sys::C_tensor;
 
-type QuantizePass =
-    extern "C" fn(*mut c_void, c_int, c_int, c_int, f64, *const c_void, *mut f32, i64, *mut u8, *mut u8, *mut f32, i64, i64, i64, *mut c_char, usize) -> c_int;
-
 extern "C" {
-    fn bwm_fp8_set_quantize_pass(pass: QuantizePass);
+    fn bwm_fp8_set_quantize_pass(pass: bwm_fused_ops::Fp8QuantizePass);
     fn bwm_fp8_linear(x: *const C_tensor, w: *const C_tensor, b: *const C_tensor, out: *mut *mut C_tensor) -> *const c_char;
 }
 

@@ -239,15 +239,27 @@ __device__ __forceinline__ float multiplier(const T*, const float* __restrict__ 
 template <bool E5M2>
 __device__ __forceinline__ unsigned char to_fp8(float p) { return E5M2 ? to_e5m2(p) : to_e4m3(p); }
 
+// Where sum_partials is set, each block also writes its tile's column sums of t (fp32, t's own
+// values) to row blockIdx.x of sum_partials [row tiles, cols], which column_sums adds up.
 template <typename T, bool E5M2>
 __device__ void fp8_quantize(const T* t, const float* partials, long long n_partials, float headroom_max, unsigned char* q, unsigned char* qt,
-                             float* scale, long long rows, long long cols, long long padded_rows) {
+                             float* scale, float* sum_partials, long long rows, long long cols, long long padded_rows) {
   __shared__ unsigned char tile[32][33];
   const long long r0 = (long long)blockIdx.x * 32, c0 = (long long)blockIdx.y * 32;
   float x[4];
   for (int k = 0; k < 4; k++) {
     long long r = r0 + threadIdx.y + 8 * k, c = c0 + threadIdx.x;
     x[k] = r < rows && c < cols ? value(t[r * cols + c]) : 0.0f;
+  }
+  if (sum_partials) {  // the same for the whole block
+    __shared__ float part[8][32];
+    part[threadIdx.y][threadIdx.x] = ((x[0] + x[1]) + x[2]) + x[3];
+    __syncthreads();
+    if (threadIdx.y == 0 && c0 + threadIdx.x < cols) {
+      float s = part[0][threadIdx.x];
+      for (int w = 1; w < 8; w++) s += part[w][threadIdx.x];
+      sum_partials[(long long)blockIdx.x * cols + c0 + threadIdx.x] = s;
+    }
   }
   float m = multiplier(t, partials, n_partials, headroom_max, scale);
   for (int k = 0; k < 4; k++) {
@@ -276,7 +288,7 @@ __device__ void fp8_quantize(const T* t, const float* partials, long long n_part
 template <typename T, bool E5M2>
 __device__ void fp8_quantize_vec(const T* __restrict__ t, const float* __restrict__ partials, long long n_partials, float headroom_max,
                                  unsigned char* __restrict__ q, unsigned char* __restrict__ qt, float* __restrict__ scale,
-                                 long long rows, long long cols, long long padded_rows) {
+                                 float* __restrict__ sum_partials, long long rows, long long cols, long long padded_rows) {
   __shared__ __align__(16) unsigned char tile[64][68];  // written a word at a time
   const int tid = threadIdx.x;
   const long long r0 = (long long)blockIdx.x * 64, c0 = (long long)blockIdx.y * 64;
@@ -287,6 +299,23 @@ __device__ void fp8_quantize_vec(const T* __restrict__ t, const float* __restric
     long long r = r0 + (g >> 3), c = c0 + (g & 7) * 8;
     in[i] = r < rows && c < cols;
     if (in[i]) load(t, (r * cols + c) >> 3, 4, v[i]);
+  }
+  if (sum_partials) {  // the same for the whole block: a warp's lanes l, l + 8, l + 16, l + 24 share columns
+    __shared__ float part[8][64];
+    float x[8];
+    for (int k = 0; k < 8; k++) {
+      x[k] = (in[0] ? v[0][k] : 0.0f) + (in[1] ? v[1][k] : 0.0f);
+      x[k] += __shfl_xor_sync(0xffffffffu, x[k], 8);
+      x[k] += __shfl_xor_sync(0xffffffffu, x[k], 16);
+    }
+    if ((tid & 31) < 8)
+      for (int k = 0; k < 8; k++) part[tid >> 5][(tid & 7) * 8 + k] = x[k];
+    __syncthreads();
+    if (tid < 64 && c0 + tid < cols) {
+      float s = part[0][tid];
+      for (int w = 1; w < 8; w++) s += part[w][tid];
+      sum_partials[(long long)blockIdx.x * cols + c0 + tid] = s;
+    }
   }
   float m = multiplier(t, partials, n_partials, headroom_max, scale);
   for (int i = 0; i < 2; i++) {
@@ -312,19 +341,37 @@ __device__ void fp8_quantize_vec(const T* __restrict__ t, const float* __restric
   }
 }
 
-#define QUANT(T) const T* t, const float* partials, long long n_partials, double headroom_max, unsigned char* q, unsigned char* qt, float* scale, long long rows, long long cols, long long padded_rows
-#define QCALL(T, E) fp8_quantize<T, E>(t, partials, n_partials, (float)headroom_max, q, qt, scale, rows, cols, padded_rows)
+#define QUANT(T) const T* t, const float* partials, long long n_partials, double headroom_max, unsigned char* q, unsigned char* qt, float* scale, float* sum_partials, long long rows, long long cols, long long padded_rows
+#define QCALL(T, E) fp8_quantize<T, E>(t, partials, n_partials, (float)headroom_max, q, qt, scale, sum_partials, rows, cols, padded_rows)
 extern "C" __global__ void fp8_quantize_f32_e4m3(QUANT(float)) { QCALL(float, false); }
 extern "C" __global__ void fp8_quantize_f32_e5m2(QUANT(float)) { QCALL(float, true); }
 extern "C" __global__ void fp8_quantize_bf16_e4m3(QUANT(unsigned short)) { QCALL(unsigned short, false); }
 extern "C" __global__ void fp8_quantize_bf16_e5m2(QUANT(unsigned short)) { QCALL(unsigned short, true); }
-#define QVEC(T, E) fp8_quantize_vec<T, E>(t, partials, n_partials, (float)headroom_max, q, qt, scale, rows, cols, padded_rows)
+#define QVEC(T, E) fp8_quantize_vec<T, E>(t, partials, n_partials, (float)headroom_max, q, qt, scale, sum_partials, rows, cols, padded_rows)
 extern "C" __global__ void __launch_bounds__(256) fp8_quantize_vec_f32_e4m3(QUANT(float)) { QVEC(float, false); }
 extern "C" __global__ void __launch_bounds__(256) fp8_quantize_vec_f32_e5m2(QUANT(float)) { QVEC(float, true); }
 extern "C" __global__ void __launch_bounds__(256) fp8_quantize_vec_bf16_e4m3(QUANT(unsigned short)) { QVEC(unsigned short, false); }
 extern "C" __global__ void __launch_bounds__(256) fp8_quantize_vec_bf16_e5m2(QUANT(unsigned short)) { QVEC(unsigned short, true); }
 extern "C" __global__ void __launch_bounds__(1024) fp8_amax_f32(const float* t, long long n, float* partials, long long vec) { fp8_amax(t, n, partials, vec != 0); }
 extern "C" __global__ void __launch_bounds__(1024) fp8_amax_bf16(const unsigned short* t, long long n, float* partials, long long vec) { fp8_amax(t, n, partials, vec != 0); }
+
+// sums[c] = the sum over the `tiles` rows of sum_partials [tiles, cols] (column c), in a fixed
+// order: a block of 32 x 8 threads per 32 columns, each thread every eighth row from its own.
+extern "C" __global__ void __launch_bounds__(256) column_sums(const float* __restrict__ sum_partials, long long tiles, long long cols, float* __restrict__ sums) {
+  __shared__ float part[8][32];
+  const long long c = (long long)blockIdx.x * 32 + threadIdx.x;
+  float s = 0.0f;
+  if (c < cols) {
+#pragma unroll 4
+    for (long long i = threadIdx.y; i < tiles; i += 8) s += sum_partials[i * cols + c];
+  }
+  part[threadIdx.y][threadIdx.x] = s;
+  __syncthreads();
+  if (threadIdx.y == 0 && c < cols) {
+    for (int w = 1; w < 8; w++) s += part[w][threadIdx.x];
+    sums[c] = s;
+  }
+}
 "#;
 
 /// `source` compiled with NVRTC without multiply-add contraction (each operation rounds on its
@@ -354,6 +401,7 @@ pub(crate) struct Kernels {
     fp8_quantize_vec: [[CudaFunction; 2]; 2],
     /// [f32, bf16].
     fp8_amax: [CudaFunction; 2],
+    column_sums: CudaFunction,
 }
 
 impl Kernels {
@@ -388,6 +436,7 @@ impl Kernels {
                 [function("fp8_quantize_vec_bf16_e4m3")?, function("fp8_quantize_vec_bf16_e5m2")?],
             ],
             fp8_amax: [function("fp8_amax_f32")?, function("fp8_amax_bf16")?],
+            column_sums: function("column_sums")?,
             ctx,
             _module: module,
         })
@@ -446,9 +495,21 @@ impl Kernels {
     /// magnitude: row-major into `q` and transposed, zero-padded to `padded_rows` columns, into
     /// `qt` (either address 0: not written), 1 / the multiplier into the f32 at `scale`; `buffers`
     /// = [t, partials, q, qt, scale], `partials` room for `n_partials` f32 (the largest magnitude's
-    /// partial maxima, one per block of the first kernel, which the second reduces).
+    /// partial maxima, one per block of the first kernel, which the second reduces). `sums`, where
+    /// given, = (scratch of `Fp8Shape::sum_partials` f32, the f32 [cols] that receive t's column
+    /// sums): the second kernel sums each tile's columns as it reads them, a third adds the tiles.
     #[allow(clippy::too_many_arguments)]
-    pub(crate) fn fp8_quantize(&self, stream: *mut c_void, bf16: bool, e5m2: bool, buffers: [u64; 5], n_partials: i64, headroom_max: f64, s: Fp8Shape) -> Result<()> {
+    pub(crate) fn fp8_quantize(
+        &self,
+        stream: *mut c_void,
+        bf16: bool,
+        e5m2: bool,
+        buffers: [u64; 5],
+        sums: Option<(u64, u64)>,
+        n_partials: i64,
+        headroom_max: f64,
+        s: Fp8Shape,
+    ) -> Result<()> {
         ensure!(s.padded_rows >= s.rows, "FP8 quantization: {} padded rows for {} rows", s.padded_rows, s.rows);
         let blocks = u32::try_from(n_partials).ok().filter(|b| (1..=65_535).contains(b)).context("FP8 quantization: 1 to 65535 partial maxima")?;
         let [t, partials, q, qt, scale] = buffers;
@@ -464,7 +525,13 @@ impl Kernels {
         // At least one block, also for an empty t: it writes the scale (as the CPU loop does).
         let row_tiles = u32::try_from((s.padded_rows + tile - 1) / tile).ok().filter(|&b| b < 1 << 31).context("FP8 quantization: too many rows for one launch")?.max(1);
         let col_tiles = u32::try_from((s.cols + tile - 1) / tile).ok().filter(|&b| b < 65_536).context("FP8 quantization: too many columns for one launch")?.max(1);
-        let args = vec![t, partials, n_partials as u64, headroom_max.to_bits(), q, qt, scale, s.rows as u64, s.cols as u64, s.padded_rows as u64];
-        self.launch_blocks(f, stream, (row_tiles, col_tiles), threads, args)
+        let (sum_partials, column_sums) = sums.unwrap_or((0, 0));
+        let args = vec![t, partials, n_partials as u64, headroom_max.to_bits(), q, qt, scale, sum_partials, s.rows as u64, s.cols as u64, s.padded_rows as u64];
+        self.launch_blocks(f, stream, (row_tiles, col_tiles), threads, args)?;
+        if sums.is_some() {
+            let blocks = u32::try_from((s.cols + 31) / 32).ok().filter(|&b| b < 1 << 31).context("FP8 quantization: too many columns to sum")?;
+            self.launch_blocks(&self.column_sums, stream, (blocks.max(1), 1), (32, 8), vec![sum_partials, row_tiles as u64, s.cols as u64, column_sums])?;
+        }
+        Ok(())
     }
 }

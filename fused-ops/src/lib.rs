@@ -182,6 +182,12 @@ struct Fp8Shape {
 }
 
 impl Fp8Shape {
+    /// The f32 scratch the column sums take on CUDA: one row of `cols` per tile of 32 rows of the
+    /// transposed layout (the vectorized kernel's tiles of 64 rows take half), at least one.
+    pub fn sum_partials(&self) -> i64 {
+        ((self.padded_rows + 31) / 32).max(1) * self.cols
+    }
+
     /// Whether the pass can take whole groups of values (the kernel's vectorized form): rows of
     /// whole groups of 8 values, transposed rows of whole groups of 16 bytes, and `buffers` ([t,
     /// partials, q, qt, scale] addresses, 0 where not written) aligned to them.
@@ -195,6 +201,30 @@ impl Fp8Shape {
 const E4M3: c_int = 0;
 const E5M2: c_int = 1;
 
+/// [`fp8_quantize_pass`]'s signature, as fp8-autograd's C++ side declares it (`QuantizePass`).
+pub type Fp8QuantizePass = extern "C" fn(
+    *mut c_void,
+    c_int,
+    c_int,
+    c_int,
+    f64,
+    *const c_void,
+    *mut f32,
+    i64,
+    *mut u8,
+    *mut u8,
+    *mut f32,
+    *mut f32,
+    i64,
+    *mut f32,
+    i64,
+    i64,
+    i64,
+    *mut c_char,
+    usize,
+) -> c_int;
+const _: Fp8QuantizePass = fp8_quantize_pass;
+
 /// The FP8 quantization pass (`QuantizePass` in `bwm-fp8-autograd`'s src/fp8_linear.cpp, which
 /// checks the shapes, dtypes, contiguity and devices): t [rows, cols] of dtype `dtype` (0: f32, 1:
 /// bf16) at `t`; writes float8(t * m) (`format` 0: e4m3fn, 1: e5m2) row-major to `q` and
@@ -202,7 +232,10 @@ const E5M2: c_int = 1;
 /// to the f32 at `scale`, with m = headroom_max / max(amax, 1e-12) rounded to t's dtype, amax t's
 /// largest magnitude (NaN if t holds one). On CUDA `partials` is scratch for `n_partials` f32 on
 /// t's device (1 to 65535; the largest magnitude's partial maxima, one per block of the first of
-/// two kernels); the CPU does not use it. The arithmetic is libtorch's tensor path's (the infinity
+/// two kernels); the CPU does not use it. Where `sums` is set, t's column sums (in fp32, of t's
+/// values) go to its `cols` f32 (a linear layer's bias gradient, read in the same pass); on CUDA
+/// they take `sum_partials`, scratch for `n_sum_partials` f32, at least
+/// max(1, ceil(padded_rows / 32)) * cols (`Fp8Shape::sum_partials`). The arithmetic is libtorch's tensor path's (the infinity
 /// norm; a reciprocal times the headroom in fp32, clamped to f32's range; each product rounded to
 /// t's dtype, then to float8, nearest even). `device` -1: the CPU (stream null).
 #[allow(clippy::too_many_arguments)]
@@ -218,6 +251,9 @@ pub extern "C" fn fp8_quantize_pass(
     q: *mut u8,
     qt: *mut u8,
     scale: *mut f32,
+    sum_partials: *mut f32,
+    n_sum_partials: i64,
+    sums: *mut f32,
     rows: i64,
     cols: i64,
     padded_rows: i64,
@@ -232,11 +268,16 @@ pub extern "C" fn fp8_quantize_pass(
     };
     let bf16 = dtype == 1;
     if device < 0 {
-        cpu_fp8_quantize(bf16, e5m2, headroom_max as f32, t, q, qt, scale, shape);
+        cpu_fp8_quantize(bf16, e5m2, headroom_max as f32, t, q, qt, scale, sums, shape);
         return 0;
     }
+    if !sums.is_null() && n_sum_partials < shape.sum_partials() {
+        let e = anyhow::anyhow!("column sums of {rows}x{cols} (padded to {padded_rows} rows) need {} f32 of scratch, got {n_sum_partials}", shape.sum_partials());
+        return report(e, err, err_len);
+    }
     let buffers = [t as u64, partials as u64, q as u64, qt as u64, scale as u64];
-    match kernel::Kernels::for_device(device as usize).and_then(|k| k.fp8_quantize(stream, bf16, e5m2, buffers, n_partials, headroom_max, shape)) {
+    let sums = (!sums.is_null()).then_some((sum_partials as u64, sums as u64));
+    match kernel::Kernels::for_device(device as usize).and_then(|k| k.fp8_quantize(stream, bf16, e5m2, buffers, sums, n_partials, headroom_max, shape)) {
         Ok(()) => 0,
         Err(e) => report(e, err, err_len),
     }
@@ -274,12 +315,14 @@ fn to_e5m2(x: f32) -> u8 {
     sign | (((u + 0xf_ffff + ((u >> 21) & 1)) >> 21) - (112 << 2)) as u8
 }
 
-/// The quantization kernel's arithmetic on the CPU, element by element.
+/// The quantization kernel's arithmetic on the CPU, element by element; the column sums row by
+/// row (the kernels add in another order).
 #[allow(clippy::too_many_arguments)]
-fn cpu_fp8_quantize(bf16: bool, e5m2: bool, headroom_max: f32, t: *const c_void, q: *mut u8, qt: *mut u8, scale: *mut f32, s: Fp8Shape) {
+fn cpu_fp8_quantize(bf16: bool, e5m2: bool, headroom_max: f32, t: *const c_void, q: *mut u8, qt: *mut u8, scale: *mut f32, sums: *mut f32, s: Fp8Shape) {
     let (rows, cols, padded) = (s.rows as usize, s.cols as usize, s.padded_rows as usize);
     // SAFETY: the C++ side passes t of rows * cols elements of t's dtype; q of rows * cols bytes
-    // and qt of cols * padded_rows bytes where not null; one f32 at scale.
+    // and qt of cols * padded_rows bytes where not null; one f32 at scale; cols f32 at sums where
+    // not null.
     let load = |p: *const c_void, i: usize| -> f32 { unsafe { if bf16 { from_bf16(*(p as *const u16).add(i)) } else { *(p as *const f32).add(i) } } };
     let round = |x: f32| if bf16 { from_bf16(to_bf16(x)) } else { x };
     let a = (0..rows * cols).map(|i| load(t, i).abs()).fold(0.0f32, |a, v| if a > v || a.is_nan() { a } else { v });
@@ -287,6 +330,11 @@ fn cpu_fp8_quantize(bf16: bool, e5m2: bool, headroom_max: f32, t: *const c_void,
     let m = (1.0 / a) * headroom_max;
     let m = round(if m > f32::MAX { f32::MAX } else { m });
     unsafe { *scale = 1.0 / m };
+    if !sums.is_null() {
+        for c in 0..cols {
+            unsafe { *sums.add(c) = (0..rows).map(|r| load(t, r * cols + c)).sum() };
+        }
+    }
     let cast = if e5m2 { to_e5m2 } else { to_e4m3 };
     for r in 0..padded {
         for c in 0..cols {
@@ -374,14 +422,16 @@ mod tests {
     /// Quantized through the pass (on t's device): the float8 bytes row-major and transposed
     /// ([cols, padded rows]) and the scale.
     fn pass_quantize(t: &Tensor, e5m2: bool, pad: bool) -> (Vec<u8>, Vec<u8>, f32) {
-        pass_quantize_in(t, e5m2, pad, PARTIALS)
+        let (q, qt, scale, _) = pass_quantize_in(t, e5m2, pad, PARTIALS, false);
+        (q, qt, scale)
     }
 
     /// As fp8-autograd's src/fp8_linear.cpp calls it.
     const PARTIALS: i64 = 256;
 
-    /// [`pass_quantize`] with the largest magnitude reduced over `partials` blocks on CUDA.
-    fn pass_quantize_in(t: &Tensor, e5m2: bool, pad: bool, partials: i64) -> (Vec<u8>, Vec<u8>, f32) {
+    /// [`pass_quantize`] with the largest magnitude reduced over `partials` blocks on CUDA, and
+    /// with t's column sums where `sums` (then also returned).
+    fn pass_quantize_in(t: &Tensor, e5m2: bool, pad: bool, partials: i64, sums: bool) -> (Vec<u8>, Vec<u8>, f32, Vec<f32>) {
         let t = t.contiguous();
         let (rows, cols) = (t.size()[0], t.size()[1]);
         let padded = if pad { (rows + 15) / 16 * 16 } else { rows };
@@ -391,6 +441,9 @@ mod tests {
         let q = Tensor::zeros([rows, cols], (Kind::Uint8, device));
         let qt = Tensor::full([cols, padded], 0x55, (Kind::Uint8, device));
         let scale = Tensor::zeros([], (Kind::Float, device));
+        let n_sum_partials = Fp8Shape { rows, cols, padded_rows: padded }.sum_partials();
+        let sum_partials = Tensor::full([n_sum_partials], f64::NAN, (Kind::Float, device));
+        let column_sums = Tensor::full([cols], f64::NAN, (Kind::Float, device));
         let (stream, index) = match device {
             // The kernels run on the default stream here: libtorch's current one in a test thread.
             Device::Cuda(i) => (std::ptr::null_mut(), i as c_int),
@@ -410,6 +463,9 @@ mod tests {
             q.data_ptr() as *mut u8,
             qt.data_ptr() as *mut u8,
             scale.data_ptr() as *mut f32,
+            sum_partials.data_ptr() as *mut f32,
+            n_sum_partials,
+            if sums { column_sums.data_ptr() as *mut f32 } else { std::ptr::null_mut() },
             rows,
             cols,
             padded,
@@ -418,7 +474,20 @@ mod tests {
         );
         assert_eq!(failed, 0, "{}", unsafe { CStr::from_ptr(err.as_ptr()) }.to_string_lossy());
         let bytes = |x: &Tensor| Vec::<u8>::try_from(x.to_device(Device::Cpu).view([-1])).unwrap();
-        (bytes(&q), bytes(&qt), scale.to_device(Device::Cpu).double_value(&[]) as f32)
+        let sums = if sums { Vec::<f32>::try_from(column_sums.to_device(Device::Cpu)).unwrap() } else { Vec::new() };
+        (bytes(&q), bytes(&qt), scale.to_device(Device::Cpu).double_value(&[]) as f32, sums)
+    }
+
+    /// Column sums against libtorch's (in fp32), each within fp32's rounding of its column's sum
+    /// of magnitudes.
+    fn check_sums(t: &Tensor, sums: &[f32], what: &str) {
+        let t = t.to_device(Device::Cpu).to_kind(Kind::Float);
+        let want = Vec::<f32>::try_from(t.sum_dim_intlist(0, false, Kind::Float)).unwrap();
+        let bound = Vec::<f32>::try_from(t.abs().sum_dim_intlist(0, false, Kind::Float)).unwrap();
+        assert_eq!(sums.len(), want.len(), "{what}: {} column sums for {} columns", sums.len(), want.len());
+        for (c, ((got, want), bound)) in sums.iter().zip(&want).zip(&bound).enumerate() {
+            assert!((got - want).abs() <= 1e-5 * bound, "{what}: column {c} sums to {got}, libtorch {want} (magnitudes {bound})");
+        }
     }
 
     /// fp8-autograd's libtorch path before the pass: the infinity norm, a reciprocal times the
@@ -449,6 +518,10 @@ mod tests {
                 for (rows, cols, pad) in [(37, 48, true), (64, 16, false), (5, 3, true), (37, 48, false), (100, 72, true)] {
                     let t = spread(rows, cols, kind, device, rows + cols);
                     let (q, qt, scale) = pass_quantize(&t, e5m2, pad);
+                    // The bias gradient's column sums, read in the same pass, change none of its bytes.
+                    let (q2, qt2, scale2, sums) = pass_quantize_in(&t, e5m2, pad, PARTIALS, true);
+                    assert!(q2 == q && qt2 == qt && scale2.to_bits() == scale.to_bits(), "{kind:?} e5m2 {e5m2} {rows}x{cols}: the column sums changed the cast");
+                    check_sums(&t, &sums, &format!("{kind:?} {rows}x{cols} on {device:?}"));
                     let (want, want_scale) = tensor_quantize(&t, e5m2);
                     let differ = q.iter().zip(&want).filter(|(a, b)| a != b).count();
                     assert_eq!(differ, 0, "{kind:?} e5m2 {e5m2} {rows}x{cols} on {device:?}: {differ} of {} values differ from libtorch's cast", q.len());
@@ -466,9 +539,10 @@ mod tests {
         // An all-zero tensor: the largest magnitude clamped, every value zero.
         let (q, _, scale) = pass_quantize(&Tensor::zeros([4, 16], (Kind::BFloat16, device)), false, true);
         assert!(q.iter().all(|&b| b == 0) && scale > 0.0 && scale.is_finite());
-        // An empty tensor: nothing to write but the scale.
-        let (q, qt, scale) = pass_quantize(&Tensor::zeros([0, 16], (Kind::BFloat16, device)), false, true);
+        // An empty tensor: nothing to write but the scale, and zero sums.
+        let (q, qt, scale, sums) = pass_quantize_in(&Tensor::zeros([0, 16], (Kind::BFloat16, device)), false, true, PARTIALS, true);
         assert!(q.is_empty() && qt.is_empty() && scale > 0.0 && scale.is_finite());
+        assert!(sums.len() == 16 && sums.iter().all(|&s| s == 0.0), "{sums:?}");
         // A NaN anywhere: the largest magnitude NaN, as libtorch's norm gives it, so every value NaN.
         for kind in [Kind::Float, Kind::BFloat16] {
             let t = spread(40, 48, kind, device, 3);
@@ -666,10 +740,11 @@ mod tests {
         check_quantize(device);
         for e5m2 in [false, true] {
             let t = spread(6300, 14336, Kind::BFloat16, device, 7);
-            let cpu = pass_quantize(&t.to_device(Device::Cpu), e5m2, true);
+            let cpu = pass_quantize_in(&t.to_device(Device::Cpu), e5m2, true, PARTIALS, true);
             for partials in [PARTIALS, 1, 7] {
-                let gpu = pass_quantize_in(&t, e5m2, true, partials);
-                assert!(gpu == cpu, "e5m2 {e5m2}, {partials} partial maxima: the kernels and the CPU loop differ at the 5B's FFN width");
+                let gpu = pass_quantize_in(&t, e5m2, true, partials, true);
+                assert!(gpu.0 == cpu.0 && gpu.1 == cpu.1 && gpu.2 == cpu.2, "e5m2 {e5m2}, {partials} partial maxima: the kernels and the CPU loop differ at the 5B's FFN width");
+                check_sums(&t, &gpu.3, &format!("e5m2 {e5m2}, {partials} partial maxima, 6300x14336 on CUDA"));
             }
         }
     }

@@ -170,7 +170,33 @@ __device__ unsigned char to_e5m2(float x) {
 __device__ __forceinline__ float value(float x) { return x; }
 __device__ __forceinline__ float value(unsigned short x) { return __uint_as_float((unsigned int)x << 16); }
 __device__ __forceinline__ float rounded(float x, const float*) { return x; }
-__device__ __forceinline__ float rounded(float x, const unsigned short*) { return __uint_as_float((unsigned int)to_bf16(x) << 16); }
+__device__ __forceinline__ float rounded(float x, const unsigned short*) {
+#if __CUDA_ARCH__ >= 800
+  unsigned short h;  // the instruction rounds as to_bf16 (NaN aside: it gives the canonical one)
+  asm("cvt.rn.bf16.f32 %0, %1;" : "=h"(h) : "f"(x));
+  return __uint_as_float((unsigned int)h << 16);
+#else
+  return __uint_as_float((unsigned int)to_bf16(x) << 16);
+#endif
+}
+
+// float8 bytes of p: Ada's and Hopper's conversion instruction where the device has it (the
+// values reaching it lie within the format, where it rounds as the loops above; it saturates
+// where they give NaN), else the loops. to_fp8x2: lo's byte, then hi's.
+template <bool E5M2>
+__device__ __forceinline__ unsigned short to_fp8x2(float lo, float hi) {
+#if __CUDA_ARCH__ >= 890
+  unsigned short d;
+  if (E5M2) asm("cvt.rn.satfinite.e5m2x2.f32 %0, %1, %2;" : "=h"(d) : "f"(hi), "f"(lo));
+  else asm("cvt.rn.satfinite.e4m3x2.f32 %0, %1, %2;" : "=h"(d) : "f"(hi), "f"(lo));
+  return d;
+#else
+  return E5M2 ? (unsigned short)(to_e5m2(lo) | (to_e5m2(hi) << 8)) : (unsigned short)(to_e4m3(lo) | (to_e4m3(hi) << 8));
+#endif
+}
+
+template <bool E5M2>
+__device__ __forceinline__ unsigned char to_fp8(float p) { return (unsigned char)(to_fp8x2<E5M2>(p, 0.0f) & 0xffu); }
 
 // The larger of two magnitudes, NaN if either is (as libtorch's maximum and norms propagate it).
 __device__ __forceinline__ float nan_max(float a, float b) { return (a > b || a != a) ? a : b; }
@@ -236,9 +262,6 @@ __device__ __forceinline__ float multiplier(const T*, const float* __restrict__ 
 }
 
 // A 32 x 32 tile per block of 32 x 8 threads; blockIdx.x walks the rows, blockIdx.y the columns.
-template <bool E5M2>
-__device__ __forceinline__ unsigned char to_fp8(float p) { return E5M2 ? to_e5m2(p) : to_e4m3(p); }
-
 // Where sum_partials is set, each block also writes its tile's column sums of t (fp32, t's own
 // values) to row blockIdx.x of sum_partials [row tiles, cols], which column_sums adds up.
 template <typename T, bool E5M2>
@@ -322,7 +345,8 @@ __device__ void fp8_quantize_vec(const T* __restrict__ t, const float* __restric
     int g = tid + 256 * i, tr = g >> 3, tc = (g & 7) * 8;
     unsigned int w[2] = {0u, 0u};
     if (in[i]) {
-      for (int k = 0; k < 8; k++) w[k >> 2] |= (unsigned int)to_fp8<E5M2>(rounded(v[i][k] * m, t)) << (8 * (k & 3));
+      for (int k = 0; k < 8; k += 2)
+        w[k >> 2] |= (unsigned int)to_fp8x2<E5M2>(rounded(v[i][k] * m, t), rounded(v[i][k + 1] * m, t)) << (8 * (k & 3));
       if (q) *(uint2*)(q + (r0 + tr) * cols + c0 + tc) = make_uint2(w[0], w[1]);
     }
     *(unsigned int*)&tile[tr][tc] = w[0];
@@ -374,15 +398,36 @@ extern "C" __global__ void __launch_bounds__(256) column_sums(const float* __res
 }
 "#;
 
+/// The virtual architecture NVRTC compiles for on a device of compute capability `major.minor`
+/// (so that `__CUDA_ARCH__` lets the kernels use its instructions): the newest one NVRTC 13 knows
+/// at or under the device's (PTX runs on later devices); None (NVRTC's default) under the oldest.
+fn virtual_architecture(major: i32, minor: i32) -> Option<&'static str> {
+    const KNOWN: [(i32, &str); 11] = [
+        (75, "compute_75"),
+        (80, "compute_80"),
+        (86, "compute_86"),
+        (87, "compute_87"),
+        (89, "compute_89"),
+        (90, "compute_90"),
+        (100, "compute_100"),
+        (103, "compute_103"),
+        (110, "compute_110"),
+        (120, "compute_120"),
+        (121, "compute_121"),
+    ];
+    KNOWN.iter().rev().find(|(v, _)| *v <= major * 10 + minor).map(|(_, a)| *a)
+}
+
 /// `source` compiled with NVRTC without multiply-add contraction (each operation rounds on its
 /// own, as CPU arithmetic and libtorch's tensor operations do) and loaded on CUDA device `index`;
 /// `what` names it in errors.
 pub fn load_module(index: usize, source: &str, what: &str) -> Result<(Arc<CudaContext>, Arc<CudaModule>)> {
     // SAFETY: probing a shared library by name.
     ensure!(unsafe { cudarc::nvrtc::sys::is_culib_present() }, "NVRTC (libnvrtc.so) is not on the library path");
-    let options = cudarc::nvrtc::CompileOptions { fmad: Some(false), ..Default::default() };
-    let ptx = cudarc::nvrtc::compile_ptx_with_opts(source, options).with_context(|| format!("compiling {what} with NVRTC"))?;
     let ctx = CudaContext::new(index).context("binding the CUDA context")?;
+    let (major, minor) = ctx.compute_capability().context("reading the device's compute capability")?;
+    let options = cudarc::nvrtc::CompileOptions { fmad: Some(false), arch: virtual_architecture(major, minor), ..Default::default() };
+    let ptx = cudarc::nvrtc::compile_ptx_with_opts(source, options).with_context(|| format!("compiling {what} with NVRTC"))?;
     let module = ctx.load_module(ptx).with_context(|| format!("loading {what}"))?;
     Ok((ctx, module))
 }

@@ -307,14 +307,16 @@ __device__ void fp8_quantize(const T* t, const float* partials, long long n_part
 // bytes, q to 8): a 64 x 64 tile per block of 256 threads. Each thread reads two groups of 8
 // values with one load each before converting any (the one-value-per-thread pass above leaves
 // most of the memory's bandwidth unused), writes each group's 8 float8 bytes with one store, and
-// one 16-byte row segment of the transpose.
+// one 16-byte row segment of the transpose. The blocks take the tiles in row-major order from
+// the last: t's end, which fp8_amax read last, is still in L2 when they start.
 template <typename T, bool E5M2>
 __device__ void fp8_quantize_vec(const T* __restrict__ t, const float* __restrict__ partials, long long n_partials, float headroom_max,
                                  unsigned char* __restrict__ q, unsigned char* __restrict__ qt, float* __restrict__ scale,
                                  float* __restrict__ sum_partials, long long rows, long long cols, long long padded_rows) {
   __shared__ __align__(16) unsigned char tile[64][68];  // written a word at a time
   const int tid = threadIdx.x;
-  const long long r0 = (long long)blockIdx.x * 64, c0 = (long long)blockIdx.y * 64;
+  const long long tiles = (long long)gridDim.x * gridDim.y, nth = tiles - 1 - ((long long)blockIdx.y * gridDim.x + blockIdx.x);
+  const long long row_tile = nth / gridDim.y, r0 = row_tile * 64, c0 = (nth % gridDim.y) * 64;
   float v[2][8];
   bool in[2];
   for (int i = 0; i < 2; i++) {  // group (tid + 256 i): row / 8 of the tile, 8 values from column 8 * (group % 8)
@@ -337,7 +339,7 @@ __device__ void fp8_quantize_vec(const T* __restrict__ t, const float* __restric
     if (tid < 64 && c0 + tid < cols) {
       float s = part[0][tid];
       for (int w = 1; w < 8; w++) s += part[w][tid];
-      sum_partials[(long long)blockIdx.x * cols + c0 + tid] = s;
+      sum_partials[row_tile * cols + c0 + tid] = s;
     }
   }
   float m = multiplier(t, partials, n_partials, headroom_max, scale);

@@ -138,6 +138,33 @@ mod tests {
         }
     }
 
+    /// Products of one input with several weights (q, k and v) share its quantization; a write
+    /// to the input between them, or other values at the same place, is not served the old one.
+    #[test]
+    fn an_input_read_again_is_quantized_again_only_when_it_changed() {
+        tch::manual_seed(3);
+        let kind = Kind::BFloat16;
+        let mut x = Tensor::randn([2, 37, 64], (Kind::Float, Device::Cpu)).to_kind(kind);
+        let ws: Vec<Tensor> = (0..3).map(|_| (Tensor::randn([32, 64], (Kind::Float, Device::Cpu)) * 0.1).to_kind(kind)).collect();
+        let b = Tensor::zeros([32], (kind, Device::Cpu));
+        // Each against the same product from a copy of x (its own storage: quantized on its own).
+        for w in &ws {
+            let shared = linear(&x, w, &b).unwrap();
+            let alone = linear(&x.copy(), w, &b).unwrap();
+            assert!(shared.equal(&alone), "a product of the shared quantization differs");
+        }
+        let before = linear(&x, &ws[0], &b).unwrap();
+        let _ = tch::no_grad(|| x.g_mul_scalar_(4.0));
+        let after = linear(&x, &ws[0], &b).unwrap();
+        assert!(after.equal(&linear(&x.copy(), &ws[0], &b).unwrap()), "the input written in place was served its old quantization");
+        assert!(rel_err(&after, &(&before * 4.0)) < 0.01);
+        // A view of other values at the same address (a narrower shape) is not the same input.
+        let rows = x.view([-1, 64]);
+        let part = rows.narrow(0, 0, 10);
+        let _ = linear(&rows, &ws[1], &b).unwrap();
+        assert!(linear(&part, &ws[1], &b).unwrap().equal(&linear(&part.copy(), &ws[1], &b).unwrap()));
+    }
+
     #[test]
     fn leading_dimensions_are_kept_and_bad_shapes_refused() {
         let x = Tensor::randn([2, 3, 32], (Kind::Float, Device::Cpu));

@@ -274,17 +274,14 @@ __device__ void fp8_quantize(const T* t, const float* partials, long long n_part
     long long r = r0 + threadIdx.y + 8 * k, c = c0 + threadIdx.x;
     x[k] = r < rows && c < cols ? value(t[r * cols + c]) : 0.0f;
   }
-  if (sum_partials) {  // the same for the whole block
-    __shared__ float part[8][32];
-    part[threadIdx.y][threadIdx.x] = ((x[0] + x[1]) + x[2]) + x[3];
-    __syncthreads();
-    if (threadIdx.y == 0 && c0 + threadIdx.x < cols) {
-      float s = part[0][threadIdx.x];
-      for (int w = 1; w < 8; w++) s += part[w][threadIdx.x];
-      sum_partials[(long long)blockIdx.x * cols + c0 + threadIdx.x] = s;
-    }
-  }
+  __shared__ float part[8][32];  // each row of threads' column sums, added up after multiplier's barrier
+  if (sum_partials) part[threadIdx.y][threadIdx.x] = ((x[0] + x[1]) + x[2]) + x[3];
   float m = multiplier(t, partials, n_partials, headroom_max, scale);
+  if (sum_partials && threadIdx.y == 0 && c0 + threadIdx.x < cols) {
+    float s = part[0][threadIdx.x];
+    for (int w = 1; w < 8; w++) s += part[w][threadIdx.x];
+    sum_partials[(long long)blockIdx.x * cols + c0 + threadIdx.x] = s;
+  }
   for (int k = 0; k < 4; k++) {
     long long r = r0 + threadIdx.y + 8 * k, c = c0 + threadIdx.x;
     unsigned char v = 0;
@@ -325,8 +322,8 @@ __device__ void fp8_quantize_vec(const T* __restrict__ t, const float* __restric
     in[i] = r < rows && c < cols;
     if (in[i]) load(t, (r * cols + c) >> 3, 4, v[i]);
   }
+  __shared__ float part[8][64];  // each warp's column sums, added up after multiplier's barrier
   if (sum_partials) {  // the same for the whole block: a warp's lanes l, l + 8, l + 16, l + 24 share columns
-    __shared__ float part[8][64];
     float x[8];
     for (int k = 0; k < 8; k++) {
       x[k] = (in[0] ? v[0][k] : 0.0f) + (in[1] ? v[1][k] : 0.0f);
@@ -335,14 +332,13 @@ __device__ void fp8_quantize_vec(const T* __restrict__ t, const float* __restric
     }
     if ((tid & 31) < 8)
       for (int k = 0; k < 8; k++) part[tid >> 5][(tid & 7) * 8 + k] = x[k];
-    __syncthreads();
-    if (tid < 64 && c0 + tid < cols) {
-      float s = part[0][tid];
-      for (int w = 1; w < 8; w++) s += part[w][tid];
-      sum_partials[row_tile * cols + c0 + tid] = s;
-    }
   }
   float m = multiplier(t, partials, n_partials, headroom_max, scale);
+  if (sum_partials && tid < 64 && c0 + tid < cols) {
+    float s = part[0][tid];
+    for (int w = 1; w < 8; w++) s += part[w][tid];
+    sum_partials[row_tile * cols + c0 + tid] = s;
+  }
   for (int i = 0; i < 2; i++) {
     int g = tid + 256 * i, tr = g >> 3, tc = (g & 7) * 8;
     unsigned int w[2] = {0u, 0u};
@@ -382,8 +378,9 @@ extern "C" __global__ void __launch_bounds__(1024) fp8_amax_f32(const float* t, 
 extern "C" __global__ void __launch_bounds__(1024) fp8_amax_bf16(const unsigned short* t, long long n, float* partials, long long vec) { fp8_amax(t, n, partials, vec != 0); }
 
 // sums[c] = the sum over the `tiles` rows of sum_partials [tiles, cols] (column c), in a fixed
-// order: a block of 32 x 8 threads per 32 columns, each thread every eighth row from its own.
-extern "C" __global__ void __launch_bounds__(256) column_sums(const float* __restrict__ sum_partials, long long tiles, long long cols, float* __restrict__ sums) {
+// order, in fp32, written as f32 or (bf16 set) rounded to bf16: a block of 32 x 8 threads per 32
+// columns, each thread every eighth row from its own.
+extern "C" __global__ void __launch_bounds__(256) column_sums(const float* __restrict__ sum_partials, long long tiles, long long cols, void* __restrict__ sums, long long bf16) {
   __shared__ float part[8][32];
   const long long c = (long long)blockIdx.x * 32 + threadIdx.x;
   float s = 0.0f;
@@ -395,7 +392,8 @@ extern "C" __global__ void __launch_bounds__(256) column_sums(const float* __res
   __syncthreads();
   if (threadIdx.y == 0 && c < cols) {
     for (int w = 1; w < 8; w++) s += part[w][threadIdx.x];
-    sums[c] = s;
+    if (bf16) ((unsigned short*)sums)[c] = to_bf16(s);
+    else ((float*)sums)[c] = s;
   }
 }
 "#;
@@ -543,8 +541,9 @@ impl Kernels {
     /// `qt` (either address 0: not written), 1 / the multiplier into the f32 at `scale`; `buffers`
     /// = [t, partials, q, qt, scale], `partials` room for `n_partials` f32 (the largest magnitude's
     /// partial maxima, one per block of the first kernel, which the second reduces). `sums`, where
-    /// given, = (scratch of `Fp8Shape::sum_partials` f32, the f32 [cols] that receive t's column
-    /// sums): the second kernel sums each tile's columns as it reads them, a third adds the tiles.
+    /// given, = (scratch of `Fp8Shape::sum_partials` f32, the [cols] of t's dtype that receive t's
+    /// column sums): the second kernel sums each tile's columns as it reads them, a third adds the
+    /// tiles.
     #[allow(clippy::too_many_arguments)]
     pub(crate) fn fp8_quantize(
         &self,
@@ -577,7 +576,7 @@ impl Kernels {
         self.launch_blocks(f, stream, (row_tiles, col_tiles), threads, args)?;
         if sums.is_some() {
             let blocks = u32::try_from((s.cols + 31) / 32).ok().filter(|&b| b < 1 << 31).context("FP8 quantization: too many columns to sum")?;
-            self.launch_blocks(&self.column_sums, stream, (blocks.max(1), 1), (32, 8), vec![sum_partials, row_tiles as u64, s.cols as u64, column_sums])?;
+            self.launch_blocks(&self.column_sums, stream, (blocks.max(1), 1), (32, 8), vec![sum_partials, row_tiles as u64, s.cols as u64, column_sums, bf16 as u64])?;
         }
         Ok(())
     }

@@ -24,7 +24,7 @@ if [ "${REFERENCE:-0}" = 1 ]; then
   for mode in bf16 fp8; do
     s=$(step $mode)
     if [ -n "$s" ] && [ -n "$ref" ]; then
-      echo "fp8_train: $mode $s s per step, the reference $ref s: $(awk -v a="$ref" -v b="$s" 'BEGIN { printf "%.2f", a / b }')x"
+      echo "fp8_train: $mode $s s per step, the reference $ref s: $(awk -v a="$ref" -v b="$s" 'BEGIN { printf "%.3f", a / b }')x"
     else
       echo "fp8_train: $mode ${s:-no} step, the reference ${ref:-no} step: no ratio"
     fi

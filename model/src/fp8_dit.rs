@@ -49,8 +49,9 @@ pub fn quantize_dit_blocks(dit: &mut WanDit, scaling: Fp8Scaling) -> Result<usiz
 /// (`bwm_fp8_autograd`: per-tensor dynamic scales, e4m3 forward, e5m2 gradients); the weights,
 /// and whatever masters and optimizer state the trainer keeps, stay as they are. Checks every
 /// layer's shape and, with one small product, that the device has FP8 matmuls; an error leaves
-/// the model as it was. Returns how many layers train so.
-pub fn train_dit_blocks_in_fp8(dit: &mut WanDit) -> Result<usize> {
+/// the model as it was. Products of fewer than `min_rows` rows stay in the weights' dtype (where
+/// scaling the weight costs more than FP8 saves). Returns how many layers train so.
+pub fn train_dit_blocks_in_fp8(dit: &mut WanDit, min_rows: i64) -> Result<usize> {
     let mut linears = block_linears(dit);
     for (name, linear) in &linears {
         ensure!(linear.lora.is_none(), "{name} carries a LoRA adapter; FP8 training covers full weights only");
@@ -64,7 +65,7 @@ pub fn train_dit_blocks_in_fp8(dit: &mut WanDit) -> Result<usize> {
             .map_err(|e| e.context(format!("{name} cannot train in FP8 on {:?}", w.device())))?;
     }
     for (_, linear) in &mut linears {
-        linear.fp8_training = true;
+        linear.fp8_training = Some(min_rows);
     }
     Ok(linears.len())
 }
@@ -94,16 +95,31 @@ mod tests {
         let names: Vec<String> = block_linears(&mut dit).into_iter().map(|(n, _)| n).collect();
         assert_eq!(names.len(), 10 * dit.blocks.len());
         assert_eq!((names[0].as_str(), names[9].as_str()), ("blocks.0.self_attn.q", "blocks.0.ffn.2"));
-        assert_eq!(train_dit_blocks_in_fp8(&mut dit).unwrap(), names.len());
-        assert!(block_linears(&mut dit).iter().all(|(_, l)| l.fp8_training && l.fp8.is_none()));
+        assert_eq!(train_dit_blocks_in_fp8(&mut dit, 0).unwrap(), names.len());
+        assert!(block_linears(&mut dit).iter().all(|(_, l)| l.fp8_training == Some(0) && l.fp8.is_none()));
     }
 
     #[test]
     fn layers_with_lora_adapters_are_refused() {
         let lora = LoraConfig { rank: 2, alpha: None, dropout: 0.0, targets: vec!["blocks.*.ffn.*".into()] };
         let mut dit = tiny(Some(lora));
-        let e = train_dit_blocks_in_fp8(&mut dit).unwrap_err().to_string();
+        let e = train_dit_blocks_in_fp8(&mut dit, 0).unwrap_err().to_string();
         assert!(e.contains("blocks.0.ffn.0 carries a LoRA adapter"), "{e}");
-        assert!(block_linears(&mut dit).iter().all(|(_, l)| !l.fp8_training), "no layer switched");
+        assert!(block_linears(&mut dit).iter().all(|(_, l)| l.fp8_training.is_none()), "no layer switched");
+    }
+
+    /// Products of at least `min_rows` rows go through float8, smaller ones are the exact linear.
+    #[test]
+    fn products_under_the_row_threshold_stay_exact() {
+        let mut dit = tiny(None);
+        train_dit_blocks_in_fp8(&mut dit, 8).unwrap();
+        let linear = &dit.blocks[0].ffn.l0;
+        let w = &linear.weight;
+        for rows in [1, 3, 4, 40] {
+            let x = Tensor::randn([2, rows, w.size()[1]], (w.kind(), w.device()));
+            let exact = x.linear(w, Some(&linear.bias));
+            let y = linear.forward(&x);
+            assert_eq!(y.equal(&exact), 2 * rows < 8, "a product of {} rows", 2 * rows);
+        }
     }
 }

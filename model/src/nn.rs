@@ -17,9 +17,10 @@ pub struct Linear {
     /// The weight in FP8, used by `forward` instead of `weight` once set (inference only: no
     /// gradient flows through it).
     pub fp8: Option<Fp8Weight>,
-    /// The forward and backward products in FP8 from `weight` itself on each call (training;
-    /// `fp8_dit::train_dit_blocks_in_fp8` sets it after checking the shapes and the device).
-    pub fp8_training: bool,
+    /// The forward and backward products in FP8 from `weight` itself on each call of at least
+    /// this many rows (training; `fp8_dit::train_dit_blocks_in_fp8` sets it after checking the
+    /// shapes and the device); smaller products in the parameters' dtype.
+    pub fp8_training: Option<i64>,
 }
 
 impl Linear {
@@ -28,7 +29,7 @@ impl Linear {
         let weight = vb.get(&[out_dim, in_dim], "weight", Init::Uniform { bound })?;
         let bias = vb.get(&[out_dim], "bias", Init::Uniform { bound })?;
         let lora = vb.lora_target().map(|state| LoraAdapter::new(vb, state, in_dim, out_dim)).transpose()?;
-        Ok(Self { weight, bias, lora, fp8: None, fp8_training: false })
+        Ok(Self { weight, bias, lora, fp8: None, fp8_training: None })
     }
 
     /// In the parameters' dtype; `x` is cast to it.
@@ -36,8 +37,10 @@ impl Linear {
         let x = x.to_kind(self.weight.kind());
         let y = match &self.fp8 {
             Some(w) => w.linear(&x, &self.bias, self.weight.kind()),
-            None if self.fp8_training => bwm_fp8_autograd::linear(&x, &self.weight, &self.bias)
-                .expect("an FP8 training linear failed after fp8_dit::train_dit_blocks_in_fp8 checked its shapes and device"),
+            None if self.fp8_training.is_some_and(|min_rows| x.numel() as i64 >= min_rows * self.weight.size()[1]) => {
+                bwm_fp8_autograd::linear(&x, &self.weight, &self.bias)
+                    .expect("an FP8 training linear failed after fp8_dit::train_dit_blocks_in_fp8 checked its shapes and device")
+            }
             None => x.linear(&self.weight, Some(&self.bias)),
         };
         match &self.lora {

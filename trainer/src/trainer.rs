@@ -220,7 +220,7 @@ impl Trainer {
         let mut model = build_model(&cfg, &model_cfg, device)?;
         model.dit.residual = cfg.model.residual.kind(cfg.model.dtype.kind());
         if cfg.train.fp8 {
-            bwm_model::fp8_dit::train_dit_blocks_in_fp8(&mut model.dit).context("train.fp8")?;
+            bwm_model::fp8_dit::train_dit_blocks_in_fp8(&mut model.dit, cfg.train.fp8_min_rows as i64).context("train.fp8")?;
         }
         let graph = if cfg.train.cuda_graph { Some(StepGraph::new(&cfg, device, comm.world_size(), model.store.lora().is_some())?) } else { None };
         let named = model.store.named_parameters();

@@ -234,11 +234,11 @@ const _: Fp8QuantizePass = fp8_quantize_pass;
 /// t's device (1 to 65535; the largest magnitude's partial maxima, one per block of the first of
 /// two kernels); the CPU does not use it. Where `sums` is set, t's column sums (added in fp32,
 /// written in t's dtype) go to its `cols` values (a linear layer's bias gradient, read in the same
-/// pass); on CUDA
-/// they take `sum_partials`, scratch for `n_sum_partials` f32, at least
-/// max(1, ceil(padded_rows / 32)) * cols (`Fp8Shape::sum_partials`). The arithmetic is libtorch's tensor path's (the infinity
-/// norm; a reciprocal times the headroom in fp32, clamped to f32's range; each product rounded to
-/// t's dtype, then to float8, nearest even). `device` -1: the CPU (stream null).
+/// pass); on CUDA they take `sum_partials`, scratch for `n_sum_partials` f32, at least
+/// max(1, ceil(padded_rows / 32)) * cols (`Fp8Shape::sum_partials`). The arithmetic is libtorch's
+/// tensor path's (the infinity norm; a reciprocal times the headroom in fp32, clamped to f32's
+/// range; each product rounded to t's dtype, then to float8, nearest even). `device` -1: the CPU
+/// (stream null).
 #[allow(clippy::too_many_arguments)]
 pub extern "C" fn fp8_quantize_pass(
     stream: *mut c_void,

@@ -105,6 +105,15 @@ struct Shape {
     pairs: i64,
 }
 
+/// The passes' dtype code: 0 f32, 1 bf16 (whether bf16).
+fn is_bf16(dtype: c_int) -> Result<bool> {
+    match dtype {
+        0 => Ok(false),
+        1 => Ok(true),
+        other => bail!("unknown dtype code {other} (0: f32, 1: bf16)"),
+    }
+}
+
 /// Writes `e` into the C++ side's error buffer of err_len + 1 zeroed bytes; returns 1.
 fn report(e: anyhow::Error, err: *mut c_char, err_len: usize) -> c_int {
     let message = format!("{e:#}");
@@ -118,7 +127,10 @@ fn report(e: anyhow::Error, err: *mut c_char, err_len: usize) -> c_int {
 /// shapes, dtypes, contiguity, alignment and devices.
 extern "C" fn rope_pass(stream: *mut c_void, device: c_int, dtype: c_int, x: *const c_void, rotations: *const c_void, out: *mut c_void, tokens: i64, len: i64, heads: i64, pairs: i64, inverse: c_int, err: *mut c_char, err_len: usize) -> c_int {
     let shape = Shape { tokens, len, heads, pairs };
-    let bf16 = dtype == 1;
+    let bf16 = match is_bf16(dtype) {
+        Ok(bf16) => bf16,
+        Err(e) => return report(e, err, err_len),
+    };
     if device < 0 {
         cpu_rotate(bf16, x, rotations, out, shape, inverse != 0);
         return 0;
@@ -155,11 +167,11 @@ extern "C" fn frame_pass(
     err_len: usize,
 ) -> c_int {
     let shape = FrameShape { frames, rows, dim, rows_per_sum };
-    let bf16 = dtype == 1;
     let result = if device < 0 {
         Err(anyhow::anyhow!("the frame operation's CPU pass is libtorch's"))
     } else {
-        kernel::Kernels::for_device(device as usize).and_then(|k| {
+        is_bf16(dtype).and_then(|bf16| {
+            let k = kernel::Kernels::for_device(device as usize)?;
             if !a.is_null() {
                 k.frame_forward(stream, bf16, [a as u64, b as u64, c as u64, out as u64], a_per_frame != 0, shape)
             } else {
@@ -267,7 +279,10 @@ pub extern "C" fn fp8_quantize_pass(
         E5M2 => true,
         other => return report(anyhow::anyhow!("unknown float8 format {other}"), err, err_len),
     };
-    let bf16 = dtype == 1;
+    let bf16 = match is_bf16(dtype) {
+        Ok(bf16) => bf16,
+        Err(e) => return report(e, err, err_len),
+    };
     if device < 0 {
         cpu_fp8_quantize(bf16, e5m2, headroom_max as f32, t, q, qt, scale, sums, shape);
         return 0;
@@ -560,6 +575,25 @@ mod tests {
             let (q, qt, scale) = pass_quantize(&t, false, true);
             assert!(scale.is_nan() && q.iter().chain(&qt[..40]).all(|&b| b & 0x7f == 0x7f), "{kind:?}: a NaN did not spread");
         }
+    }
+
+    #[test]
+    fn unknown_codes_are_errors() {
+        let t = Tensor::zeros([4, 16], (Kind::Float, Device::Cpu));
+        let (q, scale) = (Tensor::zeros([4, 16], (Kind::Uint8, Device::Cpu)), Tensor::zeros([], (Kind::Float, Device::Cpu)));
+        let null = std::ptr::null_mut();
+        for (dtype, format, want) in [(2, E4M3, "unknown dtype code 2"), (0, 7, "unknown float8 format 7")] {
+            let mut err = vec![0 as c_char; 513];
+            let failed = fp8_quantize_pass(null, -1, dtype, format, 441.0, t.data_ptr(), null as *mut f32, 0, q.data_ptr() as *mut u8, null as *mut u8,
+                                           scale.data_ptr() as *mut f32, null as *mut f32, 0, null, 4, 16, 4, err.as_mut_ptr(), 512);
+            let message = unsafe { CStr::from_ptr(err.as_ptr()) }.to_string_lossy().into_owned();
+            assert!(failed != 0 && message.contains(want), "{message}");
+        }
+        let mut err = vec![0 as c_char; 513];
+        let out = Tensor::zeros([1, 2, 1, 4], (Kind::Float, Device::Cpu));
+        let r = Tensor::zeros([2, 1, 2], (Kind::ComplexFloat, Device::Cpu));
+        assert_ne!(rope_pass(null, -1, 3, out.data_ptr(), r.data_ptr(), out.data_ptr(), 2, 2, 1, 2, 0, err.as_mut_ptr(), 512), 0);
+        assert!(unsafe { CStr::from_ptr(err.as_ptr()) }.to_string_lossy().contains("unknown dtype code 3"));
     }
 
     #[test]

@@ -347,8 +347,13 @@ fn cpu_fp8_quantize(bf16: bool, e5m2: bool, headroom_max: f32, t: *const c_void,
     let m = round(if m > f32::MAX { f32::MAX } else { m });
     unsafe { *scale = 1.0 / m };
     if !sums.is_null() {
-        for c in 0..cols {
-            let sum: f32 = (0..rows).map(|r| load(t, r * cols + c)).sum();
+        let mut acc = vec![0.0f32; cols];
+        for r in 0..rows {
+            for (c, a) in acc.iter_mut().enumerate() {
+                *a += load(t, r * cols + c);
+            }
+        }
+        for (c, sum) in acc.into_iter().enumerate() {
             unsafe {
                 if bf16 {
                     *(sums as *mut u16).add(c) = to_bf16(sum);

@@ -7,6 +7,8 @@ set -uo pipefail
 run=$(mktemp -d "${TMPDIR:-/tmp}/bwm-test-run-XXXXXX") || exit 1
 log="$run/cargo-test.log"
 mkdir -p "$run/tmp"
+skips="$run/skipped.log"
+export BWM_SKIP_LOG="$skips"
 # Importing the reference packages (diffusers, DiffSynth) makes torch create its compile cache in the
 # temporary folder; it belongs to this run, not to any test.
 export TORCHINDUCTOR_CACHE_DIR="$run/torchinductor"
@@ -22,8 +24,14 @@ else
 fi
 left=$(find "$run/tmp" -mindepth 1 -maxdepth 1 -printf '%f ' 2>/dev/null)
 [ -n "$left" ] && echo "test: left behind in the temporary folder (removed now): $left"
-awk '/^test result:/ { p += $4; f += $6; i += $8; b += 1 }
-     END { printf "test: %d passed, %d failed, %d ignored in %d test binaries\n", p, f, i, b }' "$log"
+# A test whose optional dependency is missing and not required (BWM_REQUIRE, bwm-testdir's
+# `optional` module) writes a line to BWM_SKIP_LOG and returns: counted as skipped here, taken out
+# of the passed count.
+skipped=$(grep -c '^bwm-test: SKIPPED' "$skips" 2>/dev/null || true)
+skipped=${skipped:-0}
+awk -v s="$skipped" '/^test result:/ { p += $4; f += $6; i += $8; b += 1 }
+     END { printf "test: %d passed, %d failed, %d ignored, %d skipped (optional dependency missing) in %d test binaries\n", p - s, f, i, s, b }' "$log"
+[ "$skipped" -gt 0 ] && cat "$skips"
 rm -rf "$run"
 [ "$status" -eq 0 ] || echo "test: FAILED (cargo test exit $status); search the output above for 'FAILED' or 'panicked'"
 exit "$status"

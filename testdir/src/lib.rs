@@ -3,6 +3,9 @@
 //! [`TestDir`] inside it, removed with its contents when dropped, so also when the test fails.
 //! `make test` points TMPDIR at a folder of the run, which it removes at the end.
 
+pub mod optional;
+pub use optional::{need, python, python_with, shared, Dep};
+
 use std::ffi::OsStr;
 use std::ops::Deref;
 use std::path::{Path, PathBuf};

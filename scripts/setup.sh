@@ -7,13 +7,15 @@ set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 VENV="${BWM_VENV:-$ROOT/.venv}"
 TORCH_VERSION="2.11.0"
-PY_PACKAGES=(numpy safetensors tensorboard "torchaudio==2.11.0" "diffsynth==2.0.11" "diffusers==0.42.1" pyarrow h5py opencv-python-headless websockets msgpack)
+PY_PACKAGES=(numpy safetensors tensorboard "torchaudio==2.11.0" "diffsynth==2.0.11" "diffusers==0.42.1" "peft==0.21.2" pyarrow h5py opencv-python-headless
+  websockets msgpack "scikit-image==0.26.0")
 # Debian packages the build needs: FFmpeg's libraries for bwm-data's `video` feature (found with
 # pkg-config, bindings generated with libclang), libhdf5 for its `hdf5` feature, and the ffmpeg CLI
 # that scripts/make_fixtures.py encodes the test datasets with; Slurm (controller, node daemon,
-# client commands) and munge for the one-host test cluster of tests/slurm.rs (scripts/slurm/).
+# client commands), munge and iproute2 (network namespaces, one per node) for the test cluster of
+# tests/slurm.rs (scripts/slurm/).
 # MuJoCo's offscreen rendering for bench/metaworld: EGL through Mesa, or OSMesa.
-APT_PACKAGES=(libavcodec-dev libavformat-dev libavutil-dev libswscale-dev libclang-dev pkg-config libhdf5-dev ffmpeg slurm-wlm munge
+APT_PACKAGES=(libavcodec-dev libavformat-dev libavutil-dev libswscale-dev libclang-dev pkg-config libhdf5-dev ffmpeg slurm-wlm munge iproute2
   libegl1 libegl-mesa0 libgl1-mesa-dri libosmesa6)
 # The Meta-World benchmark's pinned packages (bench/metaworld/requirements.txt).
 BENCH_REQUIREMENTS="$ROOT/bench/metaworld/requirements.txt"
@@ -41,7 +43,7 @@ fi
 # torchinductor_$USER in the temporary folder of everyone who sources scripts/env.sh.
 export TORCHINDUCTOR_CACHE_DIR="${TORCHINDUCTOR_CACHE_DIR:-$VENV/.torchinductor}"
 if ! { [ -x "$VENV/bin/python" ] && "$VENV/bin/python" - "$TORCH_VERSION" <<'PY' 2>/dev/null
-import sys, torch, numpy, safetensors, tensorboard, pyarrow, h5py, cv2, torchaudio, diffsynth, diffusers, websockets, msgpack
+import sys, torch, numpy, safetensors, tensorboard, pyarrow, h5py, cv2, torchaudio, diffsynth, diffusers, peft, websockets, msgpack, skimage
 sys.exit(0 if torch.__version__.split("+")[0] == sys.argv[1] else 1)
 PY
 }; then

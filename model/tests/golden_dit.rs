@@ -5,10 +5,16 @@
 mod common;
 
 use std::collections::BTreeMap;
+use std::path::Path;
 
 use bwm_model::{frame_timesteps, weights, ActionConfig, BwmModel, DitConfig, Layout, ModelConfig};
-use common::{golden, rel_err};
+use common::{golden_dir, rel_err};
 use tch::{Device, Kind, Tensor};
+
+/// Relative error allowed against the reference, f32 on the CPU, for the velocity and every
+/// intermediate (README, Model notes): measured up to 3.9e-7 (f32 rounding in another order of
+/// operations), so 1e-6 leaves a factor of 2.5 for other CPUs' kernels.
+const DIT_BOUND: f64 = 1e-6;
 
 struct Case {
     cfg: ModelConfig,
@@ -17,9 +23,9 @@ struct Case {
     tensors: BTreeMap<String, Tensor>,
 }
 
-fn load_case(variant: &str) -> Case {
+fn load_case(golden: &Path, variant: &str) -> Case {
     let json: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(golden(&format!("dit_{variant}.json"))).unwrap()).unwrap();
+        serde_json::from_str(&std::fs::read_to_string(golden.join(format!("dit_{variant}.json"))).unwrap()).unwrap();
     let d = &json["dit"];
     let int = |k: &str| d[k].as_i64().unwrap_or_else(|| panic!("dit.{k}"));
     let patch: Vec<i64> = d["patch_size"].as_array().unwrap().iter().map(|v| v.as_i64().unwrap()).collect();
@@ -40,8 +46,8 @@ fn load_case(variant: &str) -> Case {
     Case {
         cfg: ModelConfig { dit, action },
         condition_frames: json["condition_latent_frames"].as_i64().unwrap(),
-        weights: golden(&format!("dit_{variant}.weights.safetensors")),
-        tensors: weights::read_all(golden(&format!("dit_{variant}.case.safetensors"))).unwrap(),
+        weights: golden.join(format!("dit_{variant}.weights.safetensors")),
+        tensors: weights::read_all(golden.join(format!("dit_{variant}.case.safetensors"))).unwrap(),
     }
 }
 
@@ -56,7 +62,8 @@ fn per_token(t: &Tensor, tokens: i64) -> Tensor {
 }
 
 fn check_variant(variant: &str) {
-    let case = load_case(variant);
+    let Some(golden) = golden_dir() else { return };
+    let case = load_case(&golden, variant);
     let t = &case.tensors;
     let model = BwmModel::load(&case.weights, Layout::WanNative, &case.cfg, Kind::Float, Device::Cpu).unwrap();
     let latents = &t["latents"];
@@ -72,7 +79,7 @@ fn check_variant(variant: &str) {
 
     let e = rel_err(&v, &t["velocity"]);
     println!("{variant} velocity rel err {e:.2e}");
-    assert!(e < 1e-4, "{variant}: velocity rel err {e}");
+    assert!(e < DIT_BOUND, "{variant}: velocity rel err {e}");
 
     let tokens = t["sample0.tokens_in"].size()[0];
     let mut checked = 0;
@@ -82,7 +89,7 @@ fn check_variant(variant: &str) {
         let ours = if name == "t_emb" || name == "t_mod" { per_token(ours, tokens) } else { ours.shallow_clone() };
         let e = rel_err(&ours, reference);
         println!("{variant} {name} rel err {e:.2e}");
-        assert!(e < 1e-4, "{variant}: {name} rel err {e}");
+        assert!(e < DIT_BOUND, "{variant}: {name} rel err {e}");
         checked += 1;
     }
     assert!(checked >= 6, "{variant}: only {checked} intermediates in the case file");
@@ -100,7 +107,8 @@ fn dit_public2_matches_reference() {
 
 #[test]
 fn flow_schedule_matches_reference() {
-    let t = weights::read_all(golden("flow_schedule.safetensors")).unwrap();
+    let Some(golden) = golden_dir() else { return };
+    let t = weights::read_all(golden.join("flow_schedule.safetensors")).unwrap();
     let train = bwm_model::FlowSchedule::training(1000, 5.0);
     let infer = bwm_model::FlowSchedule::inference(50, 5.0);
     let close = |ours: &[f64], key: &str| {

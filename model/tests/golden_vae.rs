@@ -10,8 +10,13 @@ use std::path::{Path, PathBuf};
 
 use bwm_model::vae::{VaeConfig, WanVae, WAN22_LATENTS_MEAN, WAN22_LATENTS_STD};
 use bwm_model::weights;
-use common::{golden, rel_err, tmp_dir};
+use common::{golden_dir, rel_err, tmp_dir};
 use tch::{Device, Kind, Tensor};
+
+/// Relative error allowed against the reference, f32 on the CPU, for the latents and the decoded
+/// frames (README, VAE notes): measured up to 1.3e-6 (the decoder's many convolutions summing in
+/// another order), so 5e-6 leaves a factor of about 4 for other CPUs' kernels.
+const VAE_BOUND: f64 = 5e-6;
 
 fn config(json: &Path) -> VaeConfig {
     let json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(json).unwrap()).unwrap();
@@ -40,32 +45,24 @@ fn check(variant: &str, file: impl Fn(&str) -> PathBuf) {
     let latents = tch::no_grad(|| vae.encode(&case["video"])).unwrap();
     let e = rel_err(&latents, &case["latents"]);
     println!("{variant}: latents {:?}, rel err {e:.2e}", latents.size());
-    assert!(e < 1e-4, "{variant}: latents rel err {e}");
+    assert!(e < VAE_BOUND, "{variant}: latents rel err {e}");
 
     let decoded = tch::no_grad(|| vae.decode(&case["latents"])).unwrap();
     let e = rel_err(&decoded, &case["decoded"]);
     println!("{variant}: decoded rel err {e:.2e}");
-    assert!(e < 1e-4, "{variant}: decoded rel err {e}");
+    assert!(e < VAE_BOUND, "{variant}: decoded rel err {e}");
 }
 
 #[test]
 fn vae_public_matches_reference() {
-    check("public", golden);
+    let Some(golden) = golden_dir() else { return };
+    check("public", |name| golden.join(name));
 }
 
 #[test]
 fn vae_public2_matches_reference() {
-    check("public2", golden);
-}
-
-/// The project's Python (BWM_VENV or VIRTUAL_ENV, as `scripts/env.sh` sets), which has diffsynth.
-fn python() -> String {
-    ["VIRTUAL_ENV", "BWM_VENV"]
-        .iter()
-        .filter_map(std::env::var_os)
-        .map(|v| Path::new(&v).join("bin/python"))
-        .find(|p| p.exists())
-        .map_or_else(|| "python3".to_string(), |p| p.display().to_string())
+    let Some(golden) = golden_dir() else { return };
+    check("public2", |name| golden.join(name));
 }
 
 /// make_golden.py's VAE case (random parameters at scale 0.1, a random video in [-1, 1],
@@ -95,8 +92,9 @@ json.dump({"vae": cfg}, open(f"{out}/vae_long.json", "w"))
 
 #[test]
 fn vae_matches_reference_over_nine_latent_frames() {
+    let Some(py) = bwm_testdir::python_with(bwm_testdir::Dep::Reference, &["diffsynth", "safetensors"]) else { return };
     let dir = tmp_dir("vae-long-parity");
-    let out = std::process::Command::new(python()).args(["-c", LONG_CASE]).arg(dir.path()).output().unwrap();
+    let out = std::process::Command::new(py).args(["-c", LONG_CASE]).arg(dir.path()).output().unwrap();
     assert!(out.status.success(), "reference run failed: {}", String::from_utf8_lossy(&out.stderr));
     check("long", |name| dir.join(name));
 }

@@ -3,7 +3,7 @@
 
 mod common;
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use bwm_model::pth::PthSource;
@@ -11,29 +11,21 @@ use bwm_model::vae::{VaeConfig, WanVae};
 use common::{rel_err, tmp_dir};
 use tch::{Device, Kind, Tensor};
 
-/// Python of the project virtualenv (scripts/env.sh exports VIRTUAL_ENV; BWM_VENV also works).
-fn python() -> String {
-    for var in ["VIRTUAL_ENV", "BWM_VENV"] {
-        if let Some(v) = std::env::var_os(var) {
-            let p = Path::new(&v).join("bin/python");
-            if p.exists() {
-                return p.display().to_string();
-            }
-        }
-    }
-    panic!("run the tests through `make test` (or `source scripts/env.sh`) so the virtualenv's python with torch is found");
+/// The project virtualenv's Python with torch (`bwm_testdir::python_with`: without it the test
+/// fails where BWM_REQUIRE names python, and is logged as skipped elsewhere).
+fn python() -> Option<PathBuf> {
+    bwm_testdir::python_with(bwm_testdir::Dep::Python, &["torch", "safetensors"])
 }
 
-/// Runs a Python snippet with the virtualenv's torch; panics if it fails.
-fn run_python(script: &str, args: &[&Path]) {
-    let args: Vec<String> = args.iter().map(|p| p.display().to_string()).collect();
-    let status = Command::new(python()).arg("-c").arg(script).args(&args).status().unwrap();
+/// Runs a Python snippet with `py`; panics if it fails.
+fn run_python(py: &Path, script: &str, args: &[&Path]) {
+    let status = Command::new(py).arg("-c").arg(script).args(args).status().unwrap();
     assert!(status.success(), "python helper failed");
 }
 
 /// Converts a safetensors file to a `.pth` with torch.save; `extras` adds a bf16 tensor, a
 /// transposed (non-contiguous) view and a view sharing its storage with another tensor.
-fn torch_save(from: &Path, to: &Path, wrap: Option<&str>) {
+fn torch_save(py: &Path, from: &Path, to: &Path, wrap: Option<&str>) {
     let script = r#"
 import sys, collections, torch
 from safetensors.torch import load_file
@@ -46,18 +38,19 @@ sd["extra.base"] = base
 obj = {sys.argv[3]: sd} if sys.argv[3] != "-" else sd
 torch.save(obj, sys.argv[2])
 "#;
-    run_python(script, &[from, to, Path::new(wrap.unwrap_or("-"))]);
+    run_python(py, script, &[from, to, Path::new(wrap.unwrap_or("-"))]);
 }
 
 #[test]
 fn torch_saved_state_dicts_load() {
+    let Some(py) = python() else { return };
     let dir = tmp_dir("pth");
     let cfg = VaeConfig::with_width(8, 8);
     let (vae, store) = WanVae::random(&cfg, Kind::Float, Device::Cpu, 9).unwrap();
     let st = dir.join("vae.safetensors");
     Tensor::write_safetensors(&store.named_parameters(), &st).unwrap();
     let pth = dir.join("Wan2.2_VAE.pth");
-    torch_save(&st, &pth, None);
+    torch_save(&py, &st, &pth, None);
 
     let source = PthSource::open(&pth).unwrap();
     let t = source.tensors();
@@ -74,7 +67,7 @@ fn torch_saved_state_dicts_load() {
     let clean_st = dir.join("clean.safetensors");
     Tensor::write_safetensors(&store.named_parameters(), &clean_st).unwrap();
     let script = "import sys, torch\nfrom safetensors.torch import load_file\ntorch.save(load_file(sys.argv[1]), sys.argv[2])";
-    run_python(script, &[&clean_st, &clean]);
+    run_python(&py, script, &[&clean_st, &clean]);
     let loaded = WanVae::load(&clean, &cfg, Kind::Float, Device::Cpu).unwrap();
     let video = bwm_model::vb::with_seed(1, || Tensor::rand([1, 3, 5, 32, 32], (Kind::Float, Device::Cpu))) * 2.0 - 1.0;
     let (a, b) = tch::no_grad(|| (vae.encode(&video).unwrap(), loaded.encode(&video).unwrap()));
@@ -84,19 +77,20 @@ fn torch_saved_state_dicts_load() {
 
     // A state dict wrapped as {"state_dict": ...} is found.
     let wrapped = dir.join("wrapped.pth");
-    torch_save(&st, &wrapped, Some("state_dict"));
+    torch_save(&py, &st, &wrapped, Some("state_dict"));
     assert!(PthSource::open(&wrapped).unwrap().tensors().contains_key("encoder.conv1.weight"));
 }
 
 #[test]
 fn broken_pth_files_are_clear_errors() {
+    let Some(py) = python() else { return };
     let dir = tmp_dir("pth-bad");
     let cfg = VaeConfig::with_width(8, 8);
     let (_, store) = WanVae::random(&cfg, Kind::Float, Device::Cpu, 10).unwrap();
     let st = dir.join("vae.safetensors");
     Tensor::write_safetensors(&store.named_parameters(), &st).unwrap();
     let pth = dir.join("vae.pth");
-    torch_save(&st, &pth, None);
+    torch_save(&py, &st, &pth, None);
     let bytes = std::fs::read(&pth).unwrap();
     let cut = dir.join("cut.pth");
     std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();

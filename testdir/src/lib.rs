@@ -4,7 +4,7 @@
 //! `make test` points TMPDIR at a folder of the run, which it removes at the end.
 
 pub mod optional;
-pub use optional::{need, python, python_with, shared, Dep};
+pub use optional::{need, python, python_with, reference, shared, Dep};
 
 use std::ffi::OsStr;
 use std::ops::Deref;

@@ -120,8 +120,22 @@ pub fn python() -> Option<PathBuf> {
     from_env.chain(std::iter::once(repo_venv)).map(|v| v.join("bin/python")).find(|p| p.is_file())
 }
 
-/// Why the virtualenv's Python cannot import `modules`, or its path when it can.
+/// Why the virtualenv's Python cannot import `modules`, or its path when it can. The answer is
+/// kept for the rest of the process (importing torch takes seconds; a test binary asks often).
 pub fn find_python_with(modules: &[&str]) -> Result<PathBuf, String> {
+    use std::collections::HashMap;
+    use std::sync::Mutex;
+    static ANSWERS: Mutex<Option<HashMap<Vec<String>, Result<PathBuf, String>>>> = Mutex::new(None);
+    let key: Vec<String> = modules.iter().map(|m| m.to_string()).collect();
+    if let Some(known) = ANSWERS.lock().unwrap_or_else(|e| e.into_inner()).get_or_insert_with(HashMap::new).get(&key) {
+        return known.clone();
+    }
+    let answer = try_import(modules);
+    ANSWERS.lock().unwrap_or_else(|e| e.into_inner()).get_or_insert_with(HashMap::new).insert(key, answer.clone());
+    answer
+}
+
+fn try_import(modules: &[&str]) -> Result<PathBuf, String> {
     let py = python().ok_or_else(|| "no virtualenv python (VIRTUAL_ENV, BWM_VENV or .venv; source scripts/env.sh)".to_string())?;
     let import = format!("import {}", modules.join(", "));
     let out = Command::new(&py).args(["-c", &import]).output().map_err(|e| format!("running {}: {e}", py.display()))?;
@@ -148,6 +162,14 @@ pub fn python_with(dep: Dep, modules: &[&str]) -> Option<PathBuf> {
 /// The reference folder beside the repository: `BWM_SHARED`, else `../shared`.
 pub fn shared() -> PathBuf {
     std::env::var_os("BWM_SHARED").map(PathBuf::from).unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared"))
+}
+
+/// `shared()/rel` (a golden file, the reference's script) when it exists; else as [`need`] with
+/// [`Dep::Reference`]: a failure when required, a skip line and `None` when not.
+pub fn reference(rel: &str) -> Option<PathBuf> {
+    let path = shared().join(rel);
+    let missing = (!path.exists()).then(|| format!("{} does not exist (the reference folder ../shared beside the clone, or BWM_SHARED)", path.display()));
+    need(Dep::Reference, missing).then_some(path)
 }
 
 #[cfg(test)]

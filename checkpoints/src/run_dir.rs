@@ -226,21 +226,62 @@ mod tests {
         assert!(current.is_dir() && !crashed.exists());
     }
 
+    /// Names of the entries of the checkpoint root, sorted.
+    fn names(root: &CheckpointRoot) -> Vec<String> {
+        let mut names: Vec<String> = fs::read_dir(&root.root).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+        names.sort();
+        names
+    }
+
     #[test]
-    fn a_dead_writers_leftovers_are_removed_by_the_next_save() {
+    fn a_crash_between_the_renames_of_a_re_save_keeps_the_checkpoint() {
         let (_dir, root) = tmp("dead");
         root.save(1, 3, |d| Ok(fs::write(d.join(STATE_FILE), "1")?)).unwrap();
         // Killed between moving a re-saved step aside and renaming its replacement, and before
         // `latest` was renamed: the step folder is missing, latest falls back to what is complete.
         let dead = u32::MAX;
         fs::rename(root.step_path(1), root.root.join(format!(".step-00000001.old-{dead}"))).unwrap();
+        fs::create_dir_all(root.root.join(format!(".step-00000001.tmp-{dead}"))).unwrap();
         fs::create_dir_all(root.root.join(format!(".step-00000002.tmp-{dead}"))).unwrap();
         fs::write(root.root.join(format!(".latest.tmp-{dead}")), "step-00000002\n").unwrap();
         assert!(root.latest().unwrap().is_none());
+        // The next save puts the moved-aside checkpoint back and removes the rest.
         root.save(2, 3, |d| Ok(fs::write(d.join(STATE_FILE), "2")?)).unwrap();
-        let mut names: Vec<String> = fs::read_dir(&root.root).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
-        names.sort();
-        assert_eq!(names, ["latest", "step-00000002"]);
+        assert_eq!(names(&root), ["latest", "step-00000001", "step-00000002"]);
+        assert_eq!(fs::read_to_string(root.step_path(1).join(STATE_FILE)).unwrap(), "1");
+    }
+
+    /// A process that runs until dropped.
+    struct Live(std::process::Child);
+
+    impl Drop for Live {
+        fn drop(&mut self) {
+            let _ = self.0.kill();
+            let _ = self.0.wait();
+        }
+    }
+
+    #[test]
+    fn only_the_temporaries_of_writers_that_are_gone_are_removed() {
+        let (_dir, root) = tmp("live");
+        let mut live = Live(std::process::Command::new("sleep").arg("600").spawn().unwrap());
+        let pid = live.0.id();
+        fs::create_dir_all(&root.root).unwrap();
+        let theirs = [format!(".step-00000005.tmp-{pid}"), format!(".step-00000004.old-{pid}"), format!(".latest.tmp-{pid}")];
+        for name in &theirs[..2] {
+            fs::create_dir_all(root.root.join(name)).unwrap();
+        }
+        fs::write(root.root.join(&theirs[2]), "step-00000005\n").unwrap();
+        fs::create_dir_all(root.step_path(4)).unwrap();
+        fs::write(root.step_path(4).join(STATE_FILE), "4").unwrap();
+        root.save(1, 3, |d| Ok(fs::write(d.join(STATE_FILE), "1")?)).unwrap();
+        for name in &theirs {
+            assert!(root.root.join(name).exists(), "{name} of a live writer was removed: {:?}", names(&root));
+        }
+        let _ = live.0.kill();
+        live.0.wait().unwrap();
+        root.save(2, 3, |d| Ok(fs::write(d.join(STATE_FILE), "2")?)).unwrap();
+        assert_eq!(names(&root), ["latest", "step-00000001", "step-00000002", "step-00000004"]);
     }
 
     #[test]

@@ -691,4 +691,24 @@ mod tests {
         std::fs::write(dir.join(INDEX_FILE), text).unwrap();
         assert!(LatentCache::open(&dir).is_err());
     }
+
+    #[test]
+    fn index_entries_that_leave_the_cache_folder_are_refused() {
+        let dir = tmp("escape");
+        let cache = dir.join("cache");
+        let mut w = CacheWriter::create(&cache, index(false)).unwrap();
+        let entry = ClipEntry { file: String::new(), episode: 0, frames: vec![0; 5], task: String::new() };
+        w.add(entry, &Tensor::zeros([4, 2, 2, 3], (Kind::Float, Device::Cpu)), &Tensor::zeros([5, 2], (Kind::Float, Device::Cpu)), None).unwrap();
+        w.finish().unwrap();
+        // The shard moved out of the cache folder; index entries naming it there are refused.
+        let outside = dir.join("shard.safetensors");
+        std::fs::rename(cache.join(shard_file_name(0)), &outside).unwrap();
+        let (mut idx, extras) = read_index(&cache.join(INDEX_FILE)).unwrap();
+        for file in ["../shard.safetensors".to_string(), outside.display().to_string(), format!("sub/../../{}", "shard.safetensors")] {
+            idx.clips[0].file = file.clone();
+            write_index(&cache, INDEX_FILE, &idx, &extras).unwrap();
+            let e = format!("{:#}", LatentCache::open(&cache).err().unwrap_or_else(|| panic!("{file}: accepted")));
+            assert!(e.contains(&file) && e.contains("inside the cache folder"), "{e}");
+        }
+    }
 }

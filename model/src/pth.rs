@@ -370,3 +370,71 @@ impl WeightSource for PthSource {
         Ok(t.to_device(device).to_kind(kind))
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::io::Write;
+
+    /// A `.pth` archive as `torch.save` lays it out, holding one float tensor "w" that views a
+    /// storage of the four values 0, 1, 2, 3 at `offset` with `size` and `stride`.
+    fn one_view_pth(path: &Path, offset: i32, size: &[u8], stride: &[i32]) {
+        let mut pkl: Vec<u8> = vec![0x80, 2, b'}'];
+        let unicode = |p: &mut Vec<u8>, s: &str| {
+            p.push(b'X');
+            p.extend((s.len() as u32).to_le_bytes());
+            p.extend(s.as_bytes());
+        };
+        unicode(&mut pkl, "w");
+        pkl.extend(b"ctorch._utils\n_rebuild_tensor_v2\n(");
+        // The storage: a persistent id ('storage', FloatStorage, key, location, numel).
+        pkl.push(b'(');
+        unicode(&mut pkl, "storage");
+        pkl.extend(b"ctorch\nFloatStorage\n");
+        unicode(&mut pkl, "0");
+        unicode(&mut pkl, "cpu");
+        pkl.extend([b'K', 4, b't', b'Q', b'J']);
+        pkl.extend(offset.to_le_bytes());
+        pkl.push(b'(');
+        for &s in size {
+            pkl.extend([b'K', s]);
+        }
+        pkl.push(b't');
+        pkl.push(b'(');
+        for &s in stride {
+            pkl.push(b'J');
+            pkl.extend(s.to_le_bytes());
+        }
+        pkl.push(b't');
+        pkl.push(0x89);
+        pkl.extend(b"ccollections\nOrderedDict\n)R");
+        pkl.extend(b"tRs.");
+        let mut zip = zip::ZipWriter::new(File::create(path).unwrap());
+        let stored = zip::write::SimpleFileOptions::default().compression_method(zip::CompressionMethod::Stored);
+        zip.start_file("archive/data.pkl", stored).unwrap();
+        zip.write_all(&pkl).unwrap();
+        zip.start_file("archive/data/0", stored).unwrap();
+        zip.write_all(&[0f32, 1.0, 2.0, 3.0].iter().flat_map(|v| v.to_le_bytes()).collect::<Vec<u8>>()).unwrap();
+        zip.finish().unwrap();
+    }
+
+    #[test]
+    fn views_outside_their_storage_are_errors_not_panics() {
+        let dir = bwm_testdir::TestDir::new("pth-views");
+        let path = dir.join("w.pth");
+        one_view_pth(&path, 1, &[2], &[2]);
+        let source = PthSource::open(&path).unwrap();
+        assert_eq!(Vec::<f32>::try_from(&source.tensors()["w"]).unwrap(), [1.0, 3.0]);
+        for (offset, size, stride, says) in [
+            (-1, &[2u8][..], &[1][..], "offset"),
+            (3, &[4], &[-1], "stride"),
+            (0, &[2, 2], &[1], "stride"),
+            (2, &[2], &[2], "past the end"),
+            (0, &[2], &[i32::MAX], "past the end"),
+        ] {
+            one_view_pth(&path, offset, size, stride);
+            let e = PthSource::open(&path).err().unwrap_or_else(|| panic!("offset {offset}, size {size:?}, stride {stride:?}: accepted")).to_string();
+            assert!(e.contains("'w'") && e.contains(says), "offset {offset}, size {size:?}, stride {stride:?}: {e}");
+        }
+    }
+}

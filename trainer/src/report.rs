@@ -16,6 +16,39 @@ use crate::validation::rollout_clip;
 /// Every optimizer step's loss, `step<TAB>loss` lines, in the run folder.
 pub const LOSSES_FILE: &str = "losses.tsv";
 
+/// An append-only log of the run folder, one record a line (`losses.tsv`, `metrics.jsonl`). Each
+/// line goes out in one write of the whole formatted line.
+pub struct LineLog {
+    file: std::fs::File,
+    path: std::path::PathBuf,
+}
+
+impl LineLog {
+    /// Opens `path` for appending (created when missing).
+    pub fn open(path: &Path) -> Result<Self> {
+        let file = std::fs::OpenOptions::new().read(true).append(true).create(true).open(path).with_context(|| format!("opening {}", path.display()))?;
+        Ok(Self { file, path: path.to_path_buf() })
+    }
+
+    /// Appends `line` (without its newline), the record of optimizer step `step`.
+    pub fn append(&mut self, line: &str, step: u64) -> Result<()> {
+        use std::io::Write;
+        let record = format!("{line}\n");
+        let name = self.path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        // Fault injection for the crash-safety test, BWM_FAULT_CUT_APPEND=<file name>:<step>: that
+        // step's line is written in two halves with a window between them in which the test kills
+        // the process, as a crash of the machine or a full disk can cut a write short.
+        if std::env::var("BWM_FAULT_CUT_APPEND").is_ok_and(|v| v == format!("{name}:{step}")) {
+            let half = record.len() / 2;
+            self.file.write_all(&record.as_bytes()[..half]).with_context(|| format!("appending to {}", self.path.display()))?;
+            eprintln!("append: cut {name} at step {step}");
+            std::thread::sleep(std::time::Duration::from_secs(600));
+            return self.file.write_all(&record.as_bytes()[half..]).with_context(|| format!("appending to {}", self.path.display()));
+        }
+        self.file.write_all(record.as_bytes()).with_context(|| format!("appending to {}", self.path.display()))
+    }
+}
+
 /// (step, loss) of every step of the run in `out_dir`: from `losses.tsv`, else (runs written
 /// before it existed) the logged steps of `metrics.jsonl`. A resumed run appends; the last entry
 /// of a step wins.
@@ -183,5 +216,30 @@ mod tests {
         assert_eq!((losses[1].1, losses[2].1.is_nan()), (0.3, true));
         std::fs::write(dir.join(LOSSES_FILE), "1\t0.5\nbroken\n2\t0.25\n").unwrap();
         assert!(format!("{:#}", read_run_losses(&dir).unwrap_err()).contains("line 2"));
+    }
+
+    #[test]
+    fn a_log_reopened_after_a_cut_write_appends_whole_lines() {
+        let dir = bwm_testdir::TestDir::new("line-log");
+        let path = dir.join(LOSSES_FILE);
+        // A kill cut step 4's line after its first byte; the resumed run appends step 5.
+        std::fs::write(&path, "1\t0.5\n4").unwrap();
+        LineLog::open(&path).unwrap().append("5\t0.3", 5).unwrap();
+        assert_eq!(std::fs::read_to_string(&path).unwrap(), "1\t0.5\n5\t0.3\n");
+        assert_eq!(read_run_losses(&dir).unwrap(), vec![(1, 0.5), (5, 0.3)]);
+        // A fragment with no line before it, and a log longer than one read of its tail.
+        std::fs::write(&path, "30").unwrap();
+        LineLog::open(&path).unwrap().append("1\t0.5", 1).unwrap();
+        assert_eq!(std::fs::read_to_string(&path).unwrap(), "1\t0.5\n");
+        let long = format!("1\t0.5\n{}", "x".repeat(200_000));
+        std::fs::write(&path, long).unwrap();
+        LineLog::open(&path).unwrap().append("2\t0.25", 2).unwrap();
+        assert_eq!(read_run_losses(&dir).unwrap(), vec![(1, 0.5), (2, 0.25)]);
+        // metrics.jsonl the same; a reader of a log whose writer was killed skips the cut line.
+        let metrics = dir.join("metrics.jsonl");
+        std::fs::write(&metrics, "{\"step\": 2, \"loss\": 9.0}\n{\"step\": 3, \"lo").unwrap();
+        assert_eq!(read_losses(&metrics).unwrap(), vec![(2, 9.0)]);
+        LineLog::open(&metrics).unwrap().append("{\"step\": 3, \"loss\": 8.0}", 3).unwrap();
+        assert_eq!(read_losses(&metrics).unwrap(), vec![(2, 9.0), (3, 8.0)]);
     }
 }

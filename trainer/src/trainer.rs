@@ -2,7 +2,6 @@
 //! non-finite handling, checkpoints and resume, metrics, validation.
 
 use std::collections::BTreeMap;
-use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::rc::Rc;
 use std::time::Instant;
@@ -25,6 +24,7 @@ use crate::metrics::{Progress, StepMetrics};
 use crate::objective::Objective;
 use crate::optim::{AdamW, Sharding};
 use crate::recompute::{forward_backward_per_sample, BlockGradSink, Recompute};
+use crate::report::LineLog;
 use crate::step_graph::StepGraph;
 use crate::tensorboard::EventWriter;
 use crate::validation;
@@ -87,9 +87,9 @@ pub struct Trainer {
     pub out_dir: PathBuf,
     pub checkpoints: CheckpointRoot,
     events: Option<EventWriter>,
-    metrics_file: Option<std::fs::File>,
+    metrics_file: Option<LineLog>,
     /// `losses.tsv`: every step's loss (the loss curve; `metrics.jsonl` holds logged steps only).
-    loss_file: Option<std::fs::File>,
+    loss_file: Option<LineLog>,
     /// The data-parallel group (a group of one without torchrun's variables).
     pub comm: Box<dyn Collective>,
     /// Where each step's summary goes (stdout by default; tests capture it).
@@ -253,13 +253,7 @@ impl Trainer {
         std::fs::write(out_dir.join("config.toml"), cfg.to_toml()?)?;
         let lead = comm.rank() == 0;
         let events = if cfg.log.tensorboard && lead { Some(EventWriter::create(&out_dir.join("tensorboard"))?) } else { None };
-        let append = |name: &str| -> Result<Option<std::fs::File>> {
-            if !lead {
-                return Ok(None);
-            }
-            let path = out_dir.join(name);
-            Ok(Some(std::fs::OpenOptions::new().create(true).append(true).open(&path).with_context(|| format!("opening {}", path.display()))?))
-        };
+        let append = |name: &str| -> Result<Option<LineLog>> { if lead { LineLog::open(&out_dir.join(name)).map(Some) } else { Ok(None) } };
         let (metrics_file, loss_file) = (append("metrics.jsonl")?, append(crate::report::LOSSES_FILE)?);
         Ok(Self { cfg, model, opt, objective, cache, clip_encoder, loader: Default::default(), train_clips, device, state, out_dir, checkpoints, events, metrics_file, loss_file, comm, history: Vec::new(), block_params, graph })
     }
@@ -286,8 +280,7 @@ impl Trainer {
             progress.update(self.state.step, &m);
             let step = self.state.step;
             if let Some(f) = self.loss_file.as_mut() {
-                use std::io::Write;
-                writeln!(f, "{step}\t{}", m.loss).context("appending to losses.tsv")?;
+                f.append(&format!("{step}\t{}", m.loss), step)?;
             }
             if (step % self.cfg.log.every == 0 || step == total) && lead {
                 progress.println(&m.summary_line(total));
@@ -528,7 +521,7 @@ impl Trainer {
 
     fn log_metrics(&mut self, m: &StepMetrics) -> Result<()> {
         if let Some(f) = self.metrics_file.as_mut() {
-            writeln!(f, "{}", serde_json::to_string(m)?)?;
+            f.append(&serde_json::to_string(m)?, m.step)?;
         }
         if let Some(ev) = self.events.as_mut() {
             for (tag, value) in m.scalars() {

@@ -93,6 +93,28 @@ fn bench_rollout_times_each_chunk() {
     assert!(!failed.status.success() && String::from_utf8_lossy(&failed.stderr).contains("cannot fill 2 streams"), "{failed:?}");
 }
 
+/// Sizes no memory can hold are errors naming them (exit 1), not panics (exit 101): on the CPU the
+/// first allocation they size fails at once, before any memory is touched.
+#[test]
+fn impossible_clip_sizes_are_errors_naming_them_not_panics() {
+    let dir = temp_dir("bench-impossible");
+    let vae = dir.path().join("vae.safetensors");
+    write_random_vae(&vae, 3);
+    let huge = "1048576";
+    let forward = ["bench-forward", "--preset", "tiny", "--device", "cpu", "--dtype", "f32", "--height", huge, "--width", huge, "--warmup", "0", "--iters", "1"];
+    let rollout = [
+        "bench-rollout", "--random-weights", "tiny", "--vae", vae.to_str().unwrap(), "--device", "cpu", "--height", huge, "--width", huge, "--history", "4", "--future", "4",
+        "--sample-steps", "1", "--chunks", "1",
+    ];
+    for args in [&forward[..], &rollout[..]] {
+        let out = Command::new(bwm()).args(args).output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "bwm {args:?}: {err}");
+        assert!(err.contains("1048576x1048576") && err.contains("cannot be allocated"), "the error names the size: {err}");
+        assert!(!err.contains("panicked"), "{err}");
+    }
+}
+
 #[test]
 fn bench_rollout_runs_the_block_linears_in_fp8_when_asked() {
     let dir = temp_dir("bench-rollout-fp8");

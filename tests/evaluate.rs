@@ -3,8 +3,10 @@
 //! judge: three policies (absolute poses cut to whole latent groups, deltas re-requested to fill
 //! a chunk, absolute full chunks), a dataset task and an image+state-file task. One episode's
 //! policy raises (traceback text frame, close 1011), another's connection is dropped; both are
-//! reported per episode and the evaluation goes on. The report files are checked against a hand
-//! computation of the success rates, Pearson r and MAE.
+//! reported per episode and the evaluation goes on, then exits 1 with a summary of the errors by
+//! kind. The report files are checked against a hand computation of the success rates, Pearson r
+//! and MAE. A policy server that never sends its metadata fails each episode by the timeout, named
+//! as such, and the evaluation exits 1.
 
 mod common;
 
@@ -15,6 +17,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
+use bwm_testdir::{python_with, Dep};
 use serde_json::{json, Value};
 use tch::{Device, Kind, Tensor};
 
@@ -220,8 +223,16 @@ prompt = "stack the cube (drop)"
     let t0 = Instant::now();
     let (ok, stdout, stderr) = run_limited(cmd, &dir, "evaluate", Duration::from_secs(240));
     eprintln!("bwm evaluate took {:.1} s\n{stdout}", t0.elapsed().as_secs_f64());
-    assert!(ok, "bwm evaluate failed:\n{stdout}\n{stderr}");
+    assert!(!ok, "6 episodes ended on policy or connection errors: bwm evaluate must fail:\n{stdout}\n{stderr}");
+    assert!(stderr.contains("6 of 15 episodes ended on an error"), "{stderr}");
     drop(server);
+    // The errors summed up by kind, each with its first episode's error.
+    assert!(stdout.contains("evaluate: 6 of 15 episodes ended on an error"), "{stdout}");
+    let kind = |k: &str| stdout.lines().find(|l| l.trim_start().starts_with(&format!("{k}: "))).unwrap_or_else(|| panic!("no '{k}:' line:\n{stdout}")).to_string();
+    let policy = kind("policy");
+    assert!(policy.contains("3 episodes; first: alpha / cube #1") && policy.contains("scripted failure in the policy"), "{policy}");
+    let connection = kind("connection");
+    assert!(connection.contains("3 episodes; first: alpha / cube #2") && connection.contains("connection"), "{connection}");
 
     // A progress line per episode; the failed ones say why.
     for k in 1..=15 {
@@ -403,4 +414,73 @@ dataset = "{}"
     assert!(!ok, "{stdout}");
     assert!(stderr.contains("joint adapter") && stderr.contains("forward-kinematics provider") && stderr.contains("[fk]"), "{stderr}");
     assert!(!dir.join("out").exists(), "nothing ran");
+}
+
+/// A policy server that accepts the websocket but never sends its metadata: each episode fails
+/// on the client's timeout, named as such (not the socket's "os error 11"), and the evaluation,
+/// every episode of which failed on it, exits 1.
+#[test]
+fn a_policy_server_that_never_sends_its_metadata_fails_the_evaluation() {
+    let Some(py) = python_with(Dep::Python, &["websockets"]) else { return };
+    let dir = temp_dir("evaluate-silent");
+    let silent = r#"
+import asyncio, websockets.asyncio.server as ws
+async def silent(conn):
+    await asyncio.Future()
+async def main():
+    async with ws.serve(silent, "127.0.0.1", 0) as server:
+        print(server.sockets[0].getsockname()[1], flush=True)
+        await asyncio.sleep(300)
+asyncio.run(main())
+"#;
+    let mut server = Guard(Command::new(py).args(["-c", silent]).stdout(Stdio::piped()).stderr(Stdio::inherit()).spawn().unwrap());
+    let mut port = String::new();
+    std::io::BufRead::read_line(&mut std::io::BufReader::new(server.0.stdout.take().unwrap()), &mut port).unwrap();
+    let port: u16 = port.trim().parse().unwrap_or_else(|_| panic!("the silent server printed no port: {port:?}"));
+    let vae = dir.join("vae.safetensors");
+    write_random_vae(&vae, 4);
+    let x0 = bwm_model::vb::with_seed(1, || Tensor::rand([3, 1, 32, 32], (Kind::Float, Device::Cpu))) * 2.0 - 1.0;
+    bwm_data::frames::tensor_to_frames(&x0).unwrap()[0].save(dir.join("x0.png")).unwrap();
+    let stats: Value = serde_json::from_str(&std::fs::read_to_string(demo().join("stat.json")).unwrap()).unwrap();
+    std::fs::write(dir.join("pose.json"), stats["state_pose"]["mean"].to_string()).unwrap();
+    std::fs::write(
+        dir.join("eval.toml"),
+        format!(
+            r#"
+horizon = 8
+resolution = "32x32"
+timeout_s = 1
+[[policies]]
+name = "silent"
+url = "ws://127.0.0.1:{port}"
+adapter = {{ kind = "eef_abs" }}
+[judge]
+kind = "http"
+url = "http://127.0.0.1:9/judge"
+[[tasks]]
+name = "cube"
+[[tasks.starts]]
+images = ["x0.png"]
+pose = "pose.json"
+prompt = "stack the cube"
+[[tasks.starts]]
+images = ["x0.png"]
+pose = "pose.json"
+prompt = "stack the cube again"
+"#
+        ),
+    )
+    .unwrap();
+    let mut cmd = Command::new(bwm());
+    cmd.arg("evaluate").arg("--config").arg(dir.join("eval.toml")).arg("--out").arg(dir.join("out"));
+    world_model_flags(&mut cmd, &vae);
+    let (ok, stdout, stderr) = run_limited(cmd, &dir, "evaluate", Duration::from_secs(120));
+    assert!(!ok, "every episode failed on its policy: bwm evaluate must fail:\n{stdout}\n{stderr}");
+    assert_eq!(stdout.matches("FAILED").count(), 2, "{stdout}");
+    assert!(stdout.contains("policy server sent no metadata within 1 s"), "{stdout}");
+    assert!(!stdout.contains("os error"), "{stdout}");
+    assert!(stdout.contains("evaluate: 2 of 2 episodes ended on an error"), "{stdout}");
+    assert!(stderr.contains("2 of 2 episodes ended on an error"), "{stderr}");
+    let records = read_jsonl(&dir.join("out/episodes.jsonl"));
+    assert_eq!(records.len(), 2, "the records are written all the same");
 }

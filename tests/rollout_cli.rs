@@ -140,3 +140,23 @@ print(json.dumps(t["action"]))
     assert!(!bad.status.success() && String::from_utf8_lossy(&bad.stderr).contains("3 episodes"));
     assert!(!dir.join("bad/meta/info.json").exists());
 }
+
+/// A --resolution no memory can hold is an error naming it, before any frame is resized (the
+/// resize's allocation would abort the process) and before the output is created.
+#[test]
+fn an_impossible_resolution_is_an_error_naming_it() {
+    let dir = temp_dir("rollout-huge");
+    let vae = dir.join("vae.safetensors");
+    write_random_vae(&vae, 5);
+    let out = dir.join("generated");
+    let run = Command::new(bwm())
+        .arg("rollout")
+        .args(["--random-weights", "tiny", "--history", "4", "--future", "4", "--sample-steps", "1", "--resolution", "1048576x1048576", "--device", "cpu"])
+        .args(["--max-frames", "5", "--episodes", "0", "--vae", vae.to_str().unwrap(), "--data", demo_data().to_str().unwrap(), "--out", out.to_str().unwrap()])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&run.stderr);
+    assert_eq!(run.status.code(), Some(1), "{err}");
+    assert!(err.contains("1048576x1048576") && err.contains("cannot be allocated"), "the error names the size: {err}");
+    assert!(!out.exists(), "nothing was written");
+}

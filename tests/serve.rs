@@ -1,22 +1,30 @@
 //! `bwm serve` end to end on CPU (tiny random model, small random VAE) on a free loopback port:
 //! a good request round-trips through the Python client of docs/serve.md with the right shapes;
-//! a burst larger than queue + worker gets only 200s and 503s, at least one 503, none hanging;
-//! malformed, oversized and wrong-shape/dtype/size requests get 4xx with a message naming the
-//! problem; 200 clients that send half a header do not keep /health or a real request from being
+//! with the model worker held busy (the hidden `--hold-while-exists` hook) a burst gets exactly
+//! one request generating and `--queue` waiting, every further one 503 at once; malformed,
+//! oversized and wrong-shape/dtype/size requests get 4xx with a message naming the problem, and
+//! frames over the pixel budget 413 before the worker sees them (the log counts the bytes read);
+//! 200 clients that send half a header do not keep /health or a real request from being
 //! answered and are answered 408 after the read timeout; clients that leave mid-request do not
 //! wedge the worker; declared bodies over the limit do not grow the server's memory; SIGTERM
-//! finishes the request in flight, refuses new connections and exits 0.
+//! finishes the request in flight, refuses new connections and exits 0. A request past
+//! `--request-timeout-s` is answered 504 and abandoned by the worker at its next sampler step;
+//! a trained checkpoint's frames are bounded by its training resolution by default.
 
 mod common;
 
-use common::{bwm, python, temp_dir, write_random_vae};
+use common::{bwm, python, temp_dir, write_cache, write_config, write_random_vae};
 
+use std::ffi::OsStr;
 use std::fs::File;
 use std::io::{Read, Write};
 use std::net::TcpStream;
+use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
-use std::sync::{Arc, Barrier};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
+
+use bwm_testdir::{python_with, Dep};
 
 use serde_json::{json, Value};
 
@@ -78,6 +86,57 @@ fn http(addr: &str, method: &str, path: &str, body: &[u8], declared: Option<usiz
     Reply { status, content_type, body: raw[split + 4..].to_vec() }
 }
 
+/// Starts `bwm serve` on the CPU with a free port, `model` (weights flags) and `extra` flags,
+/// stdout to `log`; returns the guard and the address it listens on.
+fn start_server(model: &[&std::ffi::OsStr], extra: &[&str], log: &Path) -> (Guard, String) {
+    let server = Guard(
+        Command::new(bwm())
+            .arg("serve")
+            .args(model)
+            .args(["--device", "cpu", "--history", "4", "--future", "4", "--sample-steps", "2", "--port", "0"])
+            .args(extra)
+            .stdout(File::create(log).unwrap())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .unwrap(),
+    );
+    let start = Instant::now();
+    loop {
+        let text = std::fs::read_to_string(log).unwrap_or_default();
+        if let Some(a) = text.lines().find_map(|l| l.strip_prefix("serve: listening on http://")) {
+            return (server, a.trim().to_string());
+        }
+        assert!(start.elapsed() < Duration::from_secs(60), "bwm serve did not start:\n{text}");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
+/// Polls /health until `pred` holds (a guard against hangs, not a timing check).
+fn wait_health(addr: &str, what: &str, pred: impl Fn(&Value) -> bool) -> Value {
+    let start = Instant::now();
+    loop {
+        let h = health(addr);
+        if pred(&h) {
+            return h;
+        }
+        assert!(start.elapsed() < Duration::from_secs(300), "never {what}: {h}");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// A good request body of `t` given `h`x`w` frames and `t + k` actions of `d` values.
+fn body_of(py: &Path, file: &Path, t: usize, h: usize, w: usize, k: usize, d: usize) -> Vec<u8> {
+    let args = [t, h, w, k, d].map(|n| n.to_string());
+    let out = Command::new(py).arg(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/python/serve_client.py")).arg("body").arg(file).args(args).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    std::fs::read(file).unwrap()
+}
+
+/// The request lines of the server's log.
+fn request_lines(log: &Path) -> Vec<String> {
+    std::fs::read_to_string(log).unwrap().lines().filter(|l| l.starts_with("serve: request ")).map(String::from).collect()
+}
+
 fn health(addr: &str) -> Value {
     let r = http(addr, "GET", "/health", b"", None);
     assert_eq!((r.status, r.content_type.as_str()), (200, "application/json"), "{}", r.text());
@@ -90,27 +149,12 @@ fn serve_round_trips_rejects_bad_requests_and_sheds_load() {
     let vae = dir.join("vae.safetensors");
     write_random_vae(&vae, 4);
     let log = dir.join("serve.stdout");
-    let server = Guard(
-        Command::new(bwm())
-            .arg("serve")
-            .args(["--random-weights", "tiny", "--vae"])
-            .arg(&vae)
-            .args(["--device", "cpu", "--history", "4", "--future", "4", "--sample-steps", "2"])
-            .args(["--port", "0", "--queue", "1", "--max-body-bytes", "1000000", "--read-timeout-s", "10"])
-            .stdout(File::create(&log).unwrap())
-            .stderr(Stdio::inherit())
-            .spawn()
-            .unwrap(),
+    let hold = dir.join("hold");
+    let (server, addr) = start_server(
+        &[OsStr::new("--random-weights"), OsStr::new("tiny"), OsStr::new("--vae"), vae.as_os_str()],
+        &["--queue", "1", "--max-body-bytes", "1000000", "--read-timeout-s", "10", "--max-frame-pixels", "2048", "--hold-while-exists", hold.to_str().unwrap()],
+        &log,
     );
-    let start = Instant::now();
-    let addr = loop {
-        let text = std::fs::read_to_string(&log).unwrap_or_default();
-        if let Some(a) = text.lines().find_map(|l| l.strip_prefix("serve: listening on http://")) {
-            break a.trim().to_string();
-        }
-        assert!(start.elapsed() < Duration::from_secs(60), "bwm serve did not start:\n{text}");
-        std::thread::sleep(Duration::from_millis(100));
-    };
     let url = format!("http://{addr}");
 
     let h = health(&addr);
@@ -120,6 +164,7 @@ fn serve_round_trips_rejects_bad_requests_and_sheds_load() {
     assert!((h["history_sigma"].as_f64().unwrap() - 0.2083).abs() < 1e-3, "random weights record no history noise: the release's level: {h}");
     assert_eq!(h["shift"], 5.0, "random weights record no shift: Wan's: {h}");
     assert!(h["model"].as_str().unwrap().contains("tiny"), "{h}");
+    assert_eq!(h["max_frame_pixels"], 2048, "--max-frame-pixels: {h}");
 
     // The documented Python client: 3 given frames (x0 + 2 history) and 3 + 4 actions.
     let out = Command::new(python()).arg(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/python/serve_client.py")).args(["roundtrip", &url, "3", "4", "14"]).output().unwrap();
@@ -141,29 +186,60 @@ fn serve_round_trips_rejects_bad_requests_and_sheds_load() {
     let body = |name: &str| std::fs::read(bodies.join(name)).unwrap();
     let good = Arc::new(body("good.msgpack"));
 
-    // A burst of 6 at once against 1 worker + a queue of 1.
-    let t0 = Instant::now();
-    let barrier = Arc::new(Barrier::new(6));
-    let threads: Vec<_> = (0..6)
-        .map(|_| {
-            let (addr, good, barrier) = (addr.clone(), good.clone(), barrier.clone());
-            std::thread::spawn(move || {
-                barrier.wait();
-                let t = Instant::now();
-                let r = http(&addr, "POST", "/v1/chunk", &good, None);
-                (r.status, r.text(), t.elapsed())
-            })
+    // A burst against 1 worker + a queue of 1, the worker held busy until released: one request
+    // generating, one waiting, every further one refused at once.
+    let before = health(&addr);
+    std::fs::write(&hold, b"").unwrap();
+    let send = |addr: &str, good: &Arc<Vec<u8>>| {
+        let (addr, good) = (addr.to_string(), good.clone());
+        std::thread::spawn(move || {
+            let r = http(&addr, "POST", "/v1/chunk", &good, None);
+            (r.status, r.text())
         })
+    };
+    let generating = send(&addr, &good);
+    wait_health(&addr, "busy with the held request", |h| h["busy"] == true);
+    let waiting = send(&addr, &good);
+    wait_health(&addr, "a request waiting", |h| h["queue_depth"] == 1);
+    let refused: Vec<(u16, String)> = (0..4)
+        .map(|_| send(&addr, &good))
+        .collect::<Vec<_>>()
+        .into_iter()
+        .map(|t| t.join().unwrap())
         .collect();
-    let results: Vec<(u16, String, Duration)> = threads.into_iter().map(|t| t.join().unwrap()).collect();
-    eprintln!("burst of 6 answered in {:.2} s: {:?}", t0.elapsed().as_secs_f64(), results.iter().map(|r| (r.0, r.2)).collect::<Vec<_>>());
-    assert!(results.iter().all(|r| r.0 == 200 || r.0 == 503), "only 200 or 503: {results:?}");
-    let busy: Vec<_> = results.iter().filter(|r| r.0 == 503).collect();
-    assert!(!busy.is_empty() && busy.len() < 6, "some served, at least one turned away: {results:?}");
-    assert!(busy.len() >= 4, "one generating + one waiting are admitted, no more: {results:?}");
-    for r in &busy {
+    for r in &refused {
+        assert_eq!(r.0, 503, "every request beyond the queue is refused: {refused:?}");
         assert!(r.1.contains("queue is full"), "{}", r.1);
     }
+    std::fs::remove_file(&hold).unwrap();
+    for t in [generating, waiting] {
+        let r = t.join().unwrap();
+        assert_eq!(r.0, 200, "{}", r.1);
+    }
+    let after = wait_health(&addr, "idle after the burst", |h| h["busy"] == false && h["queue_depth"] == 0);
+    let count = |h: &Value, k: &str| h[k].as_u64().unwrap();
+    assert_eq!(count(&after, "served") - count(&before, "served"), 2, "{after}");
+    assert_eq!(count(&after, "rejected_busy") - count(&before, "rejected_busy"), 4, "{after}");
+
+    // Frames over the pixel budget (64x64 = 4096 > 2048) are refused with 413 before the model
+    // worker sees them: nothing is served or failed, and the log counts the body's bytes.
+    let py = python_with(Dep::Python, &["msgpack", "numpy"]).expect("the serve test needs the virtualenv's python with msgpack and numpy");
+    let big = body_of(&py, &dir.join("big.msgpack"), 1, 64, 64, 4, 14);
+    let before = health(&addr);
+    let r = http(&addr, "POST", "/v1/chunk", &big, None);
+    assert_eq!((r.status, r.content_type.as_str()), (413, "application/json"), "{}", r.text());
+    let error: Value = serde_json::from_slice(&r.body).unwrap();
+    let message = error["error"].as_str().unwrap();
+    assert!(message.contains("64x64") && message.contains("4096 pixels") && message.contains("2048") && message.contains("--max-frame-pixels"), "{message}");
+    let after = health(&addr);
+    for k in ["served", "failed", "timed_out"] {
+        assert_eq!(after[k], before[k], "{k}: the worker took up the refused request: {after}");
+    }
+    let line = request_lines(&log).into_iter().rev().find(|l| l.contains("path=/v1/chunk")).unwrap();
+    assert!(line.contains("status=413") && line.contains(&format!("bytes_in={} ", big.len())), "the log counts the bytes read: {line}");
+    // ... and the server goes on serving.
+    let r = http(&addr, "POST", "/v1/chunk", &good, None);
+    assert_eq!(r.status, 200, "{}", r.text());
 
     // Problems are named, with the right 4xx.
     let cases: [(&str, Reply, u16, &str); 12] = [
@@ -186,6 +262,12 @@ fn serve_round_trips_rejects_bad_requests_and_sheds_load() {
         let error: Value = serde_json::from_slice(&reply.body).unwrap_or_else(|_| panic!("{what}: {}", reply.text()));
         assert!(error["error"].as_str().unwrap().contains(message), "{what}: {error}");
     }
+    let nan_len = body("nan_actions.msgpack").len();
+    assert!(
+        request_lines(&log).iter().any(|l| l.contains("status=422") && l.contains(&format!("bytes_in={nan_len} "))),
+        "a refused request's line counts the bytes read: {:?}",
+        request_lines(&log)
+    );
     let wrong_method = http(&addr, "GET", "/v1/chunk", b"", None);
     assert_eq!(wrong_method.status, 405, "{}", wrong_method.text());
     let chunked = raw_exchange(&addr, b"POST /v1/chunk HTTP/1.1\r\nHost: x\r\nTransfer-Encoding: chunked\r\n\r\n5\r\nhello\r\n0\r\n\r\n");
@@ -279,4 +361,65 @@ fn serve_round_trips_rejects_bad_requests_and_sheds_load() {
     let text = std::fs::read_to_string(&log).unwrap();
     assert!(status.success() && text.contains("serve: stopped"), "{status}\n{text}");
     assert!(text.contains("serve: request method=POST path=/v1/chunk status=200 bytes_in="), "{text}");
+}
+
+/// A request past `--request-timeout-s` is answered 504 at its deadline, and the worker, held at
+/// the request's first sampler step until then, abandons it there instead of finishing it.
+#[test]
+fn a_request_past_its_time_limit_is_answered_504_and_abandoned() {
+    let Some(py) = python_with(Dep::Python, &["msgpack", "numpy"]) else { return };
+    let dir = temp_dir("serve-timeout");
+    let vae = dir.join("vae.safetensors");
+    write_random_vae(&vae, 4);
+    let log = dir.join("serve.stdout");
+    let hold = dir.join("hold");
+    let (_server, addr) = start_server(
+        &[OsStr::new("--random-weights"), OsStr::new("tiny"), OsStr::new("--vae"), vae.as_os_str()],
+        &["--request-timeout-s", "1", "--hold-while-exists", hold.to_str().unwrap()],
+        &log,
+    );
+    let h = health(&addr);
+    assert_eq!((h["max_frame_pixels"].as_u64(), h["request_timeout_s"].as_f64()), (Some(640 * 480), Some(1.0)), "random weights record no training resolution: 640x480: {h}");
+    let good = body_of(&py, &dir.join("good.msgpack"), 1, 32, 32, 4, 14);
+    std::fs::write(&hold, b"").unwrap();
+    let r = http(&addr, "POST", "/v1/chunk", &good, None);
+    assert_eq!(r.status, 504, "{}", r.text());
+    assert!(r.text().contains("--request-timeout-s 1"), "{}", r.text());
+    assert_eq!(health(&addr)["busy"], true, "the worker is still held");
+    std::fs::remove_file(&hold).unwrap();
+    let h = wait_health(&addr, "freed", |h| h["busy"] == false);
+    assert_eq!((h["timed_out"].as_u64(), h["served"].as_u64(), h["failed"].as_u64()), (Some(1), Some(0), Some(0)), "{h}");
+    let text = std::fs::read_to_string(&log).unwrap();
+    assert!(text.contains("abandoned at sampler step 1 of 2"), "{text}");
+    assert!(request_lines(&log).iter().any(|l| l.contains("status=504") && l.contains(&format!("bytes_in={} ", good.len()))), "{text}");
+}
+
+/// With a trained checkpoint and no --max-frame-pixels, frames are bounded by the training
+/// resolution its run recorded (the latent cache's 64x64): larger ones are refused with 413,
+/// frames of that size are served.
+#[test]
+fn a_checkpoints_frames_are_bounded_by_its_training_resolution() {
+    let Some(py) = python_with(Dep::Python, &["msgpack", "numpy"]) else { return };
+    let dir = temp_dir("serve-trained");
+    write_cache(&dir.join("cache"));
+    let run = dir.join("run");
+    let trained = Command::new(bwm()).args(["train", "--config"]).arg(write_config(&dir, "run.toml", &run, 1, 1)).output().unwrap();
+    assert!(trained.status.success(), "{}", String::from_utf8_lossy(&trained.stderr));
+    let checkpoint: PathBuf = run.join("checkpoints/step-00000001");
+    let vae = dir.join("vae.safetensors");
+    write_random_vae(&vae, 4);
+    let log = dir.join("serve.stdout");
+    let (_server, addr) =
+        start_server(&[OsStr::new("--checkpoint"), checkpoint.as_os_str(), OsStr::new("--vae"), vae.as_os_str()], &[], &log);
+    let h = health(&addr);
+    assert_eq!(h["max_frame_pixels"], 64 * 64, "{h}");
+    let wide = body_of(&py, &dir.join("wide.msgpack"), 1, 64, 96, 4, 14);
+    let r = http(&addr, "POST", "/v1/chunk", &wide, None);
+    assert_eq!(r.status, 413, "{}", r.text());
+    assert!(r.text().contains("64x96") && r.text().contains("training resolution 64x64"), "{}", r.text());
+    let fits = body_of(&py, &dir.join("fits.msgpack"), 1, 64, 64, 4, 14);
+    let r = http(&addr, "POST", "/v1/chunk", &fits, None);
+    assert_eq!(r.status, 200, "{}", r.text());
+    let h = health(&addr);
+    assert_eq!((h["served"].as_u64(), h["failed"].as_u64()), (Some(1), Some(0)), "{h}");
 }

@@ -10,6 +10,7 @@ use bwm_model::{frame_timesteps, BwmModel, ModelConfig, ParamStore};
 use bwm_trainer::devices::synchronize as sync;
 use tch::{Device, Kind, Tensor};
 
+use crate::fallible::{alloc_error, guarded, probe};
 use crate::WorldModel;
 
 /// Prints a model preset's tensor and parameter counts (DiT, action encoder); nothing is allocated.
@@ -67,23 +68,41 @@ pub struct ForwardOptions {
 pub fn forward(args: &ForwardOptions) -> Result<()> {
     let (device, kind) = (args.shape.device, args.shape.kind);
     let cfg = ModelConfig::preset(&args.preset)?;
-    ensure!(args.shape.frames % 4 == 1, "--frames {} must be 1+4k", args.shape.frames);
-    ensure!(args.shape.height % 32 == 0 && args.shape.width % 32 == 0, "--height and --width must be multiples of 32");
+    ensure!(args.shape.frames > 0 && args.shape.frames % 4 == 1, "--frames {} must be 1+4k", args.shape.frames);
+    ensure!(
+        args.shape.height > 0 && args.shape.width > 0 && args.shape.height % 32 == 0 && args.shape.width % 32 == 0,
+        "--height and --width must be positive multiples of 32"
+    );
+    ensure!(args.batch >= 1, "--batch must be at least 1");
+    ensure!(args.iters >= 1, "--iters must be at least 1");
     let latent_frames = (args.shape.frames - 1) / 4 + 1;
     let (lh, lw) = (args.shape.height / 16, args.shape.width / 16);
     let tokens = latent_frames * (lh / 2) * (lw / 2);
+    // The clip's latents are the first allocation its size decides: a size no memory holds is
+    // named here, before the weights are built.
+    let clip = format!("a {}x{}x{} clip", args.shape.frames, args.shape.height, args.shape.width);
+    let shape = [args.batch, cfg.dit.in_dim, latent_frames, lh, lw];
+    let latents_of = format!("bench-forward: the latents of {clip}");
+    probe(&latents_of, &shape, Kind::Float, device)?;
     let t0 = Instant::now();
     let model = BwmModel::random(&cfg, kind, device, 0)?;
     sync(device);
     eprintln!("built {} random weights ({} parameters) in {:.1}s", args.preset, model.store.num_parameters(), t0.elapsed().as_secs_f64());
 
-    let latents = Tensor::randn([args.batch, cfg.dit.in_dim, latent_frames, lh, lw], (Kind::Float, device));
-    let actions = Tensor::rand([args.batch, args.shape.frames, cfg.action.action_dim], (Kind::Float, device)) * 2.0 - 1.0;
+    let latents = Tensor::f_randn(shape, (Kind::Float, device)).map_err(|e| alloc_error(&latents_of, &shape, Kind::Float, device, e))?;
+    let action_shape = [args.batch, args.shape.frames, cfg.action.action_dim];
+    let actions = Tensor::f_rand(action_shape, (Kind::Float, device))
+        .map_err(|e| alloc_error(&format!("bench-forward: the actions of {clip}"), &action_shape, Kind::Float, device, e))?
+        * 2.0
+        - 1.0;
     let t = frame_timesteps(&Tensor::full([args.batch], 700.0, (Kind::Float, device)), latent_frames, args.condition_latents);
     let mut times = Vec::new();
     for i in 0..args.warmup + args.iters {
         let start = Instant::now();
-        let v = tch::no_grad(|| model.forward(&latents, &t, &actions))?;
+        let v = guarded(
+            || format!("bench-forward: the DiT forward of {clip} (latents {shape:?}, {tokens} tokens per sample)"),
+            || tch::no_grad(|| model.forward(&latents, &t, &actions)),
+        )?;
         sync(device);
         let dt = start.elapsed().as_secs_f64();
         ensure!(v.isfinite().all().int64_value(&[]) == 1, "non-finite output");
@@ -182,16 +201,19 @@ pub fn vae(args: &VaeBenchOptions) -> Result<()> {
 pub fn rollout(wm: &WorldModel, height: i64, width: i64, chunks: usize, batch: usize, streams: usize) -> Result<()> {
     ensure!(batch >= 1, "--batch must be at least 1");
     crate::lanes::check(batch, streams).map_err(|e| e.context("--batch and --streams"))?;
+    wm.check_frame_size(&format!("--height {height} --width {width}"), height, width, batch)?;
     let lanes = wm.lanes(streams)?;
     let d = wm.action_dim() as i64;
     tch::manual_seed(0);
     let a0 = Tensor::zeros([d], (Kind::Float, Device::Cpu));
+    let frame = [3, height, width];
     let mut rollouts = (0..batch)
         .map(|i| {
-            let x0 = Tensor::rand([3, height, width], (Kind::Float, Device::Cpu)) * 2.0 - 1.0;
+            let x0 = Tensor::f_rand(frame, (Kind::Float, Device::Cpu)).map_err(|e| alloc_error("bench-rollout: x0", &frame, Kind::Float, Device::Cpu, e))? * 2.0 - 1.0;
             wm.rollout_with(RolloutSpec { seed: wm.spec.seed.wrapping_add(i as u64), ..wm.spec.clone() }, &x0, &a0)
         })
         .collect::<Result<Vec<_>>>()?;
+    let chunk_of = || format!("bench-rollout: a chunk of {batch} rollout(s) of {height}x{width} (HxW) frames");
     let spec = wm.spec.clone();
     let dit = &wm.model.cfg.dit;
     let kernel = bwm_sdp::kernel_for_shape(dit.num_heads, dit.head_dim(), 1024, wm.model.store.kind(), wm.device)?;
@@ -216,7 +238,7 @@ pub fn rollout(wm: &WorldModel, height: i64, width: i64, chunks: usize, batch: u
         for i in 0..chunks {
             let actions: Vec<Tensor> = (0..batch).map(|_| Tensor::rand([spec.future as i64, d], (Kind::Float, Device::Cpu)) * 2.0 - 1.0).collect();
             let start = Instant::now();
-            let c = Rollout::next_chunks(&mut rollouts.iter_mut().collect::<Vec<_>>(), &actions)?.remove(0);
+            let c = guarded(chunk_of, || Rollout::next_chunks(&mut rollouts.iter_mut().collect::<Vec<_>>(), &actions))?.remove(0);
             let total = start.elapsed().as_secs_f64();
             println!(
                 "chunk {i}: {total:.2} s = encode {:.2} s + DiT {:.2} s ({:.3} s/step) + decode {:.2} s; {} frames; {:.1} generated frames/s; device memory {}",
@@ -235,7 +257,8 @@ pub fn rollout(wm: &WorldModel, height: i64, width: i64, chunks: usize, batch: u
     let mut done = vec![0usize; chunks];
     let start = Instant::now();
     let mut last = 0.0;
-    crate::lanes::run_together(&lanes, &mut rollouts.iter_mut().collect::<Vec<_>>(), &actions, &mut |_, chunk| {
+    let mut rollouts: Vec<_> = rollouts.iter_mut().collect();
+    guarded(chunk_of, || crate::lanes::run_together(&lanes, &mut rollouts, &actions, &mut |_, chunk| {
         done[chunk.index] += 1;
         if done[chunk.index] == batch {
             let at = start.elapsed().as_secs_f64();
@@ -250,5 +273,5 @@ pub fn rollout(wm: &WorldModel, height: i64, width: i64, chunks: usize, batch: u
             last = at;
         }
         Ok(())
-    })
+    }))
 }

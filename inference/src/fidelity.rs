@@ -83,6 +83,7 @@ pub fn run(options: &WorldModelOptions, a: &FidelityOptions) -> Result<()> {
         ensure!(e < infos.len(), "--episodes {e}: the dataset has {} episodes", infos.len());
     }
     let wm = options.load()?;
+    wm.check_frame_size(&format!("--resolution {}", a.resolution), size.1 as i64, size.0 as i64, 2 * a.in_flight)?;
     let lanes = wm.lanes(a.streams)?;
     println!(
         "fidelity: {} episodes of {}; chunks of {} frames, {} history frames, {} sampler steps, {} episode(s) in flight in {} stream(s)",

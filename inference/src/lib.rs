@@ -9,7 +9,8 @@
 //! against the real frames) and the policy evaluator ([`evaluate::run`]: policies served over
 //! openpi's websocket protocol in closed loop, judged, with per-task success rates); each is what
 //! the `bwm` subcommand of the same name runs; [`lanes`] splits their episodes in flight into lanes
-//! that take turns on CUDA streams of their own. [`bench`](mod@bench) times the DiT, the VAE and whole rollout
+//! that take turns on CUDA streams of their own; [`fallible`] turns libtorch's failures (an
+//! allocation a user's sizes make impossible) into errors naming the size. [`bench`](mod@bench) times the DiT, the VAE and whole rollout
 //! chunks; [`demo`] is `bwm demo`. `examples/step.rs` steps a tiny random model twice and writes
 //! the frames:
 //!
@@ -27,6 +28,7 @@
 pub mod bench;
 pub mod demo;
 pub mod evaluate;
+pub mod fallible;
 pub mod fidelity;
 pub mod graphed;
 pub mod lanes;

@@ -125,6 +125,8 @@ pub fn run(options: &WorldModelOptions, a: &RolloutOptions) -> Result<()> {
     ensure!(a.in_flight >= 1, "episodes in flight must be at least 1");
     crate::lanes::check(a.in_flight, a.streams)?;
     let wm = options.load()?;
+    // Before any frame is resized to it: an impossible size is named, not an aborted allocation.
+    wm.check_frame_size(&format!("--resolution {}", a.resolution), size.1 as i64, size.0 as i64, a.in_flight)?;
     let lanes = wm.lanes(a.streams)?;
     println!(
         "rollout: {} on {:?}; chunks of {} frames, {} history frames, {} sampler steps, {} episode(s) in flight in {} stream(s)",
@@ -210,6 +212,13 @@ pub fn generate_frames_together(
     episodes: &[(&RgbImage, Tensor)],
     progress: &mut dyn FnMut(usize, usize, usize),
 ) -> Result<Vec<Vec<RgbImage>>> {
+    let mut sizes: Vec<String> = episodes.iter().map(|(x0, _)| format!("{}x{}", x0.height(), x0.width())).collect();
+    sizes.dedup();
+    let what = || format!("generating {} episode(s) of {} (HxW) frames", episodes.len(), sizes.join(", "));
+    crate::fallible::guarded(what, || generate_together(wm, lanes, episodes, progress))
+}
+
+fn generate_together(wm: &WorldModel, lanes: &Lanes, episodes: &[(&RgbImage, Tensor)], progress: &mut dyn FnMut(usize, usize, usize)) -> Result<Vec<Vec<RgbImage>>> {
     let mut rollouts = Vec::with_capacity(episodes.len());
     let mut after_x0 = Vec::with_capacity(episodes.len());
     for (x0, normalized) in episodes {

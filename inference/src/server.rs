@@ -6,12 +6,22 @@
 //! client that sends half a request costs a task, not a thread: while many such clients wait,
 //! /health and real requests are answered. A body over the limit is refused from its
 //! Content-Length before any of it is read, and bounded while it streams; a client gets
-//! --read-timeout-s to send its whole request (408 after). SIGTERM or Ctrl-C stops accepting,
-//! lets requests in flight finish and closes the connections that have not sent one.
+//! --read-timeout-s to send its whole request (408 after). Each request's work is bounded before
+//! the worker sees it: frames over --max-frame-pixels (default: the training resolution) are
+//! refused with 413, and only x0 and the last H given frames are turned into pixels. A request
+//! not answered within --request-timeout-s of its admission is answered 504, and the worker
+//! abandons it: before it starts, or at its next sampler step (the encode and the decode run to
+//! their end). libtorch's failures (an allocation out of memory) are errors naming the request's
+//! size, not panics. SIGTERM or Ctrl-C stops accepting, lets requests in flight finish and closes
+//! the connections that have not sent one.
 
+use std::cell::RefCell;
 use std::convert::Infallible;
+use std::fmt;
 use std::future::Future;
+use std::path::PathBuf;
 use std::pin::Pin;
+use std::rc::Rc;
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::mpsc::{self, Sender};
 use std::sync::Arc;
@@ -19,7 +29,10 @@ use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Context, Result};
 use bytes::Bytes;
-use http_body_util::{BodyExt, Full, LengthLimitError, Limited};
+use bwm_model::rollout::Rollout;
+use bwm_model::sampler::{Denoiser, Eager};
+use bwm_model::BwmModel;
+use http_body_util::{BodyExt, Full};
 use hyper::body::Incoming;
 use hyper::header::{HeaderValue, CONNECTION, CONTENT_LENGTH, CONTENT_TYPE, TRANSFER_ENCODING};
 use hyper::{Method, Request, Response, StatusCode};
@@ -29,6 +42,8 @@ use tch::{Kind, Tensor};
 use tokio::io::AsyncWriteExt;
 use tokio::sync::{oneshot, watch};
 
+use crate::fallible::{alloc_error, guarded};
+use crate::graphed::GraphedDenoiser;
 use crate::msgpack_numpy::{self, map_get, scalar, str_map, Dtype, NdArray};
 use crate::world_model::{tensor_rows, WorldModel, WorldModelOptions};
 
@@ -46,13 +61,35 @@ pub struct ServeOptions {
     pub max_connections: usize,
     /// Seconds a client may take to send its request (408 after).
     pub read_timeout_s: u64,
+    /// Largest frame in pixels (height x width; 413 above it). None: the training resolution's,
+    /// where the weights record it, else 640 x 480.
+    pub max_frame_pixels: Option<usize>,
+    /// Seconds from a request's admission to its answer (504 after; the worker abandons it).
+    /// 0: no limit.
+    pub request_timeout_s: u64,
+    /// A test hook: while this file exists, the worker waits before each sampler step, so that a
+    /// test can hold it busy for as long as it needs.
+    pub hold_while_exists: Option<PathBuf>,
 }
 
 impl Default for ServeOptions {
     fn default() -> Self {
-        Self { host: "127.0.0.1".into(), port: 8080, queue: 4, max_body_bytes: 256 << 20, max_connections: 512, read_timeout_s: 60 }
+        Self {
+            host: "127.0.0.1".into(),
+            port: 8080,
+            queue: 4,
+            max_body_bytes: 256 << 20,
+            max_connections: 512,
+            read_timeout_s: 60,
+            max_frame_pixels: None,
+            request_timeout_s: 300,
+            hold_while_exists: None,
+        }
     }
 }
+
+/// The frame budget of weights that record no training resolution: 640 x 480.
+pub const DEFAULT_MAX_FRAME_PIXELS: usize = 640 * 480;
 
 /// Request heads above these are answered 431 (by hyper).
 const MAX_HEAD: usize = 16 << 10;
@@ -74,6 +111,8 @@ struct ChunkRequest {
 struct Job {
     request: ChunkRequest,
     received: Instant,
+    /// When the request's time limit ends (None: no limit).
+    deadline: Option<Instant>,
     reply: oneshot::Sender<Result<Vec<u8>, ApiError>>,
 }
 
@@ -105,6 +144,11 @@ struct ModelInfo {
     guidance: f64,
     history_sigma: Option<f64>,
     stats: bool,
+    /// Largest frame in pixels, and where that bound comes from.
+    max_frame_pixels: usize,
+    frame_budget: String,
+    /// The per-request time limit (None: none).
+    request_timeout: Option<Duration>,
 }
 
 #[derive(Default)]
@@ -116,6 +160,8 @@ struct Counters {
     served: AtomicU64,
     rejected_busy: AtomicU64,
     failed: AtomicU64,
+    /// Requests answered 504: abandoned by the worker past their time limit.
+    timed_out: AtomicU64,
 }
 
 struct Shared {
@@ -143,6 +189,8 @@ pub fn serve(wm: &WorldModelOptions, a: &ServeOptions) -> Result<()> {
     let wm_args = wm.clone();
     let counters = Arc::new(Counters::default());
     let worker_counters = counters.clone();
+    let request_timeout = (a.request_timeout_s > 0).then(|| Duration::from_secs(a.request_timeout_s));
+    let (max_frame_pixels, hold) = (a.max_frame_pixels, a.hold_while_exists.clone());
     std::thread::Builder::new()
         .name("model".into())
         .spawn(move || {
@@ -174,26 +222,64 @@ pub fn serve(wm: &WorldModelOptions, a: &ServeOptions) -> Result<()> {
                 guidance: wm.spec.guidance,
                 history_sigma: wm.spec.history_sigma,
                 stats: wm.stats.is_some(),
+                max_frame_pixels: 0,
+                frame_budget: String::new(),
+                request_timeout,
+            };
+            let info = match (max_frame_pixels, wm.trained_resolution) {
+                (Some(n), _) => ModelInfo { max_frame_pixels: n, frame_budget: "--max-frame-pixels".into(), ..info },
+                (None, Some((w, h))) => ModelInfo {
+                    max_frame_pixels: w as usize * h as usize,
+                    frame_budget: format!("the training resolution {w}x{h} (WxH); --max-frame-pixels sets another"),
+                    ..info
+                },
+                (None, None) => ModelInfo {
+                    max_frame_pixels: DEFAULT_MAX_FRAME_PIXELS,
+                    frame_budget: "640x480: the weights record no training resolution; --max-frame-pixels sets another".into(),
+                    ..info
+                },
             };
             if ready_tx.send(Ok(info)).is_err() {
                 return;
             }
             let counters = worker_counters;
             for job in job_rx {
-                if job.reply.is_closed() {
-                    // The client went away while its request waited: nobody reads this chunk.
+                let past = |job: &Job| job.deadline.is_some_and(|d| Instant::now() >= d);
+                if job.reply.is_closed() || past(&job) {
+                    // The client went away while its request waited, or was answered 504: nobody
+                    // reads this chunk.
+                    if past(&job) {
+                        counters.timed_out.fetch_add(1, Ordering::SeqCst);
+                        println!("serve: request abandoned before it started: past its time limit (--request-timeout-s)");
+                    }
                     counters.pending.fetch_sub(1, Ordering::SeqCst);
                     continue;
                 }
                 counters.busy.store(true, Ordering::SeqCst);
                 let queued = job.received.elapsed().as_secs_f64();
-                let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                    generate(&wm, &job.request, queued)
-                }))
-                .unwrap_or_else(|_| Err(api(500, "the model worker panicked on this request")));
-                match &result {
-                    Ok(_) => counters.served.fetch_add(1, Ordering::SeqCst),
-                    Err(_) => counters.failed.fetch_add(1, Ordering::SeqCst),
+                let watch = Watch { deadline: job.deadline, hold: hold.clone() };
+                // A panic that is not libtorch's (those are errors already) still answers 500.
+                let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| generate(&wm, &job.request, queued, watch)))
+                    .unwrap_or_else(|_| Err(api(500, "the model worker panicked on this request")));
+                let result = match result {
+                    Err(e) if e.status == 504 => {
+                        counters.timed_out.fetch_add(1, Ordering::SeqCst);
+                        println!("serve: request {}", e.message);
+                        Err(e)
+                    }
+                    Ok(_) if past(&job) => {
+                        counters.timed_out.fetch_add(1, Ordering::SeqCst);
+                        println!("serve: request finished past its time limit (--request-timeout-s) and was dropped: its client was answered 504");
+                        Err(api(504, "past the time limit"))
+                    }
+                    Ok(out) => {
+                        counters.served.fetch_add(1, Ordering::SeqCst);
+                        Ok(out)
+                    }
+                    Err(e) => {
+                        counters.failed.fetch_add(1, Ordering::SeqCst);
+                        Err(e)
+                    }
                 };
                 counters.busy.store(false, Ordering::SeqCst);
                 counters.pending.fetch_sub(1, Ordering::SeqCst);
@@ -218,7 +304,7 @@ pub fn serve(wm: &WorldModelOptions, a: &ServeOptions) -> Result<()> {
         jobs: job_tx,
     });
     println!(
-        "serve: {} on {} ({}), d_a = {}, H = {}, K = {}, {} steps; queue {}, body limit {} bytes",
+        "serve: {} on {} ({}), d_a = {}, H = {}, K = {}, {} steps; queue {}, body limit {} bytes, frames up to {} pixels ({}), {}",
         info.model,
         info.device,
         info.dtype,
@@ -227,7 +313,13 @@ pub fn serve(wm: &WorldModelOptions, a: &ServeOptions) -> Result<()> {
         info.future,
         info.sample_steps,
         a.queue,
-        a.max_body_bytes
+        a.max_body_bytes,
+        info.max_frame_pixels,
+        info.frame_budget,
+        match info.request_timeout {
+            Some(t) => format!("{} s per request", t.as_secs()),
+            None => "no time limit per request".into(),
+        }
     );
     // Two threads: the HTTP side only parses, checks and hands requests to the model worker.
     let runtime = tokio::runtime::Builder::new_multi_thread()
@@ -369,9 +461,10 @@ fn reply(status: u16, content_type: &'static str, body: Vec<u8>) -> Reply {
 async fn handle(req: Request<Incoming>, shared: Arc<Shared>, arrived: Instant) -> Result<Reply, Infallible> {
     let (method, path) = (req.method().clone(), req.uri().path().to_string());
     let start = Instant::now();
-    let (response, bytes_in) = match route(req, &shared, arrived).await {
-        Ok((r, n)) => (r, n),
-        Err(e) => (reply(e.status, "application/json", error_json(&e).into_bytes()), 0),
+    let mut bytes_in = 0;
+    let response = match route(req, &shared, arrived, &mut bytes_in).await {
+        Ok(r) => r,
+        Err(e) => reply(e.status, "application/json", error_json(&e).into_bytes()),
     };
     println!(
         "serve: request method={method} path={path} status={} bytes_in={bytes_in} bytes_out={} ms={:.1}",
@@ -382,11 +475,12 @@ async fn handle(req: Request<Incoming>, shared: Arc<Shared>, arrived: Instant) -
     Ok(response)
 }
 
-async fn route(req: Request<Incoming>, shared: &Shared, arrived: Instant) -> Result<(Reply, usize), ApiError> {
+/// Answers one request; `bytes_in` counts the body bytes read, whatever the answer.
+async fn route(req: Request<Incoming>, shared: &Shared, arrived: Instant, bytes_in: &mut usize) -> Result<Reply, ApiError> {
     let path = req.uri().path();
     match (req.method(), path) {
-        (&Method::GET, "/health") => Ok((reply(200, "application/json", health(shared).into_bytes()), 0)),
-        (&Method::POST, "/v1/chunk") => chunk(req, shared, arrived).await,
+        (&Method::GET, "/health") => Ok(reply(200, "application/json", health(shared).into_bytes())),
+        (&Method::POST, "/v1/chunk") => chunk(req, shared, arrived, bytes_in).await,
         (m, "/health" | "/v1/chunk") => {
             let allowed = if path == "/health" { "GET" } else { "POST" };
             Err(api(405, format!("{m} {path} is not served; use {allowed}")))
@@ -411,19 +505,22 @@ fn health(shared: &Shared) -> String {
         "guidance": i.guidance,
         "history_sigma": i.history_sigma,
         "stats": i.stats,
+        "max_frame_pixels": i.max_frame_pixels,
+        "request_timeout_s": i.request_timeout.map(|t| t.as_secs()),
         "queue_depth": c.pending.load(Ordering::SeqCst).saturating_sub(usize::from(c.busy.load(Ordering::SeqCst))),
         "queue_capacity": shared.queue_capacity,
         "busy": c.busy.load(Ordering::SeqCst),
         "served": c.served.load(Ordering::SeqCst),
         "rejected_busy": c.rejected_busy.load(Ordering::SeqCst),
         "failed": c.failed.load(Ordering::SeqCst),
+        "timed_out": c.timed_out.load(Ordering::SeqCst),
     })
     .to_string()
 }
 
-/// Reads the body within the limit and the rest of the read timeout, checks it and waits for
-/// the model worker's answer.
-async fn chunk(req: Request<Incoming>, shared: &Shared, arrived: Instant) -> Result<(Reply, usize), ApiError> {
+/// Reads the body within the limit and the rest of the read timeout (counting what it read into
+/// `bytes_in`), checks it and waits for the model worker's answer until the request's time limit.
+async fn chunk(req: Request<Incoming>, shared: &Shared, arrived: Instant, bytes_in: &mut usize) -> Result<Reply, ApiError> {
     if req.headers().contains_key(TRANSFER_ENCODING) {
         return Err(api(411, "send the body with a Content-Length (chunked transfer encoding is not supported)"));
     }
@@ -439,16 +536,26 @@ async fn chunk(req: Request<Incoming>, shared: &Shared, arrived: Instant) -> Res
     if declared > max as u64 {
         return Err(api(413, format!("request body of {declared} bytes exceeds the limit of {max} bytes (--max-body-bytes)")));
     }
-    let left = shared.read_timeout.saturating_sub(arrived.elapsed());
-    let body = match tokio::time::timeout(left, Limited::new(req.into_body(), max).collect()).await {
-        Err(_) => return Err(api(408, format!("the request body did not arrive within {} s (--read-timeout-s)", shared.read_timeout.as_secs()))),
-        Ok(Err(e)) if e.downcast_ref::<LengthLimitError>().is_some() => {
-            return Err(api(413, format!("request body exceeds the limit of {max} bytes (--max-body-bytes)")))
+    let deadline = tokio::time::Instant::from_std(arrived + shared.read_timeout);
+    let mut incoming = req.into_body();
+    let mut body = Vec::with_capacity(declared as usize);
+    loop {
+        let frame = match tokio::time::timeout_at(deadline, incoming.frame()).await {
+            Err(_) => return Err(api(408, format!("the request body did not arrive within {} s (--read-timeout-s)", shared.read_timeout.as_secs()))),
+            Ok(None) => break,
+            Ok(Some(Err(e))) => return Err(api(400, format!("reading the request body: {e}"))),
+            Ok(Some(Ok(frame))) => frame,
+        };
+        if let Ok(data) = frame.into_data() {
+            *bytes_in += data.len();
+            if body.len() + data.len() > max {
+                return Err(api(413, format!("request body exceeds the limit of {max} bytes (--max-body-bytes)")));
+            }
+            body.extend_from_slice(&data);
         }
-        Ok(Err(e)) => return Err(api(400, format!("reading the request body: {e}"))),
-        Ok(Ok(collected)) => collected.to_bytes(),
-    };
+    }
     let request = parse_chunk(&body, &shared.info)?;
+    drop(body);
     let capacity = shared.queue_capacity + 1;
     let admitted = shared
         .counters
@@ -463,13 +570,31 @@ async fn chunk(req: Request<Incoming>, shared: &Shared, arrived: Instant) -> Res
         ));
     }
     let (tx, rx) = oneshot::channel();
-    let job = Job { request, received: Instant::now(), reply: tx };
+    let received = Instant::now();
+    let limit = shared.info.request_timeout;
+    let job = Job { request, received, deadline: limit.map(|l| received + l), reply: tx };
     if shared.jobs.send(job).is_err() {
         shared.counters.pending.fetch_sub(1, Ordering::SeqCst);
         return Err(api(500, "the model worker stopped"));
     }
-    match rx.await {
-        Ok(Ok(out)) => Ok((reply(200, "application/msgpack", out), body.len())),
+    let answer = match limit {
+        Some(l) => match tokio::time::timeout_at(tokio::time::Instant::from_std(received + l), rx).await {
+            Ok(answer) => answer,
+            Err(_) => {
+                return Err(api(
+                    504,
+                    format!(
+                        "the request was not answered within its time limit of {} s from admission (--request-timeout-s {}); the model worker abandons it",
+                        l.as_secs(),
+                        l.as_secs()
+                    ),
+                ))
+            }
+        },
+        None => rx.await,
+    };
+    match answer {
+        Ok(Ok(out)) => Ok(reply(200, "application/msgpack", out)),
         Ok(Err(e)) => Err(e),
         Err(_) => Err(api(500, "the model worker stopped")),
     }
@@ -519,6 +644,16 @@ fn parse_chunk(body: &[u8], info: &ModelInfo) -> Result<ChunkRequest, ApiError> 
         return Err(api(
             422,
             format!("frames are {h}x{w} (HxW); height and width must be positive multiples of 32"),
+        ));
+    }
+    let pixels = h.saturating_mul(w);
+    if pixels > info.max_frame_pixels {
+        return Err(api(
+            413,
+            format!(
+                "frames are {h}x{w} (HxW), {pixels} pixels; this server takes at most {} pixels per frame ({})",
+                info.max_frame_pixels, info.frame_budget
+            ),
         ));
     }
     let actions = msgpack_numpy::array_at(&v, "actions").map_err(|e| api(422, format!("{e:#}")))?;
@@ -592,67 +727,122 @@ fn parse_chunk(body: &[u8], info: &ModelInfo) -> Result<ChunkRequest, ApiError> 
     })
 }
 
-fn generate(wm: &WorldModel, req: &ChunkRequest, queued: f64) -> Result<Vec<u8>, ApiError> {
-    let start = Instant::now();
-    let failed = |e: anyhow::Error| api(500, format!("generation failed: {e:#}"));
-    let (t, h, w) = (req.t as i64, req.h as i64, req.w as i64);
-    let frames = (Tensor::from_slice(&req.frames)
-        .view([t, h, w, 3])
-        .permute([3, 0, 1, 2])
-        .to_kind(Kind::Float)
-        / 127.5
-        - 1.0)
-        .contiguous();
-    let actions = if req.normalized {
-        wm.rows_to_tensor(req.actions.clone())
-    } else {
-        wm.normalize(&req.actions)
+/// What the worker watches while it generates a request: its deadline and the test hook's file.
+struct Watch {
+    deadline: Option<Instant>,
+    hold: Option<PathBuf>,
+}
+
+/// A request abandoned at a sampler step, past its time limit.
+#[derive(Debug)]
+struct PastDeadline {
+    step: usize,
+    steps: usize,
+}
+
+impl fmt::Display for PastDeadline {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "abandoned at sampler step {} of {}: past its time limit (--request-timeout-s)", self.step, self.steps)
     }
-    .map_err(failed)?;
-    let spec = bwm_model::rollout::RolloutSpec {
-        seed: req.seed.unwrap_or(wm.spec.seed),
-        ..wm.spec.clone()
-    };
-    let mut rollout = wm.rollout_with(spec, &frames.select(1, 0), &actions.get(0)).map_err(failed)?;
-    if t > 1 {
-        rollout = rollout
-            .with_history(&frames.narrow(1, 1, t - 1), &actions.narrow(0, 1, t - 1))
-            .map_err(failed)?;
+}
+
+impl std::error::Error for PastDeadline {}
+
+/// The sampler's forward passes of one request (eager, or replayed from the model's CUDA graphs),
+/// each begun only within the request's time limit.
+struct Watched {
+    inner: Option<Rc<RefCell<GraphedDenoiser>>>,
+    watch: Watch,
+    step: usize,
+    steps: usize,
+}
+
+impl Denoiser for Watched {
+    fn velocity(&mut self, model: &BwmModel, latents: &Tensor, frame_timesteps: &Tensor, actions: &Tensor, keep: Option<&Tensor>) -> anyhow::Result<Tensor> {
+        if let Some(hold) = &self.watch.hold {
+            while hold.exists() {
+                std::thread::sleep(Duration::from_millis(10));
+            }
+        }
+        self.step += 1;
+        if self.watch.deadline.is_some_and(|d| Instant::now() >= d) {
+            return Err(PastDeadline { step: self.step, steps: self.steps }.into());
+        }
+        match &self.inner {
+            Some(graphed) => graphed.borrow_mut().velocity(model, latents, frame_timesteps, actions, keep),
+            None => Eager.velocity(model, latents, frame_timesteps, actions, keep),
+        }
+    }
+}
+
+/// x0 and the last H of the given frames (the only ones a chunk's condition reads) as [3, n, H, W]
+/// in [-1, 1], through tch's fallible calls.
+fn request_frames(req: &ChunkRequest, history: usize) -> anyhow::Result<Tensor> {
+    let frame = req.h * req.w * 3;
+    let kept = (req.t - 1).min(history);
+    let mut bytes = Vec::with_capacity((1 + kept) * frame);
+    bytes.extend_from_slice(&req.frames[..frame]);
+    bytes.extend_from_slice(&req.frames[(req.t - kept) * frame..req.t * frame]);
+    let shape = [(1 + kept) as i64, req.h as i64, req.w as i64, 3];
+    let failed = |e| alloc_error("the request's frames", &[3, shape[0], shape[1], shape[2]], Kind::Float, tch::Device::Cpu, e);
+    let t = Tensor::f_from_slice(&bytes).and_then(|t| t.f_view(shape)).map_err(failed)?;
+    let t = t.f_permute([3, 0, 1, 2]).and_then(|t| t.f_to_kind(Kind::Float)).map_err(failed)?;
+    t.f_div_scalar(127.5).and_then(|t| t.f_sub_scalar(1.0)).and_then(|t| t.f_contiguous()).map_err(failed)
+}
+
+/// One request's chunk: the frames as uint8 [n, H, W, 3] bytes with n, the actions as sent or as
+/// applied, and the phases' seconds.
+struct Generated {
+    pixels: Vec<u8>,
+    n: usize,
+    actions: Vec<Vec<f32>>,
+    seconds: [f64; 3],
+}
+
+/// Generates `req`'s chunk where libtorch's failures are errors (`fallible::guarded`): the whole
+/// of the work with tensors, from the request's pixels to the reply's bytes.
+fn generate_chunk(wm: &WorldModel, req: &ChunkRequest, watch: Watch) -> anyhow::Result<Generated> {
+    let t = req.t as i64;
+    let frames = request_frames(req, wm.spec.history)?;
+    let kept = frames.size()[1] - 1;
+    let actions = if req.normalized { wm.rows_to_tensor(req.actions.clone()) } else { wm.normalize(&req.actions) }?;
+    let spec = bwm_model::rollout::RolloutSpec { seed: req.seed.unwrap_or(wm.spec.seed), ..wm.spec.clone() };
+    let steps = spec.steps;
+    let denoiser = Watched { inner: wm.graphed.clone(), watch, step: 0, steps };
+    let mut rollout = Rollout::new(&wm.model, &wm.vae, spec, &frames.select(1, 0), &actions.get(0))?.with_denoiser(Rc::new(RefCell::new(denoiser)));
+    if kept > 0 {
+        rollout = rollout.with_history(&frames.narrow(1, 1, kept), &actions.narrow(0, t - kept, kept))?;
     }
     let n = actions.size()[0] - t;
-    let chunk = rollout
-        .next_chunk(&actions.narrow(0, t, n))
-        .map_err(failed)?;
+    let chunk = rollout.next_chunk(&actions.narrow(0, t, n))?;
     let pixels = bwm_data::frames::unit_to_u8(&chunk.frames).permute([1, 2, 3, 0]).contiguous();
-    let pixels = Vec::<u8>::try_from(pixels.view([-1])).map_err(|e| failed(e.into()))?;
-    let applied = if req.normalized {
-        tensor_rows(&chunk.actions)
-    } else {
-        Ok(req.actions[req.t..].to_vec())
-    }
-    .map_err(failed)?;
+    let pixels = Vec::<u8>::try_from(pixels.view([-1]))?;
+    let actions = if req.normalized { tensor_rows(&chunk.actions)? } else { req.actions[req.t..].to_vec() };
+    Ok(Generated { pixels, n: n as usize, actions, seconds: [chunk.encode_seconds, chunk.dit_seconds, chunk.decode_seconds] })
+}
+
+fn generate(wm: &WorldModel, req: &ChunkRequest, queued: f64, watch: Watch) -> Result<Vec<u8>, ApiError> {
+    let start = Instant::now();
+    let size = format!("{} given frame(s) of {}x{} (HxW), {} action rows", req.t, req.h, req.w, req.actions.len());
+    let failed = |e: anyhow::Error| api(500, format!("generation failed ({size}): {e:#}"));
+    let g = guarded(|| format!("generating the chunk of {size}"), || generate_chunk(wm, req, watch)).map_err(|e| {
+        match e.chain().find_map(|c| c.downcast_ref::<PastDeadline>()) {
+            Some(past) => api(504, past.to_string()),
+            None => failed(e),
+        }
+    })?;
     let d = wm.action_dim();
-    let flat: Vec<f32> = applied.into_iter().flatten().collect();
+    let flat: Vec<f32> = g.actions.into_iter().flatten().collect();
     let timings = str_map(vec![
         ("queue_s", Value::F64(queued)),
-        ("encode_s", Value::F64(chunk.encode_seconds)),
-        ("dit_s", Value::F64(chunk.dit_seconds)),
-        ("decode_s", Value::F64(chunk.decode_seconds)),
+        ("encode_s", Value::F64(g.seconds[0])),
+        ("dit_s", Value::F64(g.seconds[1])),
+        ("decode_s", Value::F64(g.seconds[2])),
         ("total_s", Value::F64(start.elapsed().as_secs_f64())),
     ]);
     let out = str_map(vec![
-        (
-            "frames",
-            NdArray::from_u8(vec![n as usize, req.h, req.w, 3], pixels)
-                .map_err(failed)?
-                .to_value(),
-        ),
-        (
-            "actions",
-            NdArray::from_f32(vec![n as usize, d], &flat)
-                .map_err(failed)?
-                .to_value(),
-        ),
+        ("frames", NdArray::from_u8(vec![g.n, req.h, req.w, 3], g.pixels).map_err(failed)?.to_value()),
+        ("actions", NdArray::from_f32(vec![g.n, d], &flat).map_err(failed)?.to_value()),
         ("normalized", Value::Boolean(req.normalized)),
         ("timings", timings),
     ]);
@@ -677,6 +867,9 @@ mod tests {
             guidance: 1.0,
             history_sigma: Some(0.2),
             stats: false,
+            max_frame_pixels: 2048,
+            frame_budget: "--max-frame-pixels".into(),
+            request_timeout: None,
         }
     }
 
@@ -764,5 +957,30 @@ mod tests {
         .contains("'seed'"));
         let ints = NdArray::new(Dtype::I64, vec![2, 2], vec![0; 32]).unwrap();
         assert!(err(&body(frames(1, 32, 32), ints, yes())).contains("'actions' must be float32"));
+    }
+
+    #[test]
+    fn frames_over_the_pixel_budget_are_refused_with_413() {
+        let yes = || vec![("normalized", Value::Boolean(true))];
+        assert_eq!(err(&body(frames(1, 32, 64), actions(2, 2), yes())), "accepted", "2048 pixels: at the budget");
+        let e = err(&body(frames(1, 32, 96), actions(2, 2), yes()));
+        assert_eq!(e, "413 frames are 32x96 (HxW), 3072 pixels; this server takes at most 2048 pixels per frame (--max-frame-pixels)");
+        // The budget is checked before the actions are read.
+        assert!(err(&body(frames(1, 64, 64), actions(9, 5), yes())).starts_with("413 "));
+    }
+
+    #[test]
+    fn only_x0_and_the_last_h_given_frames_become_pixels() {
+        let mut data = Vec::new();
+        for i in 0..6u8 {
+            data.extend(std::iter::repeat(i * 40).take(32 * 32 * 3));
+        }
+        let req = ChunkRequest { frames: data, t: 6, h: 32, w: 32, actions: vec![vec![0.0; 2]; 7], normalized: true, seed: None };
+        let t = request_frames(&req, 2).unwrap();
+        assert_eq!(t.size(), [3, 3, 32, 32]);
+        let firsts: Vec<f64> = (0..3).map(|i| t.double_value(&[0, i, 0, 0])).collect();
+        let want = [0.0, 160.0, 200.0].map(|v: f64| v / 127.5 - 1.0);
+        assert!(firsts.iter().zip(want).all(|(a, b)| (a - b).abs() < 1e-6), "x0, then frames 4 and 5: {firsts:?}");
+        assert_eq!(request_frames(&req, 8).unwrap().size(), [3, 6, 32, 32], "fewer given than H: all of them");
     }
 }

@@ -6,7 +6,8 @@ use std::path::{Path, PathBuf};
 use std::rc::Rc;
 
 use anyhow::{bail, ensure, Context, Result};
-use bwm_checkpoints::open::{build_model, open_any, training_record, with_lora_adapters};
+use bwm_checkpoints::open::{build_model, open_any, training_record, with_lora_adapters, OpenedWeights};
+use bwm_checkpoints::run_info::CheckpointState;
 use bwm_data::ActionStats;
 use bwm_model::fp8::Fp8Scaling;
 use bwm_model::fp8_dit::quantize_dit_blocks;
@@ -130,6 +131,9 @@ pub struct WorldModel {
     pub fp8: Option<Fp8Scaling>,
     /// Runs the sampler's forward passes of every rollout from CUDA graphs (`--cuda-graph`).
     pub graphed: Option<Rc<RefCell<GraphedDenoiser>>>,
+    /// The frame size (width, height) the weights were trained at, where they record it (an
+    /// export's `conditioning.resolution`, a training checkpoint's latent cache).
+    pub trained_resolution: Option<(u32, u32)>,
 }
 
 impl WorldModelOptions {
@@ -178,18 +182,19 @@ impl WorldModelOptions {
         let preset = self.model_preset.as_deref().map(ModelConfig::preset).transpose()?;
         ensure!(self.lora.is_none() || self.checkpoint.is_some(), "--lora needs --checkpoint: the base weights its adapters go onto");
         // The residual stream the weights were trained with, unless --residual says otherwise.
-        let (mut model, trained, trained_history_sigma, trained_shift) = match (&self.checkpoint, &self.random_weights) {
+        let (mut model, trained, trained_history_sigma, trained_shift, trained_resolution) = match (&self.checkpoint, &self.random_weights) {
             (Some(ckpt), _) => {
                 let mut opened = open_any(ckpt).with_context(|| format!("--checkpoint {ckpt}"))?;
                 let record = training_record(&opened).with_context(|| format!("--checkpoint {ckpt}"))?;
+                let resolution = trained_resolution(&opened);
                 check_guidance(self.guidance, record.action_dropout).with_context(|| format!("--checkpoint {ckpt}"))?;
                 if let Some(adapters) = &self.lora {
                     opened = with_lora_adapters(opened, adapters).with_context(|| format!("--lora {}", adapters.display()))?;
                 }
                 let trained = record.residual.map(|r| r.parse::<Residual>().map_err(|e| anyhow::anyhow!("--checkpoint {ckpt}: model.residual {e}"))).transpose()?;
-                (build_model(opened, preset.as_ref(), kind, device).with_context(|| format!("--checkpoint {ckpt}"))?, trained, record.history_sigma, record.shift)
+                (build_model(opened, preset.as_ref(), kind, device).with_context(|| format!("--checkpoint {ckpt}"))?, trained, record.history_sigma, record.shift, resolution)
             }
-            (None, Some(name)) => (BwmModel::random(&random_model_config(name)?, kind, device, self.seed as i64)?, None, None, None),
+            (None, Some(name)) => (BwmModel::random(&random_model_config(name)?, kind, device, self.seed as i64)?, None, None, None, None),
             (None, None) => bail!("pass --checkpoint (trained weights) or --random-weights PRESET"),
         };
         let spec = self.spec(trained_history_sigma, trained_shift).context("the history noise and shift the weights were trained with")?;
@@ -222,8 +227,30 @@ impl WorldModelOptions {
             }
             None => None,
         };
-        Ok(WorldModel { model, vae, stats, spec, device, fp8: self.fp8, graphed })
+        Ok(WorldModel { model, vae, stats, spec, device, fp8: self.fp8, graphed, trained_resolution })
     }
+}
+
+/// The frame size (width, height) the opened weights were trained at: an export's
+/// `conditioning.resolution`, else the resolution of the latent cache a training checkpoint's run
+/// read (when that cache is still where the run found it). None when neither says.
+fn trained_resolution(opened: &OpenedWeights) -> Option<(u32, u32)> {
+    let pair = |v: &serde_json::Value| -> Option<(u32, u32)> {
+        let a = v.as_array()?;
+        match a.as_slice() {
+            [w, h] => Some((u32::try_from(w.as_u64()?).ok()?, u32::try_from(h.as_u64()?).ok()?)),
+            _ => None,
+        }
+    };
+    if let Some(r) = opened.repo_config.as_ref().and_then(|c| c.conditioning.as_ref()).and_then(|c| c.get("resolution")) {
+        return pair(r);
+    }
+    if !bwm_checkpoints::run_dir::is_training_checkpoint(&opened.location) {
+        return None;
+    }
+    let cache = CheckpointState::read(&opened.location).ok()?.run.latent_cache?;
+    let index: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(cache.join("index.json")).ok()?).ok()?;
+    pair(index.get("resolution")?)
 }
 
 impl WorldModel {
@@ -252,6 +279,20 @@ impl WorldModel {
         }
         let flat: Vec<f32> = rows.into_iter().flatten().collect();
         Ok(Tensor::from_slice(&flat).view([-1, d as i64]))
+    }
+
+    /// Checks, before any work, that rollouts of `batch` episodes at `height` x `width` fit the
+    /// model (multiples of 32) and that their chunk's frames can be held where the model runs: an
+    /// impossible size is an error naming it (`what`, e.g. the flag that set it), not a failed
+    /// allocation deep inside the first chunk.
+    pub fn check_frame_size(&self, what: &str, height: i64, width: i64, batch: usize) -> Result<()> {
+        ensure!(
+            height > 0 && width > 0 && height % 32 == 0 && width % 32 == 0,
+            "{what}: frames of {height}x{width} (HxW); rollouts need positive multiples of 32 (DiT patch x VAE stride)"
+        );
+        let frames = (1 + self.spec.history + self.spec.future) as i64;
+        let shape = [batch as i64, 3, frames, height, width];
+        crate::fallible::probe(&format!("{what}: frames of {height}x{width} (HxW): a chunk's frames"), &shape, Kind::Float, self.device)
     }
 
     /// A rollout from x0 `[3, H, W]` in [-1, 1] and its normalized action a0 `[d_a]`.

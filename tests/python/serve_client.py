@@ -4,6 +4,7 @@
                                         with the same seed; prints shapes, dtypes and whether the
                                         two replies are equal, as JSON
   serve_client.py bodies DIR T K D      request bodies for the error cases (and a good one) as files
+  serve_client.py body FILE T H W K D   a good request body of T given HxW frames and T + K actions
 """
 
 import json
@@ -108,5 +109,10 @@ if __name__ == "__main__":
         roundtrip(rest[0], *map(int, rest[1:4]))
     elif cmd == "bodies":
         bodies(rest[0], *map(int, rest[1:4]))
+    elif cmd == "body":
+        t, h, w, k, d = map(int, rest[1:6])
+        frames, actions = inputs(t, k, d, h, w)
+        with open(rest[0], "wb") as f:
+            f.write(msgpack.packb({"frames": frames, "actions": actions, "normalized": True}, default=pack_array))
     else:
         sys.exit(f"unknown command {cmd}")

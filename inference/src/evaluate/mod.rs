@@ -3,7 +3,9 @@
 //! frame (split into its camera views, resized) with the policy's last command as its state,
 //! turn the returned action chunk into poses (the adapter), generate that many frames, and ask
 //! the judge, until the horizon or a success. A failed episode (server error, disconnect, bad
-//! reply) is recorded as a failure and the next episode reconnects.
+//! reply) is recorded as a failure and the next episode reconnects; once every episode is
+//! recorded, episodes that ended on an error are summed up by kind (connection, policy, world
+//! model, judge, set-up) and make the evaluation fail.
 
 mod adapter;
 mod config;
@@ -29,7 +31,7 @@ use crate::world_model::{WorldModel, WorldModelOptions};
 use adapter::{Adapter, Fk};
 use config::{AdapterKind, ChunkMode, EvalConfig, PolicyConfig};
 use judge::{Judge, Subject, Verdict};
-use openpi::PolicyClient;
+use openpi::{ConnectionError, PolicyClient};
 use report::EpisodeRecord;
 use tasks::{Start, Task};
 
@@ -40,7 +42,9 @@ use tasks::{Start, Task};
 /// lanes that take turns (`crate::lanes`): each lane's chunks are generated as one batch on a
 /// CUDA stream of its own while the host judges another lane's frames and asks its policies for
 /// actions. Each episode's frames are what it would get alone, and the records keep the config's
-/// order.
+/// order. When episodes ended on an error (a policy's, a connection's, the world model's, the
+/// judge's), the results are written all the same, the errors are summed up by kind, and the
+/// evaluation fails.
 pub fn run(options: &WorldModelOptions, config: &Path, out: &Path, in_flight: usize, streams: usize) -> Result<()> {
     ensure!(in_flight >= 1, "episodes in flight must be at least 1");
     crate::lanes::check(in_flight, streams)?;
@@ -83,6 +87,8 @@ pub fn run(options: &WorldModelOptions, config: &Path, out: &Path, in_flight: us
         }
     }
     let wm = options.load()?;
+    let (width, height) = cfg.frame_size()?;
+    wm.check_frame_size(&format!("resolution {}", cfg.resolution), height as i64, width as i64, in_flight)?;
     let lanes = wm.lanes(streams)?;
     let capacities = lanes.shares(in_flight)?;
     let d = wm.action_dim();
@@ -121,6 +127,7 @@ pub fn run(options: &WorldModelOptions, config: &Path, out: &Path, in_flight: us
         .flat_map(|p| tasks.iter().flat_map(move |t| (0..t.starts.len()).map(move |i| (p, t, i))))
         .collect();
     let mut records = Vec::new();
+    let mut kinds: Vec<Option<ErrorKind>> = Vec::new();
     let mut metadata_shown = vec![false; cfg.policies.len()];
     // Each lane's episodes in the order they started, and the chunk it has queued for those of
     // them it drives; finished episodes wait in `finished` until every earlier one is recorded.
@@ -189,6 +196,7 @@ pub fn run(options: &WorldModelOptions, config: &Path, out: &Path, in_flight: us
                 .and_then(|_| episodes_file.flush())
                 .with_context(|| format!("writing {}", episodes_path.display()))?;
             records.push(record);
+            kinds.push(run.error.as_ref().map(|_| run.error_kind.unwrap_or(ErrorKind::Policy)));
         }
     }
     let policies: Vec<String> = cfg.policies.iter().map(|p| p.name.clone()).collect();
@@ -197,7 +205,73 @@ pub fn run(options: &WorldModelOptions, config: &Path, out: &Path, in_flight: us
     report::write(out, &summary)?;
     print!("{}", report::render(&summary));
     println!("evaluate: results in {}", out.display());
-    Ok(())
+    let errors: Vec<(ErrorKind, &EpisodeRecord)> = records.iter().zip(&kinds).filter_map(|(r, k)| k.map(|k| (k, r))).collect();
+    if errors.is_empty() {
+        return Ok(());
+    }
+    println!("evaluate: {} of {} episodes ended on an error (counted as failures above):", errors.len(), records.len());
+    let mut by_kind: Vec<(ErrorKind, usize, &EpisodeRecord)> = Vec::new();
+    for (k, r) in &errors {
+        match by_kind.iter_mut().find(|(seen, _, _)| seen == k) {
+            Some(entry) => entry.1 += 1,
+            None => by_kind.push((*k, 1, r)),
+        }
+    }
+    by_kind.sort_by_key(|(k, _, _)| *k);
+    for (k, n, first) in &by_kind {
+        println!(
+            "  {}: {n} episode{}; first: {} / {} #{} ({}): {}",
+            k.name(),
+            if *n == 1 { "" } else { "s" },
+            first.policy,
+            first.task,
+            first.episode,
+            first.source,
+            one_line(first.error.as_deref().unwrap_or_default())
+        );
+    }
+    let counts: Vec<String> = by_kind.iter().map(|(k, n, _)| format!("{}: {n}", k.name())).collect();
+    anyhow::bail!(
+        "{} of {} episodes ended on an error ({}); the results in {} count them as failures",
+        errors.len(),
+        records.len(),
+        counts.join(", "),
+        out.display()
+    )
+}
+
+/// Where an episode's error arose.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+enum ErrorKind {
+    /// Reaching the policy server, its handshake and metadata, or the connection lost.
+    Connection,
+    /// The policy server's error, a bad or late reply, actions the adapter cannot use.
+    Policy,
+    WorldModel,
+    Judge,
+    /// The episode's start: its adapter and initial state.
+    Setup,
+}
+
+impl ErrorKind {
+    fn name(self) -> &'static str {
+        match self {
+            ErrorKind::Connection => "connection",
+            ErrorKind::Policy => "policy",
+            ErrorKind::WorldModel => "world model",
+            ErrorKind::Judge => "judge",
+            ErrorKind::Setup => "set-up",
+        }
+    }
+
+    /// `otherwise`, unless `err` is the policy connection's.
+    fn of(err: &anyhow::Error, otherwise: ErrorKind) -> ErrorKind {
+        if err.chain().any(|c| c.is::<ConnectionError>()) {
+            ErrorKind::Connection
+        } else {
+            otherwise
+        }
+    }
 }
 
 fn progress_line(r: &EpisodeRecord) -> String {
@@ -240,6 +314,7 @@ struct EpisodeRun {
     metadata: Option<String>,
     verdict: Option<Verdict>,
     error: Option<anyhow::Error>,
+    error_kind: Option<ErrorKind>,
     /// The poses sent to the world model, before normalization.
     actions: Vec<Vec<f32>>,
 }
@@ -267,13 +342,20 @@ impl<'w> Episode<'w> {
     fn start(job: usize, cfg: &EvalConfig, wm: &'w WorldModel, fk: Option<&mut Fk>, policy: &PolicyConfig, task: &Task, i: usize) -> Self {
         let mut e = Episode { job, t0: Instant::now(), run: EpisodeRun::default(), driving: None, seconds: None };
         let start = &task.starts[i];
-        let driving = (|| -> Result<Driving<'w>> {
-            let adapter = Adapter::new(&policy.adapter, wm.action_dim(), start.pose.as_deref(), start.joints.as_deref(), fk)?;
-            let x0 = frames_to_tensor(std::slice::from_ref(&start.x0))?.squeeze_dim(1);
-            let a0 = wm.normalize(&[adapter.pose().to_vec()])?.get(0);
-            let rollout = wm.rollout(&x0, &a0)?;
+        let driving = (|| -> std::result::Result<Driving<'w>, (ErrorKind, anyhow::Error)> {
+            let adapter = Adapter::new(&policy.adapter, wm.action_dim(), start.pose.as_deref(), start.joints.as_deref(), fk).map_err(|e| (ErrorKind::Setup, e))?;
+            let (w, h) = start.x0.dimensions();
+            let rollout = crate::fallible::guarded(
+                || format!("starting a rollout at a {h}x{w} (HxW) x0"),
+                || {
+                    let x0 = frames_to_tensor(std::slice::from_ref(&start.x0))?.squeeze_dim(1);
+                    let a0 = wm.normalize(&[adapter.pose().to_vec()])?.get(0);
+                    wm.rollout(&x0, &a0)
+                },
+            )
+            .map_err(|e| (ErrorKind::WorldModel, e))?;
             let timeout = Duration::from_secs_f64(cfg.timeout_s);
-            let client = PolicyClient::connect(&policy.url, timeout).with_context(|| format!("policy '{}'", policy.name))?;
+            let client = PolicyClient::connect(&policy.url, timeout).with_context(|| format!("policy '{}'", policy.name)).map_err(|e| (ErrorKind::of(&e, ErrorKind::Policy), e))?;
             Ok(Driving { adapter, rollout, client })
         })();
         match driving {
@@ -281,17 +363,22 @@ impl<'w> Episode<'w> {
                 e.run.metadata = Some(d.client.metadata.to_string());
                 e.driving = Some(d);
             }
-            Err(err) => e.end(Some(err)),
+            Err((kind, err)) => e.fail(kind, err),
         }
         e
     }
 
-    fn end(&mut self, error: Option<anyhow::Error>) {
-        if error.is_some() {
-            self.run.error = error;
-        }
+    /// Ends the episode (success, horizon).
+    fn end(&mut self) {
         self.driving = None;
         self.seconds = Some(self.t0.elapsed().as_secs_f64());
+    }
+
+    /// Ends the episode on an error of `kind`.
+    fn fail(&mut self, kind: ErrorKind, error: anyhow::Error) {
+        self.run.error = Some(error);
+        self.run.error_kind = Some(kind);
+        self.end();
     }
 }
 
@@ -315,14 +402,14 @@ fn begin(cfg: &EvalConfig, wm: &WorldModel, mut fk: Option<&mut Fk>, jobs: &[(&P
                 windows.push(poses);
                 positions.push(pos);
             }
-            Err(err) => e.end(Some(err)),
+            Err(err) => e.fail(ErrorKind::of(&err, ErrorKind::Policy), err),
         }
     }
     if positions.is_empty() {
         return None;
     }
     let rollouts: Vec<&Rollout> = positions.iter().filter_map(|&p| live[p].driving.as_ref().map(|d| &d.rollout)).collect();
-    match Rollout::begin_chunks(&rollouts, &windows) {
+    match crate::fallible::guarded(|| format!("generating a chunk of {} episode(s)", rollouts.len()), || Rollout::begin_chunks(&rollouts, &windows)) {
         Ok(pending) => Some((positions, pending)),
         Err(err) => {
             end_all(live, &positions, &err);
@@ -335,7 +422,7 @@ fn begin(cfg: &EvalConfig, wm: &WorldModel, mut fk: Option<&mut Fk>, jobs: &[(&P
 fn end_all(live: &mut [Episode], positions: &[usize], err: &anyhow::Error) {
     let text = format!("world model: {err:#}");
     for &p in positions {
-        live[p].end(Some(anyhow::anyhow!("{text}")));
+        live[p].fail(ErrorKind::WorldModel, anyhow::anyhow!("{text}"));
     }
 }
 
@@ -348,7 +435,8 @@ fn finish(cfg: &EvalConfig, judge: &Judge, jobs: &[(&PolicyConfig, &Task, usize)
         .filter(|(p, _)| positions.contains(p))
         .filter_map(|(_, e)| e.driving.as_mut().map(|d| &mut d.rollout))
         .collect();
-    let chunks = Rollout::finish_chunks(&mut rollouts, pending);
+    let n = rollouts.len();
+    let chunks = crate::fallible::guarded(|| format!("reading back a chunk of {n} episode(s)"), || Rollout::finish_chunks(&mut rollouts, pending));
     drop(rollouts);
     let chunks = match chunks {
         Ok(c) => c,
@@ -359,12 +447,12 @@ fn finish(cfg: &EvalConfig, judge: &Judge, jobs: &[(&PolicyConfig, &Task, usize)
         let (policy, task, i) = jobs[e.job];
         let start = &task.starts[i];
         let subject = Subject { policy: &policy.name, task: &task.cfg.name, prompt: &start.prompt, episode: i, rules: &task.cfg.rules };
-        let judged = (|| -> Result<bool> {
-            e.run.frames.extend(tensor_to_frames(&chunk.frames)?);
+        let judged = (|| -> std::result::Result<bool, (ErrorKind, anyhow::Error)> {
+            e.run.frames.extend(tensor_to_frames(&chunk.frames).map_err(|e| (ErrorKind::WorldModel, e))?);
             e.run.chunks += 1;
             let at_horizon = e.run.frames.len() >= cfg.horizon;
             if cfg.stop_on_success || at_horizon {
-                let verdict = judge.judge(&e.run.frames, &subject).context("judge")?;
+                let verdict = judge.judge(&e.run.frames, &subject).context("judge").map_err(|e| (ErrorKind::Judge, e))?;
                 let success = verdict.success;
                 e.run.verdict = Some(verdict);
                 return Ok(at_horizon || (cfg.stop_on_success && success));
@@ -372,9 +460,9 @@ fn finish(cfg: &EvalConfig, judge: &Judge, jobs: &[(&PolicyConfig, &Task, usize)
             Ok(false)
         })();
         match judged {
-            Ok(true) => e.end(None),
+            Ok(true) => e.end(),
             Ok(false) => {}
-            Err(err) => e.end(Some(err)),
+            Err((kind, err)) => e.fail(kind, err),
         }
     }
 }

@@ -14,6 +14,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Context, Result};
 use rmpv::Value;
+use tungstenite::handshake::HandshakeError;
 use tungstenite::protocol::WebSocketConfig;
 use tungstenite::{Error as WsError, Message, WebSocket};
 
@@ -21,6 +22,29 @@ use crate::msgpack_numpy;
 
 /// How long one idle read waits, and so how quickly a ping is answered.
 const POLL: Duration = Duration::from_millis(100);
+
+/// A failure of the connection to the policy server itself (reaching it, its handshake and
+/// metadata, the connection lost or closed), as opposed to the policy's own (an error reply, a bad
+/// or late reply).
+#[derive(Debug)]
+pub struct ConnectionError(pub String);
+
+impl std::fmt::Display for ConnectionError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+impl std::error::Error for ConnectionError {}
+
+fn connection(message: impl Into<String>) -> anyhow::Error {
+    ConnectionError(message.into()).into()
+}
+
+/// Seconds as people write them: 1, 0.5.
+fn seconds(d: Duration) -> String {
+    format!("{}", d.as_secs_f64())
+}
 
 pub struct PolicyClient {
     requests: Option<Sender<Vec<u8>>>,
@@ -30,29 +54,37 @@ pub struct PolicyClient {
 }
 
 impl PolicyClient {
-    /// Connects, completes the handshake and reads the server's metadata frame.
+    /// Connects, completes the handshake and reads the server's metadata frame, each within
+    /// `timeout`; every failure here is a [`ConnectionError`].
     pub fn connect(url: &str, timeout: Duration) -> Result<Self> {
-        let rest = url
-            .strip_prefix("ws://")
-            .with_context(|| format!("{url}: only ws:// URLs are supported"))?;
+        let rest = url.strip_prefix("ws://").ok_or_else(|| connection(format!("{url}: only ws:// URLs are supported")))?;
         let authority = rest.split('/').next().unwrap_or_default();
         let addr = authority
             .to_socket_addrs()
-            .with_context(|| {
-                format!("{url}: cannot resolve '{authority}' (expected ws://host:port)")
-            })?
+            .map_err(|e| connection(format!("{url}: cannot resolve '{authority}' (expected ws://host:port): {e}")))?
             .next()
-            .with_context(|| format!("{url}: '{authority}' resolves to no address"))?;
-        let stream = TcpStream::connect_timeout(&addr, timeout)
-            .with_context(|| format!("connecting to {url}"))?;
-        stream.set_nodelay(true)?;
-        stream.set_read_timeout(Some(timeout))?;
-        stream.set_write_timeout(Some(timeout))?;
+            .ok_or_else(|| connection(format!("{url}: '{authority}' resolves to no address")))?;
+        let stream = TcpStream::connect_timeout(&addr, timeout).map_err(|e| connection(format!("connecting to {url}: {e}")))?;
+        let setup = |stream: &TcpStream| -> io::Result<()> {
+            stream.set_nodelay(true)?;
+            stream.set_read_timeout(Some(timeout))?;
+            stream.set_write_timeout(Some(timeout))
+        };
+        setup(&stream).map_err(|e| connection(format!("{url}: {e}")))?;
         let config = WebSocketConfig::default()
             .max_message_size(Some(1 << 30))
             .max_frame_size(Some(1 << 30));
-        let (mut ws, _) = tungstenite::client::client_with_config(url, stream, Some(config))
-            .map_err(|e| anyhow!("websocket handshake with {url} failed: {e}"))?;
+        let mut ws = match tungstenite::client::client_with_config(url, stream, Some(config)) {
+            Ok((ws, _)) => ws,
+            // The blocking socket's read timeout surfaces as an interrupted (would-block) handshake.
+            Err(HandshakeError::Interrupted(_)) => {
+                return Err(connection(format!("{url}: the policy server did not answer the websocket handshake within {} s", seconds(timeout))))
+            }
+            Err(HandshakeError::Failure(e)) if would_block(&e) => {
+                return Err(connection(format!("{url}: the policy server did not answer the websocket handshake within {} s", seconds(timeout))))
+            }
+            Err(HandshakeError::Failure(e)) => return Err(connection(format!("websocket handshake with {url} failed: {e}"))),
+        };
         let metadata = match ws.read() {
             Ok(Message::Binary(b)) => {
                 msgpack_numpy::decode(&b).context("the server's metadata frame")?
@@ -60,13 +92,13 @@ impl PolicyClient {
             Ok(Message::Text(t)) => {
                 bail!("{url}: the server sent an error instead of its metadata: {t}")
             }
-            Ok(other) => bail!(
-                "{url}: expected the server's metadata (a binary frame), got {}",
-                describe(&other)
-            ),
-            Err(e) => bail!("{url}: no metadata from the server: {e}"),
+            Ok(other) => {
+                return Err(connection(format!("{url}: expected the server's metadata (a binary frame), got {}", describe(&other))))
+            }
+            Err(e) if would_block(&e) => return Err(connection(format!("{url}: the policy server sent no metadata within {} s", seconds(timeout)))),
+            Err(e) => return Err(connection(format!("{url}: no metadata from the server: {e}"))),
         };
-        ws.get_mut().set_read_timeout(Some(POLL))?;
+        ws.get_mut().set_read_timeout(Some(POLL)).map_err(|e| connection(format!("{url}: {e}")))?;
         let (req_tx, req_rx) = mpsc::channel::<Vec<u8>>();
         let (rep_tx, rep_rx) = mpsc::channel();
         let worker = std::thread::Builder::new()
@@ -83,15 +115,9 @@ impl PolicyClient {
 
     /// Sends one observation and waits for its action reply.
     pub fn infer(&mut self, obs: &Value) -> Result<Value> {
-        let tx = self
-            .requests
-            .as_ref()
-            .context("the policy connection is closed")?;
-        tx.send(msgpack_numpy::encode(obs))
-            .map_err(|_| anyhow!("the policy connection is closed"))?;
-        self.replies
-            .recv()
-            .map_err(|_| anyhow!("the policy connection is closed"))?
+        let tx = self.requests.as_ref().ok_or_else(|| connection("the policy connection is closed"))?;
+        tx.send(msgpack_numpy::encode(obs)).map_err(|_| connection("the policy connection is closed"))?;
+        self.replies.recv().map_err(|_| connection("the policy connection is closed"))?
     }
 }
 
@@ -128,10 +154,8 @@ fn would_block(e: &WsError) -> bool {
 
 fn lost(e: WsError) -> anyhow::Error {
     match e {
-        WsError::ConnectionClosed | WsError::AlreadyClosed => {
-            anyhow!("the policy server closed the connection")
-        }
-        e => anyhow!("connection to the policy server lost: {e}"),
+        WsError::ConnectionClosed | WsError::AlreadyClosed => connection("the policy server closed the connection"),
+        e => connection(format!("connection to the policy server lost: {e}")),
     }
 }
 
@@ -176,10 +200,7 @@ fn idle_read(ws: &mut WebSocket<TcpStream>) -> Result<()> {
             Ok(())
         }
         Ok(Message::Text(t)) => Err(anyhow!("policy server error while idle:\n{}", t.as_str())),
-        Ok(Message::Close(f)) => Err(anyhow!(
-            "the policy server closed the connection ({})",
-            close_text(f.as_ref())
-        )),
+        Ok(Message::Close(f)) => Err(connection(format!("the policy server closed the connection ({})", close_text(f.as_ref())))),
         Ok(other) => Err(anyhow!(
             "unexpected {} from the policy server while no request was pending",
             describe(&other)
@@ -204,17 +225,11 @@ fn exchange(ws: &mut WebSocket<TcpStream>, body: Vec<u8>, timeout: Duration) -> 
                 let close = wait_for_close(ws, Instant::now() + Duration::from_secs(2));
                 bail!("policy server error ({close}):\n{}", t.as_str().trim_end());
             }
-            Ok(Message::Close(f)) => bail!(
-                "the policy server closed the connection ({})",
-                close_text(f.as_ref())
-            ),
+            Ok(Message::Close(f)) => return Err(connection(format!("the policy server closed the connection ({})", close_text(f.as_ref())))),
             Ok(Message::Ping(_) | Message::Pong(_) | Message::Frame(_)) => {}
             Err(e) if would_block(&e) => {
                 if Instant::now() > deadline {
-                    bail!(
-                        "no reply from the policy within {:.0} s",
-                        timeout.as_secs_f64()
-                    );
+                    bail!("no reply from the policy within {} s", seconds(timeout));
                 }
             }
             Err(e) => return Err(lost(e)),
@@ -233,5 +248,51 @@ fn wait_for_close(ws: &mut WebSocket<TcpStream>, deadline: Instant) -> String {
             Err(WsError::ConnectionClosed) => return "connection closed".into(),
             Err(e) => return format!("then: {e}"),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::net::TcpListener;
+
+    /// Runs `serve` on the one connection a local listener accepts; returns its URL and a sender
+    /// whose drop ends the server.
+    fn server(serve: impl FnOnce(TcpStream, Receiver<()>) + Send + 'static) -> (String, Sender<()>, JoinHandle<()>) {
+        let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+        let url = format!("ws://{}", listener.local_addr().unwrap());
+        let (stop, stopped) = mpsc::channel();
+        let thread = std::thread::spawn(move || {
+            let (stream, _) = listener.accept().unwrap();
+            serve(stream, stopped);
+        });
+        (url, stop, thread)
+    }
+
+    #[test]
+    fn a_server_that_sends_no_metadata_is_named_by_the_timeout() {
+        let (url, stop, thread) = server(|stream, stopped| {
+            let _ws = tungstenite::accept(stream).unwrap();
+            let _ = stopped.recv();
+        });
+        let err = PolicyClient::connect(&url, Duration::from_secs(1)).err().expect("no metadata: no client");
+        assert!(err.is::<ConnectionError>(), "{err:#}");
+        let e = format!("{err:#}");
+        assert!(e.contains("policy server sent no metadata within 1 s"), "{e}");
+        assert!(!e.contains("os error"), "{e}");
+        drop(stop);
+        thread.join().unwrap();
+    }
+
+    #[test]
+    fn a_server_that_never_answers_the_handshake_is_named_by_the_timeout() {
+        let (url, stop, thread) = server(|_stream, stopped| {
+            let _ = stopped.recv();
+        });
+        let e = format!("{:#}", PolicyClient::connect(&url, Duration::from_secs(1)).err().expect("no handshake: no client"));
+        assert!(e.contains("did not answer the websocket handshake within 1 s"), "{e}");
+        assert!(!e.contains("os error"), "{e}");
+        drop(stop);
+        thread.join().unwrap();
     }
 }

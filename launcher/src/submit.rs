@@ -42,10 +42,12 @@ pub struct SubmitArgs {
     /// node differ); the launchers' agent store uses the next one.
     #[arg(long)]
     master_port: Option<u16>,
-    /// Seconds before the time limit at which Slurm warns the job; the ranks get all but 60 of
-    /// them to checkpoint and stop before the job requeues itself.
-    #[arg(long, default_value_t = 180)]
-    signal_before: u32,
+    /// Seconds before the time limit at which Slurm warns the job (default 180, or a third of
+    /// --time when that is less). Slurm looks every 30 s, so the warning comes up to 30 s earlier.
+    /// The ranks get all but 60 of them (half of them below 120) to checkpoint and stop; the rest
+    /// is for the requeue.
+    #[arg(long)]
+    signal_before: Option<u32>,
     /// Print the script; write and submit nothing.
     #[arg(long)]
     dry_run: bool,
@@ -158,6 +160,64 @@ fn path_value(flag: &str, p: &Path) -> Result<String> {
     Ok(s.to_string())
 }
 
+/// Seconds of an sbatch `--time` (minutes, MM:SS, HH:MM:SS, D-HH, D-HH:MM or D-HH:MM:SS), rounded
+/// up to whole minutes as Slurm does; `None` for no limit (0, -1, INFINITE, UNLIMITED).
+fn time_limit_seconds(t: &str) -> Result<Option<u64>> {
+    if matches!(t.to_ascii_uppercase().as_str(), "-1" | "INFINITE" | "UNLIMITED") {
+        return Ok(None);
+    }
+    let bad = || anyhow::anyhow!("--time {t}: not one of sbatch's formats (minutes, MM:SS, HH:MM:SS, D-HH, D-HH:MM, D-HH:MM:SS)");
+    // At most 9 digits a field: no sum below overflows.
+    let number = |s: &str| -> Result<u64> {
+        ensure!(!s.is_empty() && s.len() <= 9 && s.bytes().all(|b| b.is_ascii_digit()), bad());
+        Ok(s.parse()?)
+    };
+    let (days, clock) = match t.split_once('-') {
+        Some((d, rest)) => (Some(number(d)?), rest),
+        None => (None, t),
+    };
+    let fields = clock.split(':').map(number).collect::<Result<Vec<u64>>>()?;
+    let seconds = match (days, fields.as_slice()) {
+        (None, [m]) => m * 60,
+        (None, [m, s]) => m * 60 + s,
+        (None, [h, m, s]) => h * 3600 + m * 60 + s,
+        (Some(d), [h]) => d * 86400 + h * 3600,
+        (Some(d), [h, m]) => d * 86400 + h * 3600 + m * 60,
+        (Some(d), [h, m, s]) => d * 86400 + h * 3600 + m * 60 + s,
+        _ => return Err(bad()),
+    };
+    let minutes = seconds.div_ceil(60);
+    Ok((minutes > 0).then_some(minutes * 60))
+}
+
+/// Seconds before the time limit at which Slurm warns the job, and the ranks' part of them (the
+/// launchers' --grace-period).
+fn warning(a: &SubmitArgs) -> Result<(u32, u32)> {
+    let limit = match &a.time {
+        Some(t) => time_limit_seconds(t)?,
+        None => None,
+    };
+    let before = a
+        .signal_before
+        .unwrap_or_else(|| limit.map_or(180, |l| (l / 3).min(180) as u32));
+    ensure!(
+        before >= 10,
+        "--signal-before {before} leaves the ranks no time to checkpoint before the job requeues itself: give at least 10 s"
+    );
+    if let (Some(limit), Some(t)) = (limit, &a.time) {
+        // Slurm looks at the limits every 30 s and warns at the first look within `before` + 30 s
+        // of the limit: a warning that can come as the job starts comes at every requeued start.
+        ensure!(
+            u64::from(before) + 30 < limit,
+            "--signal-before {before} with --time {t} ({limit} s): Slurm looks at the limits every 30 s, so it may warn the job {} s before its limit, as it starts (and at every requeued start); give a --signal-before below {} s",
+            u64::from(before) + 30,
+            limit.saturating_sub(30)
+        );
+    }
+    let requeue = (before / 2).min(60);
+    Ok((before, before - requeue))
+}
+
 /// The batch script for `a`, running `exe` from `cwd` with logs under `out`.
 fn script(a: &SubmitArgs, exe: &Path, cwd: &Path, out: &Path) -> Result<String> {
     ensure!(a.nodes > 0, "--nodes must be at least 1");
@@ -172,11 +232,7 @@ fn script(a: &SubmitArgs, exe: &Path, cwd: &Path, out: &Path) -> Result<String> 
         a.cpus_per_task != Some(0),
         "--cpus-per-task must be at least 1"
     );
-    ensure!(
-        a.signal_before > 60,
-        "--signal-before {} leaves no time to checkpoint: the job needs 60 s to requeue; give more",
-        a.signal_before
-    );
+    let (signal_before, grace) = warning(a)?;
     ensure!(
         a.master_port.is_none_or(|p| p > 0 && p < u16::MAX),
         "--master-port must be 1-65534 (the agent store takes the next port)"
@@ -226,7 +282,7 @@ fn script(a: &SubmitArgs, exe: &Path, cwd: &Path, out: &Path) -> Result<String> 
         directive(format!("--time={}", directive_value("--time", t)?));
     }
     directive("--requeue".into());
-    directive(format!("--signal=B:USR1@{}", a.signal_before));
+    directive(format!("--signal=B:USR1@{signal_before}"));
     directive("--open-mode=append".into());
     directive(format!(
         "--output={}/%x-%j.out",
@@ -278,11 +334,7 @@ fn script(a: &SubmitArgs, exe: &Path, cwd: &Path, out: &Path) -> Result<String> 
         quote(exe),
         format!("--nproc-per-node {nproc}"),
         "--master-addr \"$MASTER_ADDR\" --master-port \"$MASTER_PORT\"".into(),
-        format!(
-            "--max-restarts {} --grace-period {}",
-            a.max_restarts,
-            a.signal_before - 60
-        ),
+        format!("--max-restarts {} --grace-period {grace}", a.max_restarts),
         "--log-dir \"$LOGS\"".into(),
         format!(
             "-- {}",
@@ -494,7 +546,7 @@ mod tests {
             "--gpus-per-node",
             "1",
             "--signal-before",
-            "30",
+            "5",
             "--",
             "train"
         ])
@@ -506,6 +558,51 @@ mod tests {
             Path::new("/logs/%j"),
         );
         assert!(format!("{:#}", out.unwrap_err()).contains("filename pattern"));
+    }
+
+    #[test]
+    fn a_one_minute_limit_is_warned_inside_it() {
+        // Slurm warns between S and S + 30 s before the limit (it looks every 30 s): the default
+        // warning of a 1-minute job is a third of it, so the job runs some seconds first.
+        let s = render(&["--gpus-per-node", "0", "--time", "1", "--", "train"]).unwrap();
+        assert!(s.contains("#SBATCH --time=1\n") && s.contains("#SBATCH --signal=B:USR1@20\n"), "{s}");
+        assert!(s.contains("--grace-period 10 "), "{s}");
+        let s = render(&["--gpus-per-node", "0", "--time", "0:50", "--signal-before", "12", "--", "train"]).unwrap();
+        assert!(s.contains("#SBATCH --signal=B:USR1@12\n") && s.contains("--grace-period 6 "), "{s}");
+        // Long limits keep 180 s, 60 of them for the requeue.
+        let s = render(&["--gpus-per-node", "0", "--time", "10:00:00", "--", "train"]).unwrap();
+        assert!(s.contains("#SBATCH --signal=B:USR1@180\n") && s.contains("--grace-period 120 "), "{s}");
+        let e = |argv: &[&str]| format!("{:#}", render(argv).unwrap_err());
+        // A warning that may come as the job starts would come again at every requeued start.
+        let early = e(&["--gpus-per-node", "0", "--time", "1", "--signal-before", "30", "--", "train"]);
+        assert!(early.contains("--signal-before 30") && early.contains("--time 1 (60 s)"), "{early}");
+        assert!(e(&["--gpus-per-node", "0", "--time", "3", "--signal-before", "180", "--", "train"]).contains("--time 3 (180 s)"));
+        assert!(render(&["--gpus-per-node", "0", "--time", "4", "--signal-before", "180", "--", "train"]).is_ok());
+        assert!(e(&["--gpus-per-node", "0", "--time", "1:x", "--", "train"]).contains("sbatch's formats"));
+    }
+
+    #[test]
+    fn time_limits_in_sbatch_formats() {
+        for (t, secs) in [
+            ("1", Some(60)),
+            ("90", Some(5400)),
+            ("0:30", Some(60)),
+            ("1:30", Some(120)),
+            ("2:00:00", Some(7200)),
+            ("1:00:01", Some(3660)),
+            ("2-0", Some(172800)),
+            ("1-2:03", Some(93780)),
+            ("1-02:03:04", Some(93840)),
+            ("0", None),
+            ("UNLIMITED", None),
+            ("infinite", None),
+            ("-1", None),
+        ] {
+            assert_eq!(time_limit_seconds(t).unwrap(), secs, "{t}");
+        }
+        for t in ["", "x", "1:2:3:4", "1-", "-", "1-2-3", "1:", "99999999999"] {
+            assert!(time_limit_seconds(t).is_err(), "{t}");
+        }
     }
 
     #[test]

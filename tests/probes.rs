@@ -109,10 +109,12 @@ fn evaluate_counts_a_policy_that_refuses_connections_as_an_episode_error() {
     fails_naming(&evaluate("short.json"), &["short.json", "different lengths"]);
     assert!(!dir.join("out").exists(), "nothing written for a refused start");
 
+    // The results are written, and the run fails: its one episode ended on a connection error.
     let out = evaluate("stat.json");
     let stdout = String::from_utf8_lossy(&out.stdout);
-    assert!(out.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
+    assert_eq!(out.status.code(), Some(1), "{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
     assert!(stdout.contains("0/1 = 0.000, 1 errors"), "{stdout}");
+    assert!(stdout.contains("connection: 1 episode; first: gone / t #0"), "{stdout}");
     let record: serde_json::Value = serde_json::from_str(std::fs::read_to_string(dir.join("out/episodes.jsonl")).unwrap().trim()).unwrap();
     let err = record["error"].as_str().unwrap();
     assert!(err.contains("policy 'gone'") && err.contains("ws://127.0.0.1:9") && err.contains("refused"), "{err}");

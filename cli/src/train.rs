@@ -63,14 +63,16 @@ pub fn run(args: TrainArgs) -> Result<()> {
         trainer.state.step,
         trainer.checkpoints.root.display()
     );
-    let losses = bwm_trainer::report::read_run_losses(&trainer.out_path(""))?;
+    // The curve is a report of a run that is done and saved: one that cannot be drawn is a
+    // warning, not a failed run (which `bwm launch` or Slurm would restart, to no avail).
     let plot = trainer.out_path("loss.svg");
-    bwm_trainer::report::loss_plot(
-        &losses,
-        &format!("{}: training loss", trainer.cfg.run.name),
-        &plot,
-    )?;
-    println!("loss curve: {}", plot.display());
+    let title = format!("{}: training loss", trainer.cfg.run.name);
+    let drawn = bwm_trainer::report::read_run_losses(&trainer.out_path(""))
+        .and_then(|losses| bwm_trainer::report::loss_plot(&losses, &title, &plot));
+    match drawn {
+        Ok(()) => println!("loss curve: {}", plot.display()),
+        Err(e) => eprintln!("warning: no loss curve: {e:#}"),
+    }
     if let Some(vae) = trainer.cfg.validation.vae.clone() {
         let video = trainer.out_path("rollout.mp4");
         let r = bwm_trainer::report::rollout_video(&trainer, &vae, &video)?;

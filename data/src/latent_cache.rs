@@ -16,7 +16,7 @@
 
 use std::collections::{BTreeMap, HashMap};
 use std::io::{Read, Seek, SeekFrom};
-use std::path::{Path, PathBuf};
+use std::path::{Component, Path, PathBuf};
 
 use anyhow::{bail, ensure, Context, Result};
 use serde::{Deserialize, Serialize};
@@ -164,7 +164,7 @@ pub fn write_atomically(dir: &Path, name: &str, bytes: &[u8]) -> Result<()> {
 }
 
 /// Makes renames in `dir` durable; best effort (not every filesystem allows syncing a folder).
-fn sync_dir(dir: &Path) {
+pub(crate) fn sync_dir(dir: &Path) {
     if let Ok(d) = std::fs::File::open(dir) {
         let _ = d.sync_all();
     }
@@ -214,6 +214,9 @@ impl LatentCache {
         let mut seen: HashMap<&str, usize> = HashMap::new();
         let mut rows = Vec::with_capacity(index.clips.len());
         for (i, c) in index.clips.iter().enumerate() {
+            // Joined to the cache folder when the clip is read: a path that leaves it is refused.
+            let inside = !c.file.is_empty() && Path::new(&c.file).components().all(|p| matches!(p, Component::Normal(_) | Component::CurDir));
+            ensure!(inside, "{}: clip {i}'s file {} is not a relative path inside the cache folder", path.display(), c.file);
             let row = seen.entry(c.file.as_str()).or_insert(0);
             ensure!(index.version > 1 || *row == 0, "{}: clips {i} and an earlier one share the file {} (version 1 has one file per clip)", path.display(), c.file);
             rows.push(*row);
@@ -701,9 +704,9 @@ mod tests {
         w.add(entry, &Tensor::zeros([4, 2, 2, 3], (Kind::Float, Device::Cpu)), &Tensor::zeros([5, 2], (Kind::Float, Device::Cpu)), None).unwrap();
         w.finish().unwrap();
         // The shard moved out of the cache folder; index entries naming it there are refused.
-        let outside = dir.join("shard.safetensors");
-        std::fs::rename(cache.join(shard_file_name(0)), &outside).unwrap();
         let (mut idx, extras) = read_index(&cache.join(INDEX_FILE)).unwrap();
+        let outside = dir.join("shard.safetensors");
+        std::fs::rename(cache.join(&idx.clips[0].file), &outside).unwrap();
         for file in ["../shard.safetensors".to_string(), outside.display().to_string(), format!("sub/../../{}", "shard.safetensors")] {
             idx.clips[0].file = file.clone();
             write_index(&cache, INDEX_FILE, &idx, &extras).unwrap();

@@ -2,8 +2,9 @@
 //! `action`, `observation.state`, `timestamp`, `frame_index`, `episode_index`, `index`,
 //! `task_index`, one mp4 per episode for the camera, and `meta/{info.json, episodes.jsonl,
 //! tasks.jsonl, episodes_stats.jsonl}`. Each episode's files are written under temporary names
-//! and renamed when complete, and the metadata is rewritten after every episode, so an
-//! interrupted run leaves a readable dataset of the finished episodes that `resume` continues.
+//! and renamed when complete (the parquet and the metadata fsynced before the rename, their folder
+//! after it), and the metadata is rewritten after every episode, so an interrupted run (a crash of
+//! the machine too) leaves a readable dataset of the finished episodes that `resume` continues.
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -275,6 +276,8 @@ fn int_column(v: impl Iterator<Item = i64>) -> ArrayRef {
     Arc::new(Int64Array::from_iter_values(v))
 }
 
+/// Writes the episode's parquet under a temporary name, fsynced, then renamed into place and the
+/// rename made durable: a crash leaves the complete file or none.
 fn write_parquet(path: &Path, batch: &RecordBatch) -> Result<()> {
     let tmp = path.with_extension("parquet.tmp");
     let write = || -> Result<()> {
@@ -282,15 +285,18 @@ fn write_parquet(path: &Path, batch: &RecordBatch) -> Result<()> {
         let mut w = parquet::arrow::ArrowWriter::try_new(file, batch.schema(), None)?;
         w.write(batch)?;
         w.close()?;
+        std::fs::File::open(&tmp)?.sync_all()?;
         std::fs::rename(&tmp, path)?;
+        crate::latent_cache::sync_dir(path.parent().context("a file path has a folder")?);
         Ok(())
     };
     write().with_context(|| format!("writing {}", path.display()))
 }
 
+/// Writes a metadata file whole or not at all (temporary file, fsync, rename, folder synced).
 fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    let tmp = path.with_extension("tmp");
-    std::fs::write(&tmp, bytes).and_then(|_| std::fs::rename(&tmp, path)).with_context(|| format!("writing {}", path.display()))
+    let (dir, name) = (path.parent().context("a file path has a folder")?, path.file_name().context("a file path has a name")?);
+    crate::latent_cache::write_atomically(dir, &name.to_string_lossy(), bytes)
 }
 
 fn moments(values: impl Iterator<Item = f64>) -> (f64, f64, f64, f64, usize) {

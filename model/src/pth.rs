@@ -280,6 +280,30 @@ impl<'a> Unpickler<'a> {
     }
 }
 
+/// The view of `storage` (1-D) with `size` and `stride` at `offset`, made contiguous. What no
+/// `torch.save` writes (a negative offset, size or stride; sizes and strides that do not pair up)
+/// and a view reaching past the storage are errors, checked here because libtorch's `as_strided`
+/// throws on them (tch turns that into a panic).
+fn strided_view(storage: &Tensor, size: &[i64], stride: &[i64], offset: i64) -> Result<Tensor, String> {
+    if size.len() != stride.len() {
+        return Err(format!("has {} sizes and {} strides", size.len(), stride.len()));
+    }
+    if offset < 0 {
+        return Err(format!("has a negative storage offset ({offset})"));
+    }
+    if size.iter().chain(stride).any(|&v| v < 0) {
+        return Err(format!("has a negative size or stride (size {size:?}, stride {stride:?})"));
+    }
+    if size.iter().all(|&s| s > 0) {
+        // One past the view's last element, in exact arithmetic.
+        let end = size.iter().zip(stride).try_fold(offset, |at, (&s, &st)| (s - 1).checked_mul(st).and_then(|d| at.checked_add(d))).and_then(|at| at.checked_add(1));
+        if end.is_none_or(|end| end > storage.numel() as i64) {
+            return Err("reaches past the end of its storage (truncated file?)".into());
+        }
+    }
+    storage.f_as_strided(size, stride, offset).and_then(|t| t.f_contiguous()).map_err(|e| format!("is not a view of its storage: {e}"))
+}
+
 /// All tensors of a `torch.save`d state dict, loaded into memory.
 pub struct PthSource {
     path: PathBuf,
@@ -336,12 +360,7 @@ impl PthSource {
                 let t = Tensor::f_from_data_size(&bytes, &[numel], kind).map_err(|e| err(path, e))?;
                 storages.insert(key.clone(), t);
             }
-            let storage = &storages[&key];
-            let needed = offset + size.iter().zip(&stride).map(|(s, st)| (s - 1).max(0) * st).sum::<i64>() + 1;
-            if size.iter().all(|&s| s > 0) && needed > storage.numel() as i64 {
-                return Err(err(path, format!("tensor '{name}' reaches past the end of its storage (truncated file?)")));
-            }
-            let t = storage.as_strided(&size, &stride, offset).contiguous();
+            let t = strided_view(&storages[&key], &size, &stride, offset).map_err(|m| err(path, format!("tensor '{name}' {m}")))?;
             tensors.insert(name, t);
         }
         if tensors.is_empty() {

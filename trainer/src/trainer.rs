@@ -8,6 +8,7 @@ use std::time::Instant;
 
 use anyhow::{bail, ensure, Context, Result};
 use bwm_checkpoints::optimizer_shards::OptimizerState;
+use bwm_checkpoints::run_dir::RunLock;
 use bwm_checkpoints::{write_tensors, CheckpointRoot};
 use bwm_data::latent_cache::{clip_for_sample, global_sample_index, Clip, LatentCache};
 use bwm_data::prefetch::{load_clips, ClipBatch, Prefetcher};
@@ -92,6 +93,8 @@ pub struct Trainer {
     loss_file: Option<LineLog>,
     /// The data-parallel group (a group of one without torchrun's variables).
     pub comm: Box<dyn Collective>,
+    /// The run folder's lock (`train.lock`), held by rank 0 until the trainer is dropped.
+    pub run_lock: Option<RunLock>,
     /// Where each step's summary goes (stdout by default; tests capture it).
     pub history: Vec<StepMetrics>,
     /// Per DiT block, the indices in `opt.params` of its trained parameters.
@@ -170,29 +173,13 @@ impl Trainer {
         let model_cfg = cfg.model.model_config()?;
         let out_dir = cfg.out_dir();
         let checkpoints = CheckpointRoot::new(out_dir.join("checkpoints"));
-        let resume_from = match &resume {
-            Resume::No => {
-                if let Some(last) = checkpoints.latest()? {
-                    bail!(
-                        "{} already holds checkpoint step {}; pass --resume auto to continue it, or pick another run.out_dir",
-                        checkpoints.root.display(),
-                        last.step
-                    );
-                }
-                None
-            }
-            Resume::Auto => checkpoints.latest()?.map(|d| d.path),
-            Resume::Path(p) => {
-                ensure!(p.is_dir(), "--resume {}: no such checkpoint folder", p.display());
-                ensure!(
-                    p.join(bwm_checkpoints::run_dir::STATE_FILE).is_file(),
-                    "--resume {}: not a complete checkpoint (no {})",
-                    p.display(),
-                    bwm_checkpoints::run_dir::STATE_FILE
-                );
-                Some(p.clone())
-            }
-        };
+        // Checked before the lock, whoever holds it: an existing run started fresh, a missing
+        // checkpoint folder.
+        resume_folder(&resume, &checkpoints)?;
+        let run_lock = lock_run_folder(&out_dir, &checkpoints, comm.as_mut(), device)?;
+        // Decided under the lock, after a crash's leftovers are repaired (a checkpoint put back
+        // counts).
+        let resume_from = resume_folder(&resume, &checkpoints)?;
 
         let cache = LatentCache::open(&cfg.data.latent_cache)?;
         let train_clips = cache.training_clips(cfg.data.holdout_episodes)?;
@@ -255,7 +242,7 @@ impl Trainer {
         let events = if cfg.log.tensorboard && lead { Some(EventWriter::create(&out_dir.join("tensorboard"))?) } else { None };
         let append = |name: &str| -> Result<Option<LineLog>> { if lead { LineLog::open(&out_dir.join(name)).map(Some) } else { Ok(None) } };
         let (metrics_file, loss_file) = (append("metrics.jsonl")?, append(crate::report::LOSSES_FILE)?);
-        Ok(Self { cfg, model, opt, objective, cache, clip_encoder, loader: Default::default(), train_clips, device, state, out_dir, checkpoints, events, metrics_file, loss_file, comm, history: Vec::new(), block_params, graph })
+        Ok(Self { cfg, model, opt, objective, cache, clip_encoder, loader: Default::default(), train_clips, device, state, out_dir, checkpoints, events, metrics_file, loss_file, comm, run_lock, history: Vec::new(), block_params, graph })
     }
 
     /// Trains to `train.steps`, checkpointing and validating as configured.
@@ -737,6 +724,51 @@ fn clip_encoder(cfg: &RunConfig, cache: &LatentCache, device: Device) -> Result<
         index.latent_shape
     );
     Ok(Some(vae))
+}
+
+/// The checkpoint folder a run starts from (None: fresh), or why it cannot start.
+fn resume_folder(resume: &Resume, checkpoints: &CheckpointRoot) -> Result<Option<PathBuf>> {
+    Ok(match resume {
+        Resume::No => {
+            if let Some(last) = checkpoints.latest()? {
+                bail!(
+                    "{} already holds checkpoint step {}; pass --resume auto to continue it, or pick another run.out_dir",
+                    checkpoints.root.display(),
+                    last.step
+                );
+            }
+            None
+        }
+        Resume::Auto => checkpoints.latest()?.map(|d| d.path),
+        Resume::Path(p) => {
+            ensure!(p.is_dir(), "--resume {}: no such checkpoint folder", p.display());
+            ensure!(
+                p.join(bwm_checkpoints::run_dir::STATE_FILE).is_file(),
+                "--resume {}: not a complete checkpoint (no {})",
+                p.display(),
+                bwm_checkpoints::run_dir::STATE_FILE
+            );
+            Some(p.clone())
+        }
+    })
+}
+
+/// One writer per run folder. Rank 0 takes the folder's lock (a second `bwm train` on a live run
+/// fails here at once, naming the holder) and, holding it, repairs what a crash left among the
+/// checkpoints; the other ranks wait for its word before they touch the folder. Rank 0 holds the
+/// lock for the whole run on behalf of the job: it writes everything but the optimizer shards,
+/// which the other ranks put into the staging folder of a step rank 0 is saving, so its lock
+/// covers them. A lock per rank would add nothing: a second job's rank 0 fails already, and its
+/// other ranks with it through this agreement, before any of them has written.
+fn lock_run_folder(out_dir: &Path, checkpoints: &CheckpointRoot, comm: &mut dyn Collective, device: Device) -> Result<Option<RunLock>> {
+    let lead = comm.rank() == 0;
+    let taken = lead.then(|| RunLock::acquire(out_dir).and_then(|lock| checkpoints.recover().map(|()| lock)));
+    if comm.world_size() > 1 {
+        let mut ok = Tensor::from_slice(&[taken.as_ref().is_some_and(|t| t.is_ok()) as i32 as f32]).to_device(device);
+        comm.broadcast(&mut ok, 0).context("waiting for rank 0 to take the run folder's lock")?;
+        ensure!(lead || ok.double_value(&[0]) > 0.0, "rank 0 could not take the run folder {} (its error says why)", out_dir.display());
+    }
+    taken.transpose()
 }
 
 /// Every rank must start from the same weights: a checksum of the trained tensors is gathered and

@@ -344,30 +344,12 @@ fn image_stats(frames: &[RgbImage]) -> Value {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use std::sync::Mutex;
-
-    /// The path of every descriptor this test binary fsyncs, recorded by the `fsync` below: what a
-    /// crash would keep cannot be observed, so the test looks at what was made durable, and when.
-    static SYNCED: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
-
-    /// Stands in for libc's `fsync` in this test binary (std's `sync_all` calls it): records the
-    /// descriptor's path, then makes the system call.
-    #[no_mangle]
-    extern "C" fn fsync(fd: libc::c_int) -> libc::c_int {
-        if let Ok(path) = std::fs::read_link(format!("/proc/self/fd/{fd}")) {
-            SYNCED.lock().unwrap_or_else(|e| e.into_inner()).push(path);
-        }
-        // SAFETY: the fsync system call on the descriptor the caller passed.
-        unsafe { libc::syscall(libc::SYS_fsync, fd) as libc::c_int }
-    }
+    use crate::fsync_log::synced_in;
 
     #[test]
     fn metadata_and_episode_data_are_synced_under_their_temporary_name_then_their_folder() {
         let dir = bwm_testdir::TestDir::new("lerobot-sync");
         let dir = dir.canonicalize().unwrap();
-        let synced_in = |dir: &Path| -> Vec<PathBuf> {
-            SYNCED.lock().unwrap().iter().filter(|p| p.starts_with(dir)).cloned().collect()
-        };
         let meta = dir.join("meta");
         std::fs::create_dir_all(&meta).unwrap();
         let info = meta.join("info.json");

@@ -6,6 +6,8 @@ pub mod bwm_layout;
 pub mod clips;
 pub mod defect;
 pub mod frames;
+#[cfg(test)]
+mod fsync_log;
 pub mod latent_cache;
 pub mod lerobot;
 pub mod lerobot_writer;

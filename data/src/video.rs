@@ -124,7 +124,7 @@ pub fn write_mp4_or_sheet(path: &Path, frames: &[RgbImage], fps: f64, per_row: u
     let png = path.with_extension("png");
     let tmp = temp_path(&png)?;
     sheet.save_with_format(&tmp, image::ImageFormat::Png).with_context(|| format!("writing {}", png.display()))?;
-    std::fs::rename(&tmp, &png).with_context(|| format!("renaming {} to {}", tmp.display(), png.display()))?;
+    commit(&tmp, &png)?;
     Ok(png)
 }
 
@@ -146,11 +146,23 @@ pub fn write_mp4_with(path: &Path, frames: &[RgbImage], fps: f64, encoder: Mp4En
 
     let tmp = temp_path(path).with_context(ctx)?;
     let written = imp::write_mp4(&tmp, frames, fps, encoder)
-        .and_then(|()| std::fs::rename(&tmp, path).with_context(|| format!("renaming {} to {}", tmp.display(), path.display())));
+        .and_then(|()| commit(&tmp, path));
     if written.is_err() {
         let _ = std::fs::remove_file(&tmp);
     }
     written.with_context(ctx)
+}
+
+/// Makes the complete file `tmp` durable and renames it to `path`, then syncs the folder so
+/// that the rename survives a crash: `path` holds the whole file or what it held before.
+fn commit(tmp: &Path, path: &Path) -> Result<()> {
+    let renamed = || -> std::io::Result<()> {
+        std::fs::File::open(tmp)?.sync_all()?;
+        std::fs::rename(tmp, path)
+    };
+    renamed().with_context(|| format!("renaming {} to {}", tmp.display(), path.display()))?;
+    crate::latent_cache::sync_dir(path.parent().context("a file path has a folder")?);
+    Ok(())
 }
 
 /// A hidden sibling of `path`, unique to this process and call.
@@ -582,5 +594,26 @@ mod imp {
             packet.rescale_ts(from, to);
             packet.write_interleaved(octx).context("writing a packet")?;
         }
+    }
+}
+
+#[cfg(test)]
+mod durability_tests {
+    use super::*;
+    use crate::fsync_log::synced_in;
+
+    #[test]
+    fn a_written_video_or_sheet_is_synced_under_its_temporary_name_then_its_folder() {
+        let dir = bwm_testdir::TestDir::new("video-sync");
+        let dir = dir.canonicalize().unwrap();
+        let frames = vec![RgbImage::from_pixel(16, 16, image::Rgb([200, 30, 30])); 2];
+        let written = write_mp4_or_sheet(&dir.join("clip.mp4"), &frames, 10.0, 2).unwrap();
+        assert!(written.is_file());
+        let synced = synced_in(&dir);
+        let file = synced.iter().position(|p| p.parent() == Some(dir.as_path()) && p != &written);
+        let folder = synced.iter().rposition(|p| p == &dir);
+        assert!(file.is_some() && folder.is_some() && file < folder, "fsyncs in {}: {synced:?}", dir.display());
+        let left: Vec<_> = std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().file_name()).collect();
+        assert_eq!(left.len(), 1, "only the video is left: {left:?}");
     }
 }

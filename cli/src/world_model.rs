@@ -8,7 +8,7 @@ use anyhow::Result;
 pub use bwm_inference::world_model::{WorldModel, WorldModelOptions};
 use bwm_data::frames::parse_resize;
 use bwm_data::ResizeMode;
-use bwm_trainer::config::Residual;
+use bwm_model::Residual;
 use clap::Args;
 
 #[derive(Args, Clone, Debug)]

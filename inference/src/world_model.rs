@@ -14,8 +14,8 @@ use bwm_model::fp8_dit::quantize_dit_blocks;
 use bwm_model::rollout::{history_sigma_for_shift, Rollout, RolloutSpec};
 use bwm_model::schedule::Solver;
 use bwm_model::vae::{VaeConfig, WanVae};
-use bwm_model::{BwmModel, ModelConfig};
-use bwm_trainer::config::{Residual, RunConfig};
+use bwm_model::{BwmModel, ModelConfig, Residual};
+use bwm_trainer::config::RunConfig;
 use bwm_trainer::devices::{parse_device, parse_kind};
 use tch::{Device, Kind, Tensor};
 

@@ -230,6 +230,42 @@ impl ModelConfig {
     }
 }
 
+/// dtype of the DiT's residual stream, its norms, modulation and gates (`model.residual` of a run
+/// config, `--residual` of the world-model commands). Here beside the model's config, since the
+/// trainer, the checkpoints' run record and inference all name it.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Residual {
+    /// fp32, as the official Wan code.
+    #[default]
+    F32,
+    /// `model.dtype`, as DiffSynth-Studio (which the BWM release trains with) runs it: half the
+    /// memory traffic of the element-wise work between the matmuls.
+    Model,
+}
+
+impl std::str::FromStr for Residual {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "f32" => Ok(Residual::F32),
+            "model" => Ok(Residual::Model),
+            _ => Err(format!("'{s}': expected f32 or model")),
+        }
+    }
+}
+
+impl Residual {
+    /// The residual stream's dtype for a model whose weights are in `model`.
+    pub fn kind(self, model: tch::Kind) -> tch::Kind {
+        match self {
+            Residual::F32 => tch::Kind::Float,
+            Residual::Model => model,
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -21,7 +21,7 @@ pub mod weight_file;
 pub mod weights;
 
 pub use bwm::{frame_timesteps, BwmModel, Layout};
-pub use config::{ActionConfig, DitConfig, ModelConfig};
+pub use config::{ActionConfig, DitConfig, ModelConfig, Residual};
 pub use schedule::FlowSchedule;
 pub use vb::{ParamStore, Vb};
 pub use weights::{SafetensorsSource, WeightSource, WeightsError};

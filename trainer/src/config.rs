@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, ensure, Context, Result};
 use bwm_model::lora::LoraConfig;
-use bwm_model::{ActionConfig, DitConfig, ModelConfig};
+use bwm_model::{ActionConfig, DitConfig, ModelConfig, Residual};
 use serde::{Deserialize, Serialize};
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -95,39 +95,6 @@ pub struct ModelSection {
     /// `train.trainable` left at its default, only the adapters train.
     #[serde(default)]
     pub lora: Option<LoraConfig>,
-}
-
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Residual {
-    /// fp32, as the official Wan code.
-    #[default]
-    F32,
-    /// `model.dtype`, as DiffSynth-Studio (which the BWM release trains with) runs it: half the
-    /// memory traffic of the element-wise work between the matmuls.
-    Model,
-}
-
-impl std::str::FromStr for Residual {
-    type Err = String;
-
-    fn from_str(s: &str) -> Result<Self, String> {
-        match s {
-            "f32" => Ok(Residual::F32),
-            "model" => Ok(Residual::Model),
-            _ => Err(format!("'{s}': expected f32 or model")),
-        }
-    }
-}
-
-impl Residual {
-    /// The residual stream's dtype for a model whose weights are in `model`.
-    pub fn kind(self, model: tch::Kind) -> tch::Kind {
-        match self {
-            Residual::F32 => tch::Kind::Float,
-            Residual::Model => model,
-        }
-    }
 }
 
 fn default_init() -> InitSource {

@@ -227,8 +227,8 @@ fn read(path: &Path) -> String {
     std::fs::read_to_string(path).unwrap_or_default()
 }
 
-/// Node `node`'s launcher line ("launch: node N, 2 ranks here, world 4, master HOST:PORT ..."):
-/// the master host and port it was given.
+/// The master host and port of a node's launcher line ("launch: node N, 2 ranks here, world 4,
+/// master HOST:PORT (attempt 1)").
 fn master_of(node_log: &str) -> Option<(String, u16)> {
     let line = node_log.lines().find(|l| l.starts_with("launch: node "))?;
     let master = line.split(", master ").nth(1)?.split_whitespace().next()?;

@@ -12,7 +12,9 @@ fn rel_err(a: &Tensor, b: &Tensor) -> f64 {
 #[test]
 #[ignore = "needs a CUDA device; run on the GPU machine with --ignored"]
 fn tiny_forward_on_cuda_matches_cpu() {
-    assert!(tch::Cuda::is_available(), "CUDA is not available to libtorch (is libtorch_cuda linked?)");
+    if !bwm_testdir::need(bwm_testdir::Dep::Cuda, (!tch::Cuda::is_available()).then(|| "CUDA is not available to libtorch (is libtorch_cuda linked?)".to_string())) {
+        return;
+    }
     let cfg = ModelConfig::preset("tiny").unwrap();
     let cpu = BwmModel::random(&cfg, Kind::Float, Device::Cpu, 7).unwrap();
     let dir = bwm_testdir::TestDir::new("cuda-parity");

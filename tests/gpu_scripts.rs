@@ -5,8 +5,8 @@
 //! scripts/gpu/metaworld.sh (which GPU each chain of settings gets, and that the later chains start
 //! once the model is trained, with its truth and verdicts), and scripts/gpu/detached.sh's
 //! start/wait protocol (exit codes, the logs' progress, the archive), common.sh's `unpack` (a
-//! binary unpacked over the copy another script on the host is running), and fp8_train.sh's
-//! steps against the reference's (stub binaries).
+//! binary unpacked over the copy another script on the host is running), fp8_train.sh's steps
+//! against the reference's (stub binaries), and unit.sh, which fails where CUDA is missing.
 
 mod common;
 
@@ -565,4 +565,60 @@ fn the_fp8_timing_sets_each_step_against_the_reference_of_the_same_call() {
     let stdout = run("0");
     assert!(stdout.contains("breakdown of a 0.410 s step") && !stdout.contains("fp8_train:"), "{stdout}");
     assert!(!d.join("out/reference-args").exists());
+}
+
+/// The stand-in of scripts/gpu/unit.sh's test binaries in `unit_sh_fails_where_cuda_is_missing`:
+/// a test that needs CUDA and asks `bwm_testdir::need`, ignored by a plain `cargo test`, as
+/// theirs are. Run with `--ignored` on a GPU machine it checks a sum on the device.
+#[test]
+#[ignore = "needs a CUDA device (the stand-in of scripts/gpu/unit.sh's test binaries)"]
+fn needs_cuda_as_the_gpu_unit_tests_do() {
+    if !bwm_testdir::need(bwm_testdir::Dep::Cuda, (!tch::Cuda::is_available()).then(|| "libtorch sees no CUDA device".to_string())) {
+        return;
+    }
+    let x = tch::Tensor::ones([3], (tch::Kind::Float, tch::Device::Cuda(0)));
+    assert_eq!(x.sum(tch::Kind::Float).double_value(&[]), 3.0);
+}
+
+/// scripts/gpu/unit.sh where libtorch sees no CUDA device (none is visible to it here, also on a
+/// GPU machine): the `vae` group's CUDA-graph binary (this test binary's CUDA test standing in)
+/// fails for want of CUDA, which the script itself requires (BWM_REQUIRE, whatever the caller's
+/// environment says), and its trainer binary, which runs no test (a stub of a binary whose filter
+/// matches nothing), fails too. Nothing of it passes.
+#[test]
+fn unit_sh_fails_where_cuda_is_missing() {
+    let dir = common::temp_dir("gpu-unit");
+    let d = dir.path();
+    fs::create_dir_all(d.join("scripts/gpu")).unwrap();
+    for f in ["common.sh", "unit.sh"] {
+        fs::copy(Path::new(ROOT).join("scripts/gpu").join(f), d.join("scripts/gpu").join(f)).unwrap();
+    }
+    fs::create_dir_all(d.join("stub")).unwrap();
+    let stand_in = d.join("stub/test-cuda-graph");
+    let exe = std::env::current_exe().unwrap();
+    write_executable(&stand_in, &format!("#!/bin/sh\nexec '{}' needs_cuda_as_the_gpu_unit_tests_do --exact \"$@\"\n", exe.display()));
+    let no_test = d.join("stub/test-trainer");
+    write_executable(&no_test, "#!/bin/sh\necho 'running 0 tests'\necho 'test result: ok. 0 passed; 0 failed; 0 ignored; 0 measured; 7 filtered out; finished in 0.00s'\n");
+    fs::create_dir_all(d.join(".carry-tests")).unwrap();
+    for stub in [&stand_in, &no_test] {
+        let name = stub.file_name().unwrap().to_str().unwrap();
+        let packed = Command::new("sh").arg("-c").arg(format!("xz -c '{}' > '.carry-tests/{name}.xz'", stub.display())).current_dir(d).status().unwrap();
+        assert!(packed.success());
+    }
+    let out = Command::new("bash")
+        .args(["scripts/gpu/unit.sh", "vae"])
+        .current_dir(d)
+        .env("OUT", d.join("out"))
+        .env("CUDA_VISIBLE_DEVICES", "")
+        .env("BWM_REQUIRE", "")
+        .env_remove("BWM_SKIP_LOG")
+        .output()
+        .unwrap();
+    let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert_eq!(out.status.code(), Some(1), "{text}");
+    assert!(text.contains("cuda is required (BWM_REQUIRE) but missing: libtorch sees no CUDA device"), "{text}");
+    assert!(text.contains("unit: FAILED: dist/test-cuda-graph --ignored"), "{text}");
+    assert!(text.contains("unit: FAILED: dist/test-trainer --ignored the_cuda_graph --test-threads 1 ran no test"), "{text}");
+    assert!(!text.contains("bwm-test: SKIPPED"), "{text}");
+    assert!(fs::read_to_string(d.join("out/unit.log")).unwrap().contains("ran no test"), "the log keeps the output");
 }

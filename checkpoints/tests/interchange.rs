@@ -177,10 +177,9 @@ fn conversions_between_layouts_keep_every_tensor() {
 }
 
 #[test]
-fn vae_pth_and_diffusers_names_convert_both_ways() {
-    let golden = std::env::var_os("BWM_SHARED").map(std::path::PathBuf::from).unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared")).join("golden");
-    let weights = golden.join("vae_public.weights.safetensors");
-    assert!(weights.is_file(), "{} missing (set BWM_SHARED)", weights.display());
+fn vae_wan_and_diffusers_names_convert_both_ways() {
+    let Some(weights) = bwm_testdir::reference("golden/vae_public.weights.safetensors") else { return };
+    let golden = weights.parent().unwrap().to_path_buf();
     let root = tmp_dir("vae");
     let diff = root.join("vae-diffusers.safetensors");
     let r = convert_vae(&weights, &diff, VaeNaming::Diffusers, None, false).unwrap();
@@ -197,31 +196,35 @@ fn vae_pth_and_diffusers_names_convert_both_ways() {
         "dim": cfg_json["vae"]["dim"], "dec_dim": cfg_json["vae"]["dec_dim"], "z_dim": 48, "dim_mult": [1, 2, 4, 4],
         "num_res_blocks": 2, "temporal_downsample": [false, true, true]})).unwrap();
     bwm_model::vae::WanVae::load_diffusers(&diff, &vcfg, Kind::Float, Device::Cpu).unwrap();
-    // .pth -> safetensors (the file written by torch.save, read by the model crate's pickle reader).
-    let pth = root.join("vae.pth");
-    let py = std::env::var_os("VIRTUAL_ENV").map(|v| Path::new(&v).join("bin/python")).filter(|p| p.exists());
-    if let Some(py) = py {
-        let ok = std::process::Command::new(py)
-            .args(["-c", "import sys, torch; from safetensors.torch import load_file; torch.save(load_file(sys.argv[1]), sys.argv[2])"])
-            .arg(&weights)
-            .arg(&pth)
-            .status()
-            .unwrap()
-            .success();
-        assert!(ok, "python torch.save failed");
-        let st = root.join("from-pth.safetensors");
-        let r3 = convert_vae(&pth, &st, VaeNaming::Wan, None, false).unwrap();
-        assert_eq!(r3.tensors, a.len());
-        assert_same(&bwm_checkpoints::read_tensors(&st, Device::Cpu).unwrap(), &a, Kind::Float, "vae .pth -> safetensors");
-        assert!(convert_vae(&pth, &st, VaeNaming::Wan, None, false).unwrap_err().to_string().contains("--overwrite"));
-    } else {
-        eprintln!("skipped the .pth part: no VIRTUAL_ENV python (source scripts/env.sh)");
-    }
     // A file that is not a VAE.
     let bogus = root.join("bogus.safetensors");
     write_tensors(&bogus, &[("blocks.0.self_attn.q.weight".to_string(), Tensor::zeros([2, 2], (Kind::Float, Device::Cpu)))], &BTreeMap::new()).unwrap();
     let e = convert_vae(&bogus, &root.join("x.safetensors"), VaeNaming::Wan, None, false).unwrap_err().to_string();
     assert!(e.contains("not a Wan2.2 VAE key"), "{e}");
+}
+
+/// A `.pth` of the VAE written by PyTorch's own `torch.save` (the project virtualenv's torch;
+/// `bwm_testdir::python_with`) converts to the safetensors it was saved from.
+#[test]
+fn a_torch_saved_vae_pth_converts_to_safetensors() {
+    let Some(py) = bwm_testdir::python_with(bwm_testdir::Dep::Python, &["torch", "safetensors"]) else { return };
+    let Some(weights) = bwm_testdir::reference("golden/vae_public.weights.safetensors") else { return };
+    let root = tmp_dir("vae-pth");
+    let pth = root.join("vae.pth");
+    let ok = std::process::Command::new(py)
+        .args(["-c", "import sys, torch; from safetensors.torch import load_file; torch.save(load_file(sys.argv[1]), sys.argv[2])"])
+        .arg(&weights)
+        .arg(&pth)
+        .status()
+        .unwrap()
+        .success();
+    assert!(ok, "python torch.save failed");
+    let a = bwm_checkpoints::read_tensors(&weights, Device::Cpu).unwrap();
+    let st = root.join("from-pth.safetensors");
+    let r = convert_vae(&pth, &st, VaeNaming::Wan, None, false).unwrap();
+    assert_eq!(r.tensors, a.len());
+    assert_same(&bwm_checkpoints::read_tensors(&st, Device::Cpu).unwrap(), &a, Kind::Float, "vae .pth -> safetensors");
+    assert!(convert_vae(&pth, &st, VaeNaming::Wan, None, false).unwrap_err().to_string().contains("--overwrite"));
 }
 
 #[test]

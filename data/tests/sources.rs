@@ -70,7 +70,8 @@ fn check_lerobot_frames(ds: &dyn EpisodeSource, e: usize, range: std::ops::Range
 
 #[test]
 fn lerobot_v21_reads_values_and_frames() {
-    let ds = open_dataset(&fixtures().join("lerobot_v21")).unwrap();
+    let Some(fixtures) = fixtures() else { return };
+    let ds = open_dataset(&fixtures.join("lerobot_v21")).unwrap();
     eprintln!("{}", ds.describe());
     assert!(ds.describe().starts_with("LeRobot v2.1"));
     assert_eq!(ds.cameras(), ["observation.images.top", "observation.images.wrist"]);
@@ -94,7 +95,8 @@ fn lerobot_v21_reads_values_and_frames() {
 
 #[test]
 fn lerobot_image_features_decode_from_parquet_bytes_and_from_files() {
-    let ds = open_dataset(&fixtures().join("lerobot_v21_images")).unwrap();
+    let Some(fixtures) = fixtures() else { return };
+    let ds = open_dataset(&fixtures.join("lerobot_v21_images")).unwrap();
     assert_eq!(ds.episodes().iter().map(|e| e.length).collect::<Vec<_>>(), vec![6, 5]);
     let both = CameraSelection::stacked(&["top", "wrist"]);
     assert_eq!(ds.frame_count(1, &both).unwrap(), 5);
@@ -117,7 +119,8 @@ fn lerobot_image_features_decode_from_parquet_bytes_and_from_files() {
 
 #[test]
 fn lerobot_v30_slices_episodes_out_of_shared_av1_files() {
-    let root = fixtures().join("lerobot_v30");
+    let Some(fixtures) = fixtures() else { return };
+    let root = fixtures.join("lerobot_v30");
     let ds = open_dataset(&root).unwrap();
     eprintln!("{}", ds.describe());
     assert!(ds.describe().starts_with("LeRobot v3.0"));
@@ -175,7 +178,8 @@ fn check_close(got: &[f32], want: &[f64], tol: f64, what: &str) {
 
 #[test]
 fn robotwin_original_layout() {
-    let root = fixtures().join("robotwin/original");
+    let Some(fixtures) = fixtures() else { return };
+    let root = fixtures.join("robotwin/original");
     let ds = open_dataset(&root).unwrap();
     eprintln!("{}", ds.describe());
     assert!(ds.describe().contains("2 original layout"));
@@ -214,7 +218,8 @@ fn robotwin_original_layout() {
 
 #[test]
 fn robotwin_2026_layout() {
-    let ds = open_dataset(&fixtures().join("robotwin/v2026")).unwrap();
+    let Some(fixtures) = fixtures() else { return };
+    let ds = open_dataset(&fixtures.join("robotwin/v2026")).unwrap();
     eprintln!("{}", ds.describe());
     assert!(ds.describe().contains("2 2026 layout"));
     assert_eq!(ds.cameras(), ["cam_head", "cam_left_wrist"]);
@@ -244,8 +249,9 @@ fn robotwin_2026_layout() {
 
 #[test]
 fn conversions_apply_through_a_source() {
+    let Some(fixtures) = fixtures() else { return };
     // Deltas of the fixture state: 1 per frame on every value, 0 at frame 0.
-    let ds = open_dataset(&fixtures().join("lerobot_v21")).unwrap();
+    let ds = open_dataset(&fixtures.join("lerobot_v21")).unwrap();
     let spec = ActionSpec { absolute_to_delta: vec![0, 2], ..state_spec() };
     let v = ds.vectors(1, &spec).unwrap();
     assert_eq!(v[0][0], 0.0);
@@ -257,7 +263,8 @@ fn conversions_apply_through_a_source() {
 
 #[test]
 fn bad_episodes_are_skipped_with_reasons() {
-    let ds = open_dataset(&fixtures().join("lerobot_v21_bad")).unwrap();
+    let Some(fixtures) = fixtures() else { return };
+    let ds = open_dataset(&fixtures.join("lerobot_v21_bad")).unwrap();
     let all: Vec<usize> = (0..ds.episodes().len()).collect();
     let clip = ClipSpec { history: 4, future: 4, stride: 4 };
     let plan = plan_clips(ds.as_ref(), &all, &state_spec(), &CameraSelection::default(), &clip).unwrap();

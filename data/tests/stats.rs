@@ -32,6 +32,7 @@ fn sample(n: usize, d: usize, seed: u64) -> Vec<Vec<f32>> {
 
 #[test]
 fn statistics_match_numpy() {
+    let Some(py) = bwm_testdir::python_with(bwm_testdir::Dep::Python, &["numpy"]) else { return };
     let dir = tmp_dir("stats-numpy");
     for (n, d) in [(1, 4), (2, 3), (5, 4), (7, 4), (100, 5), (1001, 4)] {
         let rows = sample(n, d, n as u64);
@@ -39,6 +40,7 @@ fn statistics_match_numpy() {
         let bytes: Vec<u8> = rows.iter().flatten().flat_map(|v| v.to_le_bytes()).collect();
         std::fs::write(&path, bytes).unwrap();
         let out = run_python(
+            &py,
             r#"
 import json, sys
 import numpy as np
@@ -69,6 +71,7 @@ print(json.dumps({"min": x.min(0).tolist(), "max": x.max(0).tolist(), "p01": p[0
     // Single percentiles straight from numpy's definition, at awkward positions.
     let sorted = [-3.0, -1.0, 0.5, 0.5, 2.0, 7.0, 11.0];
     let out = run_python(
+        &py,
         "import json, numpy as np; print(json.dumps([float(np.percentile([-3.0, -1.0, 0.5, 0.5, 2.0, 7.0, 11.0], q)) for q in [0, 1, 12.5, 50, 66.6, 99, 100]]))",
         &[],
     );

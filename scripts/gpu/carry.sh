@@ -2,7 +2,7 @@
 # What the GPU scripts need carried to a lent machine (device tool), prepared on this machine from
 # the repo root: .carry/bwm.xz (the bwm binary built with --no-default-features, stripped and
 # xz-compressed: the carry limit is 64 MiB), .carry-tests/test-*.xz (the tests of cuda-graph/,
-# trainer/, inference/, fused-ops/ and fp8-autograd/ that need a GPU to check anything, which scripts/gpu/unit.sh runs there), .whl (bench/metaworld's wheels for that machine's
+# trainer/ (its NCCL tests too), inference/, fused-ops/ and fp8-autograd/ that need a GPU to check anything, which scripts/gpu/unit.sh runs there), .whl (bench/metaworld's wheels for that machine's
 # Python 3.12) and .gl (the GL loader debs MuJoCo's EGL rendering needs there). Each part is
 # skipped when present; --rebuild rebuilds and repacks the binaries. Then, for example:
 #   run(carry=[".whl", ".gl", ".carry"], command="bash scripts/gpu/metaworld.sh data")
@@ -30,15 +30,15 @@ pack() { # $1 = executable, $2 = path without .xz (under .carry or .carry-tests)
   strip -o "$2.tmp" "$1"
   xz -T0 -6 -c "$2.tmp" > "$2.xz.tmp" && rm "$2.tmp" && mv "$2.xz.tmp" "$2.xz"
 }
-if [ $rebuild = 1 ] || [ ! -f .carry/bwm.xz ] || [ "$(ls .carry-tests/test-*.xz 2>/dev/null | wc -l)" -lt 6 ]; then
+if [ $rebuild = 1 ] || [ ! -f .carry/bwm.xz ] || [ "$(ls .carry-tests/test-*.xz 2>/dev/null | wc -l)" -lt 7 ]; then
   echo "carry: building bwm without FFmpeg/HDF5 into $CARGO_TARGET_DIR (several minutes cold)"
   cargo build --release -p bwm-cli --no-default-features
   mkdir -p .carry .carry-tests
   rm -f .carry/test-*.xz  # where earlier versions of this script put them
   pack "$CARGO_TARGET_DIR/release/bwm" .carry/bwm
   # The unit tests that need a GPU to check anything (scripts/gpu/unit.sh runs them there).
-  for test in cuda-graph:--lib trainer:--lib training:--test=training inference:--lib fused-ops:--lib fp8-autograd:--lib; do
-    crate=${test%%:*} crate=bwm-${crate/training/trainer}
+  for test in cuda-graph:--lib trainer:--lib training:--test=training inference:--lib fused-ops:--lib fp8-autograd:--lib dist_nccl:--test=dist_nccl; do
+    crate=${test%%:*}; case $crate in training | dist_nccl) crate=bwm-trainer ;; *) crate=bwm-$crate ;; esac
     exe=$(cargo test --release --no-default-features -p "$crate" "${test#*:}" --no-run --message-format=json 2>/dev/null |
       "$BWM_VENV/bin/python" -c 'import json,sys; print([m["executable"] for m in map(json.loads, sys.stdin) if m.get("executable")][-1])')
     pack "$exe" ".carry-tests/test-${test%%:*}"

@@ -1,5 +1,9 @@
-# Sourced by the GPU scripts: $OUT, libtorch on LD_LIBRARY_PATH, NVLink multicast off, and `mem`.
+# Sourced by the GPU scripts: $OUT, libtorch on LD_LIBRARY_PATH, NVLink multicast off, every
+# optional dependency of a test required, and `mem`.
 OUT="${OUT:-/tmp/out}"; mkdir -p "$OUT"
+# A test run here that asks bwm_testdir for CUDA, NCCL or anything else fails where it is missing
+# instead of being skipped (testdir/src/optional.rs): a GPU machine is where those are checked.
+export BWM_REQUIRE=all
 TL=$(python3 -c 'import torch,os;print(os.path.dirname(torch.__file__))')/lib
 export LD_LIBRARY_PATH=$TL:${LD_LIBRARY_PATH:-} NCCL_NVLS_ENABLE=0
 mem() { # $1 = log name; samples used memory every 50 ms while the rest of the arguments run

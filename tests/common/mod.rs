@@ -20,17 +20,15 @@ pub fn bwm() -> PathBuf {
     path
 }
 
-/// The virtualenv's python (VIRTUAL_ENV, BWM_VENV, else the repository's .venv).
+/// The virtualenv's python (VIRTUAL_ENV, BWM_VENV, else the repository's .venv:
+/// `bwm_testdir::python`). The virtualenv is no optional dependency of these tests: it holds the
+/// libtorch the `bwm` binary runs on, so a missing one fails the test here with what to do. A test
+/// that needs packages beyond the set-up's core ones asks `bwm_testdir::python_with`.
 pub fn python() -> String {
-    for var in ["VIRTUAL_ENV", "BWM_VENV"] {
-        if let Some(v) = std::env::var_os(var) {
-            let p = Path::new(&v).join("bin/python");
-            if p.exists() {
-                return p.display().to_string();
-            }
-        }
+    match bwm_testdir::python() {
+        Some(p) => p.display().to_string(),
+        None => panic!("no virtualenv python (VIRTUAL_ENV, BWM_VENV or .venv): run `make setup` and `source scripts/env.sh`"),
     }
-    Path::new(env!("CARGO_MANIFEST_DIR")).join(".venv/bin/python").display().to_string()
 }
 
 /// `../shared` beside the repository (BWM_SHARED overrides).

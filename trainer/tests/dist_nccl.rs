@@ -1,6 +1,8 @@
-//! The NCCL back end with two processes on two GPUs. Ignored by default: it needs a machine with 2
-//! GPUs and libtorch's NCCL reachable as `libnccl.so`. On such a machine (ARCHITECTURE.md,
-//! Toolchain facts):
+//! The NCCL back end with two processes on two GPUs: the collectives, failures of a peer, and a
+//! training run of 2 ranks against 1 rank. Ignored by default: it needs a machine with 2 GPUs and
+//! libtorch's NCCL reachable as `libnccl.so`; `bash scripts/gpu/unit.sh nccl` runs them there
+//! (BWM_REQUIRE set: with fewer than 2 GPUs they fail). By hand on such a machine
+//! (ARCHITECTURE.md, Toolchain facts):
 //!
 //! ```text
 //! TL=$(python3 -c 'import torch,os;print(os.path.dirname(torch.__file__))')/lib
@@ -11,12 +13,18 @@
 //! ```
 //!
 //! (the test binary built here by `cargo test --release -p bwm-trainer --test dist_nccl --no-run`,
-//! which prints its path). Each test re-runs the binary once per rank with `BWM_DIST_TEST_ROLE`,
-//! RANK, LOCAL_RANK, WORLD_SIZE, MASTER_ADDR and MASTER_PORT set; `nccl_child` is the ranks' entry
-//! point and does nothing without that variable.
+//! which prints its path). Each test re-runs the binary once per rank with `BWM_DIST_TEST_ROLE`
+//! (or `BWM_DIST_TEST_TRAIN`), RANK, LOCAL_RANK, WORLD_SIZE, MASTER_ADDR and MASTER_PORT set;
+//! `nccl_child` and `train_child` are the ranks' entry points and do nothing without their
+//! variable. The training comparison also runs on the CPU over TCP (not ignored): the same
+//! processes, files and tolerances, so that everything but NCCL itself is checked everywhere.
 
+mod common;
+
+use bwm_testdir::{need, Dep};
 use bwm_trainer::dist::{ensure_torch_cuda_loaded, Collective, NcclCollective};
 use std::net::TcpListener;
+use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
 use tch::{Device, Kind, Tensor};
@@ -83,17 +91,26 @@ fn finish(child: Child, what: &str) -> Output {
     out
 }
 
-fn two_gpus() {
-    ensure_torch_cuda_loaded().unwrap();
-    let n = tch::Cuda::device_count();
-    assert!(n >= 2, "these tests need 2 GPUs, {n} visible");
+/// Whether libtorch's CUDA is loaded and sees 2 GPUs. Without them the test fails when
+/// BWM_REQUIRE names nccl (scripts/gpu/unit.sh sets it) and is logged as skipped otherwise.
+fn two_gpus() -> bool {
+    let missing = match ensure_torch_cuda_loaded() {
+        Err(e) => Some(format!("{e:#}")),
+        Ok(()) => {
+            let n = tch::Cuda::device_count();
+            (n < 2).then(|| format!("2 GPUs needed, {n} visible"))
+        }
+    };
+    need(Dep::Nccl, missing)
 }
 
 /// Every operation on f32, bf16, f16 and f64, checked exactly, then all-reduce bandwidth.
 #[test]
-#[ignore]
+#[ignore = "needs 2 GPUs and NCCL (scripts/gpu/unit.sh nccl)"]
 fn nccl_two_processes_give_exact_values() {
-    two_gpus();
+    if !two_gpus() {
+        return;
+    }
     let port = free_port();
     let children: Vec<Child> = (0..2).map(|r| spawn("ops", r, port, 120)).collect();
     for (r, c) in children.into_iter().enumerate() {
@@ -103,9 +120,11 @@ fn nccl_two_processes_give_exact_values() {
 
 /// Rank 1's process dies while rank 0 is inside an all-reduce: rank 0 fails fast, not at the timeout.
 #[test]
-#[ignore]
+#[ignore = "needs 2 GPUs and NCCL (scripts/gpu/unit.sh nccl)"]
 fn nccl_peer_killed_mid_collective_is_an_error() {
-    two_gpus();
+    if !two_gpus() {
+        return;
+    }
     let port = free_port();
     let survivor = spawn("survivor", 0, port, 60);
     let victim = spawn("dies", 1, port, 60);
@@ -116,14 +135,186 @@ fn nccl_peer_killed_mid_collective_is_an_error() {
 
 /// Rank 1 stops calling collectives: rank 0 times out, names rank 1, and rank 1 then fails too.
 #[test]
-#[ignore]
+#[ignore = "needs 2 GPUs and NCCL (scripts/gpu/unit.sh nccl)"]
 fn nccl_peer_that_stops_responding_is_named() {
-    two_gpus();
+    if !two_gpus() {
+        return;
+    }
     let port = free_port();
     let children = [spawn("waits", 0, port, 5), spawn("sleeps", 1, port, 5)];
     for (r, c) in children.into_iter().enumerate() {
         assert!(finish(c, &format!("rank {r}")).status.success(), "rank {r} failed");
     }
+}
+
+/// 2 ranks of one micro-step each train as 1 rank of two micro-steps (the same global batch of
+/// 2, the same samples), with the blocks' gradients reduced during the backward walk (the
+/// default) or after it, on two GPUs over NCCL in bf16 with the optimizer state sharded (ZeRO-1).
+#[test]
+#[ignore = "needs 2 GPUs and NCCL (scripts/gpu/unit.sh nccl)"]
+fn nccl_two_ranks_train_as_one_rank_with_the_same_global_batch() {
+    if !two_gpus() {
+        return;
+    }
+    ranks_train_as_one("nccl", "cuda");
+}
+
+/// The same comparison on the CPU over TCP: everything of the NCCL test above but NCCL itself.
+#[test]
+fn tcp_two_ranks_train_as_one_rank_with_the_same_global_batch() {
+    ranks_train_as_one("tcp", "cpu");
+}
+
+/// What one rank of a training run writes for the comparison (`train_child`), read back.
+struct RankResult {
+    /// This rank's slice of the flat fp32 master weights: its first element's index, before the
+    /// first step and after the last.
+    start: i64,
+    master_init: Tensor,
+    master: Tensor,
+    /// Per step: the loss over the global batch and the gradient norm after the reduction.
+    losses: Vec<f64>,
+    grad_norms: Vec<f64>,
+}
+
+/// A run's fp32 master weights, before and after, assembled from its ranks' slices; its losses
+/// and gradient norms (the same on every rank: rank 0's).
+struct RunResult {
+    master_init: Tensor,
+    master: Tensor,
+    losses: Vec<f64>,
+    grad_norms: Vec<f64>,
+}
+
+/// Relative difference allowed between the runs (their updates, losses and gradient norms):
+/// 2^-6, four units of bf16 rounding (2^-8). The runs differ by where bf16 values are rounded:
+/// one rank sums its two micro-steps' bf16 gradients in the fp32 accumulator, two ranks reduce
+/// theirs over the collective (a bf16 sum is rounded once more, 2^-8 relative at most), and a
+/// master that differs in its last bits can round to the neighbouring bf16 weight, which the next
+/// step's forward reads. Over three steps these stay within a few roundings; a rank's gradient
+/// lost, counted twice or taken from the wrong sample moves the update by tens of percent.
+const BF16_TOL: f64 = 1.0 / 64.0;
+
+/// Trains the tiny config (bf16, 3 steps, global batch 2) as 1 rank with 2 micro-steps, as 2
+/// ranks with the reduction overlapped with the backward walk, and as 2 ranks reducing after it,
+/// each rank a process of this test binary on `device`; compares the three within [`BF16_TOL`].
+fn ranks_train_as_one(tag: &str, device: &str) {
+    let dir = common::tmp_dir(&format!("ranks-as-one-{tag}"));
+    let cache = common::write_cache(&dir.join("cache"), 4, 21);
+    let base = format!("[run]\ndevice = \"{device}\"\n[model]\ndtype = \"bf16\"\n[train]\nsteps = 3\nmicro_batch = 1\n");
+    let one = train_ranks(&dir, &cache, "one", 1, &format!("{base}grad_accum = 2\n"));
+    let two = train_ranks(&dir, &cache, "two", 2, &format!("{base}grad_accum = 1\noverlap_grad_reduce = true\n"));
+    let after = train_ranks(&dir, &cache, "after-walk", 2, &format!("{base}grad_accum = 1\noverlap_grad_reduce = false\n"));
+    assert_eq!(one.master_init, two.master_init, "{tag}: the runs start from different weights");
+    assert_runs_agree(&one, &two, &format!("{tag}: 2 ranks against 1 rank of 2 micro-steps"));
+    assert_runs_agree(&two, &after, &format!("{tag}: the reduction during the backward walk against after it"));
+}
+
+/// `a` and `b` within [`BF16_TOL`]: their weight updates (relative to `b`'s), and each step's
+/// loss and gradient norm.
+fn assert_runs_agree(a: &RunResult, b: &RunResult, what: &str) {
+    let norm = |t: &Tensor| t.to_kind(Kind::Double).norm().double_value(&[]);
+    let update = norm(&(&b.master - &b.master_init));
+    let apart = norm(&(&a.master - &b.master));
+    println!("{what}: weight updates differ by {:.3e} of their size; losses {:?} / {:?}; gradient norms {:?} / {:?}", apart / update, a.losses, b.losses, a.grad_norms, b.grad_norms);
+    assert!(update > 0.0, "{what}: the weights did not move");
+    assert!(apart <= BF16_TOL * update, "{what}: the weight updates differ by {:.3e} of their size", apart / update);
+    assert_eq!((a.losses.len(), a.grad_norms.len()), (3, 3), "{what}: steps logged");
+    for (name, x, y) in [("loss", &a.losses, &b.losses), ("gradient norm", &a.grad_norms, &b.grad_norms)] {
+        for (step, (x, y)) in x.iter().zip(y).enumerate() {
+            assert!((x - y).abs() <= BF16_TOL * y.abs(), "{what}, step {}: {name} {x} against {y}", step + 1);
+        }
+    }
+}
+
+/// A run of `world` ranks (processes of this binary, `train_child`) of the tiny config on `cache`
+/// with `extra`, in `dir/name`; its ranks' results assembled.
+fn train_ranks(dir: &Path, cache: &Path, name: &str, world: usize, extra: &str) -> RunResult {
+    let out = dir.join(name);
+    let port = free_port();
+    let children: Vec<Child> = (0..world)
+        .map(|rank| {
+            let mut c = Command::new(std::env::current_exe().unwrap());
+            c.args(["--exact", "train_child", "--nocapture", "--test-threads=1"])
+                .env(TRAIN, &out)
+                .env("BWM_DIST_TEST_CACHE", cache)
+                .env("BWM_DIST_TEST_EXTRA", extra)
+                .env("BWM_DIST_TIMEOUT", "120")
+                .stdout(Stdio::piped())
+                .stderr(Stdio::piped());
+            for var in ["RANK", "LOCAL_RANK", "WORLD_SIZE", "LOCAL_WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT"] {
+                c.env_remove(var);
+            }
+            if world > 1 {
+                c.env("RANK", rank.to_string())
+                    .env("LOCAL_RANK", rank.to_string())
+                    .env("WORLD_SIZE", world.to_string())
+                    .env("MASTER_ADDR", "127.0.0.1")
+                    .env("MASTER_PORT", port.to_string());
+            }
+            c.spawn().unwrap()
+        })
+        .collect();
+    for (rank, c) in children.into_iter().enumerate() {
+        assert!(finish(c, &format!("{name}, rank {rank}")).status.success(), "{name}: rank {rank} failed");
+    }
+    let mut ranks: Vec<RankResult> = (0..world).map(|rank| read_rank(&out.join(format!("rank-{rank}.safetensors")))).collect();
+    ranks.sort_by_key(|r| r.start);
+    let mut next = 0;
+    for r in &ranks {
+        assert_eq!(r.start, next, "{name}: the ranks' slices of the master weights do not tile it");
+        next += r.master.size()[0];
+    }
+    let cat = |f: fn(&RankResult) -> &Tensor| Tensor::cat(&ranks.iter().map(f).collect::<Vec<_>>(), 0);
+    let (master_init, master) = (cat(|r| &r.master_init), cat(|r| &r.master));
+    let first = ranks.iter().find(|r| r.start == 0).unwrap();
+    for r in &ranks {
+        assert_eq!((&r.losses, &r.grad_norms), (&first.losses, &first.grad_norms), "{name}: the ranks disagree on the losses or gradient norms");
+    }
+    RunResult { master_init, master, losses: first.losses.clone(), grad_norms: first.grad_norms.clone() }
+}
+
+fn read_rank(path: &Path) -> RankResult {
+    let t: std::collections::HashMap<String, Tensor> = Tensor::read_safetensors(path).unwrap_or_else(|e| panic!("{}: {e}", path.display())).into_iter().collect();
+    let f64s = |k: &str| Vec::<f64>::try_from(&t[k]).unwrap();
+    RankResult {
+        start: t["start"].int64_value(&[0]),
+        master_init: t["master_init"].shallow_clone(),
+        master: t["master"].shallow_clone(),
+        losses: f64s("losses"),
+        grad_norms: f64s("grad_norms"),
+    }
+}
+
+/// The training run's folder; set, the process is one rank of `train_ranks`.
+const TRAIN: &str = "BWM_DIST_TEST_TRAIN";
+
+/// Entry point of `train_ranks`' processes (a no-op unless `BWM_DIST_TEST_TRAIN` is set): trains
+/// the run as this rank and writes `rank-R.safetensors` beside it.
+#[test]
+fn train_child() {
+    let Some(out) = std::env::var_os(TRAIN).map(PathBuf::from) else { return };
+    let cache = PathBuf::from(std::env::var_os("BWM_DIST_TEST_CACHE").unwrap());
+    let cfg = common::config(&cache, &out, &std::env::var("BWM_DIST_TEST_EXTRA").unwrap());
+    if cfg.run.device != "cpu" {
+        // Before libtorch is first asked about CUDA (the test binary may lack libtorch_cuda).
+        ensure_torch_cuda_loaded().unwrap();
+    }
+    let mut t = common::trainer(cfg, bwm_trainer::Resume::No).unwrap();
+    let start = t.opt.slice().start as i64;
+    let master_init = t.opt.master.to_device(Device::Cpu).copy();
+    t.run().unwrap();
+    let steps: Vec<&bwm_trainer::metrics::StepMetrics> = t.history.iter().collect();
+    let losses: Vec<f64> = steps.iter().map(|m| m.loss).collect();
+    let grad_norms: Vec<f64> = steps.iter().map(|m| m.grad_norm.unwrap_or(f64::NAN)).collect();
+    let tensors = [
+        ("start", Tensor::from_slice(&[start])),
+        ("master_init", master_init),
+        ("master", t.opt.master.to_device(Device::Cpu)),
+        ("losses", Tensor::from_slice(&losses)),
+        ("grad_norms", Tensor::from_slice(&grad_norms)),
+    ];
+    Tensor::write_safetensors(&tensors, out.join(format!("rank-{}.safetensors", t.comm.rank()))).unwrap();
 }
 
 /// Entry point of the rank processes (a no-op unless `BWM_DIST_TEST_ROLE` is set).

@@ -178,23 +178,30 @@ fn a_lora_checkpoint_loads_merged_and_exports_merged() {
     assert!(e.contains("not a LoRA checkpoint"), "{e}");
 }
 
-fn venv_python() -> Option<std::path::PathBuf> {
-    ["VIRTUAL_ENV", "BWM_VENV"].iter().filter_map(std::env::var_os).map(|v| std::path::Path::new(&v).join("bin/python")).find(|p| p.exists())
+/// A LoRA run from a base and its exports: the base and the merged checkpoint in the diffusers
+/// layout, and the adapters alone.
+struct LoraExports {
+    /// Holds the files until the test ends.
+    _dir: bwm_testdir::TestDir,
+    trained: Trainer,
+    base_file: std::path::PathBuf,
+    base_out: std::path::PathBuf,
+    merged_out: std::path::PathBuf,
+    adapters: bwm_checkpoints::export::AdapterExport,
 }
 
-#[test]
-fn exported_adapters_load_onto_the_base_here_and_in_diffusers() {
+fn lora_exports(tag: &str) -> LoraExports {
     use bwm_checkpoints::export::{export, export_lora_adapters, ExportDtype, ExportOptions};
-    let dir = tmp_dir("lora-diffusers");
+    let dir = tmp_dir(tag);
     let cache = write_cache(&dir.join("cache"), 1, 16);
     // The base: the weights of a run without adapters, written as a file the LoRA run starts from.
     let base = trainer(config(&cache, &dir.join("base"), ""), Resume::No).unwrap();
     let base_file = dir.join("base.safetensors");
     Tensor::write_safetensors(&base.model.store.named_parameters(), &base_file).unwrap();
     let extra = format!("[model]\n{LORA}\ninit = {{ from = \"bwm-checkpoint\", path = \"{}\" }}\n[train]\nsteps = 10\n[optim]\nlr = 1e-2", base_file.display());
-    let mut t = trainer(config(&cache, &dir.join("lora"), &extra), Resume::No).unwrap();
-    t.run().unwrap();
-    let ckpt = t.checkpoints.latest().unwrap().unwrap().path;
+    let mut trained = trainer(config(&cache, &dir.join("lora"), &extra), Resume::No).unwrap();
+    trained.run().unwrap();
+    let ckpt = trained.checkpoints.latest().unwrap().unwrap().path;
 
     let diffusers = |out: &str, input: &str, opts: ExportOptions| {
         let path = dir.join(out);
@@ -205,28 +212,37 @@ fn exported_adapters_load_onto_the_base_here_and_in_diffusers() {
     let merged_out = diffusers("merged-diffusers", ckpt.to_str().unwrap(), ExportOptions { merge_lora: true, ..Default::default() });
     let adapters = export_lora_adapters(ckpt.to_str().unwrap(), &dir.join("adapters"), ExportDtype::F32, false).unwrap();
     assert_eq!((adapters.layers, adapters.left_out.len()), (12, 0));
+    LoraExports { _dir: dir, trained, base_file, base_out, merged_out, adapters }
+}
 
+#[test]
+fn exported_adapters_load_onto_the_base_as_the_merged_checkpoint() {
+    let e = lora_exports("lora-adapters");
     // Base + adapter folder (`--checkpoint BASE --lora ADAPTERS`) is the merged checkpoint.
-    let opened = bwm_checkpoints::open::open_any(base_file.to_str().unwrap()).unwrap();
-    let with_adapters = bwm_checkpoints::open::with_lora_adapters(opened, &adapters.out).unwrap();
-    let from_adapters = bwm_checkpoints::open::build_model(with_adapters, Some(&t.model.cfg), Kind::Float, tch::Device::Cpu).unwrap();
+    let ckpt = e.trained.checkpoints.latest().unwrap().unwrap().path;
+    let opened = bwm_checkpoints::open::open_any(e.base_file.to_str().unwrap()).unwrap();
+    let with_adapters = bwm_checkpoints::open::with_lora_adapters(opened, &e.adapters.out).unwrap();
+    let from_adapters = bwm_checkpoints::open::build_model(with_adapters, Some(&e.trained.model.cfg), Kind::Float, tch::Device::Cpu).unwrap();
     let merged = bwm_checkpoints::open::load_model(ckpt.to_str().unwrap(), None, Kind::Float, tch::Device::Cpu).unwrap();
     let merged_params: BTreeMap<String, Tensor> = merged.store.named_parameters().into_iter().collect();
     for (n, w) in from_adapters.store.named_parameters() {
         let d = max_abs_diff(&w, &merged_params[&n]);
         assert!(d < 1e-6, "{n}: base + exported adapters differ from the merged checkpoint by {d}");
     }
+}
 
-    let Some(py) = venv_python().filter(|p| std::process::Command::new(p).args(["-c", "import diffusers, peft"]).output().is_ok_and(|o| o.status.success())) else {
-        assert!(std::env::var("BWM_REQUIRE_PY_INTEROP").map_or(true, |v| v != "1"), "diffusers/peft missing");
-        eprintln!("SKIPPED (the diffusers half): no virtualenv python with diffusers and peft (source scripts/env.sh)");
-        return;
-    };
+/// diffusers' own LoRA loader (PEFT underneath) puts the exported adapters on the base export
+/// and computes what the merged export computes (tests/python/lora_interop.py). Needs diffusers
+/// and peft in the project's virtualenv (scripts/setup.sh installs them; `bwm_testdir::need`).
+#[test]
+fn exported_adapters_load_in_diffusers_as_the_merged_export() {
+    let Some(py) = bwm_testdir::python_with(bwm_testdir::Dep::Reference, &["diffusers", "peft"]) else { return };
+    let e = lora_exports("lora-diffusers");
     let script = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/lora_interop.py");
     let out = std::process::Command::new(py)
         .arg(script)
-        .args([&base_out, &adapters.out, &merged_out])
-        .arg(adapters.layers.to_string())
+        .args([&e.base_out, &e.adapters.out, &e.merged_out])
+        .arg(e.adapters.layers.to_string())
         .output()
         .unwrap();
     let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));

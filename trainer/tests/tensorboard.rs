@@ -1,29 +1,16 @@
 //! Event files written by `bwm_trainer::tensorboard::EventWriter`, read back by TensorBoard's own
 //! `EventAccumulator` (the project virtualenv's `tensorboard` package, driven by Python below).
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use bwm_trainer::tensorboard::EventWriter;
 use serde_json::Value;
 
-/// Python of the project virtualenv (scripts/env.sh exports VIRTUAL_ENV; BWM_VENV also works),
-/// else the checkout's `.venv`.
-fn python() -> String {
-    for var in ["VIRTUAL_ENV", "BWM_VENV"] {
-        if let Some(v) = std::env::var_os(var) {
-            let p = Path::new(&v).join("bin/python");
-            if p.exists() {
-                return p.display().to_string();
-            }
-        }
-    }
-    let fallback = Path::new(env!("CARGO_MANIFEST_DIR")).join("../.venv/bin/python");
-    assert!(
-        fallback.exists(),
-        "run the tests through `make test` (or `source scripts/env.sh`) so the virtualenv's python with tensorboard is found"
-    );
-    fallback.display().to_string()
+/// The project virtualenv's Python with TensorBoard (`bwm_testdir::python_with`: without it the
+/// test fails where BWM_REQUIRE names python, and is logged as skipped elsewhere).
+fn python() -> Option<PathBuf> {
+    bwm_testdir::python_with(bwm_testdir::Dep::Python, &["tensorboard"])
 }
 
 /// Loads `log_dir` with TensorBoard's EventAccumulator and also re-checks every record's
@@ -65,8 +52,8 @@ print(json.dumps({
 }))
 "#;
 
-fn read_back(log_dir: &Path) -> Value {
-    let out = Command::new(python()).arg("-c").arg(READER).arg(log_dir).output().unwrap();
+fn read_back(py: &Path, log_dir: &Path) -> Value {
+    let out = Command::new(py).arg("-c").arg(READER).arg(log_dir).output().unwrap();
     assert!(out.status.success(), "python reader failed:\n{}", String::from_utf8_lossy(&out.stderr));
     serde_json::from_slice(&out.stdout).unwrap()
 }
@@ -104,6 +91,7 @@ fn assert_scalars(got: &Value, tag: &str, f: fn(u64) -> f64) {
 
 #[test]
 fn tensorboard_reads_scalars_and_images() {
+    let Some(py) = python() else { return };
     let dir = tmp_dir("rw");
     let log_dir = dir.join("runs/a"); // created by `create`
     let img = test_image();
@@ -125,7 +113,7 @@ fn tensorboard_reads_scalars_and_images() {
     w.flush().unwrap();
 
     // Read while the writer is still open: flush() must have made everything visible.
-    let got = read_back(&log_dir);
+    let got = read_back(&py, &log_dir);
     assert_eq!(got["files"].as_array().unwrap().len(), 1, "{got}");
     assert_eq!(got["records"].as_u64(), Some(1 + 10 + 2), "{got}");
     assert_eq!(got["file_version"].as_f64(), Some(2.0), "{got}");
@@ -151,6 +139,7 @@ fn tensorboard_reads_scalars_and_images() {
 
 #[test]
 fn drop_flushes_and_writers_get_distinct_files() {
+    let Some(py) = python() else { return };
     let dir = tmp_dir("drop");
     let mut a = EventWriter::create(&dir).unwrap();
     let mut b = EventWriter::create(&dir).unwrap();
@@ -164,7 +153,7 @@ fn drop_flushes_and_writers_get_distinct_files() {
     b.sync().unwrap();
     drop(a);
     drop(b);
-    let got = read_back(&dir);
+    let got = read_back(&py, &dir);
     assert_eq!(got["files"].as_array().unwrap().len(), 2, "{got}");
     assert_scalars(&got, "train/loss", loss);
     assert_scalars(&got, "train/lr", lr);

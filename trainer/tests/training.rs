@@ -306,13 +306,14 @@ fn a_cuda_graph_step_names_what_it_cannot_record() {
     }
 }
 
-/// On a CUDA machine: a run whose step is replayed from a CUDA graph trains as the eager run
-/// does (cuDNN and atomics may sum in another order, so closely, not bit for bit). Without CUDA
-/// there is nothing to compare and it says so.
+/// On a CUDA machine (scripts/gpu/unit.sh): a run whose step is replayed from a CUDA graph
+/// trains as the eager run does (cuDNN and atomics may sum in another order, so closely, not bit
+/// for bit). Run with `--ignored` where libtorch sees no CUDA device, it fails when BWM_REQUIRE
+/// names cuda and is logged as skipped otherwise.
 #[test]
+#[ignore = "needs a CUDA device (scripts/gpu/unit.sh)"]
 fn the_cuda_graph_step_trains_as_the_eager_step() {
-    if !tch::Cuda::is_available() {
-        eprintln!("no CUDA device: the graph's training is compared on the GPU machines only");
+    if !bwm_testdir::need(bwm_testdir::Dep::Cuda, (!tch::Cuda::is_available()).then(|| "libtorch sees no CUDA device".to_string())) {
         return;
     }
     let dir = tmp_dir("graph");
@@ -434,4 +435,74 @@ fn the_motion_weighted_objective_trains_and_weighs_the_loss_differently() {
     // the two agree to rounding (1e-6). The first step's losses are close: the untrained model
     // errs about as much everywhere.
     assert!(plain.iter().zip(&weighted).any(|(a, b)| (a - b).abs() > 1e-2 * a), "the weights did not reach the loss: {plain:?} / {weighted:?}");
+}
+
+/// The FLOP count behind every tflops and MFU figure (`bwm_trainer::flops`) against an independent
+/// count: PyTorch's `FlopCounterMode` on the reference DiT (DiffSynth-Studio's `WanModel` with
+/// make_golden.py's action encoder, tests/python/flop_count.py), one sample at tiny sizes. Both
+/// count 2 FLOPs per multiply-add of the matrix products, convolutions and attention, and nothing
+/// element-wise (norms, modulation, RoPE, softmax, activations). The formula counts the DiT
+/// blocks (self-attention's q, k, v, o and its QK^T and AV products over the latent tokens,
+/// cross-attention's q and o on the latent tokens, k and v on the action tokens and its two
+/// products, the FFN), the patch embedding and the output head: the reference's count of those
+/// must equal it exactly (integers far below 2^53), and a training step (forward and backward
+/// from inputs that require gradients) must count 3 forwards. The formula leaves out the timestep
+/// embedding and projection (the reference runs them per token, the model per frame) and the
+/// action encoder; their share of the reference's count is printed.
+#[test]
+fn the_flop_formula_counts_what_torch_counts_on_the_reference_model() {
+    let Some(py) = bwm_testdir::python_with(bwm_testdir::Dep::Reference, &["diffsynth", "torch"]) else { return };
+    let script = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/flop_count.py");
+    // (dim, heads, ffn, layers, latent frames, height, width, action frames)
+    let cases = [(96, 2, 256, 2, 5, 4, 6, 17), (72, 2, 160, 1, 3, 8, 10, 9)];
+    let configs: Vec<bwm_model::ModelConfig> = cases
+        .iter()
+        .map(|&(dim, heads, ffn, layers, ..)| {
+            let dit = bwm_model::DitConfig {
+                dim,
+                in_dim: 48,
+                out_dim: 48,
+                ffn_dim: ffn,
+                freq_dim: 256,
+                text_dim: 64,
+                num_heads: heads,
+                num_layers: layers,
+                eps: 1e-6,
+                patch_size: [1, 2, 2],
+                rope_theta: 10000.0,
+            };
+            bwm_model::ModelConfig { dit, action: bwm_model::ActionConfig::default() }
+        })
+        .collect();
+    let arg: Vec<serde_json::Value> = cases
+        .iter()
+        .zip(&configs)
+        .map(|(&(.., frames, height, width, action_frames), cfg)| {
+            serde_json::json!({"dit": &cfg.dit, "action_dim": cfg.action.action_dim, "frames": frames, "height": height, "width": width, "action_frames": action_frames})
+        })
+        .collect();
+    let out = std::process::Command::new(&py).arg(&script).arg(serde_json::Value::from(arg).to_string()).output().unwrap();
+    assert!(out.status.success(), "flop_count.py failed: {}", String::from_utf8_lossy(&out.stderr));
+    let counts: Vec<serde_json::Value> = serde_json::from_str(String::from_utf8_lossy(&out.stdout).lines().last().unwrap_or_default()).unwrap();
+    assert_eq!(counts.len(), cases.len());
+    for ((&(dim, _, _, layers, frames, height, width, action_frames), cfg), counts) in cases.iter().zip(&configs).zip(&counts) {
+        let count = |pass: &str, group: &str| counts[pass][group].as_f64().unwrap_or_else(|| panic!("no {pass}.{group} in {counts}"));
+        let tokens = frames * (height / 2) * (width / 2);
+        let what = format!("dim {dim}, {layers} layers, {tokens} tokens, {action_frames} action tokens");
+        let formula = bwm_trainer::flops::forward_flops(cfg, tokens, action_frames);
+        let counted = count("forward", "patch_embedding") + count("forward", "blocks") + count("forward", "head");
+        assert_eq!(formula, counted, "{what}: forward FLOPs, formula against FlopCounterMode");
+        let train = count("train", "patch_embedding") + count("train", "blocks") + count("train", "head");
+        assert_eq!(bwm_trainer::flops::train_flops(cfg, tokens, action_frames), train, "{what}: training FLOPs, formula against FlopCounterMode");
+        let total = count("forward", "total");
+        let parts = ["patch_embedding", "blocks", "head", "time", "action_encoder"].map(|g| count("forward", g));
+        assert_eq!(parts.iter().sum::<f64>(), total, "{what}: the groups hold everything FlopCounterMode counted");
+        println!(
+            "{what}: {formula:.0} FLOPs per forward, as FlopCounterMode counts them; the reference's timestep MLPs ({:.0}) and action encoder ({:.0}), left out, are {:.1}% of its {total:.0} (its forward and backward: {:.0})",
+            parts[3],
+            parts[4],
+            100.0 * (parts[3] + parts[4]) / total,
+            count("train", "total")
+        );
+    }
 }

@@ -7,50 +7,44 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::OnceLock;
 
+use bwm_testdir::Dep;
 use image::RgbImage;
 
-pub fn shared() -> PathBuf {
-    std::env::var_os("BWM_SHARED")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared"))
-}
-
 pub fn demo_root() -> PathBuf {
-    shared().join("data/bwm-demo")
+    bwm_testdir::shared().join("data/bwm-demo")
 }
 
-/// Python of the project virtualenv (scripts/env.sh exports VIRTUAL_ENV; BWM_VENV also works).
-pub fn python() -> PathBuf {
-    for var in ["VIRTUAL_ENV", "BWM_VENV"] {
-        if let Some(v) = std::env::var_os(var) {
-            let p = Path::new(&v).join("bin/python");
-            if p.exists() {
-                return p;
-            }
-        }
-    }
-    let p = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../.venv/bin/python");
-    assert!(p.exists(), "run the tests through `make test` (or `source scripts/env.sh`) so the virtualenv's python is found");
-    p
-}
-
-/// Runs a python snippet with arguments; returns its stdout, panics with its stderr on failure.
-pub fn run_python(script: &str, args: &[&str]) -> String {
-    let out = Command::new(python()).arg("-c").arg(script).args(args).output().expect("starting python");
+/// Runs a python snippet with `py` and arguments; returns its stdout, panics with its stderr on
+/// failure.
+pub fn run_python(py: &Path, script: &str, args: &[&str]) -> String {
+    let out = Command::new(py).arg("-c").arg(script).args(args).output().expect("starting python");
     assert!(out.status.success(), "python failed:\n{}", String::from_utf8_lossy(&out.stderr));
     String::from_utf8(out.stdout).expect("python printed non-UTF-8")
 }
 
 /// The fixture datasets, written once per test binary into a folder that lasts until it exits.
-pub fn fixtures() -> &'static Path {
+/// They are written with the formats' own tools (the virtualenv's pyarrow, h5py, OpenCV and the
+/// ffmpeg CLI); without those: `None`, after the test failed where BWM_REQUIRE names the missing
+/// one (CI) or was logged as skipped elsewhere (`bwm_testdir::need`).
+pub fn fixtures() -> Option<&'static Path> {
+    let py = bwm_testdir::python_with(Dep::Python, &["cv2", "h5py", "numpy", "pyarrow"])?;
+    let ffmpeg = Command::new("ffmpeg").arg("-version").output();
+    let missing = match ffmpeg {
+        Ok(out) if out.status.success() => None,
+        Ok(out) => Some(format!("`ffmpeg -version` failed: {}", String::from_utf8_lossy(&out.stderr).trim())),
+        Err(e) => Some(format!("no ffmpeg command ({e}); scripts/setup.sh installs it")),
+    };
+    if !bwm_testdir::need(Dep::Ffmpeg, missing) {
+        return None;
+    }
     static DIR: OnceLock<PathBuf> = OnceLock::new();
-    DIR.get_or_init(|| {
+    Some(DIR.get_or_init(|| {
         let dir = bwm_testdir::shared_dir("data-fixtures");
         let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../scripts/make_fixtures.py");
-        let out = Command::new(python()).arg(&script).arg(&dir).output().expect("starting python");
+        let out = Command::new(&py).arg(&script).arg(&dir).output().expect("starting python");
         assert!(out.status.success(), "make_fixtures.py failed:\n{}", String::from_utf8_lossy(&out.stderr));
         dir
-    })
+    }))
 }
 
 /// A fresh folder for one test, removed when dropped (bwm_testdir).

@@ -10,7 +10,7 @@ use std::process::Command;
 use bwm_data::frames::{fit, frames_to_tensor};
 use bwm_data::{open_dataset, CameraSelection};
 use bwm_data::ResizeMode;
-use bwm_trainer::image_metrics::psnr;
+use bwm_metrics::image::psnr;
 use common::{bwm, demo_data, temp_dir, write_random_vae};
 use serde_json::Value;
 

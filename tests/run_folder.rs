@@ -59,7 +59,7 @@ fn a_second_train_on_a_live_run_fails_naming_the_holder_and_a_killed_holders_loc
     first.finish(TIMEOUT);
     let text = resume_to_the_end(&config, &run);
     assert!(text.contains(&format!("taking over from {holder}")), "the stale lock is recognized: {text}");
-    let steps: Vec<u64> = bwm_trainer::report::read_run_losses(&run).unwrap().iter().map(|(s, _)| *s).collect();
+    let steps: Vec<u64> = bwm_trainer::run_log::read_run_losses(&run).unwrap().iter().map(|(s, _)| *s).collect();
     assert_eq!(steps, [1, 2, 3]);
 }
 
@@ -94,6 +94,6 @@ fn kills_inside_log_appends_then_resume_auto_finish_with_whole_lines_and_a_loss_
         let m: serde_json::Value = serde_json::from_str(line).unwrap_or_else(|e| panic!("metrics.jsonl line {line:?}: {e}"));
         assert!(m["step"].as_u64().is_some() && m["loss"].as_f64().is_some(), "{line}");
     }
-    let read: Vec<u64> = bwm_trainer::report::read_run_losses(&run).unwrap().iter().map(|(s, _)| *s).collect();
+    let read: Vec<u64> = bwm_trainer::run_log::read_run_losses(&run).unwrap().iter().map(|(s, _)| *s).collect();
     assert_eq!(read, [1, 2, 3, 4, 5, 6]);
 }

@@ -3,7 +3,7 @@
 
 use anyhow::Result;
 use bwm_inference::bench::{BenchShape, ForwardOptions, VaeBenchOptions};
-use bwm_trainer::devices::{parse_device, parse_kind};
+use bwm_model::device::{parse_device, parse_kind};
 use clap::Args;
 
 #[derive(Args)]

@@ -7,7 +7,7 @@ use anyhow::{ensure, Context, Result};
 use bwm_data::frames::{parse_resize, parse_resolution};
 use bwm_data::{open_dataset, CameraSelection, ResizeMode};
 use bwm_model::vae::WanVae;
-use bwm_trainer::devices::parse_device;
+use bwm_model::device::parse_device;
 use bwm_trainer::vae_frames::{reconstruct, write_reconstructions};
 use clap::Args;
 use tch::Kind;

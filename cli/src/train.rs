@@ -67,8 +67,8 @@ pub fn run(args: TrainArgs) -> Result<()> {
     // warning, not a failed run (which `bwm launch` or Slurm would restart, to no avail).
     let plot = trainer.out_path("loss.svg");
     let title = format!("{}: training loss", trainer.cfg.run.name);
-    let drawn = bwm_trainer::report::read_run_losses(&trainer.out_path(""))
-        .and_then(|losses| bwm_trainer::report::loss_plot(&losses, &title, &plot));
+    let drawn = bwm_trainer::run_log::read_run_losses(&trainer.out_path(""))
+        .and_then(|losses| bwm_metrics::plot::loss_plot(&losses, &title, &plot));
     match drawn {
         Ok(()) => println!("loss curve: {}", plot.display()),
         Err(e) => eprintln!("warning: no loss curve: {e:#}"),

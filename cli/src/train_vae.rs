@@ -7,7 +7,7 @@ use anyhow::{bail, Context, Result};
 use bwm_data::frames::{parse_resize, parse_resolution};
 use bwm_data::{open_dataset, CameraSelection, ResizeMode};
 use bwm_model::vae::VaeConfig;
-use bwm_trainer::devices::{parse_device, parse_kind};
+use bwm_model::device::{parse_device, parse_kind};
 use bwm_trainer::vae_frames::FrameSelection;
 use bwm_trainer::vae_train::{save_trained_vae, train_best_vae, FrameSets, ReconLoss, VaeTrainSettings, DEFAULT_MOTION_WEIGHT};
 use clap::Args;

@@ -7,7 +7,7 @@ use std::time::Instant;
 use anyhow::{ensure, Result};
 use bwm_model::rollout::{Rollout, RolloutSpec};
 use bwm_model::{frame_timesteps, BwmModel, ModelConfig, ParamStore};
-use bwm_trainer::devices::synchronize as sync;
+use bwm_model::device::synchronize as sync;
 use tch::{Device, Kind, Tensor};
 
 use crate::fallible::{alloc_error, guarded, probe};
@@ -232,7 +232,7 @@ pub fn rollout(wm: &WorldModel, height: i64, width: i64, chunks: usize, batch: u
         wm.fp8.map_or("block linears in the weights' dtype".to_string(), |s| format!("block linears in FP8 ({s} scaling)")),
         if wm.graphed.is_some() { "replayed from a CUDA graph (warm-up and capture in the first chunk)" } else { "eager" }
     );
-    let memory = || bwm_trainer::device_memory::used_mib(wm.device).map_or("n/a".to_string(), |m| format!("{m:.0} MiB used"));
+    let memory = || bwm_model::device::memory::used_mib(wm.device).map_or("n/a".to_string(), |m| format!("{m:.0} MiB used"));
     let frames_per_chunk = (batch * spec.future) as f64;
     if streams == 1 {
         for i in 0..chunks {

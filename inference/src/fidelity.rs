@@ -12,7 +12,7 @@ use anyhow::{ensure, Context, Result};
 use bwm_data::frames::{fit, frame_strip, frames_to_tensor};
 use bwm_data::{open_dataset, CameraSelection};
 use bwm_data::{ActionSpec, ResizeMode};
-use bwm_trainer::image_metrics::{psnr, ssim};
+use bwm_metrics::image::{psnr, ssim};
 use image::RgbImage;
 use serde_json::{json, Value};
 use tch::Tensor;
@@ -227,7 +227,7 @@ pub fn run(options: &WorldModelOptions, a: &FidelityOptions) -> Result<()> {
                 .collect();
             let path = a.out.join(format!("{metric}_{}.svg", file_stem(task)));
             let title = format!("{} per frame, {} ({} episodes)", metric.to_uppercase(), display_task(task), group.len());
-            bwm_trainer::report::line_plot(&series, &title, "frames after x0", metric, &path)?;
+            bwm_metrics::plot::line_plot(&series, &title, "frames after x0", metric, &path)?;
         }
         tasks.insert(task.clone(), summary);
     }

@@ -7,16 +7,15 @@ use std::rc::Rc;
 
 use anyhow::{bail, ensure, Context, Result};
 use bwm_checkpoints::open::{build_model, open_any, training_record, with_lora_adapters, OpenedWeights};
-use bwm_checkpoints::run_info::CheckpointState;
+use bwm_checkpoints::run_info::{CheckpointState, RunInfo};
 use bwm_data::ActionStats;
+use bwm_model::device::{parse_device, parse_kind};
 use bwm_model::fp8::Fp8Scaling;
 use bwm_model::fp8_dit::quantize_dit_blocks;
 use bwm_model::rollout::{history_sigma_for_shift, Rollout, RolloutSpec};
 use bwm_model::schedule::Solver;
 use bwm_model::vae::{VaeConfig, WanVae};
 use bwm_model::{BwmModel, ModelConfig, Residual};
-use bwm_trainer::config::RunConfig;
-use bwm_trainer::devices::{parse_device, parse_kind};
 use tch::{Device, Kind, Tensor};
 
 use crate::graphed::GraphedDenoiser;
@@ -112,11 +111,11 @@ fn check_guidance(guidance: f64, trained_action_dropout: Option<f64>) -> Result<
     Ok(())
 }
 
-/// The model that `--random-weights NAME` builds: a preset, or a run config's `[model]`.
+/// The model that `--random-weights NAME` builds: a preset, or a run config's `[model]` (read as a
+/// checkpoint's stored run config is, by `RunInfo`: the other sections are the trainer's business).
 fn random_model_config(name: &str) -> Result<ModelConfig> {
     if name.ends_with(".toml") {
-        let run = RunConfig::load(Path::new(name), &[]).with_context(|| format!("--random-weights {name}"))?;
-        return run.model.model_config().with_context(|| format!("--random-weights {name}: [model]"));
+        return Ok(RunInfo::load(Path::new(name)).with_context(|| format!("--random-weights {name}"))?.model);
     }
     ModelConfig::preset(name).with_context(|| format!("--random-weights {name} (a preset, or a run config ending in .toml)"))
 }

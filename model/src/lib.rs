@@ -4,6 +4,7 @@
 pub mod action;
 pub mod bwm;
 pub mod config;
+pub mod device;
 pub mod dit;
 pub mod fp8;
 pub mod fp8_dit;

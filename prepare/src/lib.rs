@@ -23,7 +23,7 @@ use bwm_data::{open_dataset, CameraSelection, EpisodeSource};
 use bwm_data::stats::{compute_stats, split_episodes, write_stat_json, SplitSpec, ValidationSize};
 use bwm_data::{ActionSpec, ActionStats, ResizeMode};
 use bwm_model::vae::WanVae;
-use bwm_trainer::devices::parse_device;
+use bwm_model::device::parse_device;
 use image::RgbImage;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::{Deserialize, Serialize};
@@ -322,7 +322,7 @@ pub fn run(a: &PrepareOptions) -> Result<()> {
     let kind = match a.dtype.as_str() {
         "auto" if device.is_cuda() => Kind::BFloat16,
         "auto" => Kind::Float,
-        s => bwm_trainer::devices::parse_kind(s)?,
+        s => bwm_model::device::parse_kind(s)?,
     };
     let vae = match (&a.vae, a.random_vae) {
         (_, true) => Some(WanVae::random(&bwm_model::vae::VaeConfig::wan22(), kind, device, 0)?.0),

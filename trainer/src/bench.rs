@@ -96,7 +96,7 @@ pub fn run(a: &BenchTrainOptions) -> Result<()> {
     let mut profiler = None;
     for step in 1..=a.steps {
         if step == profile_from && a.profile.is_some() {
-            crate::devices::synchronize(t.device);
+            bwm_model::device::synchronize(t.device);
             profiler = Some(bwm_profiler::Profiler::start(t.device.is_cuda())?);
         }
         let m = t.train_step()?;
@@ -104,7 +104,7 @@ pub fn run(a: &BenchTrainOptions) -> Result<()> {
         timed.push((m.seconds, m.collective_s));
     }
     if let (Some(p), Some(path)) = (profiler, &a.profile) {
-        crate::devices::synchronize(t.device);
+        bwm_model::device::synchronize(t.device);
         p.finish(path)?;
         let steps = (a.steps + 1 - profile_from) as f64;
         for line in profile_lines(&bwm_profiler::gpu_summary(path)?, steps) {

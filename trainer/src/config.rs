@@ -473,7 +473,7 @@ impl RunConfig {
         }
         ensure!(self.checkpoint.keep_last >= 1, "checkpoint.keep_last must be at least 1");
         ensure!(self.log.every >= 1, "log.every must be at least 1");
-        crate::devices::device_syntax(&self.run.device).context("run.device")?;
+        bwm_model::device::device_syntax(&self.run.device).context("run.device")?;
         Ok(())
     }
 

@@ -223,7 +223,7 @@ impl GradTable {
             );
             addresses.push(g.data_ptr() as i64);
         }
-        Ok(TableGradients { addresses: crate::devices::upload(&Tensor::from_slice(&addresses), device), grads })
+        Ok(TableGradients { addresses: bwm_model::device::upload(&Tensor::from_slice(&addresses), device), grads })
     }
 
     /// The address table of `grads`, made by a table of as many tensors.

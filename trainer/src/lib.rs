@@ -3,12 +3,9 @@
 
 pub mod bench;
 pub mod config;
-pub mod device_memory;
-pub mod devices;
 pub mod dist;
 pub mod flops;
 pub mod fused_adamw;
-pub mod image_metrics;
 /// Keyed random draws live with the model (the rollout sampler uses them too).
 pub use bwm_model::keyed_rng;
 pub mod metrics;
@@ -17,6 +14,7 @@ pub mod objective;
 pub mod optim;
 pub mod recompute;
 pub mod report;
+pub mod run_log;
 pub mod step_graph;
 pub mod tensorboard;
 pub mod trainer;

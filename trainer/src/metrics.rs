@@ -72,7 +72,7 @@ impl StepMetrics {
             tflops,
             mfu: peak_tflops.map(|p| tflops / p),
             matmul_share: None,
-            peak_memory_mib: crate::device_memory::used_mib(device),
+            peak_memory_mib: bwm_model::device::memory::used_mib(device),
             loader_wait_s: 0.0,
             loader_wait_share: 0.0,
             collective_s: 0.0,

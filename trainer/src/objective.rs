@@ -10,7 +10,7 @@ use bwm_model::FlowSchedule;
 use tch::{Kind, Tensor};
 
 use crate::config::{ObjectiveSection, TimestepSampling};
-use crate::devices::upload;
+use bwm_model::device::upload;
 use crate::keyed_rng::{self, Purpose};
 use crate::motion;
 

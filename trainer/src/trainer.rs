@@ -25,7 +25,7 @@ use crate::metrics::{Progress, StepMetrics};
 use crate::objective::Objective;
 use crate::optim::{AdamW, Sharding};
 use crate::recompute::{forward_backward_per_sample, BlockGradSink, Recompute};
-use crate::report::LineLog;
+use crate::run_log::LineLog;
 use crate::step_graph::StepGraph;
 use crate::tensorboard::EventWriter;
 use crate::validation;
@@ -162,14 +162,14 @@ impl Trainer {
         if env.world_size > 1 && cfg.run.device != "cpu" && tch::Cuda::is_available() {
             cfg.run.device = format!("cuda:{}", env.local_rank);
         }
-        let device = crate::devices::parse_device(&cfg.run.device)?;
+        let device = bwm_model::device::parse_device(&cfg.run.device)?;
         let backend = if device.is_cuda() { Backend::Nccl } else { Backend::Tcp };
         let comm = crate::dist::init(backend, &env).context("joining the data-parallel group")?;
         Self::with_collective(cfg, resume, comm)
     }
 
     pub fn with_collective(cfg: RunConfig, resume: Resume, mut comm: Box<dyn Collective>) -> Result<Self> {
-        let device = crate::devices::parse_device(&cfg.run.device)?;
+        let device = bwm_model::device::parse_device(&cfg.run.device)?;
         let model_cfg = cfg.model.model_config()?;
         let out_dir = cfg.out_dir();
         let checkpoints = CheckpointRoot::new(out_dir.join("checkpoints"));
@@ -241,7 +241,7 @@ impl Trainer {
         let lead = comm.rank() == 0;
         let events = if cfg.log.tensorboard && lead { Some(EventWriter::create(&out_dir.join("tensorboard"))?) } else { None };
         let append = |name: &str| -> Result<Option<LineLog>> { if lead { LineLog::open(&out_dir.join(name)).map(Some) } else { Ok(None) } };
-        let (metrics_file, loss_file) = (append("metrics.jsonl")?, append(crate::report::LOSSES_FILE)?);
+        let (metrics_file, loss_file) = (append("metrics.jsonl")?, append(crate::run_log::LOSSES_FILE)?);
         Ok(Self { cfg, model, opt, objective, cache, clip_encoder, loader: Default::default(), train_clips, device, state, out_dir, checkpoints, events, metrics_file, loss_file, comm, run_lock, history: Vec::new(), block_params, graph })
     }
 
@@ -444,7 +444,7 @@ impl Trainer {
         let shape: Vec<i64> = std::iter::once(indices.len() as i64).chain(self.cache.index.latent_shape.iter().copied()).collect();
         let (latents, actions) = staged.clips.tensors(&self.cache);
         let d = self.device;
-        let upload = |t: Tensor| crate::devices::upload(&t, d);
+        let upload = |t: Tensor| bwm_model::device::upload(&t, d);
         let latents = match (latents, staged.clips.frames(&self.cache)) {
             (Some(l), _) => upload(l),
             (None, Some(frames)) => self.encode_frames(&frames)?,

@@ -11,7 +11,7 @@ use bwm_data::{CameraSelection, EpisodeSource, ResizeMode};
 use bwm_model::vae::WanVae;
 use tch::{Kind, Tensor};
 
-use crate::image_metrics::psnr;
+use bwm_metrics::image::psnr;
 use crate::vae_train::FrameSets;
 
 /// Which episodes and frames of a dataset become [`FrameSets`], at what size.

@@ -12,7 +12,7 @@ use bwm_model::vae::{VaeConfig, WanVae, TRAINED_CLIP_FRAMES_KEY, TRAINED_CONFIG_
 use tch::{Device, Kind, Tensor};
 
 use crate::config::OptimSection;
-use crate::image_metrics::psnr;
+use bwm_metrics::image::psnr;
 use crate::keyed_rng::{self, Purpose};
 use crate::motion;
 use crate::dist::LocalCollective;

@@ -8,6 +8,7 @@ use std::path::PathBuf;
 use anyhow::{Context, Result};
 use bwm_data::frames::{frame_strip, tensor_to_frames};
 use bwm_data::latent_cache::{Clip, LatentCache};
+use bwm_metrics::image::{psnr, ssim};
 use bwm_model::sampler::{sample_chunk, Eager};
 use bwm_model::BwmModel;
 use bwm_model::vae::WanVae;
@@ -15,7 +16,6 @@ use bwm_model::FlowSchedule;
 use tch::{Device, Kind, Tensor};
 
 use crate::config::RunConfig;
-use crate::image_metrics::{psnr, ssim};
 use crate::keyed_rng::{self, Purpose};
 use crate::objective::Objective;
 use crate::tensorboard::EventWriter;

@@ -13,7 +13,7 @@ use anyhow::{Context, Result};
 use bwm_model::nn::{attention, Linear};
 use tch::{Device, Kind, Tensor};
 
-use crate::devices::synchronize as sync;
+use bwm_model::device::synchronize as sync;
 use crate::Trainer;
 
 /// Median seconds of `f` over 5 runs after 2 warm-up runs.

@@ -1,7 +1,12 @@
-//! Device and dtype names as users write them (`--device`, `run.device`, `--dtype`).
+//! The device the model runs on, for every crate above the model (prepare, inference, trainer):
+//! device and dtype names as users write them (`--device`, `run.device`, `--dtype`), waiting for
+//! queued work, uploads, and the memory in use (`memory`). Here rather than in the trainer, so that
+//! a program embedding the world model does not link the training loop for them.
 
 use anyhow::{bail, Result};
 use tch::{Device, Kind, Tensor};
+
+pub mod memory;
 
 /// `auto` (CUDA device 0 when available, else CPU), `cpu`, `cuda` or `cuda:N`, checked against the
 /// devices this process sees.

@@ -10,8 +10,7 @@ use bwm_checkpoints::open::{build_model, open_any, training_record, with_lora_ad
 use bwm_checkpoints::run_info::{CheckpointState, RunInfo};
 use bwm_data::ActionStats;
 use bwm_model::device::{parse_device, parse_kind};
-use bwm_model::fp8::Fp8Scaling;
-use bwm_model::fp8_dit::quantize_dit_blocks;
+use bwm_model::fp8::{quantize_linears, Fp8Scaling, BLOCK_LINEARS};
 use bwm_model::rollout::{history_sigma_for_shift, Rollout, RolloutSpec};
 use bwm_model::schedule::Solver;
 use bwm_model::vae::{VaeConfig, WanVae};
@@ -199,7 +198,7 @@ impl WorldModelOptions {
         let spec = self.spec(trained_history_sigma, trained_shift).context("the history noise and shift the weights were trained with")?;
         model.dit.residual = self.residual.or(trained).unwrap_or_default().kind(kind);
         if let Some(scaling) = self.fp8 {
-            quantize_dit_blocks(&mut model.dit, scaling).context("--fp8")?;
+            quantize_linears(&mut model, BLOCK_LINEARS, scaling).context("--fp8")?;
         }
         let vae = match &self.vae {
             Some(path) => WanVae::load_any(path, kind, device).with_context(|| format!("--vae {}", path.display()))?,

@@ -35,12 +35,21 @@ pub struct BwmModel {
 impl BwmModel {
     /// Builds the module tree from `store` (random, shape-only, or a weight file).
     pub fn build(store: &Rc<ParamStore>, cfg: &ModelConfig) -> Result<Self> {
+        Self::build_converted(store, cfg, |_| Ok(()))
+    }
+
+    /// As `build`, applying `convert` (conversions from outside the model, `crate::convert`) to the
+    /// built tree before the weight file's keys are checked: parameters a conversion adds may come
+    /// from the file.
+    pub fn build_converted(store: &Rc<ParamStore>, cfg: &ModelConfig, convert: impl FnOnce(&mut Self) -> Result<()>) -> Result<Self> {
         cfg.validate()?;
         let root = store.root();
         let dit = WanDit::new(&root, &cfg.dit)?;
         let action_encoder = ActionEncoder::new(&root.pp("action_encoder"), &cfg.action, cfg.dit.dim)?;
+        let mut model = Self { cfg: cfg.clone(), dit, action_encoder, store: store.clone() };
+        convert(&mut model)?;
         store.check_all_consumed()?;
-        Ok(Self { cfg: cfg.clone(), dit, action_encoder, store: store.clone() })
+        Ok(model)
     }
 
     /// Random weights drawn after seeding libtorch's generator with `seed` (`vb::with_seed`).

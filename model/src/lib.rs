@@ -4,10 +4,10 @@
 pub mod action;
 pub mod bwm;
 pub mod config;
+pub mod convert;
 pub mod device;
 pub mod dit;
 pub mod fp8;
-pub mod fp8_dit;
 pub mod keyed_rng;
 pub mod lora;
 pub mod nn;

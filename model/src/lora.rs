@@ -1,16 +1,20 @@
 //! LoRA adapters (Hu et al., 2021) on linear layers: `y = W x + b + (alpha / r) B A dropout(x)`
-//! with A [r, in] and B [out, r]. The adapter of the layer at `<path>` is named as PEFT and
-//! diffusers name it, `<path>.lora_A.weight` and `<path>.lora_B.weight`; B starts at zero, so a
-//! model with fresh adapters computes exactly what its base does.
+//! with A [r, in] and B [out, r], added to a built model by a conversion (`add_adapters`, see
+//! `crate::convert`) as PEFT injects them. The adapter of the layer at `<path>` is named as PEFT
+//! and diffusers name it, `<path>.lora_A.weight` and `<path>.lora_B.weight`; B starts at zero, so
+//! a model with fresh adapters computes exactly what its base does.
 
 use std::cell::Cell;
 use std::rc::Rc;
 
-use anyhow::{ensure, Result};
+use anyhow::{ensure, Context, Result};
 use serde::{Deserialize, Serialize};
-use tch::Tensor;
+use tch::{Kind, Tensor};
 
-use crate::vb::{Init, Vb};
+use crate::convert::{self, Linears};
+use crate::keyed_rng::Purpose;
+use crate::nn::{Linear, LinearForward};
+use crate::vb::Init;
 use crate::weights::WeightsError;
 
 /// Which linear layers get an adapter, and its shape.
@@ -61,7 +65,7 @@ impl LoraConfig {
 
     /// Whether the linear layer at `module_path` gets an adapter.
     pub fn targets(&self, module_path: &str) -> bool {
-        self.targets.iter().any(|p| glob::Pattern::new(p).is_ok_and(|p| p.matches(module_path)))
+        convert::matches(&self.targets, module_path)
     }
 }
 
@@ -86,7 +90,34 @@ impl LoraState {
     }
 }
 
-/// One layer's adapter.
+/// Puts an adapter on every linear layer of `model` that `cfg.targets` names (none when it names
+/// none: the trainer then finds nothing to train and says so). Its tensors are registered under
+/// the layer's path, listed right after the layer's own parameters (`Vb::add`), read from the
+/// weight file the model was built from when it holds them and drawn fresh otherwise: A from a
+/// stream keyed by `seed` and the layer, so that no other parameter's draw moves, B zeros.
+/// Returns the adapters' shared state (the trainer turns their dropout on while it trains). A
+/// layer whose product a conversion already replaced is refused, before any adapter is added.
+pub fn add_adapters<M: Linears + ?Sized>(model: &mut M, cfg: LoraConfig, seed: u64) -> Result<Rc<LoraState>> {
+    let state = LoraState::new(cfg, seed)?;
+    let mut layers = convert::select(model, &state.cfg.targets)?;
+    for layer in &layers {
+        if let Some(other) = layer.replaced_forward() {
+            anyhow::bail!("{} carries {}; a LoRA adapter goes on a plain linear layer", layer.path(), other.describe());
+        }
+    }
+    for layer in &mut layers {
+        let adapter = LoraAdapter::new(layer, state.clone()).with_context(|| format!("the LoRA adapter of {}", layer.path()))?;
+        layer.replace_forward(Box::new(adapter));
+    }
+    Ok(state)
+}
+
+/// The adapter on `layer`, if it carries one.
+pub fn adapter(layer: &Linear) -> Option<&LoraAdapter> {
+    layer.replaced_forward_as::<LoraAdapter>()
+}
+
+/// One layer's adapter: its product is the layer's plus the scaled low-rank update.
 pub struct LoraAdapter {
     /// `lora_A.weight` [r, in]: PyTorch's default Linear init, as PEFT draws it.
     pub a: Tensor,
@@ -96,18 +127,18 @@ pub struct LoraAdapter {
 }
 
 impl LoraAdapter {
-    pub fn new(vb: &Vb, state: Rc<LoraState>, in_dim: i64, out_dim: i64) -> Result<Self, WeightsError> {
+    /// The adapter of `layer`, its tensors added under the layer's path.
+    fn new(layer: &Linear, state: Rc<LoraState>) -> Result<Self, WeightsError> {
+        let (out_dim, in_dim) = (layer.weight.size()[0], layer.weight.size()[1]);
+        let vb = layer.vb();
         let r = state.cfg.rank;
-        let a_init = Init::KeyedUniform { bound: 1.0 / (in_dim as f64).sqrt(), seed: state.seed, index: path_key(&vb.path("lora_A")) };
-        Ok(Self {
-            a: vb.pp("lora_A").get(&[r, in_dim], "weight", a_init)?,
-            b: vb.pp("lora_B").get(&[out_dim, r], "weight", Init::Zeros)?,
-            state,
-        })
+        let index = path_key(&vb.path("lora_A"));
+        let a_init = Init::KeyedUniform { bound: 1.0 / (in_dim as f64).sqrt(), seed: state.seed, index, purpose: Purpose::LoraInit };
+        Ok(Self { a: vb.add(&[r, in_dim], "lora_A.weight", a_init)?, b: vb.add(&[out_dim, r], "lora_B.weight", Init::Zeros)?, state })
     }
 
     /// The adapter's update for `x` (already in the adapter's dtype).
-    pub fn forward(&self, x: &Tensor) -> Tensor {
+    pub fn update(&self, x: &Tensor) -> Tensor {
         let p = self.state.cfg.dropout;
         let x = if p > 0.0 && self.state.training.get() { x.dropout(p, true) } else { x.shallow_clone() };
         x.linear(&self.a, None::<Tensor>).linear(&self.b, None::<Tensor>) * self.state.cfg.scale()
@@ -116,6 +147,20 @@ impl LoraAdapter {
     /// `B A` scaled: what merging adds to the base weight [out, in].
     pub fn delta_weight(&self) -> Tensor {
         self.b.matmul(&self.a) * self.state.cfg.scale()
+    }
+}
+
+impl LinearForward for LoraAdapter {
+    fn forward(&self, layer: &Linear, x: &Tensor) -> Tensor {
+        x.linear(&layer.weight, Some(&layer.bias)) + self.update(x)
+    }
+
+    fn forward_f32(&self, layer: &Linear, x: &Tensor) -> Tensor {
+        layer.plain_f32(x) + self.update(&x.to_kind(self.a.kind())).to_kind(Kind::Float)
+    }
+
+    fn describe(&self) -> String {
+        "a LoRA adapter".into()
     }
 }
 
@@ -157,19 +202,32 @@ mod tests {
         assert!(LoraConfig { targets: vec!["[".into()], ..cfg(0.0) }.validate().is_err());
     }
 
+    /// The layers at `blocks.{0,1}.{q,k}` of a store, built under the generator lock; with
+    /// adapters added by `cfg` when given.
+    fn layers(seed: i64, cfg: Option<LoraConfig>) -> (Option<Rc<LoraState>>, Vec<Linear>, Rc<ParamStore>) {
+        crate::vb::with_seed(seed, || {
+            let store = ParamStore::random(Kind::Float, Device::Cpu);
+            let root = store.root();
+            let mut layers: Vec<Linear> = [(0, "q"), (0, "k"), (1, "q")].iter().map(|(b, n)| Linear::new(&root.pp("blocks").pp(b).pp(n), 6, 5).unwrap()).collect();
+            let state = cfg.map(|c| add_adapters(&mut layers, c, 7).unwrap());
+            (state, layers, store)
+        })
+    }
+
+    impl Linears for Vec<Linear> {
+        fn linears_mut(&mut self) -> Vec<&mut Linear> {
+            self.iter_mut().collect()
+        }
+    }
+
     #[test]
     fn a_targeted_linear_adds_the_scaled_low_rank_update_with_dropout_only_in_training() {
-        // Under the generator lock, as every draw from libtorch's generator in these tests.
-        let (state, l, plain, x) = crate::vb::with_seed(1, || {
-            let store = ParamStore::random(Kind::Float, Device::Cpu);
-            let state = store.enable_lora(cfg(0.5), 7).unwrap();
-            let root = store.root();
-            let l = Linear::new(&root.pp("blocks").pp(0).pp("q"), 6, 5).unwrap();
-            let plain = Linear::new(&root.pp("blocks").pp(0).pp("k"), 6, 5).unwrap();
-            (state, l, plain, Tensor::randn([3, 6], (Kind::Float, Device::Cpu)))
-        });
-        assert!(plain.lora.is_none());
-        let adapter = l.lora.as_ref().expect("blocks.0.q is targeted");
+        let (state, layers, _) = layers(1, Some(cfg(0.5)));
+        let state = state.unwrap();
+        let (l, plain) = (&layers[0], &layers[1]);
+        let x = crate::vb::with_seed(1, || Tensor::randn([3, 6], (Kind::Float, Device::Cpu)));
+        assert!(adapter(plain).is_none() && plain.replaced_forward().is_none());
+        let adapter = adapter(l).expect("blocks.0.q is targeted");
         assert_eq!((adapter.a.size(), adapter.b.size()), (vec![2, 6], vec![5, 2]));
         let base = x.linear(&l.weight, Some(&l.bias));
         // B starts at zero: the layer computes its base.
@@ -177,6 +235,7 @@ mod tests {
         let _ = tch::no_grad(|| adapter.b.shallow_clone().fill_(0.1));
         let expected = &base + x.matmul(&adapter.a.tr()).matmul(&adapter.b.tr()) * 2.0;
         assert!(l.forward(&x).allclose(&expected, 1e-6, 1e-6, false));
+        assert!(l.forward_f32(&x).allclose(&expected, 1e-6, 1e-6, false), "the fp32 product carries the update too");
         assert!(l.forward(&x).equal(&l.forward(&x)), "inference draws no dropout");
         let merged = &l.weight + adapter.delta_weight();
         assert!(x.linear(&merged, Some(&l.bias)).allclose(&expected, 1e-5, 1e-5, false));
@@ -187,23 +246,38 @@ mod tests {
 
     #[test]
     fn fresh_adapters_do_not_move_other_draws_and_depend_on_the_layer() {
-        let build = |lora: bool| {
-            crate::vb::with_seed(3, || {
-                let store = ParamStore::random(Kind::Float, Device::Cpu);
-                if lora {
-                    store.enable_lora(cfg(0.0), 9).unwrap();
-                }
-                let root = store.root();
-                let q0 = Linear::new(&root.pp("blocks").pp(0).pp("q"), 4, 4).unwrap();
-                let q1 = Linear::new(&root.pp("blocks").pp(1).pp("q"), 4, 4).unwrap();
-                (q0, q1)
-            })
-        };
-        let (a0, a1) = build(false);
-        let (b0, b1) = build(true);
-        assert!(a0.weight.equal(&b0.weight) && a1.weight.equal(&b1.weight) && a1.bias.equal(&b1.bias));
-        let (l0, l1) = (b0.lora.unwrap(), b1.lora.unwrap());
+        let (_, plain, _) = layers(3, None);
+        let (_, adapted, store) = layers(3, Some(LoraConfig { targets: vec!["blocks.*".into()], ..cfg(0.0) }));
+        for (a, b) in plain.iter().zip(&adapted) {
+            assert!(a.weight.equal(&b.weight) && a.bias.equal(&b.bias));
+        }
+        let (l0, l1) = (adapter(&adapted[0]).unwrap(), adapter(&adapted[2]).unwrap());
         assert!(!l0.a.equal(&l1.a), "two layers drew the same A");
-        assert!(l0.a.abs().max().double_value(&[]) <= 0.5, "A is drawn within 1/sqrt(in)");
+        assert!(l0.a.abs().max().double_value(&[]) <= 1.0 / 6f64.sqrt(), "A is drawn within 1/sqrt(in)");
+        // A from the stream keyed by the run's seed and the layer's path, whenever it is added.
+        let expected = crate::keyed_rng::uniform_tensor(&[2, 6], 1.0 / 6f64.sqrt(), 7, path_key("blocks.0.q.lora_A"), Purpose::LoraInit);
+        assert!(l0.a.equal(&expected));
+        // Each adapter listed right after its layer, as a model built with it listed it.
+        let names: Vec<String> = store.named_parameters().into_iter().map(|(n, _)| n).collect();
+        let layer = |p: &str| [format!("{p}.weight"), format!("{p}.bias"), format!("{p}.lora_A.weight"), format!("{p}.lora_B.weight")];
+        assert_eq!(names, [layer("blocks.0.q"), layer("blocks.0.k"), layer("blocks.1.q")].concat());
+    }
+
+    #[test]
+    fn a_layer_another_conversion_replaced_is_refused() {
+        struct Doubled;
+        impl LinearForward for Doubled {
+            fn forward(&self, layer: &Linear, x: &Tensor) -> Tensor {
+                x.linear(&layer.weight, Some(&layer.bias)) * 2.0
+            }
+            fn describe(&self) -> String {
+                "a doubled product".into()
+            }
+        }
+        let (_, mut layers, store) = layers(4, None);
+        layers[2].replace_forward(Box::new(Doubled));
+        let e = add_adapters(&mut layers, cfg(0.0), 1).unwrap_err().to_string();
+        assert_eq!(e, "blocks.1.q carries a doubled product; a LoRA adapter goes on a plain linear layer");
+        assert!(adapter(&layers[0]).is_none() && store.named_parameters().len() == 6, "no adapter added");
     }
 }

@@ -1,26 +1,37 @@
 //! The small layers the DiT and VAE are made of. Parameters are named as in PyTorch
 //! (`weight`, `bias`), so the module path plus the field is the checkpoint key.
 
+use std::any::Any;
+
 use tch::{Kind, Tensor};
 
-use crate::fp8::Fp8Weight;
-use crate::lora::LoraAdapter;
 use crate::vb::{Init, Vb};
 use crate::weights::WeightsError;
 
-/// `nn.Linear(in, out)`; weight [out, in]; with a LoRA adapter where the model's LoRA config
-/// targets the layer.
+/// `nn.Linear(in, out)`; weight [out, in].
 pub struct Linear {
     pub weight: Tensor,
     pub bias: Tensor,
-    pub lora: Option<LoraAdapter>,
-    /// The weight in FP8, used by `forward` instead of `weight` once set (inference only: no
-    /// gradient flows through it).
-    pub fp8: Option<Fp8Weight>,
-    /// The forward and backward products in FP8 from `weight` itself on each call of at least
-    /// this many rows (training; `fp8_dit::train_dit_blocks_in_fp8` sets it after checking the
-    /// shapes and the device); smaller products in the parameters' dtype.
-    pub fp8_training: Option<i64>,
+    /// Where the layer sits in the module tree: its name, and where parameters added to it go.
+    vb: Vb,
+    /// The product as a conversion from outside the model replaced it (`crate::convert`); the
+    /// plain one while None.
+    replaced: Option<Box<dyn LinearForward>>,
+}
+
+/// A linear layer's product as a conversion (`crate::convert`) replaces it. `forward` sees the
+/// input in the parameters' dtype and returns the output in it; `forward_f32` sees and returns
+/// fp32 (what `Linear::forward_f32` computes; the plain fp32 product unless the replacement says
+/// otherwise).
+pub trait LinearForward: Any {
+    fn forward(&self, layer: &Linear, x: &Tensor) -> Tensor;
+
+    fn forward_f32(&self, layer: &Linear, x: &Tensor) -> Tensor {
+        layer.plain_f32(x)
+    }
+
+    /// What the layer carries, for messages (`an adapter`).
+    fn describe(&self) -> String;
 }
 
 impl Linear {
@@ -28,35 +39,56 @@ impl Linear {
         let bound = 1.0 / (in_dim as f64).sqrt();
         let weight = vb.get(&[out_dim, in_dim], "weight", Init::Uniform { bound })?;
         let bias = vb.get(&[out_dim], "bias", Init::Uniform { bound })?;
-        let lora = vb.lora_target().map(|state| LoraAdapter::new(vb, state, in_dim, out_dim)).transpose()?;
-        Ok(Self { weight, bias, lora, fp8: None, fp8_training: None })
+        Ok(Self { weight, bias, vb: vb.clone(), replaced: None })
     }
 
     /// In the parameters' dtype; `x` is cast to it.
     pub fn forward(&self, x: &Tensor) -> Tensor {
         let x = x.to_kind(self.weight.kind());
-        let y = match &self.fp8 {
-            Some(w) => w.linear(&x, &self.bias, self.weight.kind()),
-            None if self.fp8_training.is_some_and(|min_rows| x.numel() as i64 >= min_rows * self.weight.size()[1]) => {
-                bwm_fp8_autograd::linear(&x, &self.weight, &self.bias)
-                    .expect("an FP8 training linear failed after fp8_dit::train_dit_blocks_in_fp8 checked its shapes and device")
-            }
+        match &self.replaced {
+            Some(product) => product.forward(self, &x),
             None => x.linear(&self.weight, Some(&self.bias)),
-        };
-        match &self.lora {
-            Some(adapter) => y + adapter.forward(&x),
-            None => y,
         }
     }
 
     /// In fp32 whatever the parameters' dtype (time embedding, as the reference keeps it in fp32).
     pub fn forward_f32(&self, x: &Tensor) -> Tensor {
         let x = x.to_kind(Kind::Float);
-        let y = x.linear(&self.weight.to_kind(Kind::Float), Some(&self.bias.to_kind(Kind::Float)));
-        match &self.lora {
-            Some(adapter) => y + adapter.forward(&x.to_kind(adapter.a.kind())).to_kind(Kind::Float),
-            None => y,
+        match &self.replaced {
+            Some(product) => product.forward_f32(self, &x),
+            None => self.plain_f32(&x),
         }
+    }
+
+    /// The product in fp32 of an fp32 `x`.
+    pub fn plain_f32(&self, x: &Tensor) -> Tensor {
+        x.linear(&self.weight.to_kind(Kind::Float), Some(&self.bias.to_kind(Kind::Float)))
+    }
+
+    /// The module path (`blocks.0.self_attn.q`): the parameters' checkpoint names less `.weight`
+    /// and `.bias`.
+    pub fn path(&self) -> &str {
+        self.vb.prefix()
+    }
+
+    /// The layer's place in the module tree, for parameters a conversion adds to it (`Vb::add`).
+    pub fn vb(&self) -> &Vb {
+        &self.vb
+    }
+
+    /// Replaces the layer's product (a conversion's step), returning the replacement it had.
+    pub fn replace_forward(&mut self, product: Box<dyn LinearForward>) -> Option<Box<dyn LinearForward>> {
+        self.replaced.replace(product)
+    }
+
+    /// The replacement of the layer's product, if a conversion made one.
+    pub fn replaced_forward(&self) -> Option<&dyn LinearForward> {
+        self.replaced.as_deref()
+    }
+
+    /// The replacement of the layer's product, if it is a `T`.
+    pub fn replaced_forward_as<T: LinearForward>(&self) -> Option<&T> {
+        self.replaced.as_deref().and_then(|p| (p as &dyn Any).downcast_ref::<T>())
     }
 }
 

@@ -10,7 +10,6 @@ use std::rc::Rc;
 use tch::{Device, Kind, Tensor};
 
 use crate::keyed_rng::{self, Purpose};
-use crate::lora::{is_adapter_key, LoraConfig, LoraState};
 use crate::weights::{WeightSource, WeightsError};
 
 /// How a parameter is initialized when it is not read from a weight file.
@@ -23,9 +22,9 @@ pub enum Init {
     /// Uniform(-bound, bound), PyTorch's default for Linear weights and biases (bound = 1/sqrt(fan_in)).
     Uniform { bound: f64 },
     /// Uniform(-bound, bound) from its own stream keyed by (seed, index), not libtorch's
-    /// generator: parameters added to a model (LoRA adapters) leave the draws of the others as
-    /// they were.
-    KeyedUniform { bound: f64, seed: u64, index: u64 },
+    /// generator: parameters added to a model (`Vb::add`) leave the draws of the others as they
+    /// were.
+    KeyedUniform { bound: f64, seed: u64, index: u64, purpose: Purpose },
 }
 
 enum Source {
@@ -44,8 +43,6 @@ pub struct ParamStore {
     source: Source,
     kind: Kind,
     device: Device,
-    /// LoRA adapters on the linear layers their config targets (`enable_lora`).
-    lora: RefCell<Option<Rc<LoraState>>>,
 }
 
 /// Runs `f` with libtorch's global generator seeded with `seed`, holding a process-wide lock so
@@ -106,23 +103,7 @@ impl ParamStore {
             source,
             kind,
             device,
-            lora: RefCell::new(None),
         })
-    }
-
-    /// Linear layers built after this carry a LoRA adapter where `cfg.targets` names them; its
-    /// tensors are read from the weight file when it holds them and drawn fresh otherwise (A from
-    /// a stream keyed by `seed` and the layer, so the other parameters' draws do not move).
-    pub fn enable_lora(&self, cfg: LoraConfig, seed: u64) -> anyhow::Result<Rc<LoraState>> {
-        anyhow::ensure!(self.params.borrow().is_empty(), "LoRA must be enabled before the model is built");
-        let state = LoraState::new(cfg, seed)?;
-        *self.lora.borrow_mut() = Some(state.clone());
-        Ok(state)
-    }
-
-    /// The adapters' shared state, when LoRA is enabled.
-    pub fn lora(&self) -> Option<Rc<LoraState>> {
-        self.lora.borrow().clone()
     }
 
     pub fn root(self: &Rc<Self>) -> Vb {
@@ -178,6 +159,11 @@ impl Vb {
         Vb { store: self.store.clone(), prefix }
     }
 
+    /// This position's module path (empty at the root).
+    pub fn prefix(&self) -> &str {
+        &self.prefix
+    }
+
     pub fn path(&self, name: &str) -> String {
         if self.prefix.is_empty() {
             name.to_string()
@@ -192,11 +178,6 @@ impl Vb {
 
     pub fn device(&self) -> Device {
         self.store.device
-    }
-
-    /// The LoRA state when the linear layer at this path gets an adapter.
-    pub fn lora_target(&self) -> Option<Rc<LoraState>> {
-        self.store.lora().filter(|s| s.cfg.targets(&self.prefix))
     }
 
     /// Whether a module under this path should be built: always for random or shape-only trees;
@@ -215,6 +196,31 @@ impl Vb {
     /// The parameter `name` under this path with the given shape.
     pub fn get(&self, shape: &[i64], name: &str, init: Init) -> Result<Tensor, WeightsError> {
         let path = self.path(name);
+        let tensor = self.create(&path, shape, init, false)?;
+        self.store.params.borrow_mut().push((path, tensor.shallow_clone()));
+        Ok(tensor)
+    }
+
+    /// A parameter `name` added to the module at this path after it was built (a conversion's,
+    /// `crate::convert`): read from the weight file when it holds `name`, else drawn by `init`
+    /// (whatever the file's fresh prefixes). The store lists it right after the parameters
+    /// already under this path, where building the module with it would have put it, so that
+    /// the order of the parameters (the optimizer's, a checkpoint's trainable list) does not
+    /// depend on when it was added.
+    pub fn add(&self, shape: &[i64], name: &str, init: Init) -> Result<Tensor, WeightsError> {
+        let path = self.path(name);
+        let tensor = self.create(&path, shape, init, true)?;
+        let mut params = self.store.params.borrow_mut();
+        let under = format!("{}.", self.prefix);
+        let at = params.iter().rposition(|(n, _)| self.prefix.is_empty() || n.starts_with(&under)).map_or(params.len(), |i| i + 1);
+        params.insert(at, (path, tensor.shallow_clone()));
+        Ok(tensor)
+    }
+
+    /// The tensor of parameter `path`: drawn, shape-only, or read from the weight file (drawn when
+    /// the file lacks it and `fresh` is set or a fresh prefix covers it).
+    fn create(&self, path: &str, shape: &[i64], init: Init, fresh: bool) -> Result<Tensor, WeightsError> {
+        let path = path.to_string();
         let store = &self.store;
         let options = (store.kind, store.device);
         let random = |init: Init| match init {
@@ -228,16 +234,15 @@ impl Vb {
             Init::Uniform { bound } => {
                 Tensor::empty(shape, (Kind::Float, Device::Cpu)).uniform_(-bound, bound).to_kind(store.kind).to_device(store.device)
             }
-            Init::KeyedUniform { bound, seed, index } => {
-                keyed_rng::uniform_tensor(shape, bound, seed, index, Purpose::LoraInit).to_kind(store.kind).to_device(store.device)
+            Init::KeyedUniform { bound, seed, index, purpose } => {
+                keyed_rng::uniform_tensor(shape, bound, seed, index, purpose).to_kind(store.kind).to_device(store.device)
             }
         };
-        let adapter = store.lora.borrow().is_some() && is_adapter_key(&path);
         let tensor = match &store.source {
             Source::Random => random(init),
             Source::ShapesOnly => Tensor::zeros([1], options).expand(shape, false),
             Source::Weights { source, fresh_prefixes, .. }
-                if source.shape(&path).is_none() && (adapter || fresh_prefixes.iter().any(|p| path.starts_with(p.as_str()))) =>
+                if source.shape(&path).is_none() && (fresh || fresh_prefixes.iter().any(|p| path.starts_with(p.as_str()))) =>
             {
                 random(init)
             }
@@ -259,7 +264,6 @@ impl Vb {
                 source.load(&path, store.kind, store.device)?
             }
         };
-        store.params.borrow_mut().push((path, tensor.shallow_clone()));
         Ok(tensor)
     }
 }

@@ -248,7 +248,7 @@ fn bad_inputs_are_errors() {
 fn fp8_block_linears_roll_out_frames_close_to_the_exact_model() {
     let (exact, vae) = parts(Kind::Float);
     let (mut fp8, _) = parts(Kind::Float);
-    let n = bwm_model::fp8_dit::quantize_dit_blocks(&mut fp8.dit, bwm_model::fp8::Fp8Scaling::Tensor).unwrap();
+    let n = bwm_model::fp8::quantize_linears(&mut fp8, bwm_model::fp8::BLOCK_LINEARS, bwm_model::fp8::Fp8Scaling::Tensor).unwrap();
     assert_eq!(n, 10 * exact.dit.blocks.len(), "q, k, v, o of both attentions and the two FFN layers per block");
     let d = exact.cfg.action.action_dim;
     let (_, _, actions) = inputs(d, 4);

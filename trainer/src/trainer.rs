@@ -12,6 +12,7 @@ use bwm_checkpoints::run_dir::RunLock;
 use bwm_checkpoints::{write_tensors, CheckpointRoot};
 use bwm_data::latent_cache::{clip_for_sample, global_sample_index, Clip, LatentCache};
 use bwm_data::prefetch::{load_clips, ClipBatch, Prefetcher};
+use bwm_model::lora::LoraState;
 use bwm_model::vae::WanVae;
 use bwm_model::weights::{SafetensorsSource, WeightSource};
 use bwm_model::{BwmModel, ModelConfig, ParamStore};
@@ -75,6 +76,9 @@ pub struct TrainState {
 pub struct Trainer {
     pub cfg: RunConfig,
     pub model: BwmModel,
+    /// The shared state of the model's LoRA adapters (`model.lora`): their dropout is on while a
+    /// step trains.
+    pub lora: Option<Rc<LoraState>>,
     pub opt: AdamW,
     pub objective: Objective,
     pub cache: LatentCache,
@@ -103,28 +107,29 @@ pub struct Trainer {
     graph: Option<StepGraph>,
 }
 
-fn build_model(cfg: &RunConfig, model_cfg: &ModelConfig, device: Device) -> Result<BwmModel> {
+/// The run's model, with its LoRA adapters (`model.lora`) and their shared state.
+fn build_model(cfg: &RunConfig, model_cfg: &ModelConfig, device: Device) -> Result<(BwmModel, Option<Rc<LoraState>>)> {
     let kind = cfg.model.dtype.kind();
-    // The adapters are added to the store before the model is built from it.
-    let with_lora = |store: &Rc<ParamStore>| -> Result<()> {
-        if let Some(lora) = &cfg.model.lora {
-            store.enable_lora(lora.clone(), cfg.run.seed)?;
+    // The adapters are added to the built model (drawn from their own keyed streams, they leave
+    // the base weights' draws as they were), before the weight file's keys are checked.
+    let mut lora = None;
+    let mut with_lora = |model: &mut BwmModel| -> Result<()> {
+        if let Some(cfg_lora) = &cfg.model.lora {
+            lora = Some(bwm_model::lora::add_adapters(model, cfg_lora.clone(), cfg.run.seed)?);
         }
         Ok(())
     };
-    match &cfg.model.init {
+    let model = match &cfg.model.init {
         InitSource::Random => bwm_model::vb::with_seed(cfg.run.seed as i64, || {
             let store = ParamStore::random(kind, device);
-            with_lora(&store)?;
-            BwmModel::build(&store, model_cfg)
+            BwmModel::build_converted(&store, model_cfg, &mut with_lora)
         }),
         // Any layout (Wan-native, diffusers, BWM release, an export of this trainer), local or a
         // Hub repo id, presented under Wan-native names.
         InitSource::BwmCheckpoint { path } => {
             let opened = bwm_checkpoints::open::open_any(&path.to_string_lossy())?;
             let (store, model_cfg, what) = bwm_checkpoints::open::weight_store(opened, Some(model_cfg), kind, device)?;
-            with_lora(&store)?;
-            BwmModel::build(&store, &model_cfg).with_context(|| format!("building the model from {what}"))
+            BwmModel::build_converted(&store, &model_cfg, &mut with_lora).with_context(|| format!("building the model from {what}"))
         }
         InitSource::WanPretrained { path } => {
             // The DiT from the official shards; the action encoder is new, its output layers zero,
@@ -138,8 +143,7 @@ fn build_model(cfg: &RunConfig, model_cfg: &ModelConfig, device: Device) -> Resu
                     kind,
                     device,
                 );
-                with_lora(&store)?;
-                BwmModel::build(&store, model_cfg)
+                BwmModel::build_converted(&store, model_cfg, &mut with_lora)
             })?;
             tch::no_grad(|| {
                 for l in [&model.action_encoder.action_mlp1.l2, &model.action_encoder.action_mlp2.l2] {
@@ -149,7 +153,8 @@ fn build_model(cfg: &RunConfig, model_cfg: &ModelConfig, device: Device) -> Resu
             });
             Ok(model)
         }
-    }
+    }?;
+    Ok((model, lora))
 }
 
 impl Trainer {
@@ -204,12 +209,12 @@ impl Trainer {
         );
 
         let clip_encoder = clip_encoder(&cfg, &cache, device)?;
-        let mut model = build_model(&cfg, &model_cfg, device)?;
+        let (mut model, lora) = build_model(&cfg, &model_cfg, device)?;
         model.dit.residual = cfg.model.residual.kind(cfg.model.dtype.kind());
         if cfg.train.fp8 {
-            bwm_model::fp8_dit::train_dit_blocks_in_fp8(&mut model.dit, cfg.train.fp8_min_rows as i64).context("train.fp8")?;
+            bwm_model::fp8::train_in_fp8(&mut model, bwm_model::fp8::BLOCK_LINEARS, cfg.train.fp8_min_rows as i64).context("train.fp8")?;
         }
-        let graph = if cfg.train.cuda_graph { Some(StepGraph::new(&cfg, device, comm.world_size(), model.store.lora().is_some())?) } else { None };
+        let graph = if cfg.train.cuda_graph { Some(StepGraph::new(&cfg, device, comm.world_size(), lora.is_some())?) } else { None };
         let named = model.store.named_parameters();
         let sharding = Sharding { rank: comm.rank(), world: comm.world_size(), sharded: cfg.train.shard_optimizer };
         let mut opt = AdamW::new(&named, &cfg.trainable_patterns(), &cfg.train.frozen, &cfg.optim, cfg.train.steps, sharding)?;
@@ -242,7 +247,7 @@ impl Trainer {
         let events = if cfg.log.tensorboard && lead { Some(EventWriter::create(&out_dir.join("tensorboard"))?) } else { None };
         let append = |name: &str| -> Result<Option<LineLog>> { if lead { LineLog::open(&out_dir.join(name)).map(Some) } else { Ok(None) } };
         let (metrics_file, loss_file) = (append("metrics.jsonl")?, append(crate::run_log::LOSSES_FILE)?);
-        Ok(Self { cfg, model, opt, objective, cache, clip_encoder, loader: Default::default(), train_clips, device, state, out_dir, checkpoints, events, metrics_file, loss_file, comm, run_lock, history: Vec::new(), block_params, graph })
+        Ok(Self { cfg, model, lora, opt, objective, cache, clip_encoder, loader: Default::default(), train_clips, device, state, out_dir, checkpoints, events, metrics_file, loss_file, comm, run_lock, history: Vec::new(), block_params, graph })
     }
 
     /// Trains to `train.steps`, checkpointing and validating as configured.
@@ -306,7 +311,7 @@ impl Trainer {
 
     /// One optimizer step over `grad_accum` micro-batches.
     pub fn train_step(&mut self) -> Result<StepMetrics> {
-        let lora = self.model.store.lora();
+        let lora = self.lora.clone();
         if let Some(l) = &lora {
             // Dropout masks come from libtorch's generator, seeded per step so that a resumed
             // run draws the masks an uninterrupted one would.

@@ -53,8 +53,7 @@ fn the_readme_lora_override_of_the_5b_recipe() {
     // The module tree without storage: every attention and FFN linear of the 30 blocks carries
     // an adapter (8 of 3072 x 3072, 2 between 3072 and 14336).
     let store = bwm_model::ParamStore::shapes_only(tch::Kind::BFloat16);
-    store.enable_lora(lora, 0).unwrap();
-    bwm_model::BwmModel::build(&store, &c.model.model_config().unwrap()).unwrap();
+    bwm_model::BwmModel::build_converted(&store, &c.model.model_config().unwrap(), |m| bwm_model::lora::add_adapters(m, lora, 0).map(drop)).unwrap();
     let named = store.named_parameters();
     let adapters: Vec<_> = named.iter().filter(|(n, _)| bwm_model::lora::is_adapter_key(n)).collect();
     assert_eq!(adapters.len(), 30 * 10 * 2);

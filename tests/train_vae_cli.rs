@@ -1,7 +1,7 @@
 //! `bwm train-vae` end to end on the bundled demo episodes in bf16 (fp32 masters) with the L1
-//! loss and 8 latent channels: an f32 file that `bwm reconstruct` reads; the motion loss; and a
-//! dtype it cannot train in, a loss it does not know, a motion weight without the motion loss or
-//! no latent channel refused before any decoding.
+//! loss and 8 latent channels: an f32 file that `bwm reconstruct` reads; and a dtype it cannot
+//! train in, a loss it does not know, the removed motion loss or its weight, or no latent channel
+//! refused before any decoding.
 
 mod common;
 
@@ -47,23 +47,17 @@ fn train_vae_trains_in_bf16_and_writes_an_f32_vae() {
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && stderr.contains("--recon-loss") && stderr.contains("known: mse, l1"), "{stderr}");
     assert!(!stderr.contains("panicked") && !bad.exists(), "{stderr}");
-    // The motion loss trains; its weight is refused with another loss, before any decoding.
-    let motion = |loss: &str, weight: &str, out: &std::path::Path| {
-        Command::new(bwm())
+    // The motion loss and its weight were removed (issue 69): refused by name with the reason,
+    // before any decoding.
+    for (flag, value) in [("--recon-loss", "motion"), ("--motion-weight", "2")] {
+        let o = Command::new(bwm())
             .args(["train-vae", "--data", demo_data().to_str().unwrap(), "--max-episodes", "1", "--resolution", "32x32"])
             .args(["--dim", "4", "--dec-dim", "4", "--z-dim", "8", "--clip-frames", "5", "--steps", "2", "--batch", "1", "--device", "cpu"])
-            .args(["--recon-loss", loss, "--motion-weight", weight, "--out", out.to_str().unwrap()])
+            .args([flag, value, "--out", bad.to_str().unwrap()])
             .output()
-            .unwrap()
-    };
-    let moved = dir.join("motion.safetensors");
-    let o = motion("motion", "2", &moved);
-    let stdout = String::from_utf8_lossy(&o.stdout);
-    assert!(o.status.success() && stdout.contains("motion loss") && moved.exists(), "{stdout}\n{}", String::from_utf8_lossy(&o.stderr));
-    for (loss, weight, want) in [("mse", "2", "weighs --recon-loss motion, not mse"), ("motion", "-1", "at least 0")] {
-        let o = motion(loss, weight, &bad);
+            .unwrap();
         let stderr = String::from_utf8_lossy(&o.stderr);
-        assert!(!o.status.success() && stderr.contains(want), "{loss} {weight}: {stderr}");
+        assert!(!o.status.success() && stderr.contains(flag) && stderr.contains("was removed") && stderr.contains("run 34"), "{flag} {value}: {stderr}");
         assert!(!stderr.contains("panicked") && !bad.exists(), "{stderr}");
     }
     let o = run("f32", "mse", "0", &bad);

@@ -58,8 +58,7 @@ VAE_DATA="${VAE_DATA:-$RUN/data/train}"   # the dataset the VAE trains on
 VAE_BATCH="${VAE_BATCH:-4}"
 VAE_LR="${VAE_LR:-1e-3}"
 VAE_DTYPE="${VAE_DTYPE:-f32}"             # bwm train-vae --dtype: f32, or bf16 with fp32 masters (slower here: docs/performance.md)
-VAE_LOSS="${VAE_LOSS:-mse}"                # bwm train-vae --recon-loss: mse, l1 or motion (MSE weighted towards what moves)
-VAE_MOTION_WEIGHT="${VAE_MOTION_WEIGHT:-}" # bwm train-vae --motion-weight, with VAE_LOSS=motion (empty: its default, 4)
+VAE_LOSS="${VAE_LOSS:-mse}"                # bwm train-vae --recon-loss: mse or l1
 # 1: bwm train-vae --cuda-graph (the step replayed from a CUDA graph: 1.8x faster on an H200,
 # docs/performance.md); 0: eager; auto (default): the graph on CUDA devices, and should the graph
 # fail, the VAE trained again eagerly (a CPU has no CUDA graphs: eager there).
@@ -228,7 +227,7 @@ fi
 if wants vae; then
   vae=("$BWM" train-vae --data "$VAE_DATA" --max-episodes "$VAE_EPISODES" --holdout-tail "$VAE_HOLDOUT_TAIL"
       --resolution "${RESOLUTION}x$RESOLUTION" --dim "$VAE_DIM" --dec-dim "$VAE_DEC_DIM" --spatial-stride "$VAE_STRIDE" --clip-frames "$VAE_CLIP_FRAMES" --batch "$VAE_BATCH" --steps "$VAE_STEPS" --lr "$VAE_LR"
-      --no-flip --eval-every "$VAE_EVAL_EVERY" --dtype "$VAE_DTYPE" --recon-loss "$VAE_LOSS" ${VAE_MOTION_WEIGHT:+--motion-weight "$VAE_MOTION_WEIGHT"} --seed "$VAE_SEED" --candidates "$VAE_CANDIDATES" ${VAE_CHOOSE_AT:+--choose-at "$VAE_CHOOSE_AT"} --z-dim "$VAE_Z_DIM" --device "$DEVICE" --out "$RUN/vae.safetensors")
+      --no-flip --eval-every "$VAE_EVAL_EVERY" --dtype "$VAE_DTYPE" --recon-loss "$VAE_LOSS" --seed "$VAE_SEED" --candidates "$VAE_CANDIDATES" ${VAE_CHOOSE_AT:+--choose-at "$VAE_CHOOSE_AT"} --z-dim "$VAE_Z_DIM" --device "$DEVICE" --out "$RUN/vae.safetensors")
   made_with=$(record_of "${vae[@]}")
   if ! kept "$RUN/vae.safetensors" "$made_with"; then
     if [ "$VAE_GRAPH" = 1 ]; then

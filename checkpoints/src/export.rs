@@ -388,23 +388,12 @@ pub fn write_weights(
         if layout == DitLayout::Diffusers {
             let comp_cfg = match (sub, cfg) {
                 (TRANSFORMER_DIR, Some(c)) => Some(repo::diffusers_transformer_config(&c.dit)),
-                (ACTION_ENCODER_DIR, Some(c)) => {
-                    let mut j = serde_json::json!({
-                        "_class_name": "WanVideoActionEncoder",
-                        "dim": c.dit.dim, "action_dim": c.action.action_dim, "prepend": c.action.prepend, "group": c.action.group,
-                        "action_mlp1": "Linear(action_dim, dim) -> GELU -> Linear(dim, dim): one cross-attention token per pixel frame",
-                        "action_mlp2": "Linear(group*action_dim, group*dim) -> SiLU -> Linear(group*dim, dim): added to the time embedding of each latent frame",
-                    });
-                    if c.action.fourier_bands > 0 {
-                        j["fourier_bands"] = c.action.fourier_bands.into();
-                        j["fourier_features"] = "each normalized action value a replaced by [a, sin(2^k*pi*a) for k < fourier_bands, cos(2^k*pi*a) for k < fourier_bands] (per frame: all values, then all sines, then all cosines) before action_mlp1 and action_mlp2; their action_dim is action_dim*(1 + 2*fourier_bands)".into();
-                    }
-                    if c.action.temporal_rope {
-                        j["temporal_rope"] = true.into();
-                        j["temporal_rope_note"] = "the DiT's cross-attention rotates q and k after their RMSNorm by the temporal part of its 3-axis RoPE: each video token at its latent frame, each action token at latent frame (pixel_frame + prepend) // group; rows and columns unrotated".into();
-                    }
-                    Some(j)
-                }
+                (ACTION_ENCODER_DIR, Some(c)) => Some(serde_json::json!({
+                    "_class_name": "WanVideoActionEncoder",
+                    "dim": c.dit.dim, "action_dim": c.action.action_dim, "prepend": c.action.prepend, "group": c.action.group,
+                    "action_mlp1": "Linear(action_dim, dim) -> GELU -> Linear(dim, dim): one cross-attention token per pixel frame",
+                    "action_mlp2": "Linear(group*action_dim, group*dim) -> SiLU -> Linear(group*dim, dim): added to the time embedding of each latent frame",
+                })),
                 _ => None,
             };
             if let Some(c) = comp_cfg {
@@ -536,14 +525,8 @@ post-trained with the `bwm` trainer. Given the first frame, recent history laten
         c.dit.dim, c.dit.num_layers, c.dit.num_heads, c.dit.ffn_dim, c.dit.patch_size, c.dit.in_dim
     );
     s += &format!(
-        "| action interface | {}-D actions, P={} copies of a_0 prepended, G={} actions per latent frame{} |\n",
-        c.action.action_dim,
-        c.action.prepend,
-        c.action.group,
-        match c.action.fourier_bands {
-            0 => String::new(),
-            b => format!(", each value with its Fourier features over {b} octaves"),
-        } + if c.action.temporal_rope { ", each action token placed at its latent frame in the cross-attention (temporal RoPE)" } else { "" }
+        "| action interface | {}-D actions, P={} copies of a_0 prepended, G={} actions per latent frame |\n",
+        c.action.action_dim, c.action.prepend, c.action.group
     );
     s += &format!("| parameters | {} in {} tensors |\n", f.cfg.weights.parameters, f.cfg.weights.tensors);
     s += &format!("| layout | `{}` |\n| dtype | {} |\n| EMA weights | {} |\n\n", f.cfg.layout, f.cfg.weights.dtype, if f.cfg.weights.ema { "yes" } else { "no" });

@@ -6,6 +6,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
 use bwm_model::lora::LoraConfig;
+use bwm_model::config::{removed, Removed};
 use bwm_model::{ActionConfig, DitConfig, ModelConfig};
 use serde::Deserialize;
 
@@ -60,6 +61,10 @@ struct ObjectivePart {
     condition_latents: Option<i64>,
     #[serde(default)]
     action_dropout: Option<f64>,
+    /// Removed (issue 69): read only to refuse a run that used it (`removed::MOTION_WEIGHT`).
+    #[serde(default, deserialize_with = "removed::motion_weight")]
+    #[allow(dead_code)]
+    motion_weight: Removed,
 }
 
 #[derive(Debug, Clone, Default, Deserialize)]
@@ -262,5 +267,21 @@ x = 1
         assert_eq!(r.steps_planned, Some(10));
         let e = RunInfo::parse("[model]\npreset = \"huge\"\n", "x").unwrap_err();
         assert!(format!("{e:#}").contains("allowed"), "{e:#}");
+    }
+
+    /// A checkpoint's stored run config from before issue 69 removed `model.action.fourier_bands`,
+    /// `model.action.temporal_rope` and `objective.motion_weight` holds them at their defaults
+    /// (`motion_weight = 0.0` always): it reads as before. One whose run switched one on is
+    /// refused by the key's name, saying that it was removed and why, not read as another model.
+    #[test]
+    fn removed_keys_read_at_their_old_defaults_and_are_refused_otherwise() {
+        let old = "[run]\nname = \"t\"\n[model]\npreset = \"tiny\"\n[model.action]\naction_dim = 4\nfourier_bands = 0\ntemporal_rope = false\n[objective]\nmotion_weight = 0.0\n";
+        let r = RunInfo::parse(old, "t").unwrap();
+        assert_eq!(r.model.action, ActionConfig { action_dim: 4, ..ActionConfig::default() });
+        for (off, on, why) in [("fourier_bands = 0", "fourier_bands = 3", "run 28"), ("temporal_rope = false", "temporal_rope = true", "run 39"), ("motion_weight = 0.0", "motion_weight = 4.0", "run 33")] {
+            let e = format!("{:#}", RunInfo::parse(&old.replace(off, on), "the run config stored in c").unwrap_err());
+            let key = on.split(" = ").next().unwrap();
+            assert!(e.contains("the run config stored in c") && e.contains(key) && e.contains("was removed") && e.contains(why), "{e}");
+        }
     }
 }

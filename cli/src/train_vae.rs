@@ -9,7 +9,7 @@ use bwm_data::{open_dataset, CameraSelection, ResizeMode};
 use bwm_model::vae::VaeConfig;
 use bwm_model::device::{parse_device, parse_kind};
 use bwm_trainer::vae_frames::FrameSelection;
-use bwm_trainer::vae_train::{save_trained_vae, train_best_vae, FrameSets, ReconLoss, VaeTrainSettings, DEFAULT_MOTION_WEIGHT};
+use bwm_trainer::vae_train::{save_trained_vae, train_best_vae, FrameSets, ReconLoss, VaeTrainSettings, REMOVED_MOTION_LOSS};
 use clap::Args;
 
 #[derive(Args)]
@@ -92,16 +92,13 @@ pub struct TrainVaeArgs {
     /// in f32 either way; the file holds f32 weights).
     #[arg(long, default_value = "f32")]
     pub dtype: String,
-    /// Reconstruction loss: mse (what PSNR measures), l1 (as Wan's VAE trains; errs less
-    /// towards blurring a small object into its surroundings) or motion (MSE weighted towards
-    /// where the frames change and the pixels within one latent cell of it: the arm and what it
-    /// nears, against the static scene).
+    /// Reconstruction loss: mse (what PSNR measures) or l1 (as Wan's VAE trains; errs less
+    /// towards blurring a small object into its surroundings).
     #[arg(long, default_value = "mse")]
     pub recon_loss: ReconLoss,
-    /// With --recon-loss motion: how much more the squared error counts, on average over a clip,
-    /// where it changes (default 4; 0 is plain MSE).
-    #[arg(long, allow_negative_numbers = true)]
-    pub motion_weight: Option<f64>,
+    /// Removed with the motion loss it weighed (issue 69): refused, saying why.
+    #[arg(long, hide = true, allow_negative_numbers = true)]
+    pub motion_weight: Option<String>,
     /// Record the training step (forward and backward) once as a CUDA graph and replay it after
     /// two eager warm-up steps (CUDA only). The small VAE's step is bound by launching its
     /// kernels, which a replay does in one launch; the results are the eager step's.
@@ -120,13 +117,15 @@ pub struct TrainVaeArgs {
 }
 
 pub fn run(a: TrainVaeArgs) -> Result<()> {
+    if a.motion_weight.is_some() {
+        bail!("--motion-weight was removed with the motion loss it weighed (--recon-loss motion, issue 69) because {REMOVED_MOTION_LOSS}");
+    }
     let cfg = VaeConfig { z_dim: a.z_dim, ..VaeConfig::with_width(a.dim, a.dec_dim) };
     let cfg = cfg.with_spatial_stride(a.spatial_stride).context("--spatial-stride")?;
     cfg.validate().context("--dim, --dec-dim, --z-dim")?;
     let size = parse_resolution(&a.resolution, cfg.spatial_stride() as u32)?;
     let device = parse_device(&a.device)?;
     let dtype = parse_kind(&a.dtype).context("--dtype")?;
-    let motion_weight = motion_weight(&a)?;
     let data = match &a.frames {
         Some(path) => {
             let data = FrameSets::read(path)?;
@@ -140,7 +139,7 @@ pub fn run(a: TrainVaeArgs) -> Result<()> {
         println!("train-vae: wrote the frames to {}", path.display());
         return Ok(());
     }
-    train(&a, cfg, data, device, dtype, motion_weight)
+    train(&a, cfg, data, device, dtype)
 }
 
 fn decode_frame_sets(a: &TrainVaeArgs, size: (u32, u32)) -> Result<FrameSets> {
@@ -150,26 +149,12 @@ fn decode_frame_sets(a: &TrainVaeArgs, size: (u32, u32)) -> Result<FrameSets> {
     FrameSets::from_dataset(source.as_ref(), &selection)
 }
 
-/// --motion-weight, only with the loss it weighs.
-fn motion_weight(a: &TrainVaeArgs) -> Result<f64> {
-    match a.motion_weight {
-        None => Ok(DEFAULT_MOTION_WEIGHT),
-        Some(_) if a.recon_loss != ReconLoss::Motion => bail!("--motion-weight weighs --recon-loss motion, not {}", a.recon_loss),
-        Some(w) if w.is_finite() && w >= 0.0 => Ok(w),
-        Some(w) => bail!("--motion-weight must be a finite number of at least 0, not {w}"),
-    }
-}
-
-fn train(a: &TrainVaeArgs, cfg: VaeConfig, data: FrameSets, device: tch::Device, dtype: tch::Kind, motion_weight: f64) -> Result<()> {
+fn train(a: &TrainVaeArgs, cfg: VaeConfig, data: FrameSets, device: tch::Device, dtype: tch::Kind) -> Result<()> {
     let frames: i64 = data.train.iter().map(|t| t.size()[1]).sum();
     let stride = cfg.spatial_stride();
-    let loss = match a.recon_loss {
-        ReconLoss::Motion => format!("motion loss (weight {motion_weight})"),
-        other => format!("{other} loss"),
-    };
     println!(
-        "train-vae: {frames} training frames; VAE dim {} / dec_dim {} (z {}, spatial stride {stride}), {} steps of {} clips x {} frames on {:?} in {}, {loss}",
-        cfg.dim, cfg.dec_dim, cfg.z_dim, a.steps, a.batch, a.clip_frames, device, a.dtype
+        "train-vae: {frames} training frames; VAE dim {} / dec_dim {} (z {}, spatial stride {stride}), {} steps of {} clips x {} frames on {:?} in {}, {} loss",
+        cfg.dim, cfg.dec_dim, cfg.z_dim, a.steps, a.batch, a.clip_frames, device, a.dtype, a.recon_loss
     );
     let settings = VaeTrainSettings {
         cfg,
@@ -185,7 +170,6 @@ fn train(a: &TrainVaeArgs, cfg: VaeConfig, data: FrameSets, device: tch::Device,
         crop: a.crop.as_deref().map(|c| parse_resolution(c, stride as u32).map(|(w, h)| (w as i64, h as i64))).transpose().context("--crop")?,
         dtype,
         recon_loss: a.recon_loss,
-        motion_weight,
         cuda_graph: a.cuda_graph,
     };
     let end = a.seed.checked_add(a.candidates).with_context(|| format!("--seed {} + --candidates {} is past the largest seed", a.seed, a.candidates))?;

@@ -122,7 +122,7 @@ impl BwmModel {
         let emb = self.embed_actions(latents, actions, keep)?;
         trace("action_context", &emb.context);
         trace("action_mod", &emb.frame);
-        self.dit.forward_traced(latents, frame_timesteps, Some(&emb.frame), &emb.context, emb.context_frames.as_deref(), trace)
+        self.dit.forward_traced(latents, frame_timesteps, Some(&emb.frame), &emb.context, trace)
     }
 }
 

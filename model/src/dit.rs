@@ -67,19 +67,10 @@ impl Attention {
         self.o.forward(&attention(&q, &k, &v, self.num_heads))
     }
 
-    /// Cross-attention from x to the context (no mask); with `rope` (queries', keys') its q and k
-    /// rotated after their RMSNorm, else without positions (Wan's).
-    fn cross_attention(&self, x: &Tensor, context: &Tensor, rope: Option<&(Rope, Rope)>) -> Tensor {
-        let mut q = self.norm_q.forward(&self.q.forward(x));
-        let mut k = self.norm_k.forward(&self.k.forward(context));
-        if let Some((rq, rk)) = rope {
-            let rotate = |t: &Tensor, r: &Rope| {
-                let (b, l, d) = t.size3().expect("[B, L, D]");
-                r.apply(&t.view([b, l, self.num_heads, d / self.num_heads])).view([b, l, d])
-            };
-            q = rotate(&q, rq);
-            k = rotate(&k, rk);
-        }
+    /// Cross-attention from x to the context (no positions, no mask).
+    fn cross_attention(&self, x: &Tensor, context: &Tensor) -> Tensor {
+        let q = self.norm_q.forward(&self.q.forward(x));
+        let k = self.norm_k.forward(&self.k.forward(context));
         let v = self.v.forward(context);
         self.o.forward(&attention(&q, &k, &v, self.num_heads))
     }
@@ -124,7 +115,7 @@ impl Block {
         let y = self.self_attn.self_attention(&tokens(h), &cond.rope);
         let x = tokens(frame_addcmul(&per_frame(x), &per_frame(&y), &m[2]));
 
-        let y = self.cross_attn.cross_attention(&self.norm3.forward(&x), &cond.context, cond.cross_rope.as_ref());
+        let y = self.cross_attn.cross_attention(&self.norm3.forward(&x), &cond.context);
         let x = &x + y;
 
         let h = tokens(modulate(&per_frame(&layer_norm(&x, None, self.eps)), &m[3], &m[4]));
@@ -169,9 +160,6 @@ pub struct Conditioning {
     /// Cross-attention context [B, Lc, D] in the parameters' dtype.
     pub context: Tensor,
     pub rope: Rope,
-    /// The cross-attention's temporal rotations (queries', context tokens'), where the context's
-    /// tokens have latent frames (`ActionConfig::temporal_rope`).
-    pub cross_rope: Option<(Rope, Rope)>,
     /// Token grid (f, h', w').
     pub grid: (i64, i64, i64),
 }
@@ -197,8 +185,6 @@ pub struct WanDit {
     /// (nor could a CUDA graph record that); they are kept for the model's life, since a recorded
     /// graph reads them at their address.
     rope: std::sync::Mutex<Vec<((i64, i64, i64), Device, Rope)>>,
-    #[allow(clippy::type_complexity)]
-    cross_rope: std::sync::Mutex<Vec<((i64, i64, i64), Vec<i64>, Device, Rope, Rope)>>,
 }
 
 impl WanDit {
@@ -225,7 +211,6 @@ impl WanDit {
             head: Head::new(&vb.pp("head"), cfg)?,
             residual: Kind::Float,
             rope: Default::default(),
-            cross_rope: Default::default(),
         })
     }
 
@@ -238,21 +223,6 @@ impl WanDit {
         let rope = Rope::new(grid, self.cfg.rope_axes(), self.cfg.rope_theta, device);
         kept.push((grid, device, rope.shallow_clone()));
         rope
-    }
-
-    /// The cross-attention's temporal rotations for the queries of `grid` and context tokens at
-    /// latent frames `frames` (made once per grid, frames and device, as `rope_for`).
-    fn cross_rope_for(&self, grid: (i64, i64, i64), frames: &[i64], device: Device) -> (Rope, Rope) {
-        let mut kept = self.cross_rope.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
-        if let Some((_, _, _, q, k)) = kept.iter().find(|(g, f, d, _, _)| *g == grid && f == frames && *d == device) {
-            return (q.shallow_clone(), k.shallow_clone());
-        }
-        let (axes, theta) = (self.cfg.rope_axes(), self.cfg.rope_theta);
-        let queries: Vec<i64> = crate::rope::grid_positions(grid).iter().map(|p| p[0]).collect();
-        let q = Rope::temporal(&queries, axes, theta, device);
-        let k = Rope::temporal(frames, axes, theta, device);
-        kept.push((grid, frames.to_vec(), device, q.shallow_clone(), k.shallow_clone()));
-        (q, k)
     }
 
     /// Token grid of latents [B, C, F, H, W], or an error saying what was expected.
@@ -315,16 +285,13 @@ impl WanDit {
 
     /// Builds the token stream and conditioning. `frame_timesteps` [B, F] (one per token frame,
     /// 0..1000 scale); `frame_embedding` [B, F, D] is added to the time embedding (BWM actions);
-    /// `context` [B, Lc, D] is the cross-attention context, and `context_frames` (Lc entries) the
-    /// latent frame of each of its tokens where it has them (then the cross-attention is rotated by
-    /// the temporal part of the RoPE).
+    /// `context` [B, Lc, D] is the cross-attention context.
     pub fn prepare(
         &self,
         latents: &Tensor,
         frame_timesteps: &Tensor,
         frame_embedding: Option<&Tensor>,
         context: &Tensor,
-        context_frames: Option<&[i64]>,
     ) -> Result<(Tensor, Conditioning)> {
         let grid = self.token_grid(latents)?;
         let b = latents.size()[0];
@@ -355,15 +322,8 @@ impl WanDit {
         }
         let e0 = self.time_projection.forward_f32(&e.silu()).unflatten(2, [6, self.cfg.dim]);
         let rope = self.rope_for(grid, latents.device());
-        let cross_rope = match context_frames {
-            Some(frames) => {
-                ensure!(frames.len() as i64 == cs[1], "{} context frames for a context of {} tokens", frames.len(), cs[1]);
-                Some(self.cross_rope_for(grid, frames, latents.device()))
-            }
-            None => None,
-        };
         let context = context.to_kind(self.patch_embedding_weight.kind());
-        Ok((x, Conditioning { e, e0, context, rope, cross_rope, grid }))
+        Ok((x, Conditioning { e, e0, context, rope, grid }))
     }
 
     /// The head and unpatchify: tokens -> fp32 prediction [B, out_dim, F, H, W].
@@ -379,10 +339,9 @@ impl WanDit {
         frame_timesteps: &Tensor,
         frame_embedding: Option<&Tensor>,
         context: &Tensor,
-        context_frames: Option<&[i64]>,
         trace: &mut dyn FnMut(&str, &Tensor),
     ) -> Result<Tensor> {
-        let (mut x, cond) = self.prepare(latents, frame_timesteps, frame_embedding, context, context_frames)?;
+        let (mut x, cond) = self.prepare(latents, frame_timesteps, frame_embedding, context)?;
         trace("t_emb", &cond.e);
         trace("t_mod", &cond.e0);
         trace("tokens_in", &x);
@@ -411,48 +370,5 @@ mod tests {
         let fresh = Rope::new((3, 2, 2), dit.cfg.rope_axes(), dit.cfg.rope_theta, Device::Cpu);
         let x = Tensor::randn([1, 12, dit.cfg.num_heads, dit.cfg.dim / dit.cfg.num_heads], (Kind::Float, Device::Cpu));
         assert!(first.apply(&x).equal(&fresh.apply(&x)), "the kept rotations are the grid's");
-    }
-
-    #[test]
-    fn the_cross_attention_sees_a_bag_of_actions_unless_told_their_frames() {
-        let dit = with_seed(0, || WanDit::new(&ParamStore::random(Kind::Float, Device::Cpu).root(), &DitConfig::tiny())).unwrap();
-        let attn = &dit.blocks[0].cross_attn;
-        let d = dit.cfg.dim;
-        let x = with_seed(1, || Tensor::randn([1, 12, d], (Kind::Float, Device::Cpu)));
-        let context = with_seed(2, || Tensor::randn([1, 5, d], (Kind::Float, Device::Cpu)));
-        let order = Tensor::from_slice(&[3i64, 0, 4, 1, 2]);
-        let shuffled = context.index_select(1, &order);
-        let close = |a: &Tensor, b: &Tensor| a.allclose(b, 1e-5, 1e-5, false);
-        // Wan's: no positions, so the order of the context tokens changes nothing.
-        assert!(close(&attn.cross_attention(&x, &context, None), &attn.cross_attention(&x, &shuffled, None)));
-        // With frames, each token's frame travels with it; the same tokens at other frames attend otherwise.
-        let frames = [0i64, 0, 1, 2, 2];
-        let moved: Vec<i64> = [3usize, 0, 4, 1, 2].iter().map(|&i| frames[i]).collect();
-        let at = |f: &[i64]| dit.cross_rope_for((3, 2, 2), f, Device::Cpu);
-        let timed = attn.cross_attention(&x, &context, Some(&at(&frames)));
-        assert!(close(&timed, &attn.cross_attention(&x, &shuffled, Some(&at(&moved)))));
-        assert!(!close(&timed, &attn.cross_attention(&x, &shuffled, Some(&at(&frames)))));
-        assert!(!close(&timed, &attn.cross_attention(&x, &context, None)));
-        // Made once per grid and frames.
-        let (q, k) = at(&frames);
-        let (q2, k2) = at(&frames);
-        assert!(q.same_tensor(&q2) && k.same_tensor(&k2));
-        assert!(!at(&moved).1.same_tensor(&k));
-        // The queries turn by their latent frame alone: tokens of one frame share a rotation.
-        let probe = Tensor::ones([1, 12, dit.cfg.num_heads, d / dit.cfg.num_heads], (Kind::Float, Device::Cpu));
-        let turned = q.apply(&probe);
-        assert!(turned.get(0).get(0).equal(&turned.get(0).get(3)) && !turned.get(0).get(0).equal(&turned.get(0).get(4)));
-    }
-
-    #[test]
-    fn context_frames_must_cover_the_context() {
-        let dit = with_seed(0, || WanDit::new(&ParamStore::random(Kind::Float, Device::Cpu).root(), &DitConfig::tiny())).unwrap();
-        let latents = Tensor::zeros([1, 48, 3, 4, 4], (Kind::Float, Device::Cpu));
-        let t = Tensor::zeros([1, 3], (Kind::Float, Device::Cpu));
-        let context = Tensor::zeros([1, 9, dit.cfg.dim], (Kind::Float, Device::Cpu));
-        let err = dit.prepare(&latents, &t, None, &context, Some(&[0, 1, 2])).err().expect("3 frames for 9 tokens").to_string();
-        assert_eq!(err, "3 context frames for a context of 9 tokens");
-        assert!(dit.prepare(&latents, &t, None, &context, Some(&[0, 1, 1, 1, 1, 2, 2, 2, 2])).unwrap().1.cross_rope.is_some());
-        assert!(dit.prepare(&latents, &t, None, &context, None).unwrap().1.cross_rope.is_none());
     }
 }

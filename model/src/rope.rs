@@ -4,12 +4,6 @@
 
 use tch::{Device, Kind, Tensor};
 
-/// The (frame, row, column) of each token of a grid (f, h, w), in row-major order.
-pub fn grid_positions(grid: (i64, i64, i64)) -> Vec<[i64; 3]> {
-    let (f, h, w) = grid;
-    (0..f).flat_map(|fi| (0..h).flat_map(move |hi| (0..w).map(move |wi| [fi, hi, wi]))).collect()
-}
-
 /// Rotations e^(i angle), [L, 1, head_dim/2] complex64, for a token grid (f, h, w) in row-major order.
 pub struct Rope {
     rotations: Tensor,
@@ -17,31 +11,25 @@ pub struct Rope {
 
 impl Rope {
     pub fn new(grid: (i64, i64, i64), axes: [i64; 3], theta: f64, device: Device) -> Self {
-        Self::at(&grid_positions(grid), axes, theta, device)
-    }
-
-    /// The temporal part alone for tokens at latent frames `frames` (position (f, 0, 0) each: the
-    /// row and column pairs are left as they are).
-    pub fn temporal(frames: &[i64], axes: [i64; 3], theta: f64, device: Device) -> Self {
-        Self::at(&frames.iter().map(|&f| [f, 0, 0]).collect::<Vec<_>>(), axes, theta, device)
-    }
-
-    /// Rotations for tokens at the given (frame, row, column) positions, in their order.
-    pub fn at(positions: &[[i64; 3]], axes: [i64; 3], theta: f64, device: Device) -> Self {
+        let (f, h, w) = grid;
         let freqs: Vec<Vec<f64>> = axes
             .iter()
             .map(|&d| (0..d / 2).map(|j| theta.powf(-(2 * j) as f64 / d as f64)).collect())
             .collect();
         let pairs: usize = freqs.iter().map(|v| v.len()).sum();
-        let len = positions.len();
+        let len = (f * h * w) as usize;
         let mut cos = Vec::with_capacity(len * pairs);
         let mut sin = Vec::with_capacity(len * pairs);
-        for position in positions {
-            for (pos, axis) in position.iter().zip(&freqs) {
-                for &om in axis {
-                    let angle = *pos as f64 * om;
-                    cos.push(angle.cos() as f32);
-                    sin.push(angle.sin() as f32);
+        for fi in 0..f {
+            for hi in 0..h {
+                for wi in 0..w {
+                    for (pos, axis) in [fi, hi, wi].iter().zip(&freqs) {
+                        for &om in axis {
+                            let angle = *pos as f64 * om;
+                            cos.push(angle.cos() as f32);
+                            sin.push(angle.sin() as f32);
+                        }
+                    }
                 }
             }
         }

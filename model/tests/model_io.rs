@@ -196,25 +196,3 @@ fn a_bf16_residual_stream_stays_close_to_the_fp32_one() {
     println!("bf16 residual vs fp32 residual rel err {e:.3e}");
     assert!(e > 0.0 && e < 2e-2, "bf16 residual rel err {e}");
 }
-
-#[test]
-fn the_actions_timed_in_cross_attention_load_the_same_weights_and_change_what_they_predict() {
-    let _rng = torch_rng();
-    let dir = tmp_dir("temporal-rope");
-    let plain = BwmModel::random(&tiny(), Kind::Float, Device::Cpu, 13).unwrap();
-    let path = dir.join("w.safetensors");
-    save(&plain.store.named_parameters(), &path);
-    let mut timed_cfg = tiny();
-    timed_cfg.action.temporal_rope = true;
-    // No parameters of its own: the plain model's file loads into it whole.
-    let timed = BwmModel::load(&path, Layout::WanNative, &timed_cfg, Kind::Float, Device::Cpu).unwrap();
-    let (x, t, a) = inputs(1);
-    let emb = timed.embed_actions(&x, &a, None).unwrap();
-    assert_eq!(emb.context_frames.as_deref(), Some(&[0i64, 1, 1, 1, 1, 2, 2, 2, 2, 3, 3, 3, 3, 4, 4, 4, 4][..]));
-    assert!(plain.embed_actions(&x, &a, None).unwrap().context_frames.is_none(), "BWM's context has no positions");
-    let (p, q) = (forward(&plain), tch::no_grad(|| timed.forward(&x, &t, &a)).unwrap());
-    assert!(rel_err(&q, &p) > 1e-4, "the rotation changes the prediction");
-    // And reaches the null condition's samples as well (keep), which classifier-free guidance uses.
-    let kept = tch::no_grad(|| timed.forward_keeping(&x, &t, &a, Some(&Tensor::from_slice(&[1.0f32, 0.0])))).unwrap();
-    assert!(kept.get(0).allclose(&q.get(0), 1e-5, 1e-5, false));
-}

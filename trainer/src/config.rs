@@ -4,6 +4,7 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, ensure, Context, Result};
+use bwm_model::config::{removed, Removed};
 use bwm_model::lora::LoraConfig;
 use bwm_model::{ActionConfig, DitConfig, ModelConfig, Residual};
 use serde::{Deserialize, Serialize};
@@ -158,11 +159,9 @@ pub struct ObjectiveSection {
     /// guidance); 0: every sample sees its actions (the BWM release).
     #[serde(default)]
     pub action_dropout: f64,
-    /// Weight the loss per future latent cell towards where the clean latents change from the
-    /// frame before (and the cells beside it): on average this many times more than a still
-    /// cell's (`Objective::cell_weights`). 0 (default): the plain MSE of the BWM release.
-    #[serde(default)]
-    pub motion_weight: f64,
+    /// Removed: the loss weighted towards what moves (`removed::MOTION_WEIGHT`).
+    #[serde(default, skip_serializing, deserialize_with = "removed::motion_weight")]
+    pub motion_weight: Removed,
 }
 
 fn default_sampling() -> TimestepSampling {
@@ -183,7 +182,7 @@ impl Default for ObjectiveSection {
             history_sigma: None,
             condition_latents: default_condition_latents(),
             action_dropout: 0.0,
-            motion_weight: 0.0,
+            motion_weight: Removed,
         }
     }
 }
@@ -466,8 +465,6 @@ impl RunConfig {
             "objective.action_dropout must lie in [0, 1), got {}",
             self.objective.action_dropout
         );
-        let m = self.objective.motion_weight;
-        ensure!(m.is_finite() && m >= 0.0, "objective.motion_weight must be a finite number of at least 0, got {m}");
         if let TimestepSampling::LogitNormal { std, .. } = self.objective.timestep_sampling {
             ensure!(std > 0.0, "objective.timestep_sampling.std must be positive");
         }
@@ -519,4 +516,30 @@ fn apply_override(root: &mut toml::Value, spec: &str) -> Result<()> {
     let table = node.as_table_mut().with_context(|| format!("--set {key}: parent is not a table"))?;
     table.insert(parts[parts.len() - 1].to_string(), value);
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `objective.motion_weight` was removed after measurements rejected it (issue 69): a config
+    /// written before, which holds it at its old default 0 (in the file, as a checkpoint stores
+    /// its run's config, or as an override), loads as one without it; any other value is refused
+    /// by the key's name, saying that it was removed and why. Unknown keys are still refused.
+    #[test]
+    fn the_removed_motion_weight_loads_at_its_old_default_and_is_refused_otherwise() {
+        let tiny = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/tiny.toml")).unwrap();
+        let plain = RunConfig::parse(&tiny, &[]).unwrap();
+        for off in ["0.0", "0"] {
+            assert_eq!(RunConfig::parse(&format!("{tiny}\n[objective]\nmotion_weight = {off}\n"), &[]).unwrap(), plain);
+            assert_eq!(RunConfig::parse(&tiny, &[format!("objective.motion_weight={off}")]).unwrap(), plain);
+        }
+        assert!(!plain.to_toml().unwrap().contains("motion"), "nothing removed is written");
+        for e in [RunConfig::parse(&format!("{tiny}\n[objective]\nmotion_weight = 4.0\n"), &[]), RunConfig::parse(&tiny, &["objective.motion_weight=4.0".into()])] {
+            let e = format!("{:#}", e.unwrap_err());
+            assert!(e.contains("objective.motion_weight = 4") && e.contains("was removed") && e.contains("run 33") && e.contains("docs/fidelity.md"), "{e}");
+        }
+        let e = format!("{:#}", RunConfig::parse(&tiny, &["objective.motion_weigth=0.0".into()]).unwrap_err());
+        assert!(e.contains("unknown field"), "{e}");
+    }
 }

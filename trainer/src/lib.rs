@@ -9,7 +9,6 @@ pub mod fused_adamw;
 /// Keyed random draws live with the model (the rollout sampler uses them too).
 pub use bwm_model::keyed_rng;
 pub mod metrics;
-pub mod motion;
 pub mod objective;
 pub mod optim;
 pub mod recompute;

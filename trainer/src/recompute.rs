@@ -123,10 +123,10 @@ pub fn forward_backward(
     };
 
     let emb = model.embed_actions(latents, actions, action_keep)?;
-    let (tokens, cond) = model.dit.prepare(latents, frame_timesteps, Some(&emb.frame), &emb.context, emb.context_frames.as_deref())?;
-    let Conditioning { e, e0, context, rope, cross_rope, grid } = cond;
+    let (tokens, cond) = model.dit.prepare(latents, frame_timesteps, Some(&emb.frame), &emb.context)?;
+    let Conditioning { e, e0, context, rope, grid } = cond;
     let leaf = |t: &Tensor| t.detach().set_requires_grad(true);
-    let cut = Conditioning { e: leaf(&e), e0: leaf(&e0), context: leaf(&context), rope, cross_rope, grid };
+    let cut = Conditioning { e: leaf(&e), e0: leaf(&e0), context: leaf(&context), rope, grid };
 
     let blocks = model.dit.blocks.len();
     let kept_from = blocks.saturating_sub(keep_last);

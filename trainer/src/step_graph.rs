@@ -36,9 +36,6 @@ impl StepGraph {
     /// losses `[B]`, the gradients added to the parameters' `.grad`.
     pub fn step(&mut self, model: &BwmModel, objective: &Objective, input: &Tensor, prepared: &Prepared, actions: &Tensor, keep: Option<&Tensor>) -> Result<Tensor> {
         let mut inputs = vec![input, &prepared.frame_timesteps, &prepared.target, &prepared.weights, actions];
-        // Then the cell weights and the action mask, where the run has them (every step, or none).
-        let cells = prepared.cell_weights.is_some() as usize;
-        inputs.extend(prepared.cell_weights.as_ref());
         inputs.extend(keep);
         let indices = prepared.timestep_indices.clone();
         self.step
@@ -48,11 +45,10 @@ impl StepGraph {
                     frame_timesteps: t[1].shallow_clone(),
                     target: t[2].shallow_clone(),
                     weights: t[3].shallow_clone(),
-                    cell_weights: (cells == 1).then(|| t[5].shallow_clone()),
                     timestep_indices: indices,
                 };
                 let loss = |pred: &Tensor| objective.per_sample_loss(pred, &prepared);
-                forward_backward_per_sample(model, &t[0], &prepared.frame_timesteps, &t[4], t.get(5 + cells), Recompute::Off, &loss, &mut GradsInParams::default())
+                forward_backward_per_sample(model, &t[0], &prepared.frame_timesteps, &t[4], t.get(5), Recompute::Off, &loss, &mut GradsInParams::default())
             })
             .context("the training step as a CUDA graph (train.cuda_graph)")
     }

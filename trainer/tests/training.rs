@@ -124,21 +124,9 @@ fn training_with_and_without_recomputation_updates_alike() {
 
 #[test]
 fn recomputation_gives_the_same_gradients() {
-    recomputation_matches(false);
-}
-
-#[test]
-fn recomputation_gives_the_same_gradients_with_the_actions_timed_in_cross_attention() {
-    recomputation_matches(true);
-}
-
-fn recomputation_matches(temporal_rope: bool) {
     let dir = tmp_dir("recompute");
     let cache = write_cache(&dir.join("cache"), 2, 3);
-    let mut c = config(&cache, &dir.join("run"), "[train]\nmicro_batch = 2");
-    c.model.action.temporal_rope = temporal_rope;
-    let t = trainer(c, Resume::No).unwrap();
-    assert_eq!(t.model.action_encoder.cfg.temporal_rope, temporal_rope);
+    let t = trainer(config(&cache, &dir.join("run"), "[train]\nmicro_batch = 2"), Resume::No).unwrap();
     let clips: Vec<_> = (0..2).map(|i| t.cache.load(i, tch::Device::Cpu).unwrap()).collect();
     let latents = Tensor::stack(&clips.iter().map(|c| c.latents.shallow_clone()).collect::<Vec<_>>(), 0);
     let actions = Tensor::stack(&clips.iter().map(|c| c.actions.shallow_clone()).collect::<Vec<_>>(), 0);
@@ -285,7 +273,7 @@ fn config_errors_name_the_key() {
     assert_eq!(c.optim.lr, 2e-5);
     assert!(!c.train.recompute);
     assert!(bwm_trainer::RunConfig::parse(&text, &["train.steps=0".into()]).unwrap_err().to_string().contains("train.steps"));
-    for bad in ["objective.action_dropout=1.0", "objective.action_dropout=-0.1", "validation.guidance=-1.0", "objective.motion_weight=-1.0"] {
+    for bad in ["objective.action_dropout=1.0", "objective.action_dropout=-0.1", "validation.guidance=-1.0"] {
         let e = bwm_trainer::RunConfig::parse(&text, &[bad.into()]).unwrap_err().to_string();
         assert!(e.contains(bad.split('=').next().unwrap()), "{bad}: {e}");
     }
@@ -317,29 +305,25 @@ fn the_cuda_graph_step_trains_as_the_eager_step() {
         return;
     }
     let dir = tmp_dir("graph");
-    // One cell moves, so that the motion-weighted loss differs from the plain one.
-    let cache = write_moving_cell_cache(&dir.join("cache"), 4, 6);
-    // The plain loss, and the motion-weighted one whose cell weights are one more recorded input.
-    for motion_weight in [0.0, 4.0] {
-        let run = |graph: bool| {
-            // A validation pass runs eagerly between two replays.
-            let extra = format!("[data]\nholdout_episodes = 1\n[train]\nsteps = 6\nmicro_batch = 2\nrecompute = false\ncuda_graph = {graph}\n[objective]\nmotion_weight = {motion_weight:?}\n[validation]\nevery = 4\nsample_steps = 2");
-            let mut cfg = config(&cache, &dir.join(format!("run-{graph}-{motion_weight}")), &extra);
-            cfg.run.device = "cuda".into();
-            let mut t = trainer(cfg, Resume::No).unwrap();
-            t.run().unwrap();
-            let losses: Vec<f64> = t.history.iter().map(|m| m.loss).collect();
-            (weights(&t), losses)
-        };
-        let (eager, eager_losses) = run(false);
-        let (graphed, graph_losses) = run(true);
-        for (step, (a, b)) in eager_losses.iter().zip(&graph_losses).enumerate() {
-            assert!((a - b).abs() <= 1e-3 * a.abs(), "motion weight {motion_weight}, step {}: loss {b} with the graph, {a} without", step + 1);
-        }
-        // An update moves a weight by about lr (1e-3); a replay that read stale inputs or lost the
-        // gradients would move some by several lr over the four replayed steps.
-        assert_same(&eager, &graphed, 5e-4, &format!("graph against eager, motion weight {motion_weight}"));
+    let cache = write_cache(&dir.join("cache"), 4, 6);
+    let run = |graph: bool| {
+        // A validation pass runs eagerly between two replays.
+        let extra = format!("[data]\nholdout_episodes = 1\n[train]\nsteps = 6\nmicro_batch = 2\nrecompute = false\ncuda_graph = {graph}\n[validation]\nevery = 4\nsample_steps = 2");
+        let mut cfg = config(&cache, &dir.join(format!("run-{graph}")), &extra);
+        cfg.run.device = "cuda".into();
+        let mut t = trainer(cfg, Resume::No).unwrap();
+        t.run().unwrap();
+        let losses: Vec<f64> = t.history.iter().map(|m| m.loss).collect();
+        (weights(&t), losses)
+    };
+    let (eager, eager_losses) = run(false);
+    let (graphed, graph_losses) = run(true);
+    for (step, (a, b)) in eager_losses.iter().zip(&graph_losses).enumerate() {
+        assert!((a - b).abs() <= 1e-3 * a.abs(), "step {}: loss {b} with the graph, {a} without", step + 1);
     }
+    // An update moves a weight by about lr (1e-3); a replay that read stale inputs or lost the
+    // gradients would move some by several lr over the four replayed steps.
+    assert_same(&eager, &graphed, 5e-4, "graph against eager");
 }
 
 #[test]
@@ -419,22 +403,6 @@ fn batched_validation_rollouts_equal_one_clip_at_a_time() {
         / 3.0;
     let report = validation::run(&mut t, 0).unwrap();
     assert!((report.latent_mse - expected).abs() < 1e-6 * expected.max(1.0), "{} vs {expected}", report.latent_mse);
-}
-
-#[test]
-fn the_motion_weighted_objective_trains_and_weighs_the_loss_differently() {
-    let dir = tmp_dir("motion-weight");
-    let cache = write_moving_cell_cache(&dir.join("cache"), 3, 21);
-    let run = |extra: &str, name: &str| trained(&cache, &dir.join(name), &format!("[train]\nsteps = 2\n{extra}")).history.iter().map(|m| m.loss).collect::<Vec<f64>>();
-    let plain = run("", "plain");
-    let weighted = run("[objective]\nmotion_weight = 4.0", "weighted");
-    assert_eq!(weighted.len(), 2);
-    assert!(weighted.iter().all(|l| l.is_finite() && *l > 0.0), "{weighted:?}");
-    // One moving cell (and its neighbours) of 16 per frame weighs several times a still one, so
-    // the weighted training departs from the plain one; on a clip changing the same everywhere
-    // the two agree to rounding (1e-6). The first step's losses are close: the untrained model
-    // errs about as much everywhere.
-    assert!(plain.iter().zip(&weighted).any(|(a, b)| (a - b).abs() > 1e-2 * a), "the weights did not reach the loss: {plain:?} / {weighted:?}");
 }
 
 /// The FLOP count behind every tflops and MFU figure (`bwm_trainer::flops`) against an independent

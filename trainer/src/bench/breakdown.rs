@@ -77,7 +77,7 @@ pub fn breakdown(t: &Trainer, step_seconds: f64, collective_seconds: f64) -> Res
         t.objective.prepare(&repeat(&clip.latents), &repeat(&draw.noise), &repeat(&draw.history_noise), &vec![draw.timestep_index; batch as usize])?;
     let (x, cond) = tch::no_grad(|| -> Result<_> {
         let emb = t.model.action_encoder.forward(&repeat(&clip.actions))?;
-        t.model.dit.prepare(&prepared.input.to_kind(kind), &prepared.frame_timesteps, Some(&emb.frame), &emb.context, emb.context_frames.as_deref())
+        t.model.dit.prepare(&prepared.input.to_kind(kind), &prepared.frame_timesteps, Some(&emb.frame), &emb.context)
     })?;
     let block = t.model.dit.blocks.first().context("the model has no DiT block")?;
     let rows = x.size()[1];

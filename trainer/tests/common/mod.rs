@@ -22,20 +22,6 @@ pub fn write_cache(dir: &Path, clips: usize, seed: i64) -> PathBuf {
 
 /// `write_cache` for a caller that already holds `rng_lock`.
 pub fn write_cache_unlocked(dir: &Path, clips: usize, seed: i64) -> PathBuf {
-    write_clips(dir, clips, seed, &Tensor::ones([1, 1, 4, 4], (Kind::Float, Device::Cpu)))
-}
-
-/// `write_cache`, but only the latent cell at row 1, column 1 drifts with the actions; the rest
-/// of each clip stands still (what `objective.motion_weight` weighs apart).
-pub fn write_moving_cell_cache(dir: &Path, clips: usize, seed: i64) -> PathBuf {
-    let _guard = rng_lock();
-    let cell = Tensor::zeros([1, 1, 4, 4], (Kind::Float, Device::Cpu));
-    let _ = cell.narrow(2, 1, 1).narrow(3, 1, 1).fill_(1.0);
-    write_clips(dir, clips, seed, &cell)
-}
-
-/// Clips whose latents drift with their actions where `mask` [1, 1, 4, 4] is 1.
-fn write_clips(dir: &Path, clips: usize, seed: i64, mask: &Tensor) -> PathBuf {
     tch::manual_seed(seed);
     let index = CacheIndex::new(vec![48, 4, 4, 4], 14, 8, 4, [64, 64], 25.0, "synthetic");
     let mut w = CacheWriter::create(dir, index).unwrap();
@@ -43,7 +29,7 @@ fn write_clips(dir: &Path, clips: usize, seed: i64, mask: &Tensor) -> PathBuf {
         let actions = Tensor::rand([13, 14], (Kind::Float, Device::Cpu)) * 2.0 - 1.0;
         let base = Tensor::randn([48, 1, 4, 4], (Kind::Float, Device::Cpu));
         let drift = actions.mean_dim(&[1i64][..], false, Kind::Float).narrow(0, 0, 4).view([1, 4, 1, 1]);
-        let latents = &base + drift * 2.0 * mask;
+        let latents = &base + drift * 2.0;
         w.add(ClipEntry { file: String::new(), episode: i as i64, frames: (0..13).collect(), task: "synthetic".into() }, &latents, &actions, None)
             .unwrap();
     }

@@ -4,8 +4,8 @@
 mod common;
 
 use bwm_data::stats::percentile;
-use bwm_data::{compute_stats, open_dataset, split_episodes, write_stat_json, ActionSpec, ActionStats, SplitSpec, ValidationSize};
-use common::{demo_root, run_python, tmp_dir};
+use bwm_data::{write_stat_json, ActionStats};
+use common::{run_python, tmp_dir};
 
 /// Deterministic test values: a spread, repeats (ties), negatives and a constant column.
 fn sample(n: usize, d: usize, seed: u64) -> Vec<Vec<f32>> {
@@ -99,56 +99,64 @@ fn stat_json_round_trips_and_bad_input_is_refused() {
     assert!(ActionStats::compute([&[f32::NAN][..]]).is_err());
 }
 
-/// The BWM release's groups: (stat.json group, spec).
-fn release_groups() -> Vec<ActionSpec> {
-    vec![ActionSpec::joint_abs(), ActionSpec::joint_delta(), ActionSpec::eef_abs(), ActionSpec::eef_delta()]
-}
+/// The bundled episodes' statistics read their videos (the frame counts): with the `video`
+/// feature only (without it, reading a video is an error saying so: tests/without_features.rs).
+#[cfg(feature = "video")]
+mod bundled {
+    use super::common::{demo_root, tmp_dir};
+    use bwm_data::{compute_stats, open_dataset, split_episodes, write_stat_json, ActionSpec, ActionStats, SplitSpec, ValidationSize};
 
-#[test]
-fn bundled_stat_json_against_the_bundled_episodes() {
-    let ds = open_dataset(&demo_root()).unwrap();
-    let all: Vec<usize> = (0..ds.episodes().len()).collect();
-    let specs = release_groups();
-    let result = compute_stats(ds.as_ref(), &all, &specs, Some(&Default::default())).unwrap();
-    assert_eq!(result.report.used, 3);
-    assert_eq!(result.frames, 143 + 150 + 143);
-    // Reported, not asserted: the release's statistics were computed over a larger set.
-    eprintln!("bundled stat.json minus statistics of the 3 bundled episodes ({} frames), max |difference| per field:", result.frames);
-    for (group, computed) in &result.groups {
-        let bundled = ActionStats::read(&demo_root().join("stat.json"), group).unwrap();
-        assert_eq!((bundled.dim(), computed.dim()), (14, 14), "{group}");
-        let fields = [
-            ("min", &bundled.min, &computed.min),
-            ("max", &bundled.max, &computed.max),
-            ("p01", &bundled.p01, &computed.p01),
-            ("p99", &bundled.p99, &computed.p99),
-            ("mean", &bundled.mean, &computed.mean),
-            ("std", &bundled.std, &computed.std),
-        ];
-        let line: Vec<String> = fields
-            .iter()
-            .map(|(name, b, c)| {
-                let (i, d) = b.iter().zip(c.iter()).map(|(x, y)| (x - y).abs()).enumerate().fold((0, 0.0), |m, (i, d)| if d > m.1 { (i, d) } else { m });
-                format!("{name} {d:.4} (dim {i})")
-            })
-            .collect();
-        eprintln!("  {group:>12}: {}", line.join(", "));
-        assert!(computed.p01.iter().zip(&computed.p99).all(|(a, b)| a <= b));
+    /// The BWM release's groups: (stat.json group, spec).
+    fn release_groups() -> Vec<ActionSpec> {
+        vec![ActionSpec::joint_abs(), ActionSpec::joint_delta(), ActionSpec::eef_abs(), ActionSpec::eef_delta()]
     }
 
-    // Written in the release's format, read back for normalization.
-    let dir = tmp_dir("bundled-stats");
-    let path = dir.join("stat.json");
-    write_stat_json(&path, &result.groups).unwrap();
-    let back = ActionStats::read(&path, "state_pose").unwrap();
-    assert_eq!(back, result.groups[2].1);
-    let first = ds.vectors(0, &ActionSpec::eef_abs()).unwrap();
-    assert!(back.normalize(&first[0]).iter().all(|v| (-1.0..=1.0).contains(v)));
+    #[test]
+    fn bundled_stat_json_against_the_bundled_episodes() {
+        let ds = open_dataset(&demo_root()).unwrap();
+        let all: Vec<usize> = (0..ds.episodes().len()).collect();
+        let specs = release_groups();
+        let result = compute_stats(ds.as_ref(), &all, &specs, Some(&Default::default())).unwrap();
+        assert_eq!(result.report.used, 3);
+        assert_eq!(result.frames, 143 + 150 + 143);
+        // Reported, not asserted: the release's statistics were computed over a larger set.
+        eprintln!("bundled stat.json minus statistics of the 3 bundled episodes ({} frames), max |difference| per field:", result.frames);
+        for (group, computed) in &result.groups {
+            let bundled = ActionStats::read(&demo_root().join("stat.json"), group).unwrap();
+            assert_eq!((bundled.dim(), computed.dim()), (14, 14), "{group}");
+            let fields = [
+                ("min", &bundled.min, &computed.min),
+                ("max", &bundled.max, &computed.max),
+                ("p01", &bundled.p01, &computed.p01),
+                ("p99", &bundled.p99, &computed.p99),
+                ("mean", &bundled.mean, &computed.mean),
+                ("std", &bundled.std, &computed.std),
+            ];
+            let line: Vec<String> = fields
+                .iter()
+                .map(|(name, b, c)| {
+                    let (i, d) = b.iter().zip(c.iter()).map(|(x, y)| (x - y).abs()).enumerate().fold((0, 0.0), |m, (i, d)| if d > m.1 { (i, d) } else { m });
+                    format!("{name} {d:.4} (dim {i})")
+                })
+                .collect();
+            eprintln!("  {group:>12}: {}", line.join(", "));
+            assert!(computed.p01.iter().zip(&computed.p99).all(|(a, b)| a <= b));
+        }
 
-    // Training split only: a held-out episode changes the statistics.
-    let split = split_episodes(ds.episodes(), &SplitSpec { seed: 1, validation: ValidationSize::Count(1) }).unwrap();
-    assert_eq!((split.train.len(), split.validation.len()), (2, 1));
-    let train = compute_stats(ds.as_ref(), &split.train, &specs[2..3], None).unwrap();
-    assert_eq!(train.report.used, 2);
-    assert_ne!(train.groups[0].1, result.groups[2].1);
+        // Written in the release's format, read back for normalization.
+        let dir = tmp_dir("bundled-stats");
+        let path = dir.join("stat.json");
+        write_stat_json(&path, &result.groups).unwrap();
+        let back = ActionStats::read(&path, "state_pose").unwrap();
+        assert_eq!(back, result.groups[2].1);
+        let first = ds.vectors(0, &ActionSpec::eef_abs()).unwrap();
+        assert!(back.normalize(&first[0]).iter().all(|v| (-1.0..=1.0).contains(v)));
+
+        // Training split only: a held-out episode changes the statistics.
+        let split = split_episodes(ds.episodes(), &SplitSpec { seed: 1, validation: ValidationSize::Count(1) }).unwrap();
+        assert_eq!((split.train.len(), split.validation.len()), (2, 1));
+        let train = compute_stats(ds.as_ref(), &split.train, &specs[2..3], None).unwrap();
+        assert_eq!(train.report.used, 2);
+        assert_ne!(train.groups[0].1, result.groups[2].1);
+    }
 }

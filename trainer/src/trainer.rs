@@ -181,10 +181,6 @@ impl Trainer {
         // Checked before the lock, whoever holds it: an existing run started fresh, a missing
         // checkpoint folder.
         resume_folder(&resume, &checkpoints)?;
-        let run_lock = lock_run_folder(&out_dir, &checkpoints, comm.as_mut(), device)?;
-        // Decided under the lock, after a crash's leftovers are repaired (a checkpoint put back
-        // counts).
-        let resume_from = resume_folder(&resume, &checkpoints)?;
 
         let cache = LatentCache::open(&cfg.data.latent_cache)?;
         let train_clips = cache.training_clips(cfg.data.holdout_episodes)?;
@@ -207,6 +203,13 @@ impl Trainer {
             cache.index.action_dim,
             model_cfg.action.action_dim
         );
+
+        // The lock creates the run folder: taken once the config and the cache agree, so that a
+        // refused config leaves nothing behind.
+        let run_lock = lock_run_folder(&out_dir, &checkpoints, comm.as_mut(), device)?;
+        // Decided under the lock, after a crash's leftovers are repaired (a checkpoint put back
+        // counts).
+        let resume_from = resume_folder(&resume, &checkpoints)?;
 
         let clip_encoder = clip_encoder(&cfg, &cache, device)?;
         let (mut model, lora) = build_model(&cfg, &model_cfg, device)?;

@@ -187,17 +187,20 @@ struct RunResult {
 }
 
 /// Relative difference allowed between the runs (their updates, losses and gradient norms):
-/// 2^-6, four units of bf16 rounding (2^-8). The runs differ by where bf16 values are rounded:
-/// one rank sums its two micro-steps' bf16 gradients in the fp32 accumulator, two ranks reduce
-/// theirs over the collective (a bf16 sum is rounded once more, 2^-8 relative at most), and a
-/// master that differs in its last bits can round to the neighbouring bf16 weight, which the next
-/// step's forward reads. Over three steps these stay within a few roundings; a rank's gradient
-/// lost, counted twice or taken from the wrong sample moves the update by tens of percent.
+/// 2^-6, a few units of bf16 rounding (2^-8). Each rank computes its sample's bf16 gradients as
+/// the one rank does, and both sum them in fp32; the runs differ where values are rounded in
+/// another order: the gradient norm that sets the clipping is summed over the shards of the
+/// optimizer state (on the CPU this alone leaves the updates 8e-7 apart), a GPU's kernels that
+/// add with atomics can round a bf16 gradient to its neighbour, and a master that differs in its
+/// last bits can round to the neighbouring bf16 weight, which the next step's forward reads. A
+/// rank's gradient lost, counted twice or taken from the wrong sample moves the update or the
+/// gradient norm by tens of percent.
 const BF16_TOL: f64 = 1.0 / 64.0;
 
 /// Trains the tiny config (bf16, 3 steps, global batch 2) as 1 rank with 2 micro-steps, as 2
 /// ranks with the reduction overlapped with the backward walk, and as 2 ranks reducing after it,
-/// each rank a process of this test binary on `device`; compares the three within [`BF16_TOL`].
+/// each rank a process of this test binary on `device`; compares the three within [`BF16_TOL`],
+/// and a run of half the batch (1 rank, 1 micro-step: what a rank alone would train) beyond it.
 fn ranks_train_as_one(tag: &str, device: &str) {
     let dir = common::tmp_dir(&format!("ranks-as-one-{tag}"));
     let cache = common::write_cache(&dir.join("cache"), 4, 21);
@@ -205,26 +208,28 @@ fn ranks_train_as_one(tag: &str, device: &str) {
     let one = train_ranks(&dir, &cache, "one", 1, &format!("{base}grad_accum = 2\n"));
     let two = train_ranks(&dir, &cache, "two", 2, &format!("{base}grad_accum = 1\noverlap_grad_reduce = true\n"));
     let after = train_ranks(&dir, &cache, "after-walk", 2, &format!("{base}grad_accum = 1\noverlap_grad_reduce = false\n"));
+    let half = train_ranks(&dir, &cache, "half", 1, &format!("{base}grad_accum = 1\n"));
     assert_eq!(one.master_init, two.master_init, "{tag}: the runs start from different weights");
-    assert_runs_agree(&one, &two, &format!("{tag}: 2 ranks against 1 rank of 2 micro-steps"));
-    assert_runs_agree(&two, &after, &format!("{tag}: the reduction during the backward walk against after it"));
+    for (a, b, what) in [(&two, &one, "2 ranks against 1 rank of 2 micro-steps"), (&after, &two, "the reduction after the backward walk against during it")] {
+        let d = apart(a, b, &format!("{tag}: {what}"));
+        assert!(d <= BF16_TOL, "{tag}: {what}: {d:.3e} apart (relative)");
+    }
+    let d = apart(&half, &one, &format!("{tag}: half the batch against the whole"));
+    assert!(d > 4.0 * BF16_TOL, "{tag}: a run of half the batch is only {d:.3e} from the whole: the comparison cannot tell them apart");
 }
 
-/// `a` and `b` within [`BF16_TOL`]: their weight updates (relative to `b`'s), and each step's
-/// loss and gradient norm.
-fn assert_runs_agree(a: &RunResult, b: &RunResult, what: &str) {
+/// The largest relative difference between runs `a` and `b`: of their weight updates (relative to
+/// `b`'s size), and of each step's loss and gradient norm.
+fn apart(a: &RunResult, b: &RunResult, what: &str) -> f64 {
     let norm = |t: &Tensor| t.to_kind(Kind::Double).norm().double_value(&[]);
     let update = norm(&(&b.master - &b.master_init));
-    let apart = norm(&(&a.master - &b.master));
-    println!("{what}: weight updates differ by {:.3e} of their size; losses {:?} / {:?}; gradient norms {:?} / {:?}", apart / update, a.losses, b.losses, a.grad_norms, b.grad_norms);
     assert!(update > 0.0, "{what}: the weights did not move");
-    assert!(apart <= BF16_TOL * update, "{what}: the weight updates differ by {:.3e} of their size", apart / update);
-    assert_eq!((a.losses.len(), a.grad_norms.len()), (3, 3), "{what}: steps logged");
-    for (name, x, y) in [("loss", &a.losses, &b.losses), ("gradient norm", &a.grad_norms, &b.grad_norms)] {
-        for (step, (x, y)) in x.iter().zip(y).enumerate() {
-            assert!((x - y).abs() <= BF16_TOL * y.abs(), "{what}, step {}: {name} {x} against {y}", step + 1);
-        }
-    }
+    let weights = norm(&(&a.master - &b.master)) / update;
+    assert_eq!((a.losses.len(), a.grad_norms.len(), b.losses.len()), (3, 3, 3), "{what}: steps logged");
+    let pairs = a.losses.iter().zip(&b.losses).chain(a.grad_norms.iter().zip(&b.grad_norms));
+    let steps = pairs.map(|(x, y)| (x - y).abs() / y.abs()).fold(0.0, f64::max);
+    println!("{what}: weight updates {weights:.3e} apart (relative), losses and gradient norms {steps:.3e}; losses {:?} / {:?}; gradient norms {:?} / {:?}", a.losses, b.losses, a.grad_norms, b.grad_norms);
+    weights.max(steps)
 }
 
 /// A run of `world` ranks (processes of this binary, `train_child`) of the tiny config on `cache`

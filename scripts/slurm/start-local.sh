@@ -105,7 +105,12 @@ on_node() {
 
 KEY="$DIR/munge/munge.key"
 [ -f "$KEY" ] || mungekey --create --keyfile="$KEY"
-SOCKET="$DIR/munge/munge.socket"
+# Unix sockets (munge's, slurmstepd's in the spool folder) must have paths under 108 bytes, and DIR
+# can be deep (make test's temporary folders): they live under a short folder of the registry.
+SHORT="$REGISTRY/$TAG.d"
+mkdir -p "$SHORT/munge" "$SHORT/spool"
+chmod 700 "$SHORT/munge"
+SOCKET="$SHORT/munge/munge.socket"
 # --force: the key and socket live under a world-writable temporary folder. The socket is a file,
 # so every namespace (and the root one) reaches it.
 on_node 1 munged --force --key-file="$KEY" --socket="$SOCKET" --pid-file="$DIR/munge/munged.pid" \
@@ -125,7 +130,7 @@ CredType=cred/munge
 # cred_expire: also how long a requeued job waits before it starts again (default 120 s).
 AuthInfo=socket=$SOCKET,cred_expire=10
 StateSaveLocation=$DIR/state
-SlurmdSpoolDir=$DIR/spool/%n
+SlurmdSpoolDir=$SHORT/spool/%n
 SlurmctldPidFile=$DIR/slurmctld.pid
 SlurmdPidFile=$DIR/slurmd-%n.pid
 SlurmctldLogFile=$DIR/log/slurmctld.log
@@ -152,7 +157,7 @@ CONF
 export SLURM_CONF="$DIR/slurm.conf"
 on_node 1 slurmctld -f "$SLURM_CONF"
 for i in $(seq 1 "$NODES"); do
-  mkdir -p "$DIR/spool/$(node "$i")"
+  mkdir -p "$SHORT/spool/$(node "$i")"
   on_node "$i" slurmd -f "$SLURM_CONF" -N "$(node "$i")"
 done
 trap - ERR

@@ -44,5 +44,6 @@ rm -rf /etc/netns/"$TAG"-n*
 while read -r link; do
   ip link del "$link" 2>/dev/null
 done < <(ip -o link show 2>/dev/null | awk -F': ' '{ sub(/@.*/, "", $2); print $2 }' | grep -E "^${TAG}(v[0-9]+|br)$")
+rm -rf "/run/bwm-slurm/$TAG.d"
 rm -f "/run/bwm-slurm/$TAG"
 exit 0

@@ -29,7 +29,7 @@ for split in train val; do
   mkdir -p "$RUN/data/$split.tmp/meta"; sleep 1; echo "{}" > "$RUN/data/$split.tmp/meta/info.json"
   mv "$RUN/data/$split.tmp" "$RUN/data/$split"; echo "$RUN made $split" >> "$MADE"
 done
-echo "stub: $RUN on GPU ${CUDA_VISIBLE_DEVICES:-} with DECOY=${DECOY:-} VAE_SEED=${VAE_SEED:-} JUDGE_FRAMES=${JUDGE_FRAMES:-} stages $*"
+echo "stub: $RUN on GPU ${CUDA_VISIBLE_DEVICES:-} with MIX=${MIX:-} VAE_SEED=${VAE_SEED:-} JUDGE_FRAMES=${JUDGE_FRAMES:-} stages $*"
 "#;
 
 fn write_executable(path: &Path, text: &str) {
@@ -75,11 +75,11 @@ fn lines(path: &Path) -> Vec<String> {
 fn variants_with_the_same_data_variables_share_one_dataset() {
     let dir = common::temp_dir("gpu-variants");
     let d = dir.path();
-    let out = variants(d, &["a", "DECOY=3 MISS_WEIGHT=9", "b", "MISS_WEIGHT=9 DECOY=3 VAE_SEED=1", "c", "DECOY=6", "e", "DECOY=6 MISS_BOUNDARY=boundary.json MISS_FACTOR=1.1,2"]);
+    let out = variants(d, &["a", "MIX=near=1 FRAMES=60", "b", "FRAMES=60 MIX=near=1 VAE_SEED=1", "c", "MIX=idle=1", "e", "MIX=idle=1 OBSERVE_EVERY=8,40"]);
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(out.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
     assert!(stdout.contains("variants: b uses a's data"), "{stdout}");
-    // Three datasets made (a's, c's and e's, whose misses lie elsewhere); b started once a's were
+    // Three datasets made (a's, c's and e's, whose expert looks otherwise); b started once a's were
     // written and found them.
     assert_eq!(
         lines(&d.join("made.txt")),
@@ -89,20 +89,20 @@ fn variants_with_the_same_data_variables_share_one_dataset() {
     assert_eq!(fs::read_link(d.join("runs/b/data")).unwrap(), d.join("runs/a/data"));
     assert!(!fs::symlink_metadata(d.join("runs/c/data")).unwrap().file_type().is_symlink());
     let b_log = fs::read_to_string(d.join("out/b/log")).unwrap();
-    assert!(b_log.contains("stub: runs/b on GPU 1 with DECOY=3 VAE_SEED=1 JUDGE_FRAMES= stages"), "{b_log}");
+    assert!(b_log.contains("stub: runs/b on GPU 1 with MIX=near=1 VAE_SEED=1 JUDGE_FRAMES= stages"), "{b_log}");
 
     // A data variable set to the recipe's default (bench/metaworld/data-settings.sh) gives the
     // shared data, made once; other data variables are refused as the recipe would refuse them.
     let dir = common::temp_dir("gpu-variants-defaults");
     let d = dir.path();
     let defaults = Command::new("bash")
-        .args(["-c", "source bench/metaworld/data-settings.sh && echo \"$OBSERVE_EVERY $MISS_WEIGHT\""])
+        .args(["-c", "source bench/metaworld/data-settings.sh && echo \"$OBSERVE_EVERY $FRAMES\""])
         .current_dir(ROOT)
         .output()
         .unwrap();
     let defaults = String::from_utf8_lossy(&defaults.stdout).trim().to_string();
-    let (observe, weight) = defaults.split_once(' ').unwrap_or_else(|| panic!("{defaults}"));
-    let (first, second) = (format!("OBSERVE_EVERY={observe} VAE_SEED=1"), format!("MISS_WEIGHT={weight} VAE_SEED=2"));
+    let (observe, frames) = defaults.split_once(' ').unwrap_or_else(|| panic!("{defaults}"));
+    let (first, second) = (format!("OBSERVE_EVERY={observe} VAE_SEED=1"), format!("FRAMES={frames} VAE_SEED=2"));
     let out = variants(d, &["a", &first, "b", &second, "c", "VAE_SEED=3"]);
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(out.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
@@ -114,14 +114,14 @@ fn variants_with_the_same_data_variables_share_one_dataset() {
     for v in ["a", "b", "c"] {
         assert_eq!(fs::read_link(d.join(format!("runs/{v}/data"))).unwrap(), d.join("runs/metaworld/data"), "{v}: {stdout}");
     }
-    let out = variants(d, &["a", "MISS_FACTOR=1.1,2"]);
+    let out = variants(d, &["a", "VAL_SEED_START=1"]);
     assert_eq!(out.status.code(), Some(2), "{out:?}");
-    assert!(String::from_utf8_lossy(&out.stderr).contains("MISS_FACTOR scales MISS_BOUNDARY's distances"), "{out:?}");
+    assert!(String::from_utf8_lossy(&out.stderr).contains("VAL_SEED_START=1 must be a whole number of at least TRAIN_EPISODES"), "{out:?}");
 
     // A lead that fails before its data takes the variants waiting on them down with it.
     let dir = common::temp_dir("gpu-variants-failed");
     let d = dir.path();
-    let out = variants(d, &["a", "DECOY=3 FAIL=1", "b", "DECOY=3 VAE_SEED=1"]);
+    let out = variants(d, &["a", "MIX=near=1 FAIL=1", "b", "MIX=near=1 VAE_SEED=1"]);
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(!out.status.success() && stdout.contains("variants: a failed") && stdout.contains("variants: b failed"), "{stdout}");
     let b_log = fs::read_to_string(d.join("out/b/log")).unwrap();
@@ -136,9 +136,9 @@ fn variants_with_the_same_data_variables_share_one_dataset() {
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(out.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
     let shared = fs::read_to_string(d.join("out/shared.log")).unwrap();
-    assert!(shared.contains("stub: runs/metaworld on GPU  with DECOY= VAE_SEED= JUDGE_FRAMES=real stages data judge"), "{shared}");
+    assert!(shared.contains("stub: runs/metaworld on GPU  with MIX= VAE_SEED= JUDGE_FRAMES=real stages data judge"), "{shared}");
     let a_log = fs::read_to_string(d.join("out/a/log")).unwrap();
-    assert!(a_log.contains("stub: runs/a on GPU 0 with DECOY= VAE_SEED=1 JUDGE_FRAMES=real stages vae ceiling"), "{a_log}");
+    assert!(a_log.contains("stub: runs/a on GPU 0 with MIX= VAE_SEED=1 JUDGE_FRAMES=real stages vae ceiling"), "{a_log}");
     let b_log = fs::read_to_string(d.join("out/b/log")).unwrap();
     assert!(b_log.contains("JUDGE_FRAMES=reconstructed stages vae ceiling"), "{b_log}");
     assert_eq!(fs::read_link(d.join("runs/a/judge.pt")).unwrap(), d.join("runs/metaworld/judge.pt"));

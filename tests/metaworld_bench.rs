@@ -58,9 +58,16 @@ static ONE_PIPELINE_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
 const TOY_DIT: &str = "model.dit.dim=48 model.dit.patch_size=[1,2,2] model.dit.ffn_dim=96 model.dit.num_heads=4 model.dit.num_layers=1 train.micro_batch=2 checkpoint.every=2 validation.every=2 validation.sample_steps=2";
 
+/// The toy recipe's behaviour mix: every mode, the learned pool's episodes among them.
+const TOY_MIX: &str = "expert=1,near=1,partial=1,explore=1,idle=1,learned=2";
+
 /// The judge and the study at toy sizes (the judge stage also judges the study's episodes).
 const TOY_STUDY: [(&str, &str); 5] =
-    [("JUDGE_STEPS", "5"), ("STUDY_EPISODES", "1"), ("STUDY_JOBS", "2"), ("STUDY_HORIZON", "48"), ("STUDY_VARIANTS", "expert,wrong")];
+    [("JUDGE_STEPS", "5"), ("STUDY_EPISODES", "1"), ("STUDY_JOBS", "2"), ("STUDY_HORIZON", "48"), ("STUDY_VARIANTS", TOY_VARIANTS)];
+/// The toy study's variants: two of policies.py's, one of each family of families.py.
+const TOY_VARIANTS: &str = "expert,wrong,bc-nn-1,lag-6,short-1cm,wander-then-80";
+/// Its rates: 6 variants x 2 tasks.
+const TOY_RATES: u64 = 12;
 
 #[test]
 fn the_metaworld_recipe_runs_every_stage_on_cpu() {
@@ -72,20 +79,18 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
         recipe
             .envs([("VAL_EPISODES", "1"), ("VAE_EPISODES", "6"), ("JUDGE_RECONSTRUCT_EPISODES", "4")])
             .envs(TOY_STUDY)
+            .env("TEACHER_VARIANTS", "expert,wrong")
             .env("PROBE_VARIANTS", "wrong-0cm,wrong-6cm")
             // The own stage over one episode per task of each dataset, whatever its behaviour.
             .envs([("OWN_BEHAVIOURS", ""), ("OWN_EPISODES", "1")])
             // The DiT trained with action dropout, its own history noise and grid shift and an
             // average of its weights, every world-model stage guided by the actions and rolling
-            // out that average; the data's near misses drawn around the measured outcome boundary
-            // and weighted up, decoys among its degraded episodes, and its expert looking at the
-            // object only every 8-40 frames.
+            // out that average; the data's behaviours in a mix of its own (the learned pool among
+            // them), and its expert looking at the object only every 8-40 frames.
             .env("TRAIN_SETS", format!("{TOY_DIT} objective.action_dropout=0.5 objective.history_sigma=0.1 objective.shift=3.0"))
             .env("EMA_DECAY", "0.5")
             .env("GUIDANCE", "1.5")
-            .env("MISS_BOUNDARY", Path::new(ROOT).join("bench/metaworld/boundary.json"))
-            .env("MISS_WEIGHT", "9")
-            .env("DECOY", "3")
+            .env("MIX", TOY_MIX)
             .env("OBSERVE_EVERY", "8,40");
         recipe
     };
@@ -121,8 +126,7 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
         Command::new(python())
             .arg(Path::new(ROOT).join("bench/metaworld/generate.py"))
             .args(["--tasks", "drawer-open-v3,button-press-topdown-v3", "--episodes", "1", "--seed-start", "100000"])
-            .args(["--frames", "100", "--resolution", "64", "--miss-weight", "9", "--decoy-weight", "3", "--observe-every", "8,40", "--workers", "1", "--miss-boundary"])
-            .arg(Path::new(ROOT).join("bench/metaworld/boundary.json"))
+            .args(["--frames", "100", "--resolution", "64", "--mix", TOY_MIX, "--observe-every", "8,40", "--workers", "1"])
             .arg("--out")
             .arg(&again),
         "generate.py",
@@ -136,8 +140,7 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
     // (here the recipe's own default of OBSERVE_EVERY) rather than train on them unnoticed.
     let data_again = |observe: &str| {
         toy("recipe.sh", &runs)
-            .envs([("VAL_EPISODES", "1"), ("MISS_WEIGHT", "9"), ("DECOY", "3"), ("OBSERVE_EVERY", observe)])
-            .env("MISS_BOUNDARY", Path::new(ROOT).join("bench/metaworld/boundary.json"))
+            .envs([("VAL_EPISODES", "1"), ("MIX", TOY_MIX), ("OBSERVE_EVERY", observe)])
             .arg("data")
             .output()
             .unwrap()
@@ -193,7 +196,7 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
 
     let study = json(&runs.join("study/study.json"));
     let rates = study["rates"].as_array().unwrap();
-    assert_eq!(rates.len(), 4, "2 variants x 2 tasks: {study}");
+    assert_eq!(rates.len() as u64, TOY_RATES, "6 variants x 2 tasks: {study}");
     for r in rates {
         assert_eq!(r["episodes"], 1, "{r}");
         assert_eq!(r["errors"], 0, "no episode failed on an error: {r}");
@@ -202,15 +205,15 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
         assert!(r["judged_simulator"].as_f64().is_some_and(|v| (0.0..=1.0).contains(&v)), "{r}");
         assert!(r["replayed"].as_f64().is_some_and(|v| (0.0..=1.0).contains(&v)), "each world-model episode's actions replayed: {r}");
     }
-    assert_eq!(study["all"]["n"], 4, "{study}");
-    assert_eq!(study["replayed"]["per_episode"]["n"], 4, "{study}");
-    assert_eq!(study["replayed"]["estimated_vs_replayed"]["n"], 4, "{study}");
-    // Each task's two episodes (one per variant) sorted by both outcomes into the judge's bands.
+    assert_eq!(study["all"]["n"], TOY_RATES, "{study}");
+    assert_eq!(study["replayed"]["per_episode"]["n"], TOY_RATES, "{study}");
+    assert_eq!(study["replayed"]["estimated_vs_replayed"]["n"], TOY_RATES, "{study}");
+    // Each task's six episodes (one per variant) sorted by both outcomes into the judge's bands.
     let by_probability = study["replayed"]["by_probability"].as_object().expect("replayed.by_probability");
     assert_eq!(by_probability.len(), 2, "{study}");
     for (task, kinds) in by_probability {
         let counted: u64 = kinds.as_object().unwrap().values().flat_map(|b| b.as_object().unwrap().values()).filter_map(Value::as_u64).sum();
-        assert_eq!(counted, 2, "{task}: {kinds}");
+        assert_eq!(counted, TOY_RATES / 2, "{task}: {kinds}");
     }
     let flags: Vec<&str> = study["world_model_flags"].as_array().unwrap().iter().filter_map(Value::as_str).collect();
     assert!(flags.windows(2).any(|w| w == ["--guidance", "1.5"]), "{flags:?}");
@@ -259,21 +262,31 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
     let seeds: Vec<u64> = std::fs::read_to_string(other.join("data/val/meta/episodes.jsonl")).unwrap().lines().map(|l| serde_json::from_str::<Value>(l).unwrap()["seed"].as_u64().unwrap()).collect();
     assert_eq!(seeds, [7, 7], "one held-out episode per task from seed 7");
     let other_study = json(&other.join("study/study.json"));
-    assert_eq!(other_study["all"]["n"], 4, "{other_study}");
+    assert_eq!(other_study["all"]["n"], TOY_RATES, "{other_study}");
     let other_flags: Vec<&str> = other_study["world_model_flags"].as_array().unwrap().iter().filter_map(Value::as_str).collect();
     assert!(other_flags.windows(2).any(|w| w[0] == "--checkpoint" && Path::new(w[1]) == other.join("ema/step-00000002")), "the linked run's checkpoint: {other_flags:?}");
-    assert_eq!(study["per_episode"]["n"], 4, "one episode per rate, each paired with its truth: {study}");
+    assert_eq!(study["per_episode"]["n"], TOY_RATES, "one episode per rate, each paired with its truth: {study}");
     for r in rates {
         let e = &r["per_episode"];
         let counts: u64 = ["both_success", "missed", "invented", "both_fail"].iter().map(|k| e[k].as_u64().unwrap()).sum();
         assert_eq!(counts, 1, "{r}");
     }
-    assert_eq!(study["judge_on_simulator_frames"]["n"], 4, "{study}");
-    // Each task's episodes by the hand's closest approach in the simulator: both of them, once.
+    assert_eq!(study["judge_on_simulator_frames"]["n"], TOY_RATES, "{study}");
+    // Scored per family (policies.py's own variants the development family `degraded`) and per
+    // split, each with its invented and missed successes.
+    let families = study["per_family"].as_object().unwrap_or_else(|| panic!("no per_family: {study}"));
+    for (family, split, n) in [("degraded", "development", 4), ("learned", "test", 2), ("scripted", "development", 2), ("partial", "development", 2), ("wander", "test", 2)] {
+        assert_eq!(families[family]["split"], split, "{family}: {study}");
+        assert_eq!(families[family]["n"], n, "{family}: {study}");
+        assert!(families[family]["per_episode"]["invented"].is_u64() && families[family]["per_episode"]["missed"].is_u64(), "{family}: {study}");
+    }
+    assert_eq!(study["per_split"]["test"]["n"], 4, "{study}");
+    assert_eq!(study["per_split"]["development"]["n"], 8, "{study}");
+    // Each task's episodes by the hand's closest approach in the simulator: one per variant.
     for task in ["drawer-open-v3", "button-press-topdown-v3"] {
         let bands = study["by_approach"][task].as_object().unwrap_or_else(|| panic!("no by_approach for {task}: {study}"));
         let episodes: u64 = bands.values().map(|c| c["episodes"].as_u64().unwrap()).sum();
-        assert_eq!(episodes, 2, "{task}: {bands:?}");
+        assert_eq!(episodes, TOY_RATES / 2, "{task}: {bands:?}");
     }
     // SAMPLER_GRAPH=1 reaches the world model's flags, which refuse CUDA graphs on the CPU by name.
     let elsewhere = dir.join("fidelity-graphed");
@@ -292,7 +305,7 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
             .arg(Path::new(ROOT).join("bench/metaworld/study.py"))
             .arg("--data")
             .arg(runs.join("data/val"))
-            .args(["--episodes", "1", "--horizon", "48", "--resolution", "64", "--workers", "2", "--variants", "expert,wrong", "--rescore", "--out"])
+            .args(["--episodes", "1", "--horizon", "48", "--resolution", "64", "--workers", "2", "--variants", TOY_VARIANTS, "--rescore", "--out"])
             .arg(runs.join("study")),
         "study.py --rescore",
     );
@@ -416,58 +429,27 @@ fn the_judge_learns_from_reconstructed_frames() {
     python_tests("test_judge.py");
 }
 
-/// Each episode's behaviour (`expert` or a degraded mode) in a generated dataset's episodes.jsonl.
+/// Each episode's behaviour (generate.py's mode) in a generated dataset's episodes.jsonl.
 fn behaviours(dataset: &Path) -> Vec<String> {
     let text = std::fs::read_to_string(dataset.join("meta/episodes.jsonl")).unwrap_or_else(|e| panic!("{}: {e}", dataset.display()));
     text.lines().map(|l| serde_json::from_str::<Value>(l).unwrap()["behaviour"].as_str().unwrap().to_string()).collect()
 }
 
 #[test]
-fn the_recipes_degraded_share_reaches_the_generator() {
-    // DEGRADED=0 makes every episode the expert's, 1 none: each split's episodes.jsonl says which.
-    for (share, experts) in [("0", true), ("1", false)] {
-        let dir = temp_dir("metaworld-degraded");
-        let runs = dir.join("run");
-        run(toy("recipe.sh", &runs).arg("data").envs([("DEGRADED", share), ("TRAIN_EPISODES", "2"), ("VAL_EPISODES", "1")]), "recipe.sh data");
-        for split in ["train", "val"] {
-            let behaviours = behaviours(&runs.join(format!("data/{split}")));
-            assert_eq!(behaviours.len(), if split == "train" { 4 } else { 2 }, "{behaviours:?}");
-            assert!(behaviours.iter().all(|b| (b == "expert") == experts), "DEGRADED={share}, {split}: {behaviours:?}");
-        }
+fn the_recipes_mix_reaches_the_generator() {
+    // MIX=idle=1 makes every episode idle in both splits; a mix naming no behaviour is refused
+    // before any data.
+    let dir = temp_dir("metaworld-mix");
+    let runs = dir.join("idle");
+    run(toy("recipe.sh", &runs).arg("data").envs([("MIX", "idle=1"), ("TRAIN_EPISODES", "2"), ("VAL_EPISODES", "1"), ("FRAMES", "4")]), "recipe.sh data");
+    for split in ["train", "val"] {
+        let behaviours = behaviours(&runs.join(format!("data/{split}")));
+        assert_eq!(behaviours.len(), if split == "train" { 4 } else { 2 }, "{behaviours:?}");
+        assert!(behaviours.iter().all(|b| b == "idle"), "MIX=idle=1, {split}: {behaviours:?}");
     }
-}
-
-#[test]
-fn the_recipes_default_data_are_mostly_near_misses() {
-    // By default 60% of the episodes are degraded and `miss` weighs 20 beside each other
-    // degradation's 1 (generate.py's own defaults: 40%, 3), so about 46% of the episodes are near
-    // misses where generate.py alone would make about 13%; the draws are seeded, the count fixed.
-    let dir = temp_dir("metaworld-misses");
-    let runs = dir.join("run");
-    run(toy("recipe.sh", &runs).arg("data").envs([("TRAIN_EPISODES", "20"), ("VAL_EPISODES", "1"), ("FRAMES", "4")]), "recipe.sh data");
-    let behaviours = behaviours(&runs.join("data/train"));
-    let misses = behaviours.iter().filter(|b| *b == "miss").count();
-    assert_eq!(behaviours.len(), 40, "{behaviours:?}");
-    assert!((12..=28).contains(&misses), "{misses} near misses of 40: {behaviours:?}");
-
-    // Near misses are placed either by distance or around the measured boundary, not both.
-    let both = toy("recipe.sh", &dir.join("both")).arg("data").envs([("MISS_CM", "3,9"), ("MISS_BOUNDARY", "bench/metaworld/boundary.json")]).output().unwrap();
-    let err = String::from_utf8_lossy(&both.stderr);
-    assert!(!both.status.success() && err.contains("MISS_CM and MISS_BOUNDARY"), "{err}");
-    assert!(!dir.join("both/data").exists());
-    // A factor scales the boundary's distances: without a boundary it is refused before any data.
-    let alone = toy("recipe.sh", &dir.join("alone")).arg("data").env("MISS_FACTOR", "1.1,2").output().unwrap();
-    let err = String::from_utf8_lossy(&alone.stderr);
-    assert!(!alone.status.success() && err.contains("MISS_FACTOR") && err.contains("MISS_BOUNDARY"), "{err}");
-    assert!(!dir.join("alone/data").exists());
-    // With a boundary the factor reaches the generator, which checks it.
-    let bad = toy("recipe.sh", &dir.join("bad"))
-        .arg("data")
-        .envs([("MISS_BOUNDARY", "bench/metaworld/boundary.json"), ("MISS_FACTOR", "2,1"), ("TRAIN_EPISODES", "1"), ("VAL_EPISODES", "1"), ("FRAMES", "4")])
-        .output()
-        .unwrap();
+    let bad = toy("recipe.sh", &dir.join("bad")).arg("data").envs([("MIX", "sideways=1"), ("TRAIN_EPISODES", "1"), ("VAL_EPISODES", "1")]).output().unwrap();
     let err = String::from_utf8_lossy(&bad.stderr);
-    assert!(!bad.status.success() && err.contains("--miss-factor") && err.contains("0 < LO <= HI"), "{err}");
+    assert!(!bad.status.success() && err.contains("--mix") && err.contains("sideways=1"), "{err}");
     assert!(!dir.join("bad/data/train/meta").exists());
 }
 
@@ -530,91 +512,13 @@ fn the_recipes_vae_graph_and_candidates_reach_train_vae() {
 }
 
 #[test]
-fn the_generator_spreads_its_experts_as_asked() {
+fn the_generators_behaviour_mix_is_drawn_as_declared() {
     python_tests("test_generate.py");
 }
 
-/// The episodes of a miss_outcomes.py `by_cm` row, every band inside [lo, hi] cm and no band
-/// with more successes than episodes.
-fn episodes_in_bands(by_cm: &Value, lo: f64, hi: f64, report: &Value) -> u64 {
-    let mut episodes = 0;
-    for (band, row) in by_cm.as_object().unwrap_or_else(|| panic!("no bands: {report}")) {
-        let (a, b) = band.split_once('-').unwrap();
-        let (a, b): (f64, f64) = (a.parse().unwrap(), b.parse().unwrap());
-        assert!(a >= lo && b <= hi, "band {band} outside {lo}-{hi} cm: {report}");
-        assert!(row["succeeded"].as_u64() <= row["episodes"].as_u64(), "{report}");
-        episodes += row["episodes"].as_u64().unwrap();
-    }
-    episodes
-}
-
 #[test]
-fn near_misses_are_counted_by_distance_in_the_simulator() {
-    let dir = temp_dir("misses");
-    let path = dir.join("misses.json");
-    // miss_outcomes.py over the first `episodes` drawer seeds of 100 frames, with `args`, into `path`.
-    let misses = |episodes: &str, args: &[&str]| {
-        run(
-            Command::new(python())
-                .arg(Path::new(ROOT).join("bench/metaworld/miss_outcomes.py"))
-                .args(["--tasks", "drawer-open-v3", "--episodes", episodes, "--frames", "100"])
-                .args(args)
-                .arg("--out")
-                .arg(&path),
-            &format!("miss_outcomes.py {}", args.join(" ")),
-        )
-    };
-    misses("16", &["--miss-cm", "2,12", "--miss-cm", "3,9"]);
-    let report = json(&path);
-    let drawer = &report["tasks"]["drawer-open-v3"];
-    // The range moves how far the misses steer, not which seeds miss.
-    let count = |range: &str| drawer[range]["miss_episodes"].as_u64().unwrap_or_else(|| panic!("{report}"));
-    assert!(count("2,12") >= 1 && count("2,12") == count("3,9"), "{report}");
-    for (range, lo, hi) in [("2,12", 2.0, 12.0), ("3,9", 2.0, 10.0)] {
-        assert_eq!(episodes_in_bands(&drawer[range]["by_cm"], lo, hi, &report), count(range), "--miss-cm {range}: {report}");
-        // Split by the axis they aim along, the same episodes again.
-        let axes = drawer[range]["by_axis"].as_object().unwrap_or_else(|| panic!("no by_axis: {report}"));
-        assert!(axes.keys().all(|k| ["-y", "+y", "x"].contains(&k.as_str())), "{report}");
-        let split: u64 = axes.values().map(|row| episodes_in_bands(&row["by_cm"], lo, hi, &report)).sum();
-        assert_eq!(split, count(range), "--miss-cm {range}: {report}");
-    }
-
-    // An expert that looks at the object only every 24-48 frames misses on the same seeds, as
-    // far off; its pulls that miss go on longer, so only how they end may change.
-    misses("16", &["--miss-cm", "3,9", "--observe-every", "24,48"]);
-    let looking = json(&path);
-    assert_eq!(looking["observe_every"], serde_json::json!([24, 48]), "{looking}");
-    let seen = &looking["tasks"]["drawer-open-v3"]["3,9"];
-    assert_eq!(seen["miss_episodes"].as_u64(), Some(count("3,9")), "{looking}");
-    let bands = |row: &Value| row["by_cm"].as_object().map(|b| b.iter().map(|(k, v)| (k.clone(), v["episodes"].clone())).collect::<Vec<_>>());
-    assert_eq!(bands(seen), bands(&drawer["3,9"]), "{looking} / {report}");
-
-    // Misses drawn around the measured boundary (the committed boundary.json) and weighted up:
-    // more seeds miss, as many in both ways of drawing them, and none beyond twice the
-    // drawer's widest boundary (8.75 cm).
-    let boundary = Path::new(ROOT).join("bench/metaworld/boundary.json");
-    misses("16", &["--miss-weight", "9", "--miss-boundary", boundary.to_str().unwrap()]);
-    let weighted = json(&path);
-    let drawer_weighted = &weighted["tasks"]["drawer-open-v3"];
-    let n = drawer_weighted["boundary"]["miss_episodes"].as_u64().unwrap_or_else(|| panic!("{weighted}"));
-    assert_eq!(Some(n), drawer_weighted["2,12"]["miss_episodes"].as_u64(), "{weighted}");
-    assert!(n > count("2,12"), "--miss-weight 9 made no more misses than 3: {weighted} / {report}");
-    assert_eq!(episodes_in_bands(&drawer_weighted["boundary"]["by_cm"], 0.0, 18.0, &weighted), n, "{weighted}");
-
-    // With decoys in the data, they are counted by how far from the object they aim: anywhere in
-    // the drawer's 20 cm range.
-    misses("30", &["--decoy-weight", "3"]);
-    let report = json(&path);
-    let decoy = &report["tasks"]["drawer-open-v3"]["decoy"];
-    let n = decoy["decoy_episodes"].as_u64().unwrap_or_else(|| panic!("{report}"));
-    assert!(n >= 1, "{report}");
-    let episodes = episodes_in_bands(&decoy["by_cm"], 0.0, 22.0, &report);
-    assert_eq!(episodes, n, "{report}");
-}
-
-#[test]
-fn the_outcome_boundary_is_measured_in_the_simulator() {
-    python_tests("test_boundary.py");
+fn policy_families_act_and_end_as_their_variants_say() {
+    python_tests("test_families.py");
 }
 
 #[test]

@@ -7,7 +7,7 @@ in the simulator), a side_by_side.json (side_by_side.py; one task and variant) o
 (teacher.py; each episode's chunks drawn from the simulator's frames, an episode drawn succeeding
 when any of its chunks is). Every episode is
 placed by the hand's offset from the object at its closest approach in the simulator (replay): the
-axis it lies along in the table plane (`boundary.axis`: in front of the object, -y; behind it, +y;
+axis it lies along in the table plane (`axis`: in front of the object, -y; behind it, +y;
 beside it, x) and its horizontal distance, in bands of --band-cm. Per task, axis and band: the
 episodes, the simulator's successes and the world model's. Where the simulator's successes stop
 and the world model's go on, the world model draws contact the simulator does not make (and the
@@ -19,12 +19,37 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import boundary  # noqa: E402
+
+def axis(offset) -> str:
+    """Which way an `offset` from the object (an aim, a closest approach) points in the table
+    plane: "-y" or "+y" within 45 degrees of that axis, else "x" (either side). For the drawer, -y
+    is in front of its handle (where its `wrong` variant aims) and x is beside it (where its
+    `blind` hand misses a drawer placed off centre)."""
+    x, y = float(offset[0]), float(offset[1])
+    if abs(y) > abs(x):
+        return "-y" if y < 0 else "+y"
+    return "x"
+
+
+AXES = ("-y", "+y", "x")
+
+
+def bands(distances_cm, band_cm: float, **counted) -> dict:
+    """Episodes by distance band of `band_cm` ("LO-HI" in cm, nearest first, empty bands left out):
+    per band {"episodes": n, NAME: how many of them are true in the list NAME, ...} for each
+    keyword list of flags, one per distance."""
+    out = {}
+    for i, d in enumerate(distances_cm):
+        k = int(d // band_cm)
+        cell = out.setdefault(k, {"episodes": 0, **{name: 0 for name in counted}})
+        cell["episodes"] += 1
+        for name, flags in counted.items():
+            cell[name] += bool(flags[i])
+    return {f"{k * band_cm:g}-{(k + 1) * band_cm:g}": out[k] for k in sorted(out)}
+
 
 def load(path: str) -> list[tuple[str, str, list[dict]]]:
     """[(task, variant, episodes)] of a side_by_side.json, a study.json or a teacher.json, each
@@ -76,17 +101,17 @@ def contact_map(reports: list[tuple[str, str, list[dict]]], band_cm: float) -> d
     rows: dict[str, dict[str, list]] = {}  # per task and axis: (distance, simulator, world model) per episode
     for task, variant, episodes in reports:
         t = tasks.setdefault(task, {"variants": [], "by_axis": {}})
-        by_axis = rows.setdefault(task, {a: [] for a in boundary.AXES})
+        by_axis = rows.setdefault(task, {a: [] for a in AXES})
         if variant in t["variants"]:
             raise ValueError(f"{task} {variant} is given twice")
         t["variants"].append(variant)
         for e in episodes:
             offset = np.asarray(e["offset_at_closest_cm"][:2], float)
-            by_axis[boundary.axis(offset)].append((float(np.hypot(*offset)), e["simulator_first_success"] is not None, bool(e["world_model_success"])))
+            by_axis[axis(offset)].append((float(np.hypot(*offset)), e["simulator_first_success"] is not None, bool(e["world_model_success"])))
     for task, t in tasks.items():
         for a, placed in rows[task].items():
             distance, simulator, world_model = zip(*placed) if placed else ((), (), ())
-            t["by_axis"][a] = boundary.bands(distance, band_cm, simulator=simulator, world_model=world_model)
+            t["by_axis"][a] = bands(distance, band_cm, simulator=simulator, world_model=world_model)
     return tasks
 
 
@@ -102,7 +127,7 @@ def main(argv=None) -> None:
         ap.error(str(e))
     for task, t in m.items():
         print(f"{task} ({', '.join(t['variants'])}): episodes, simulator successes, world-model successes by where the hand came closest")
-        for axis in boundary.AXES:
+        for axis in AXES:
             for band, c in t["by_axis"][axis].items():
                 print(f"  {axis:>2} {band:>7} cm: {c['episodes']:4d} episodes, simulator {c['simulator']:4d}, world model {c['world_model']:4d}")
     if a.json:

@@ -9,7 +9,9 @@ Variants degrade the expert in one way each, with per-episode parameters drawn f
 seed, so their true success rates spread (README.md has them). Beside the named ones,
 `wrong-<d>cm` is the expert with every target moved d cm along the task's `wrong` offset: a
 graded `wrong` whose success falls with d, for probing whether a world model's contact follows a
-shifted command. Imports numpy only.
+shifted command. The policy families of families.py (behaviour cloning, other scripted
+controllers, partial outcomes, wandering hands) are made and checked here by their variant names
+too. Imports numpy only.
 """
 
 from __future__ import annotations
@@ -122,7 +124,10 @@ def variant_params(task: str, variant: str) -> Params:
         return VARIANT_PARAMS[task][variant]
     m = GRADED.fullmatch(variant)
     if not m:
-        raise ValueError(f"unknown variant {variant!r} for {task} (known: {', '.join(VARIANTS[task])}, wrong-<d>cm)")
+        import families  # here, not above: it imports this module
+
+        raise ValueError(f"unknown variant {variant!r} for {task} (known: {', '.join(VARIANTS[task])}, wrong-<d>cm; "
+                         f"families: {', '.join(families.variants(tasks=[task]))})")
     direction = np.array(VARIANT_PARAMS[task]["wrong"].target)
     offset = direction / np.linalg.norm(direction) * float(m[1]) / 100
     return replace(EXPERT, target=tuple(float(x) for x in offset))
@@ -130,10 +135,12 @@ def variant_params(task: str, variant: str) -> Params:
 
 def check_variants(tasks: list[str], variants: list[str]) -> str | None:
     """None when every variant is defined for every task, else what is wrong, in one line."""
+    import families
+
     for v in variants:
         for t in tasks:
             try:
-                variant_params(t, v)
+                families.check(t, v) if families.family_of(v) else variant_params(t, v)
             except ValueError as e:
                 return str(e)
     return None
@@ -206,8 +213,11 @@ class Policy:
         return out
 
 
-def make_policy(task: str, variant: str, seed: int) -> Policy:
-    return Policy(task, variant, seed)
+def make_policy(task: str, variant: str, seed: int):
+    """A variant's policy for one episode: act(image, state, n) -> float32[n, 4]."""
+    import families
+
+    return families.make_policy(task, variant, seed) if families.family_of(variant) else Policy(task, variant, seed)
 
 
 @dataclass

@@ -7,7 +7,9 @@
 #   fidelity bwm fidelity on the held-out episodes (FIDELITY_EPISODES: some): $FIDELITY_DIR, default $RUN/fidelity/ (JSON, curves, videos)
 #   truth    bench/metaworld/study.py --truth-only: each policy variant's true success rate in the
 #            simulator on the held-out placements (CPU; $RUN/study/truth.json)
-#   judge    bench/metaworld/judge.py: a success classifier on the simulator's frames and, by
+#   judge    bench/metaworld/judge.py: per task, a regressor of the object's distance to its goal
+#            (Meta-World's obj_to_target; success by the simulator's own rule on it) learned from
+#            the simulator's frames and, by
 #            default (JUDGE_FRAMES=reconstructed), on training frames after a round trip through
 #            this run's VAE (bwm reconstruct; after the vae stage), scored on real held-out frames:
 #            $JUDGE; then the judge on the simulator's frames of the study's episodes
@@ -23,7 +25,7 @@
 #            the model draw a command's outcome wrongly from real frames, or only from its own?
 #            $RUN/teacher/teacher.json
 #   own      the same teacher forcing over the datasets' own episodes (teacher.py --own-episodes): the
-#            first OWN_EPISODES per task of behaviours OWN_BEHAVIOURS (default: the near misses) of
+#            first OWN_EPISODES per task of behaviours OWN_BEHAVIOURS (default: `near`, steered off the object) of
 #            the training set and of the held-out set, drawn from their real history, judged beside
 #            their real chunks, and mapped by the hand's closest approach (contact_map.py): did the
 #            world model learn the outcomes it was trained on, and do they hold on unseen placements?
@@ -126,7 +128,7 @@ FIDELITY_IN_FLIGHT="${FIDELITY_IN_FLIGHT:-8}" # episodes rolled out at once (one
 FIDELITY_STREAMS="${FIDELITY_STREAMS:-1}"     # lanes they are split into, on CUDA streams of their own (bwm fidelity --streams)
 PROBE_VARIANTS="${PROBE_VARIANTS:-wrong-0cm,wrong-1cm,wrong-2cm,wrong-3cm,wrong-4cm,wrong-5cm,wrong-6cm}"
 TEACHER_VARIANTS="${TEACHER_VARIANTS:-$STUDY_VARIANTS}"  # the teacher stage's variants (default: the study's)
-OWN_BEHAVIOURS="${OWN_BEHAVIOURS-miss}"   # the own stage's generator behaviours, comma-separated (empty: all)
+OWN_BEHAVIOURS="${OWN_BEHAVIOURS-near}"   # the own stage's generator behaviours, comma-separated (empty: all)
 OWN_EPISODES="${OWN_EPISODES:-400}"       # the own stage's episodes per task and dataset (the first of those behaviours)
 STAGES=()
 for arg in "$@"; do
@@ -216,8 +218,7 @@ if wants data; then
   for split in train val; do
     if [ $split = train ]; then n=$TRAIN_EPISODES; s=0; else n=$VAL_EPISODES; s=$VAL_SEED_START; fi
     generate=("$PYTHON" bench/metaworld/generate.py --tasks "$TASKS" --episodes "$n" --seed-start "$s" \
-      --frames "$FRAMES" --resolution "$RESOLUTION" --spread "$SPREAD" ${MISS_CM:+--miss-cm "$MISS_CM"} ${MISS_BOUNDARY:+--miss-boundary "$MISS_BOUNDARY"} ${MISS_FACTOR:+--miss-factor "$MISS_FACTOR"} \
-      --miss-weight "$MISS_WEIGHT" --decoy-weight "$DECOY" --observe-every "$OBSERVE_EVERY" --degraded-fraction "$DEGRADED" --workers "$WORKERS" --out "$RUN/data/$split")
+      --frames "$FRAMES" --resolution "$RESOLUTION" ${MIX:+--mix "$MIX"} --observe-every "$OBSERVE_EVERY" --workers "$WORKERS" --out "$RUN/data/$split")
     # Existing data are kept only when made with these settings (the generator checks them).
     if [ -f "$RUN/data/$split/meta/info.json" ]; then "${generate[@]}" --reuse; continue; fi
     timed "data-$split" "${generate[@]}"

@@ -59,10 +59,10 @@ import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 # What the simulator's outcome of a policy variant follows beside its seeds: the variants and
-# their perception (policies.py, calibration.json) and the simulator's wrapper (mw.py). The truth
+# their perception (policies.py, families.py, calibration.json) and the simulator's wrapper (mw.py). The truth
 # and the judge's verdicts on the simulator's frames are cached under their bytes, so a variant
 # changed under the same name is measured again.
-TRUTH_SOURCES = [os.path.join(HERE, name) for name in ("policies.py", "calibration.json", "mw.py")]
+TRUTH_SOURCES = [os.path.join(HERE, name) for name in ("policies.py", "families.py", "calibration.json", "mw.py")]
 # The judge's probability at or above which an episode counts as a success (evaluate.toml's
 # judge.threshold, and the same rule on the simulator's frames).
 THRESHOLD = 0.5
@@ -417,6 +417,7 @@ def summarize(truth: dict, estimates: dict, judged: dict, tasks: list[str], vari
            "judge_on_simulator_frames": judge_alone, "per_episode": episode_agreement(pooled_true, pooled_est),
            "by_success_chunk": by_success_chunk(pooled_first, pooled_est, chunk),
            "by_approach": {t: by_approach(*approach[t]) for t in tasks}}
+    out["per_family"], out["per_split"] = by_family(rows, paired_by_rate)
     if replayed is not None:
         names = [f"{r['variant']}/{r['task']}" for r in rows]
         column = lambda eps, i: [a[i] for a in eps]
@@ -432,6 +433,40 @@ def summarize(truth: dict, estimates: dict, judged: dict, tasks: list[str], vari
             "by_probability": {t: by_probability(column(eps, 3), column(eps, 0), column(eps, 1)) for t, eps in replayed_by_task.items()},
         }
     return out
+
+
+def family_of(variant: str) -> tuple[str, str]:
+    """(family, split) of a variant: families.py's, or `degraded` (development) for policies.py's
+    own variants, the scripted expert degraded one way each."""
+    import families
+
+    found = families.family_of(variant)
+    return (found, families.FAMILIES[found].split) if found is not None else ("degraded", "development")
+
+
+def by_family(rows: list[dict], paired_by_rate: list) -> tuple[dict, dict]:
+    """Agreement per policy family and per split (development / test): over the rates of each, as
+    `all` is over every rate, with the per-episode counts (invented and missed successes) and the
+    judge's agreement on the simulator's frames of the same episodes."""
+    groups: dict = {}
+    for row, paired in zip(rows, paired_by_rate):
+        family, split = family_of(row["variant"])
+        row["family"], row["split"] = family, split
+        for key in (("family", family), ("split", split)):
+            groups.setdefault(key, []).append((row, paired))
+
+    def score(members) -> dict:
+        names = [f"{r['variant']}/{r['task']}" for r, _ in members]
+        pairs = [p for _, ps in members for p in ps]
+        out = agreement(names, [r["estimated"] for r, _ in members], [r["true"] for r, _ in members])
+        out["pearson_r_95"] = pearson_interval([ps for _, ps in members])
+        out["per_episode"] = episode_agreement([t for t, _ in pairs], [e for _, e in pairs])
+        out["judge_on_simulator_frames"] = agreement(names, [r["judged_simulator"] for r, _ in members], [r["true"] for r, _ in members])
+        return out
+
+    families = {name: {"split": members[0][0]["split"], **score(members)} for (kind, name), members in groups.items() if kind == "family"}
+    splits = {name: score(members) for (kind, name), members in groups.items() if kind == "split"}
+    return families, splits
 
 
 def fmt(v) -> str:
@@ -638,7 +673,7 @@ def add_episode_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--data", required=True, help="held-out dataset from generate.py (seeds never trained on)")
     ap.add_argument("--out", required=True)
     ap.add_argument("--tasks", default=",".join(policies.VARIANTS))
-    ap.add_argument("--variants", help="comma-separated (default: every variant the tasks share)")
+    ap.add_argument("--variants", help="comma-separated (default: every variant the tasks share, families.py's too)")
     ap.add_argument("--episodes", type=at_least_one, default=50, help="per task and variant")
     ap.add_argument("--horizon", type=at_least_one, default=120, help="frames after x0, in the simulator and the world model")
     ap.add_argument("--chunk", type=at_least_one, default=24, help="actions per policy reply (the world model's K)")
@@ -660,11 +695,12 @@ def tasks_checked(ap: argparse.ArgumentParser, a) -> list[str]:
 
 def tasks_and_variants(ap: argparse.ArgumentParser, a) -> tuple[list[str], list[str]]:
     """--tasks and --variants checked (every named variant exists for every task; by default the
-    variants the tasks share, in policies.py's order)."""
+    variants the tasks share, policies.py's in its order, then every family's of families.py)."""
+    import families
     import policies
 
     tasks = tasks_checked(ap, a)
-    shared = [v for v in policies.VARIANTS[tasks[0]] if all(v in policies.VARIANTS[t] for t in tasks)]
+    shared = [v for v in policies.VARIANTS[tasks[0]] if all(v in policies.VARIANTS[t] for t in tasks)] + families.variants(tasks=tasks)
     variants = a.variants.split(",") if a.variants else shared
     problem = policies.check_variants(tasks, variants)
     if problem:
@@ -707,6 +743,15 @@ def main(argv=None) -> None:
         ap.error(f"no bwm binary at {a.bwm} (make build, or pass --bwm)")
     elif not wm:
         ap.error("pass the world model's flags after `--` (--checkpoint, --vae, --stats, ...)")
+    if a.judge and not (a.truth_only or a.rescore):
+        # Read once here: a judge the worker processes could not load (another format) would
+        # otherwise fail in their initializer, which a process pool retries without end.
+        import judge
+
+        try:
+            judge.read_model(a.judge)
+        except (ValueError, OSError) as e:
+            ap.error(str(e))
     os.makedirs(a.out, exist_ok=True)
     episodes = episodes_by_task(a.data, tasks, a.episodes)
 
@@ -843,6 +888,14 @@ def write_summary(out: str, summary: dict, tasks: list[str], chunk: int) -> None
         within = f" (95% over redrawn episodes {interval[0]:.3f}-{interval[1]:.3f})" if interval else ""
         print(f"{name}: Pearson r {fmt(g['pearson_r'])}{within}, Spearman {fmt(g['spearman_rho'])}, MAE {fmt(g['mae'])}, "
               f"best {'/'.join(g['best_true'])} ranked first: {g['best_ranked_first']}")
+    for kind in ("per_split", "per_family"):
+        for name, g in summary[kind].items():
+            interval, e, j = g.get("pearson_r_95"), g["per_episode"], g["judge_on_simulator_frames"]
+            within = f" (95% {interval[0]:.3f}-{interval[1]:.3f})" if interval else ""
+            label = f"{name} ({g['split']})" if kind == "per_family" else f"{name} families"
+            print(f"{label}, {g['n']} rates: Pearson r {fmt(g['pearson_r'])}{within}, Spearman {fmt(g['spearman_rho'])}, MAE {fmt(g['mae'])}, "
+                  f"best ranked first: {g['best_ranked_first']}; invented {e['invented']}, missed {e['missed']} of {e['n']} episodes; "
+                  f"the judge on the simulator's frames r {fmt(j['pearson_r'])}")
     e = summary["per_episode"]
     print(f"per episode, pooled: the world model draws the simulator's outcome in {e['agreement']:.3f} of {e['n']} episodes "
           f"(chance {e['chance']:.3f}, kappa {fmt(e['kappa'])}; missed {e['missed']} successes, invented {e['invented']})")

@@ -26,12 +26,12 @@ which contact_map.py maps). Everything after `--` goes to `bwm serve`.
 With --own-episodes the episodes are the dataset's own instead (a training set's, to ask whether
 the world model learned the outcomes it was trained on, or a held-out set's): its frames, its
 `observation.state` as the actions (what `bwm prepare` trains on) and its success flags as the
-truth, rows by task and the generator's `behaviour` (--behaviours picks them, e.g. `miss`), the
+truth, rows by task and the generator's `behaviour` (--behaviours picks them, e.g. `near`), the
 closest approach measured by replaying the episode's commands (`action`) in the simulator from its
 seed. --episodes is then per task (its first episodes of those behaviours), --horizon is cut to
 the episodes' length, and --variants does not apply.
 
-    python teacher.py --data TRAIN_DATASET --own-episodes --behaviours miss --episodes 400 \\
+    python teacher.py --data TRAIN_DATASET --own-episodes --behaviours near --episodes 400 \\
         --judge judge.pt --out DIR -- --checkpoint CKPT ...
 """
 from __future__ import annotations

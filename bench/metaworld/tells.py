@@ -12,7 +12,7 @@ go down follows it), the world model can learn the commands instead of the conta
 policy's pull that misses but goes on, as a policy acting on one frame per chunk does, opening
 the drawer (docs/fidelity.md, run 39).
 
-    python tells.py DATA [--tasks drawer-open-v3] [--behaviours miss,expert] [--variants wrong,blind] [--json OUT]
+    python tells.py DATA [--tasks drawer-open-v3] [--behaviours near,expert] [--variants wrong,blind] [--json OUT]
 """
 
 from __future__ import annotations

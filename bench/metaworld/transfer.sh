@@ -28,10 +28,6 @@ export PYTHON="${PYTHON:-python3}" BWM="${BWM:-${CARGO_TARGET_DIR:-target}/relea
 RESOLUTION="${RESOLUTION:-128}"
 WORKERS="${WORKERS:-$(nproc)}"
 export RESOLUTION WORKERS
-# The data's degraded share and near misses as the recipe's were when this study was measured
-# (docs/fidelity.md, its first run): the recipe's own are denser since its run 34.
-DEGRADED="${DEGRADED:-0.4}" MISS_WEIGHT="${MISS_WEIGHT:-3}" MISS_CM="${MISS_CM-}"
-export DEGRADED MISS_WEIGHT MISS_CM
 recipe() { bash bench/metaworld/recipe.sh "$@"; }
 mkdir -p "$T/data"
 

@@ -5,7 +5,7 @@
 Per episode: LeRobot v2.1 layout and metadata, frames of the declared size, one action per frame,
 `observation.state` a pure function of the initial state and the actions (mw.next_state),
 `action_delta` the Meta-World action that state change is, the success flags consistent with the
-episode record. Across datasets: no seed of one task appears in two of them (the train and
+episode record and with `obj_to_target` under the task's success rule (mw.SUCCESS_DISTANCE). Across datasets: no seed of one task appears in two of them (the train and
 validation splits are split by seed).
 """
 
@@ -19,7 +19,7 @@ import pyarrow.parquet as pq
 from PIL import Image
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
-from mw import delta_action, initial_state, next_state  # noqa: E402
+from mw import SUCCESS_DISTANCE, delta_action, initial_state, next_state  # noqa: E402
 
 
 def check(root: str) -> dict:
@@ -45,6 +45,10 @@ def check(root: str) -> dict:
             assert np.array_equal(delta[i], delta_action(state[i], action[i])), (path, i)
         flags = np.array(t["success"], bool)
         assert bool(flags.any() or t["next.success"][-1]) == e["success"], path
+        # Meta-World's rule on the object's distance to its goal gives the flag of every frame
+        # (frame 0's too: no task starts done).
+        distance = np.array(t["obj_to_target"], np.float32)
+        assert np.array_equal(flags, distance <= np.float32(SUCCESS_DISTANCE[task])), (path, flags, distance)
         successes += e["success"]
         seeds.setdefault(task, set()).add(e["seed"])
     return {"episodes": len(episodes), "frames": sum(e["length"] for e in episodes), "successes": successes,

@@ -1,5 +1,6 @@
 """Synthetic LeRobot v2.1 datasets in generate.py's layout (PNG frames in the parquet, state,
-action, a per-frame success flag), for tests that must not need MuJoCo."""
+action, a per-frame success flag and, when given, the object's distance to its goal), for tests
+that must not need MuJoCo."""
 
 import io
 import json
@@ -12,12 +13,15 @@ from PIL import Image
 
 
 def write_dataset(root, episodes, fps=80):
-    """episodes: (task text, frames uint8 [T, H, W, 3], state float32 [T, 4], success bool [T], seed)."""
+    """episodes: (task text, frames uint8 [T, H, W, 3], state float32 [T, 4], success bool [T], seed
+    [, obj_to_target float32 [T] in m]); the `obj_to_target` column is written when every episode
+    gives it."""
     tasks = sorted({e[0] for e in episodes})
+    distances = all(len(e) > 5 for e in episodes)
     os.makedirs(os.path.join(root, "meta"), exist_ok=True)
     index = 0
     with open(os.path.join(root, "meta", "episodes.jsonl"), "w") as meta:
-        for i, (task, frames, state, success, seed) in enumerate(episodes):
+        for i, (task, frames, state, success, seed, *rest) in enumerate(episodes):
             t = len(frames)
             png = []
             for f in frames:
@@ -34,6 +38,7 @@ def write_dataset(root, episodes, fps=80):
                 "episode_index": pa.array(np.full(t, i)),
                 "index": pa.array(np.arange(index, index + t)),
                 "task_index": pa.array(np.full(t, tasks.index(task))),
+                **({"obj_to_target": pa.array(np.asarray(rest[0], np.float32))} if distances else {}),
             })
             index += t
             path = os.path.join(root, "data", "chunk-000", f"episode_{i:06d}.parquet")
@@ -53,6 +58,7 @@ def write_dataset(root, episodes, fps=80):
             "observation.state": {"dtype": "float32", "shape": [4], "names": ["x", "y", "z", "gripper"]},
             "action": {"dtype": "float32", "shape": [4], "names": ["x", "y", "z", "gripper"]},
             "next.success": {"dtype": "bool", "shape": [1], "names": None},
+            **({"obj_to_target": {"dtype": "float32", "shape": [1], "names": None}} if distances else {}),
         },
     }
     with open(os.path.join(root, "meta", "info.json"), "w") as f:

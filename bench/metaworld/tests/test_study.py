@@ -43,6 +43,31 @@ def test_summarize_pairs_episodes_by_index():
                                       "8-10 cm": {"episodes": 4, "true": 0, "drawn": 0}, "10+ cm": {"episodes": 1, "true": 0, "drawn": 1}}}, s["by_approach"]
 
 
+def test_rates_are_scored_per_family_and_split():
+    """policies.py's own variants are the development family `degraded`; families.py's carry their
+    own family and split, each scored apart with its invented and missed successes."""
+    record = lambda k, ok: {"episode": k, "success": ok, "error": None}
+    variants = ["expert", "blind", "short-1cm", "over-2cm", "wander-2cm", "bc-nn-1"]
+    outcomes = {"expert": [True] * 4, "blind": [True, False, False, False], "short-1cm": [False, False, False, True],
+                "over-2cm": [True, True, True, False], "wander-2cm": [False] * 4, "bc-nn-1": [True, True, False, False]}
+    truth = {"t": {v: [[20 if ok else None, 1.0] for ok in o] for v, o in outcomes.items()}}
+    # The world model invents one success of bc-nn-1 and misses one of short-1cm.
+    drawn = {**outcomes, "bc-nn-1": [True, True, True, False], "short-1cm": [False] * 4}
+    estimates = {"t": {v: [record(k, ok) for k, ok in enumerate(o)] for v, o in drawn.items()}}
+    judged = {"t": {v: [0.9 if ok else 0.1 for ok in o] for v, o in outcomes.items()}}
+    s = study.summarize(truth, estimates, judged, ["t"], variants, chunk=24)
+    families = s["per_family"]
+    assert set(families) == {"degraded", "partial", "wander", "learned"}, families.keys()
+    assert {k: f["split"] for k, f in families.items()} == {"degraded": "development", "partial": "development", "wander": "test", "learned": "test"}
+    assert families["partial"]["n"] == 2 and families["partial"]["per_episode"]["missed"] == 1 and families["partial"]["per_episode"]["invented"] == 0
+    assert families["learned"]["per_episode"]["invented"] == 1 and families["learned"]["mae"] == 0.25, families["learned"]
+    assert families["degraded"]["pearson_r"] == 1.0 and families["degraded"]["judge_on_simulator_frames"]["pearson_r"] == 1.0
+    splits = s["per_split"]
+    assert splits["test"]["n"] == 2 and splits["development"]["n"] == 4, splits
+    assert splits["test"]["per_episode"]["invented"] == 1 and splits["development"]["per_episode"]["missed"] == 1
+    assert [r["family"] for r in s["rates"]] == ["degraded", "degraded", "partial", "partial", "wander", "learned"]
+
+
 def test_r_comes_with_its_interval_over_redrawn_episodes():
     # Four rates of 20 episodes. A world model that draws every episode's outcome right keeps r = 1
     # in every redraw; one that draws the right rates on the wrong episodes moves with the draw.

@@ -92,19 +92,19 @@ def test_own_episodes_are_the_datasets_frames_states_and_outcomes_placed_by_thei
     with tempfile.TemporaryDirectory() as d:
         root = os.path.join(d, "data")
         with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
-            generate.main(["--tasks", task, "--episodes", "4", "--frames", "100", "--resolution", "32", "--degraded-fraction", "1",
-                           "--miss-weight", "1000", "--workers", "1", "--out", root])
+            generate.main(["--tasks", task, "--episodes", "4", "--frames", "100", "--resolution", "32", "--mix", "near=1",
+                           "--workers", "1", "--out", root])
         with open(os.path.join(root, "meta", "episodes.jsonl")) as f:
             meta = [json.loads(line) for line in f]
-        misses = [e for e in meta if e["behaviour"] == "miss"][:2]
+        misses = [e for e in meta if e["behaviour"] == "near"][:2]
         assert len(misses) == 2, meta
-        picked = study.dataset_episodes(root, [task], 2, ["miss"], tool="teacher")
+        picked = study.dataset_episodes(root, [task], 2, ["near"], tool="teacher")
         assert [e["episode_index"] for e in picked[task]] == [e["episode_index"] for e in misses], picked
         assert [e["position"] for e in picked[task]] == [meta.index(e) for e in misses], picked
 
         recorded = teacher.record_own(root, picked, 32, 2)
-        assert list(recorded[task]) == ["miss"], recorded.keys()
-        for e, (seed, first, frames, actions, nearest) in zip(misses, recorded[task]["miss"]):
+        assert list(recorded[task]) == ["near"], recorded.keys()
+        for e, (seed, first, frames, actions, nearest) in zip(misses, recorded[task]["near"]):
             table = pq.read_table(os.path.join(root, f"data/chunk-000/episode_{e['episode_index']:06d}.parquet"))
             # The frames stay in their file until the world model draws from them.
             assert seed == e["seed"] and isinstance(frames, teacher.EpisodeFrames) and len(frames) == 100
@@ -156,7 +156,7 @@ def test_own_episodes_are_the_datasets_frames_states_and_outcomes_placed_by_thei
 
 def test_own_episodes_take_behaviours_not_variants():
     for args, message in ((["--own-episodes", "--variants", "expert"], "with --own-episodes pick the dataset's episodes by --behaviours"),
-                          (["--behaviours", "miss"], "--behaviours picks the dataset's own episodes (--own-episodes)")):
+                          (["--behaviours", "near"], "--behaviours picks the dataset's own episodes (--own-episodes)")):
         err = io.StringIO()
         try:
             with contextlib.redirect_stderr(err):

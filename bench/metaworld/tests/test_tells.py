@@ -65,7 +65,7 @@ def test_tells_of_a_dataset_and_of_policies_on_its_placements():
         root = os.path.join(d, "data")
         with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
             generate.main(["--tasks", ",".join(tasks), "--episodes", "3", "--frames", "100", "--resolution", "32",
-                           "--degraded-fraction", "0.5", "--workers", "1", "--out", root])
+                           "--mix", "expert=1,near=1", "--workers", "1", "--out", root])
         out = tells.measure(root, tasks, None, ["wrong"], None, 2, 100, 24, 2)
         with open(os.path.join(root, "meta", "episodes.jsonl")) as f:
             meta = [json.loads(line) for line in f]
@@ -93,7 +93,7 @@ def test_tells_of_a_dataset_and_of_policies_on_its_placements():
         # A dataset without the task asked is refused by name.
         solo = os.path.join(d, "button")
         with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
-            generate.main(["--task", "button-press-topdown-v3", "--episodes", "1", "--frames", "10", "--resolution", "32", "--workers", "1", "--out", solo])
+            generate.main(["--task", "button-press-topdown-v3", "--episodes", "1", "--frames", "10", "--resolution", "32", "--mix", "expert=1", "--workers", "1", "--out", solo])
         try:
             tells.measure(solo, ["drawer-open-v3"], None, [], None, 2, 100, 24, 1)
         except SystemExit as e:

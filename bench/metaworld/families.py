@@ -17,15 +17,20 @@ Every variant exists for both tasks under the same name; no name collides with p
 `variants(split)` lists them, `family_of(variant)` names a variant's family.
 
 Demonstrations are the expert's episodes (policies.run_episode with frames) on seeds
-`demo_seed_start + k`, by default DEMO_SEED_START = 500000 + k (no evaluation uses them; a
-separate pool of cloned policies comes from `learned_policy(..., demo_seed_start=600000)`).
+DEMO_SEED_START + k (500000 + k; no evaluation uses them). The data generator's pool of cloned
+policies (POOL, `pool_policy`) learns from seeds POOL_DEMO_SEED_START + k (600000 + k) and other
+demo counts: apart from the `learned` family by its demonstrations, not by its method.
 Cloned policies are cached in $BWM_POLICY_CACHE (default ~/.cache/bwm-metaworld-policies), keyed
 by the bytes of this file, policies.py, mw.py and calibration.json, the task, the kind, the demo
-count and seeds and the demos' resolution; written atomically, shared by parallel processes.
+count and seeds and the demos' resolution, and for a network the torch version and the machine
+(its training is not bit-reproducible across CPUs); written atomically, shared by parallel
+processes. `prepare(tasks, variants, workers)` builds a study's clones before it runs them, and
+`clones_digest` names what they are, so a study's cached truth is measured again for other clones.
 
 True success rates (%) as measured in the simulator by `python families.py --episodes 50 --workers
-2` (policies.measure_truth: seeds 100000..100049, horizon 120, chunk 24, 64 x 64 frames; the
-learned family also with `--resolution 128`; its clones from demos at 128 x 128):
+2` on the development machine (policies.measure_truth: seeds 100000..100049, horizon 120, chunk 24,
+64 x 64 frames; the learned family also with `--resolution 128`; its clones from demos at 128 x
+128; the networks' rates move with the machine they were trained on, docs/fidelity.md run 45):
 
   family     split        variant         drawer  button
   learned    test         bc-nn-1             70      60   (128 x 128:  70  60)
@@ -65,6 +70,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import zipfile
 from dataclasses import dataclass
 from typing import Callable
 
@@ -284,7 +290,7 @@ def _cached(name: str, key: tuple, build: Callable[[], dict]) -> dict:
         with np.load(path) as f:
             _models[path] = dict(f)
         return _models[path]
-    except (OSError, ValueError, EOFError):
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile):
         pass
     arrays = build()
     os.makedirs(cache_dir(), exist_ok=True)
@@ -373,8 +379,16 @@ def model(task: str, kind: str, demos: int, demo_seed_start: int = DEMO_SEED_STA
             return {"xm": xm, "xs": xs, "x": (x - xm) / xs, "y": y}
         return _train_net(x, y, steps)
 
-    key = (kind, task, demos, demo_seed_start, resolution, HORIZON, CHUNK, SIZE, steps if kind == "net" else None)
+    key = (kind, task, demos, demo_seed_start, resolution, HORIZON, CHUNK, SIZE) + (_trainer() + (steps,) if kind == "net" else ())
     return _cached(f"bc-{kind}-{task}-{demos}x{demo_seed_start}-{resolution}", key, train)
+
+
+def _trainer() -> tuple:
+    """What a network's training depends on beside its data: torch's version and the machine."""
+    import platform
+    from importlib.metadata import version
+
+    return (version("torch"), platform.machine(), platform.processor())
 
 
 class Cloned:
@@ -497,6 +511,38 @@ def variants(split: str | None = None, tasks=TASKS) -> list[str]:
             if all(v in f.variants.get(t, ()) for t in tasks)]
 
 
+def _prepare_job(job) -> None:
+    task, variant = job
+    make_policy(task, variant, 0)
+
+
+def prepare(tasks, variants, workers: int) -> None:
+    """The cloned policies among `variants` trained (or found in the cache) for `tasks` in
+    `workers` processes, before a study measures and serves them."""
+    import multiprocessing
+
+    jobs = [(t, v) for t in tasks for v in variants if family_of(v) == "learned"]
+    if jobs:
+        with multiprocessing.get_context("spawn").Pool(max(1, min(workers, len(jobs)))) as pool:
+            pool.map(_prepare_job, jobs)
+
+
+def clones_digest(tasks, variants) -> str | None:
+    """A digest of the arrays of the cloned policies among `variants` (trained first if absent),
+    None when there are none: what a study's truth of them was measured with."""
+    learned = [(t, v) for t in tasks for v in variants if family_of(v) == "learned"]
+    if not learned:
+        return None
+    h = hashlib.sha256()
+    for t, v in learned:
+        p = FAMILIES["learned"].params[v]
+        arrays = model(t, p["kind"], p["demos"])
+        for name in sorted(arrays):
+            h.update(name.encode())
+            h.update(np.ascontiguousarray(arrays[name]).tobytes())
+    return h.hexdigest()
+
+
 def check(task: str, variant: str) -> None:
     """Raises ValueError naming the known names unless `variant` is a family's for `task`."""
     if task not in TASKS:
@@ -530,6 +576,11 @@ if __name__ == "__main__":
     parser.add_argument("--workers", type=int, default=1)
     parser.add_argument("--json", help="also write the rates here")
     args = parser.parse_args()
+    known = variants()
+    if unknown := [v for v in args.variants or [] if v not in known]:
+        parser.error(f"unknown variant(s) {', '.join(unknown)} (known: {', '.join(known)})")
+    if args.workers < 1 or args.episodes < 1:
+        parser.error("--workers and --episodes must be at least 1")
     seeds = list(range(args.seed_start, args.seed_start + args.episodes))
     jobs = [(task, v) for name in args.families for v in FAMILIES[name].params for task in args.tasks
             if not args.variants or v in args.variants]

@@ -45,7 +45,8 @@ EXPLORE_HIGH = np.array([0.35, 0.95, 0.40])
 #   6 cm above to 5 cm below the button's top as the expert sees it (the button untouched at the
 #   one end, pressed home from about 2-3 cm below at the other), then held or backed away from.
 # - explore: the hand wandering without the task's intent, half of the episodes around the object
-#   (waypoints within 15 cm of it, gripper random: touches happen by chance), half across the table.
+#   (waypoints in a box 15 cm either way of it in the table plane, 7.5 cm in height, gripper random:
+#   touches happen by chance), half across the table.
 # - idle: time that passes without progress: holding still, a late start, pauses.
 # - learned: rollouts of behaviour-cloned policies from a pool kept apart from every evaluation
 #   family (families.POOL: its own demonstration seeds): the states learned policies reach.
@@ -71,7 +72,9 @@ class Behaviour:
         if set(mix) - set(MIX) or not all(np.isfinite(w) and w >= 0 for w in mix.values()) or sum(mix.values()) <= 0:
             raise ValueError(f"a behaviour mix takes weights >= 0 of {', '.join(MIX)}, not all 0; got {mix}")
         self.policies, self.task, self.rng = policies, task, rng
-        modes = list(mix)
+        # In MIX's order, whatever order the weights were given in (meta/generator.json records
+        # them as a mapping, so that order must not change the episodes).
+        modes = [m for m in MIX if m in mix]
         weights = np.array([mix[m] for m in modes], float)
         self.mode = str(rng.choice(modes, p=weights / weights.sum()))
         self.noise, self.speed = rng.uniform(0.05, 0.4), 1.0
@@ -329,7 +332,7 @@ def mix(text: str) -> dict[str, float]:
             raise argparse.ArgumentTypeError(f"{name}'s weight must be finite and >= 0, got {value!r}")
     if sum(out.values()) <= 0:
         raise argparse.ArgumentTypeError(f"some weight must be above 0, got {text!r}")
-    return out
+    return {k: out[k] for k in MIX if k in out}
 
 
 def interval(text: str) -> tuple[int, int]:
@@ -423,6 +426,11 @@ def main(argv=None) -> None:
     if args.reuse and os.path.exists(args.out):
         reuse(args)
         return
+    if args.mix.get("learned", 0) > 0:
+        # The pool's policies trained (or found in their cache) once, before the workers use them.
+        import families
+
+        families.prepare_pool(args.tasks, args.resolution, args.workers)
     out = os.path.abspath(args.out)
     tmp = f"{out}.tmp-{os.getpid()}"
     os.makedirs(os.path.join(tmp, "meta"))
@@ -432,11 +440,6 @@ def main(argv=None) -> None:
             e = len(jobs)
             jobs.append((tmp, e, e * args.frames, task_index, task, args.seed_start + i, args.frames, args.resolution, args.mix, args.observe_every))
     start = time.time()
-    if args.mix.get("learned", 0) > 0:
-        # The pool's policies trained (or found in their cache) once, before the workers use them.
-        import families
-
-        families.prepare_pool(args.tasks, args.resolution, args.workers)
     try:
         results = []
         with multiprocessing.get_context("spawn").Pool(args.workers) as pool:

@@ -205,13 +205,14 @@ def cached(path: str, name: str, key: dict, measure):
     return value
 
 
-def truth_key(episodes: dict, horizon: int, chunk: int, resolution: int, variants: list[str]) -> dict:
+def truth_key(episodes: dict, horizon: int, chunk: int, resolution: int, variants: list[str], clones: str | None = None) -> dict:
     """What a study's cached truth (and, without "outcome", its judged simulator frames) was
-    measured for: the episodes' seeds, the loop's settings, the variants and the bytes of
-    TRUTH_SOURCES."""
+    measured for: the episodes' seeds, the loop's settings, the variants, the bytes of
+    TRUTH_SOURCES and those of the cloned policies among the variants (families.clones_digest:
+    a network trained on another machine is another policy)."""
     return {"episodes": {t: [s for _, s in e] for t, e in episodes.items()}, "horizon": horizon, "chunk": chunk,
             "resolution": resolution, "variants": variants,
-            "sources": {os.path.basename(p): file_digest(p) for p in TRUTH_SOURCES},
+            "sources": {os.path.basename(p): file_digest(p) for p in TRUTH_SOURCES}, "clones": clones,
             "outcome": "first success step, closest approach (cm)"}
 
 
@@ -755,7 +756,13 @@ def main(argv=None) -> None:
     os.makedirs(a.out, exist_ok=True)
     episodes = episodes_by_task(a.data, tasks, a.episodes)
 
-    key = truth_key(episodes, a.horizon, a.chunk, a.resolution, variants)
+    import families
+
+    if not a.rescore:
+        # The cloned policies trained once here, in parallel, before the truth measures them and
+        # the policy server serves them (which would otherwise train them inside its handlers).
+        families.prepare(tasks, variants, a.workers)
+    key = truth_key(episodes, a.horizon, a.chunk, a.resolution, variants, families.clones_digest(tasks, variants))
     truth_path = os.path.join(a.out, "truth.json")
     judged_path = os.path.join(a.out, "judged.json")
     # What the judge's verdicts depend on: the episodes, not the form of the truth.

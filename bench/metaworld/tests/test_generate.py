@@ -43,6 +43,11 @@ def test_mix_is_parsed_and_checked_on_the_command_line():
     args = ["--task", TASK, "--episodes", "1", "--out", "/nonexistent/x"]
     assert generate.parse_args(args).mix == generate.MIX
     assert generate.parse_args(args + ["--mix", "near=2,idle=0.5"]).mix == {"near": 2.0, "idle": 0.5}
+    # The order the weights are given in changes neither the recorded settings nor the episodes.
+    a, b = (generate.parse_args(args + ["--mix", m]).mix for m in ("idle=1,near=2,expert=1", "expert=1,near=2,idle=1"))
+    assert list(a) == list(b) == ["expert", "near", "idle"], (a, b)
+    modes = lambda mix: [generate.Behaviour(TASK, generate.episode_rng(TASK, seed), 120, (1, 1), mix).mode for seed in range(50)]
+    assert modes({"idle": 1.0, "near": 2.0, "expert": 1.0}) == modes({"expert": 1.0, "near": 2.0, "idle": 1.0})
     for bad in ("near", "near=x", "near=-1", "near=1,near=2", "sideways=1", "near=0", "near=inf"):
         try:
             generate.parse_args(args + ["--mix", bad])

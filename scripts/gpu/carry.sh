@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # What the GPU scripts need carried to a lent machine (device tool), prepared on this machine from
 # the repo root: .carry/bwm.xz (the bwm binary built with --no-default-features, stripped and
-# xz-compressed: the carry limit is 64 MiB), .carry-tests/test-*.xz (the tests of cuda-graph/,
-# trainer/ (its NCCL tests too), inference/, fused-ops/ and fp8-autograd/ that need a GPU to check anything, which scripts/gpu/unit.sh runs there), .whl (bench/metaworld's wheels for that machine's
+# xz-compressed: the carry limit is 64 MiB), .carry-tests/test-*.xz (the tests of native/cuda-graph/,
+# trainer/ (its NCCL tests too), inference/, native/fused-ops/ and native/fp8-autograd/ that need a GPU to check anything, which scripts/gpu/unit.sh runs there), .whl (bench/metaworld's wheels for that machine's
 # Python 3.12) and .gl (the GL loader debs MuJoCo's EGL rendering needs there). Each part is
 # skipped when present; --rebuild rebuilds and repacks the binaries. Then, for example:
 #   run(carry=[".whl", ".gl", ".carry"], command="bash scripts/gpu/metaworld.sh data")

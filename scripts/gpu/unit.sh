@@ -1,14 +1,14 @@
 #!/usr/bin/env bash
 # The unit tests that need a GPU to check anything (`#[ignore]`d in a plain `cargo test`, run here
-# with --ignored): CUDA graphs (cuda-graph/: a replayed forward and backward pass against the eager
+# with --ignored): CUDA graphs (native/cuda-graph/: a replayed forward and backward pass against the eager
 # one, a capture that fails, and work queued on two CUDA streams in turn, as `--streams` does), and
 # the VAE's and the DiT's training with the step replayed from a graph against the eager training
 # (trainer/: `vae_train` and tests/training.rs), and rollouts whose sampler replays a recorded
 # forward pass against eager ones (inference/: `graphed`), and the fused AdamW kernels against the
 # tensor path and the accumulator (trainer/: `optim`), and the rotary embedding's kernels and the
 # DiT's fused element-wise kernels (rotary embedding, per-frame multiply-add) against the CPU
-# arithmetic and libtorch's, and the FP8 quantization kernel against libtorch's cast (fused-ops/:
-# `fused`), and the FP8 linear's training products on CUDA (fp8-autograd/: `fp8`), and NCCL
+# arithmetic and libtorch's, and the FP8 quantization kernel against libtorch's cast (native/fused-ops/:
+# `fused`), and the FP8 linear's training products on CUDA (native/fp8-autograd/: `fp8`), and NCCL
 # (trainer/tests/dist_nccl.rs: the collectives, a peer that dies or stops, and 2 ranks training as
 # 1 rank with the same global batch, the gradients reduced during the backward walk or after it).
 # Nothing is optional here: BWM_REQUIRE=all (common.sh), so a test whose CUDA device, NCCL or

@@ -65,7 +65,7 @@ const TOY_MIX: &str = "expert=1,near=1,partial=1,explore=1,idle=1,learned=2";
 const TOY_STUDY: [(&str, &str); 5] =
     [("JUDGE_STEPS", "5"), ("STUDY_EPISODES", "1"), ("STUDY_JOBS", "2"), ("STUDY_HORIZON", "48"), ("STUDY_VARIANTS", TOY_VARIANTS)];
 /// The toy study's variants: two of policies.py's, one of each family of families.py.
-const TOY_VARIANTS: &str = "expert,wrong,bc-nn-1,lag-6,short-1cm,wander-then-80";
+const TOY_VARIANTS: &str = "expert,wrong,bc-nn-1,lag-6,quit-50,wander-then-80";
 /// Its rates: 6 variants x 2 tasks.
 const TOY_RATES: u64 = 12;
 

@@ -90,7 +90,7 @@ def test_the_variants_come_in_their_splits_under_unique_safe_names():
     for f in families.FAMILIES.values():
         assert 4 <= len(f.params) <= 6, f.params
     assert families.family_of("expert") is None and families.family_of("lag-6") == "scripted"
-    assert policies.check_variants(list(mw.TASKS), ["expert", "wrong-2cm", "short-1cm", "bc-net-4"]) is None
+    assert policies.check_variants(list(mw.TASKS), ["expert", "wrong-2cm", "short-2cm", "bc-net-4"]) is None
 
 
 def refused(fn, *words):
@@ -109,15 +109,15 @@ def test_unknown_names_are_refused_naming_the_known_ones():
     refused(lambda: families.make_policy("door-open-v3", "lag-6", 0), "door-open-v3", task)
     refused(lambda: families.variants("train"), "'train'", "development", "test")
     refused(lambda: families.learned_policy(task, "svm", 1), "'svm'", "nn", "net")
-    refused(lambda: policies.make_policy(task, "lag-7", 0), "'lag-7'", "expert", "wrong-<d>cm", "families:", "short-1cm")
+    refused(lambda: policies.make_policy(task, "lag-7", 0), "'lag-7'", "expert", "wrong-<d>cm", "families:", "short-2cm")
     problem = policies.check_variants([task], ["expert", "short-9cm"])
-    assert "'short-9cm'" in problem and "short-1cm" in problem, problem
+    assert "'short-9cm'" in problem and "short-2cm" in problem, problem
     assert "door-open-v3" in policies.check_variants(["door-open-v3"], ["lag-6"])
 
 
 def test_simulator_episodes_end_as_their_variants_say():
     for task in mw.TASKS:
-        for seed in (100000, 100001):
+        for seed in (100000, 100001):  # quit-50 goes past in the first, quits in the second
             # Past the boundary opens / presses; 5 cm short never does, nor do the straight
             # approach and a hand wandering within 2 cm; the wanderer that turns to the task at
             # step 80 succeeds.
@@ -126,6 +126,10 @@ def test_simulator_episodes_end_as_their_variants_say():
                 e = policies.run_episode(task, v, seed)
                 assert e.first is None, (task, v, seed, e.first)
             assert policies.run_episode(task, "wander-then-80", seed).first is not None, (task, seed)
+            # A quitting policy fails exactly in the episodes it quits in, at least 2 cm short.
+            quits = families.make_policy(task, "quit-50", seed).depth < families.BOUNDARY[task] - 0.019
+            assert quits == (seed == 100001), (task, seed)
+            assert (policies.run_episode(task, "quit-50", seed).first is None) == quits, (task, seed, quits)
             # The closest approach of a wandering hand: it touches the object.
             assert policies.run_episode(task, "wander-2cm", seed).approach_cm < 3, (task, seed)
 

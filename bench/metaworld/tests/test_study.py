@@ -47,12 +47,12 @@ def test_rates_are_scored_per_family_and_split():
     """policies.py's own variants are the development family `degraded`; families.py's carry their
     own family and split, each scored apart with its invented and missed successes."""
     record = lambda k, ok: {"episode": k, "success": ok, "error": None}
-    variants = ["expert", "blind", "short-1cm", "over-2cm", "wander-2cm", "bc-nn-1"]
-    outcomes = {"expert": [True] * 4, "blind": [True, False, False, False], "short-1cm": [False, False, False, True],
+    variants = ["expert", "blind", "quit-50", "over-2cm", "wander-2cm", "bc-nn-1"]
+    outcomes = {"expert": [True] * 4, "blind": [True, False, False, False], "quit-50": [False, False, False, True],
                 "over-2cm": [True, True, True, False], "wander-2cm": [False] * 4, "bc-nn-1": [True, True, False, False]}
     truth = {"t": {v: [[20 if ok else None, 1.0] for ok in o] for v, o in outcomes.items()}}
-    # The world model invents one success of bc-nn-1 and misses one of short-1cm.
-    drawn = {**outcomes, "bc-nn-1": [True, True, True, False], "short-1cm": [False] * 4}
+    # The world model invents one success of bc-nn-1 and misses one of quit-50.
+    drawn = {**outcomes, "bc-nn-1": [True, True, True, False], "quit-50": [False] * 4}
     estimates = {"t": {v: [record(k, ok) for k, ok in enumerate(o)] for v, o in drawn.items()}}
     judged = {"t": {v: [0.9 if ok else 0.1 for ok in o] for v, o in outcomes.items()}}
     s = study.summarize(truth, estimates, judged, ["t"], variants, chunk=24)

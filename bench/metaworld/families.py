@@ -14,10 +14,11 @@ locked: evaluated once per change, never used to choose anything).
   (`wander-<R>cm`), or within 5 cm until step k before doing the task (`wander-then-<k>`).
 
 Every variant exists for both tasks under the same name; no name collides with policies.py's.
-`make_policy(task, variant, seed)` builds one (policies.make_policy hands family names here);
-`variants(split)` lists them, `family_of(variant)` names a variant's family.
+`make_policy(task, variant, seed)` builds one (variants.make_policy hands family names here);
+`variants(split)` lists them, `family_of(variant)` names a variant's family. This module builds on
+policies.py (the expert's law, perception and episode loop) and never imports variants.py.
 
-Demonstrations are the expert's episodes (policies.run_episode with frames) on seeds
+Demonstrations are the expert's episodes (policies.run of policies.Policy, with frames) on seeds
 DEMO_SEED_START + k (500000 + k; no evaluation uses them). The data generator's pool of cloned
 policies (POOL, `pool_policy`) learns from seeds POOL_DEMO_SEED_START + k (600000 + k) and other
 demo counts: apart from the `learned` family by its demonstrations, not by its method.
@@ -29,7 +30,7 @@ processes. `prepare(tasks, variants, workers)` builds a study's clones before it
 `clones_digest` names what they are, so a study's cached truth is measured again for other clones.
 
 True success rates (%) as measured in the simulator by `python families.py --episodes 50 --workers
-2` on the development machine (policies.measure_truth: seeds 100000..100049, horizon 120, chunk 24,
+2` on the development machine (measure_truth, policies.run: seeds 100000..100049, horizon 120, chunk 24,
 64 x 64 frames; the learned family also with `--resolution 128`; its clones from demos at 128 x
 128; the networks' rates move with the machine they were trained on, docs/fidelity.md run 45):
 
@@ -315,7 +316,7 @@ def demo(task: str, seed: int, resolution: int) -> dict:
     relative to the state (action units, x 1 cm) and their gripper commands: targets [T, CHUNK, 4]."""
 
     def record() -> dict:
-        e = policies.run_episode(task, "expert", seed, HORIZON, CHUNK, resolution, record=True)
+        e = policies.run(policies.Policy(task, "expert", seed), task, seed, HORIZON, CHUNK, resolution, record=True)
         states = [initial_state(task)]
         for c in e.commands:
             states.append(next_state(states[-1], c))
@@ -566,6 +567,12 @@ def make_policy(task: str, variant: str, seed: int):
     return f.make(task, seed, **f.params[variant])
 
 
+def measure_truth(task: str, variant: str, seeds, horizon: int = 120, chunk: int = 24, resolution: int = 64) -> list:
+    """Per seed, a family variant's episode in the simulator without its frames (policies.run), as
+    variants.measure_truth measures it."""
+    return [policies.run(make_policy(task, variant, seed), task, seed, horizon, chunk, resolution) for seed in seeds]
+
+
 if __name__ == "__main__":
     import argparse
     import json
@@ -595,7 +602,7 @@ if __name__ == "__main__":
         make_policy(task, v, 0)
     rates = {}
     with get_context("spawn").Pool(args.workers) as pool:
-        runs = [pool.apply_async(policies.measure_truth, (task, v, seeds, args.horizon, args.chunk, args.resolution)) for task, v in jobs]
+        runs = [pool.apply_async(measure_truth, (task, v, seeds, args.horizon, args.chunk, args.resolution)) for task, v in jobs]
         for (task, v), run in zip(jobs, runs):
             episodes = run.get()
             rate = rates.setdefault(task, {})[v] = sum(e.first is not None for e in episodes) / len(episodes)

@@ -9,9 +9,13 @@ Variants degrade the expert in one way each, with per-episode parameters drawn f
 seed, so their true success rates spread (README.md has them). Beside the named ones,
 `wrong-<d>cm` is the expert with every target moved d cm along the task's `wrong` offset: a
 graded `wrong` whose success falls with d, for probing whether a world model's contact follows a
-shifted command. The policy families of families.py (behaviour cloning, other scripted
-controllers, partial outcomes, wandering hands) are made and checked here by their variant names
-too. Imports numpy only.
+shifted command.
+
+`run` is the episode loop the world-model evaluator mirrors, for any policy object (`act(image,
+state, n)`), and `replay` issues a fixed command sequence. This module knows only its own
+variants: variants.py makes, checks and runs every variant by name, these and the policy families
+of families.py (which builds on this module: its expert's law, perception and loop). Imports
+numpy only.
 """
 
 from __future__ import annotations
@@ -116,6 +120,11 @@ VARIANTS: dict[str, list[str]] = {task: list(v) for task, v in VARIANT_PARAMS.it
 GRADED = re.compile(r"wrong-(\d+(?:\.\d+)?)cm")
 
 
+def known(task: str) -> list[str]:
+    """This module's variant names for `task`, the graded `wrong` as its pattern."""
+    return VARIANTS[task] + ["wrong-<d>cm"]
+
+
 def variant_params(task: str, variant: str) -> Params:
     """A named variant's parameters, or those of `wrong-<d>cm` (see the module's docstring)."""
     if task not in VARIANT_PARAMS:
@@ -124,26 +133,10 @@ def variant_params(task: str, variant: str) -> Params:
         return VARIANT_PARAMS[task][variant]
     m = GRADED.fullmatch(variant)
     if not m:
-        import families  # here, not above: it imports this module
-
-        raise ValueError(f"unknown variant {variant!r} for {task} (known: {', '.join(VARIANTS[task])}, wrong-<d>cm; "
-                         f"families: {', '.join(families.variants(tasks=[task]))})")
+        raise ValueError(f"unknown variant {variant!r} for {task} (known: {', '.join(known(task))})")
     direction = np.array(VARIANT_PARAMS[task]["wrong"].target)
     offset = direction / np.linalg.norm(direction) * float(m[1]) / 100
     return replace(EXPERT, target=tuple(float(x) for x in offset))
-
-
-def check_variants(tasks: list[str], variants: list[str]) -> str | None:
-    """None when every variant is defined for every task, else what is wrong, in one line."""
-    import families
-
-    for v in variants:
-        for t in tasks:
-            try:
-                families.check(t, v) if families.family_of(v) else variant_params(t, v)
-            except ValueError as e:
-                return str(e)
-    return None
 
 
 def expert_target(task: str, obj: np.ndarray, state: np.ndarray) -> tuple[np.ndarray, float, bool]:
@@ -170,6 +163,8 @@ GRIP = {"drawer-open-v3": -1.0, "button-press-topdown-v3": 1.0}
 
 
 class Policy:
+    """One of this module's variants for one episode: act(image, state, n) -> float32[n, 4]."""
+
     def __init__(self, task: str, variant: str, seed: int):
         self.task, self.variant, self.p = task, variant, variant_params(task, variant)
         self.reset(seed)
@@ -211,13 +206,6 @@ class Policy:
             out[i], state = command, new
             self.frame += 1
         return out
-
-
-def make_policy(task: str, variant: str, seed: int):
-    """A variant's policy for one episode: act(image, state, n) -> float32[n, 4]."""
-    import families
-
-    return families.make_policy(task, variant, seed) if families.family_of(variant) else Policy(task, variant, seed)
 
 
 @dataclass
@@ -264,14 +252,14 @@ class _Outcome:
         return Episode(self.first, 100 * self.approach, commands, None if frames is None else np.stack(frames), 100 * self.nearest)
 
 
-def run_episode(task: str, variant: str, seed: int, horizon: int = 120, chunk: int = 24, resolution: int = 64,
-                record: bool = False) -> Episode:
-    """One episode of the policy in the simulator as the world-model evaluator runs it (a frame
-    every `chunk` steps, `chunk` commands back). Without `record` it stops at the first success;
-    with it the episode runs the whole horizon and keeps every frame."""
+def run(policy, task: str, seed: int, horizon: int = 120, chunk: int = 24, resolution: int = 64,
+        record: bool = False) -> Episode:
+    """One episode of `policy` (made for this episode: act(image, state, n) -> float32[n, 4]) in
+    the simulator from the placement of `seed`, as the world-model evaluator runs it (a frame every
+    `chunk` steps, `chunk` commands back). Without `record` it stops at the first success; with it
+    the episode runs the whole horizon and keeps every frame."""
     from mw import Sim
 
-    policy = make_policy(task, variant, seed)
     with Sim(task, seed, resolution) as sim:
         image, state = sim.reset()
         frames = [image] if record else None
@@ -306,15 +294,11 @@ def replay(task: str, seed: int, commands, resolution: int = 64, record: bool = 
         return outcome.episode(frames)
 
 
-def measure_truth(task: str, variant: str, seeds, horizon: int = 120, chunk: int = 24, resolution: int = 64) -> list[Episode]:
-    """Per seed, the episode in the simulator without its frames (run_episode)."""
-    return [run_episode(task, variant, seed, horizon, chunk, resolution) for seed in seeds]
-
-
 if __name__ == "__main__":
     import argparse
 
-    parser = argparse.ArgumentParser(description="True success rate of every policy variant in the simulator")
+    parser = argparse.ArgumentParser(description="True success rate of each of policies.py's own variants in the simulator "
+                                                 "(families.py measures the families')")
     parser.add_argument("--tasks", nargs="+", default=list(TASKS))
     parser.add_argument("--seed-start", type=int, default=100000)
     parser.add_argument("--episodes", type=int, default=50)
@@ -326,7 +310,7 @@ if __name__ == "__main__":
     rates = {}
     for task in args.tasks:
         for variant in VARIANTS[task]:
-            episodes = measure_truth(task, variant, seeds, args.horizon, args.chunk)
+            episodes = [run(Policy(task, variant, seed), task, seed, args.horizon, args.chunk) for seed in seeds]
             rates.setdefault(task, {})[variant] = sum(e.first is not None for e in episodes) / len(episodes)
             print(f"{task:26s} {variant:10s} {100 * rates[task][variant]:5.1f}%", flush=True)
     if args.json:

@@ -1,5 +1,5 @@
-"""Serves policies.py's variants over openpi's websocket protocol, one port per variant, all from
-one asyncio process, for `bwm evaluate`.
+"""Serves policy variants (variants.py: policies.py's and families.py's) over openpi's websocket
+protocol, one port per variant, all from one asyncio process, for `bwm evaluate`.
 
 Protocol (openpi's WebsocketPolicyServer): on connect the server sends msgpack metadata; each
 binary msgpack observation {image key: uint8 [H, W, 3], state key: float32 [4], prompt key: str}
@@ -178,8 +178,9 @@ async def serve(servers: list[VariantServer], host: str, base_port: int, ready: 
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description="policies.py's variants over openpi's websocket protocol, one port each")
-    ap.add_argument("--variants", help="comma-separated (default: every variant the tasks share)")
+    ap = argparse.ArgumentParser(description="policy variants (policies.py's and families.py's) over openpi's websocket "
+                                             "protocol, one port each")
+    ap.add_argument("--variants", help="comma-separated (default: every variant of policies.py the tasks share)")
     ap.add_argument("--tasks", help="comma-separated Meta-World tasks (default: all of policies.VARIANTS)")
     ap.add_argument("--task", dest="tasks", help="same as --tasks")
     ap.add_argument("--host", default="127.0.0.1")
@@ -194,7 +195,8 @@ def main(argv=None) -> None:
     ap.add_argument("--ready", help="JSON file written once every port listens")
     ap.add_argument("--lifetime", type=float, help="exit after this many seconds")
     a = ap.parse_args(argv)
-    from policies import VARIANTS, check_variants, make_policy
+    from policies import VARIANTS
+    from variants import check_variants, make_policy
 
     tasks = a.tasks.split(",") if a.tasks else list(VARIANTS)
     for t in tasks:

@@ -1,4 +1,4 @@
-"""The closed-loop policy study: every policy variant of policies.py run in the world model through
+"""The closed-loop policy study: every policy variant (variants.py: policies.py's and families.py's) run in the world model through
 `bwm evaluate` (policies served by policy_server.py, success decided by judge.py from the
 generated frames) against its true success rate in the simulator on the same placements.
 
@@ -9,11 +9,11 @@ generated frames) against its true success rate in the simulator on the same pla
 Episodes: the first --episodes episodes of each task in the held-out dataset; episode k of a task
 starts from that episode's frame 0 and pose, and the policy's per-episode randomness and the
 simulator's placement both follow that episode's seed (its `seed` in meta/episodes.jsonl).
-Truth: policies.measure_truth over the same seeds (cached in DIR/truth.json: per episode the step
+Truth: variants.measure_truth over the same seeds (cached in DIR/truth.json: per episode the step
 of its first success, null for a failure, and the closest the hand came to the object before it,
-in cm; measured again when the seeds, the variants or the bytes of policies.py, calibration.json or
-mw.py differ from the cached one's, so a variant changed under its name is not scored against its
-old truth). The variants are
+in cm; measured again when the seeds, the variants, the cloned policies or the bytes of
+policies.py, families.py, variants.py, calibration.json or mw.py differ from the cached one's, so a
+variant changed under its name is not scored against its old truth). The variants are
 split over --jobs `bwm evaluate` processes that share the servers (a variant's episodes stay in
 one process, in order, so that the policy server hands out seeds in the dataset's order).
 
@@ -57,12 +57,16 @@ import time
 
 import numpy as np
 
+import families
+import policies
+import variants as known_variants
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 # What the simulator's outcome of a policy variant follows beside its seeds: the variants and
-# their perception (policies.py, families.py, calibration.json) and the simulator's wrapper (mw.py). The truth
+# their perception (policies.py, families.py, variants.py, calibration.json) and the simulator's wrapper (mw.py). The truth
 # and the judge's verdicts on the simulator's frames are cached under their bytes, so a variant
 # changed under the same name is measured again.
-TRUTH_SOURCES = [os.path.join(HERE, name) for name in ("policies.py", "families.py", "calibration.json", "mw.py")]
+TRUTH_SOURCES = [os.path.join(HERE, name) for name in ("policies.py", "families.py", "variants.py", "calibration.json", "mw.py")]
 # The judge's probability at or above which an episode counts as a success (evaluate.toml's
 # judge.threshold, and the same rule on the simulator's frames).
 THRESHOLD = 0.5
@@ -102,9 +106,7 @@ def episodes_by_task(root: str, tasks: list[str], per_task: int) -> dict[str, li
 # --- truth -----------------------------------------------------------------------------------------
 def _truth_job(job):
     task, variant, seeds, horizon, chunk, resolution = job
-    import policies
-
-    episodes = policies.measure_truth(task, variant, seeds, horizon, chunk, resolution)
+    episodes = known_variants.measure_truth(task, variant, seeds, horizon, chunk, resolution)
     return task, variant, [[e.first, round(e.approach_cm, 3)] for e in episodes]
 
 
@@ -144,11 +146,9 @@ def _load_judge(path: str) -> None:
 
 def _judged_job(job):
     task, variant, seeds, horizon, chunk, resolution = job
-    import policies
-
     probs = []
     for seed in seeds:
-        frames = policies.run_episode(task, variant, seed, horizon, chunk, resolution, record=True).frames
+        frames = known_variants.run_episode(task, variant, seed, horizon, chunk, resolution, record=True).frames
         probs.append(_judge.judge({"frames": frames, "task": task, "prompt": task})["success_probability"])
     return task, variant, probs
 
@@ -165,8 +165,6 @@ def judge_simulator(episodes, variants, horizon, chunk, resolution, workers, jud
 
 def _replay_job(job):
     task, variant, runs, resolution = job
-    import policies
-
     return task, variant, {k: [e.first, round(e.approach_cm, 3), [round(float(v), 2) for v in e.nearest_cm]] for k, seed, actions in runs
                            for e in [policies.replay(task, seed, actions, resolution)]}
 
@@ -439,8 +437,6 @@ def summarize(truth: dict, estimates: dict, judged: dict, tasks: list[str], vari
 def family_of(variant: str) -> tuple[str, str]:
     """(family, split) of a variant: families.py's, or `degraded` (development) for policies.py's
     own variants, the scripted expert degraded one way each."""
-    import families
-
     found = families.family_of(variant)
     return (found, families.FAMILIES[found].split) if found is not None else ("degraded", "development")
 
@@ -669,8 +665,6 @@ def split_flags(argv: list[str]) -> tuple[list[str], list[str]]:
 def add_episode_arguments(ap: argparse.ArgumentParser) -> None:
     """The options naming the held-out episodes, the variants and how they run (study.py's and
     teacher.py's)."""
-    import policies
-
     ap.add_argument("--data", required=True, help="held-out dataset from generate.py (seeds never trained on)")
     ap.add_argument("--out", required=True)
     ap.add_argument("--tasks", default=",".join(policies.VARIANTS))
@@ -685,8 +679,6 @@ def add_episode_arguments(ap: argparse.ArgumentParser) -> None:
 
 def tasks_checked(ap: argparse.ArgumentParser, a) -> list[str]:
     """--tasks, each one the policies know."""
-    import policies
-
     tasks = a.tasks.split(",")
     for t in tasks:
         if t not in policies.VARIANTS:
@@ -697,13 +689,10 @@ def tasks_checked(ap: argparse.ArgumentParser, a) -> list[str]:
 def tasks_and_variants(ap: argparse.ArgumentParser, a) -> tuple[list[str], list[str]]:
     """--tasks and --variants checked (every named variant exists for every task; by default the
     variants the tasks share, policies.py's in its order, then every family's of families.py)."""
-    import families
-    import policies
-
     tasks = tasks_checked(ap, a)
     shared = [v for v in policies.VARIANTS[tasks[0]] if all(v in policies.VARIANTS[t] for t in tasks)] + families.variants(tasks=tasks)
     variants = a.variants.split(",") if a.variants else shared
-    problem = policies.check_variants(tasks, variants)
+    problem = known_variants.check_variants(tasks, variants)
     if problem:
         ap.error(f"{problem} (shared named variants: {', '.join(shared)})")
     return tasks, variants
@@ -711,8 +700,6 @@ def tasks_and_variants(ap: argparse.ArgumentParser, a) -> tuple[list[str], list[
 
 def main(argv=None) -> None:
     argv, wm = split_flags(sys.argv[1:] if argv is None else argv)
-    import policies
-
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--judge", help="judge.pt from judge.py train")
     add_episode_arguments(ap)
@@ -755,9 +742,6 @@ def main(argv=None) -> None:
             ap.error(str(e))
     os.makedirs(a.out, exist_ok=True)
     episodes = episodes_by_task(a.data, tasks, a.episodes)
-
-    import families
-
     if not a.rescore:
         # The cloned policies trained once here, in parallel, before the truth measures them and
         # the policy server serves them (which would otherwise train them inside its handlers).

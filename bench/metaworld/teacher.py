@@ -79,10 +79,10 @@ def frame_actions(task: str, commands: np.ndarray) -> np.ndarray:
 
 def _record_job(job):
     task, variant, seeds, horizon, chunk, resolution = job
-    import policies
+    import variants
 
     return task, variant, [(seed, e.first, e.frames, frame_actions(task, e.commands), e.nearest_cm)
-                           for seed in seeds for e in [policies.run_episode(task, variant, seed, horizon, chunk, resolution, record=True)]]
+                           for seed in seeds for e in [variants.run_episode(task, variant, seed, horizon, chunk, resolution, record=True)]]
 
 
 class EpisodeFrames:

@@ -82,10 +82,10 @@ def _dataset_job(job):
 def _variant_job(job):
     task, variant, seed, horizon, chunk, resolution = job
     import mw
-    import policies
+    import variants
 
     # The policies find the object in the frame: at the dataset's resolution, as in the study.
-    e = policies.run_episode(task, variant, seed, horizon, chunk, resolution, record=True)
+    e = variants.run_episode(task, variant, seed, horizon, chunk, resolution, record=True)
     hand = np.concatenate([mw.initial_state(task)[None], e.commands])
     return task, variant, e.first is not None, TELLS[task].measure(hand)
 
@@ -180,13 +180,13 @@ def main(argv=None) -> None:
     ap.add_argument("--workers", type=study.at_least_one, default=os.cpu_count() or 1)
     ap.add_argument("--json", help="write the values and their summary here")
     a = ap.parse_args(argv)
-    import policies
+    from variants import check_variants
 
     tasks = a.tasks.split(",")
     if unknown := [t for t in tasks if t not in TELLS]:
         ap.error(f"no tell for {', '.join(unknown)} (known: {', '.join(TELLS)})")
     variants = [v for v in a.variants.split(",") if v]
-    if problem := policies.check_variants(tasks, variants):
+    if problem := check_variants(tasks, variants):
         ap.error(problem)
     out = measure(a.data, tasks, a.behaviours.split(",") if a.behaviours else None, variants, a.episodes, a.variant_episodes,
                   a.horizon, a.chunk, a.workers)

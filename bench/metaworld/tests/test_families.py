@@ -1,5 +1,6 @@
 """families.py: every family's policies act within the mocap's bounds and repeat themselves for a
-seed, the splits are as declared, unknown names are refused (through policies.py too), a few real
+seed, the splits are as declared, unknown names are refused (through variants.py too, and
+policies.py knows only its own variants: neither it nor families.py imports variants.py), a few real
 simulator episodes per family come out as their variants say, and a cloned policy is trained once
 and then read from the cache (cloned here from 1 or 2 demos, into a temporary cache)."""
 
@@ -17,6 +18,7 @@ os.environ["BWM_POLICY_CACHE"] = CACHE
 import families  # noqa: E402
 import mw  # noqa: E402
 import policies  # noqa: E402
+import variants  # noqa: E402
 
 TINY = dict(demos=1, resolution=64, steps=300)
 
@@ -84,13 +86,13 @@ def test_the_variants_come_in_their_splits_under_unique_safe_names():
     for v in every:
         assert re.fullmatch(r"[a-z0-9][a-z0-9.-]*", v), v
         assert not policies.GRADED.fullmatch(v), v
-        assert policies.check_variants(list(mw.TASKS), [v]) is None, v
+        assert variants.check_variants(list(mw.TASKS), [v]) is None, v
         for task in mw.TASKS:
             assert v in families.FAMILIES[families.family_of(v)].variants[task], (task, v)
     for f in families.FAMILIES.values():
         assert 4 <= len(f.params) <= 6, f.params
     assert families.family_of("expert") is None and families.family_of("lag-6") == "scripted"
-    assert policies.check_variants(list(mw.TASKS), ["expert", "wrong-2cm", "short-2cm", "bc-net-4"]) is None
+    assert variants.check_variants(list(mw.TASKS), ["expert", "wrong-2cm", "short-2cm", "bc-net-4"]) is None
 
 
 def refused(fn, *words):
@@ -109,10 +111,27 @@ def test_unknown_names_are_refused_naming_the_known_ones():
     refused(lambda: families.make_policy("door-open-v3", "lag-6", 0), "door-open-v3", task)
     refused(lambda: families.variants("train"), "'train'", "development", "test")
     refused(lambda: families.learned_policy(task, "svm", 1), "'svm'", "nn", "net")
-    refused(lambda: policies.make_policy(task, "lag-7", 0), "'lag-7'", "expert", "wrong-<d>cm", "families:", "short-2cm")
-    problem = policies.check_variants([task], ["expert", "short-9cm"])
+    refused(lambda: variants.make_policy(task, "lag-7", 0), "'lag-7'", "expert", "wrong-<d>cm", "families:", "short-2cm")
+    problem = variants.check_variants([task], ["expert", "short-9cm"])
     assert "'short-9cm'" in problem and "short-2cm" in problem, problem
-    assert "door-open-v3" in policies.check_variants(["door-open-v3"], ["lag-6"])
+    assert "door-open-v3" in variants.check_variants(["door-open-v3"], ["lag-6"])
+    # policies.py alone knows (and names) its own variants only.
+    try:
+        policies.Policy(task, "lag-6", 0)
+    except ValueError as e:
+        assert "'lag-6'" in str(e) and "wrong-<d>cm" in str(e) and "families" not in str(e) and "bc-nn-1" not in str(e), str(e)
+    else:
+        raise AssertionError("policies.Policy accepted a family's variant")
+
+
+def test_policies_and_families_do_not_import_the_variants_above_them():
+    import subprocess
+
+    here = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
+    for module, absent in (("policies", ("families", "variants")), ("families", ("variants",))):
+        code = f"import sys; import {module}; print([m for m in {absent!r} if m in sys.modules])"
+        out = subprocess.run([sys.executable, "-c", code], cwd=here, capture_output=True, text=True, check=True).stdout
+        assert out.strip() == "[]", (module, out)
 
 
 def test_simulator_episodes_end_as_their_variants_say():
@@ -121,17 +140,17 @@ def test_simulator_episodes_end_as_their_variants_say():
             # Past the boundary opens / presses; 5 cm short never does, nor do the straight
             # approach and a hand wandering within 2 cm; the wanderer that turns to the task at
             # step 80 succeeds.
-            assert policies.run_episode(task, "over-2cm", seed).first is not None, (task, seed)
+            assert variants.run_episode(task, "over-2cm", seed).first is not None, (task, seed)
             for v in ("short-5cm", "straight", "wander-2cm"):
-                e = policies.run_episode(task, v, seed)
+                e = variants.run_episode(task, v, seed)
                 assert e.first is None, (task, v, seed, e.first)
-            assert policies.run_episode(task, "wander-then-80", seed).first is not None, (task, seed)
+            assert variants.run_episode(task, "wander-then-80", seed).first is not None, (task, seed)
             # A quitting policy fails exactly in the episodes it quits in, at least 2 cm short.
             quits = families.make_policy(task, "quit-50", seed).depth < families.BOUNDARY[task] - 0.019
             assert quits == (seed == 100001), (task, seed)
-            assert (policies.run_episode(task, "quit-50", seed).first is None) == quits, (task, seed, quits)
+            assert (variants.run_episode(task, "quit-50", seed).first is None) == quits, (task, seed, quits)
             # The closest approach of a wandering hand: it touches the object.
-            assert policies.run_episode(task, "wander-2cm", seed).approach_cm < 3, (task, seed)
+            assert variants.run_episode(task, "wander-2cm", seed).approach_cm < 3, (task, seed)
 
 
 def test_a_clone_of_one_demo_succeeds_where_the_demo_did_and_acts_elsewhere():

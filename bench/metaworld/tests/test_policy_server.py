@@ -114,7 +114,7 @@ def test_bad_messages_are_answered_and_the_server_survives():
 
 def test_real_policies_answer_a_chunk():
     sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
-    from policies import make_policy
+    from variants import make_policy
 
     ports = start(("expert",), make_policy=make_policy)
     _, replies = episode(ports["expert"], [obs(), obs()])

@@ -14,6 +14,7 @@ import numpy as np
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 import policies  # noqa: E402
 import side_by_side  # noqa: E402
+import variants  # noqa: E402
 
 TASK, SEEDS, SIZE = "drawer-open-v3", [100000, 100001], 32
 
@@ -43,7 +44,7 @@ def make_study(root: str, actions: list, sheet: np.ndarray | None = None) -> Non
 
 
 def test_the_world_models_rows_alternate_with_the_simulators_of_the_same_actions():
-    expert = policies.run_episode(TASK, "expert", SEEDS[0], resolution=SIZE)
+    expert = variants.run_episode(TASK, "expert", SEEDS[0], resolution=SIZE)
     actions = expert.commands[:30].tolist()
     truth = policies.replay(TASK, SEEDS[0], actions, resolution=SIZE, record=True)
     assert truth.frames.shape == (31, SIZE, SIZE, 3) and len(truth.commands) == 30

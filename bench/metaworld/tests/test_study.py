@@ -125,9 +125,10 @@ def test_replayed_actions_split_the_world_models_error_from_the_policies():
 
 def test_a_simulator_episodes_commands_replayed_give_its_outcome():
     import policies
+    import variants
 
     for task, variant, seed in [("drawer-open-v3", "expert", 100000), ("button-press-topdown-v3", "wrong", 100001)]:
-        ran = policies.run_episode(task, variant, seed, horizon=120, chunk=24, resolution=64)
+        ran = variants.run_episode(task, variant, seed, horizon=120, chunk=24, resolution=64)
         again = policies.replay(task, seed, ran.commands.tolist(), resolution=64)
         assert (again.first, again.approach_cm) == (ran.first, ran.approach_cm), (task, variant, ran, again)
         # The study's replay job keeps the same outcome, distance and offset.
@@ -138,7 +139,7 @@ def test_a_simulator_episodes_commands_replayed_give_its_outcome():
     # The expert's opening cut short of its success is a failure; on another placement its
     # commands miss the handle.
     assert ran.first is None
-    expert = policies.run_episode("drawer-open-v3", "expert", 100000, resolution=64)
+    expert = variants.run_episode("drawer-open-v3", "expert", 100000, resolution=64)
     assert expert.first is not None
     assert policies.replay("drawer-open-v3", 100000, expert.commands[: expert.first - 1], resolution=64).first is None
     elsewhere = [policies.replay("drawer-open-v3", s, expert.commands, resolution=64) for s in range(100002, 100010)]

@@ -57,8 +57,8 @@ def test_the_commands_rule_is_the_lowest_best_threshold_of_the_data():
 def test_tells_of_a_dataset_and_of_policies_on_its_placements():
     import generate
     import mw
-    import policies
     import pyarrow.parquet as pq
+    import variants
 
     tasks = list(tells.TELLS)
     with tempfile.TemporaryDirectory() as d:
@@ -81,7 +81,7 @@ def test_tells_of_a_dataset_and_of_policies_on_its_placements():
                 want.setdefault((e["behaviour"], "succeeded" if e["success"] else "failed"), []).append(round(measure(hand), 3))
             assert got == {k: sorted(v) for k, v in want.items()}, (task, got, want)
             # The variant on the task's first two placements, as the study runs it, from the first state.
-            episodes = [policies.run_episode(task, "wrong", e["seed"], 100, 24, 32, record=True) for e in mine[:2]]
+            episodes = [variants.run_episode(task, "wrong", e["seed"], 100, 24, 32, record=True) for e in mine[:2]]
             wrong = out[task]["variants"]["wrong"]
             hands = [np.concatenate([mw.initial_state(task)[None], e.commands]) for e in episodes]
             assert sorted(wrong["failed"] + wrong["succeeded"]) == sorted(round(measure(h), 3) for h in hands)

@@ -4,7 +4,7 @@
 #                 gymnasium, farama-notifications, pyopengl, websockets, safetensors; README of the
 #                 device tool)
 #   .gl           the GL loader debs (libegl1, libglvnd0, libopengl0, ...), for MuJoCo through EGL
-#   .carry/bwm.xz the bwm binary built with --no-default-features (xz: the carry limit is 64 MiB)
+#   .pack/bwm.xz the bwm binary built with --no-default-features (xz: the carry limit is 64 MiB)
 # Usage: bash scripts/gpu/metaworld.sh [STAGE ...]; logs and timings go to $OUT, the run's small
 # outputs to $OUT/run.tar.gz. With no stage, every stage (independent ones side by side); that
 # takes longer than one device call, so run it detached:
@@ -52,7 +52,7 @@ source "$(dirname "$0")/common.sh"
 ) 9> /tmp/metaworld-setup.lock || exit 1
 export MUJOCO_GL=egl PYOPENGL_PLATFORM=egl PYTHONUNBUFFERED=1
 export PYTHONPATH=/tmp/site
-unpack .carry/bwm.xz dist/bwm || exit 1
+unpack .pack/bwm.xz dist/bwm || exit 1
 export BWM="$PWD/dist/bwm" PYTHON=python3
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$OUT/gpu.txt"
 python3 - <<'PY' || exit 1

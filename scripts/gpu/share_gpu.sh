@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Whether two Meta-World recipes can share one GPU (device tool, from the repo root, carry
-# [".carry", ".whl", ".gl"]): the recipe's DiT step (`bwm bench-train`, configs/metaworld.toml at
+# [".pack", ".whl", ".gl"]): the recipe's DiT step (`bwm bench-train`, configs/metaworld.toml at
 # 128x128, 24 future frames) and its graphed VAE step (`bwm train-vae` with the recipe's settings,
 # one candidate, on a small dataset made by the recipe's data stage), each alone and then two at
 # once on the same GPU. Usage: bash scripts/gpu/share_gpu.sh [DIT_STEPS [VAE_STEPS]] (default 300

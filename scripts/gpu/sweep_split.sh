@@ -7,7 +7,7 @@
 # `GPU:SETTING,SETTING,...`; the default spreads the issue's grid over two GPUs, two chains each:
 #   bash scripts/gpu/detached.sh start sw bash scripts/gpu/sweep_split.sh
 #   bash scripts/gpu/detached.sh wait sw 560 runs/metaworld/sweep   (in each call, back to back)
-# Every call of the chain must carry the same paths, [".whl", ".gl", ".carry"]: the device tool
+# Every call of the chain must carry the same paths, [".whl", ".gl", ".pack"]: the device tool
 # removes a carried path that a later call does not name, and a chain started in such a call finds
 # no bwm binary (run 43 of docs/fidelity.md lost five settings so). With a 30-minute device budget,
 # training (about 13 minutes on an H200) and one round of chains (about 5 minutes each) fit; the

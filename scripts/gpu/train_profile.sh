@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# On one H200 (device tool, kind nvidia-h200), from the repo root, carry [".carry",
+# On one H200 (device tool, kind nvidia-h200), from the repo root, carry [".pack",
 # "tests/reference/wheels"]: where the 5B training step's GPU time goes, ours and the reference's
 # in one call, both with every block's activations kept (accumulation 1, bf16 weights, fp32
 # masters and moments, clip 1.0, random weights, 640x480, 1+8+72 frames):
@@ -12,7 +12,7 @@
 set -uo pipefail
 source "$(dirname "${BASH_SOURCE[0]}")/common.sh"
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee "$OUT/gpu.txt"
-unpack .carry/bwm.xz dist/bwm || exit 1
+unpack .pack/bwm.xz dist/bwm || exit 1
 sets=(--set 'run.device="cuda"' --set train.grad_accum=1 --set train.recompute=false)
 for s in ${SET:-}; do sets+=(--set "$s"); done
 mem bwm-profile dist/bwm bench-train --config configs/bwm-wan22-ti2v-5b.toml "${sets[@]}" --steps "${STEPS:-4}" \

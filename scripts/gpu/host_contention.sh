@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # How Meta-World-sized trainings on one host slow each other through libtorch's CPU thread pool
-# (device tool, from the repo root, carry [".pack"]): the recipe's DiT step (`bwm bench-train`,
+# (from the repo root, with .pack copied to the host): the recipe's DiT step (`bwm bench-train`,
 # configs/metaworld.toml at 128x128, 24 future frames) alone on GPU 0 and then one per GPU at
 # once, each with `--cpu-threads N` for every N given (default: nproc, i.e. libtorch's own one per
 # core, 16 and 1). Usage: bash scripts/gpu/host_contention.sh [STEPS [N ...]] (default 150 steps).

@@ -26,6 +26,8 @@ for d in .pack .pack-tests .whl .gl; do
 done
 export CARGO_TARGET_DIR="${CARGO_TARGET_DIR:-$HOME/.cache/bwm-gpu-target}"
 source scripts/env.sh
+# The wheels' versions below are the virtualenv's own: that of the tests' part of the set-up.
+"$BWM_VENV/bin/python" -c 'import websockets, safetensors' 2>/dev/null || bash scripts/setup.sh --tests
 
 pack() { # $1 = executable, $2 = path without .xz (under .pack or .pack-tests): stripped and xz-compressed
   strip -o "$2.tmp" "$1"

@@ -1,4 +1,7 @@
-# The two commands a new user needs (see README.md): `make demo` and `make test`.
+# The two commands a new user needs (see README.md): `make demo` and `make test`. Each installs what
+# it needs when missing (scripts/setup.sh): `make demo` the build's libraries and the virtualenv with
+# libtorch (through scripts/env.sh), `make test` also what only the tests use (Slurm, munge, the
+# ffmpeg command, Mesa's EGL, the Python packages of the tests). `make setup` installs both at once.
 SHELL := /bin/bash
 ENV := source scripts/env.sh
 DEMO_DATA ?= ../shared/data/bwm-demo
@@ -6,7 +9,7 @@ DEMO_VAE_STEPS ?= 300
 
 .PHONY: demo test build setup
 setup:
-	@bash scripts/setup.sh
+	@bash scripts/setup.sh --tests
 
 # The tiny model post-trained on the bundled episodes, on CPU: fit a small VAE (real pixels, on
 # clips as long as the DiT's: x0 + 8 history + 8 future = 17 frames),
@@ -21,9 +24,10 @@ demo: build
 # Every test binary runs even when one fails; one summary line of counts at the end; the tests
 # write under one folder of the run, removed afterwards (scripts/test.sh). The end-to-end tests
 # run the `bwm` binary, which `cargo test` does not build (it belongs to another package): build
-# first, so that `make test` works on a fresh clone without `make build`.
+# first, so that `make test` works on a fresh clone without `make build`; then the tests' own
+# dependencies (scripts/setup.sh --tests).
 test: build
-	@$(ENV) && bash scripts/test.sh
+	@$(ENV) && bash scripts/setup.sh --tests && bash scripts/test.sh
 
 build:
 	@$(ENV) && cargo build --release -p bwm-cli

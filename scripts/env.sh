@@ -1,5 +1,5 @@
-# Source this file: it makes sure the virtualenv exists (scripts/setup.sh) and exports what cargo
-# and the built binaries need to find libtorch. Respects BWM_VENV and CARGO_TARGET_DIR.
+# Source this file: it makes sure the build's packages and the virtualenv exist (scripts/setup.sh,
+# without the tests' part) and exports what cargo and the built binaries need to find libtorch. Respects BWM_VENV and CARGO_TARGET_DIR.
 BWM_ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 export BWM_VENV="${BWM_VENV:-$BWM_ROOT/.venv}"
 bash "$BWM_ROOT/scripts/setup.sh" || return 1 2>/dev/null || exit 1

@@ -1,4 +1,4 @@
-//! The lent-GPU orchestration scripts on the CPU: scripts/gpu/variants.sh with a stub recipe and a
+//! The GPU hosts' orchestration scripts on the CPU: scripts/gpu/variants.sh with a stub recipe and a
 //! stub nvidia-smi (which variants make data, which share it, and when they start),
 //! scripts/gpu/metaworld-stages.sh over a stub bench/metaworld/recipe.sh (which judge each stage
 //! and study gets, and where each study writes), scripts/gpu/sweep_split.sh over a stub
@@ -534,12 +534,12 @@ fn the_fp8_timing_sets_each_step_against_the_reference_of_the_same_call() {
         fs::create_dir_all(d.join("scripts/gpu")).unwrap();
         fs::copy(Path::new(ROOT).join("scripts/gpu").join(f), d.join("scripts/gpu").join(f)).unwrap();
     }
-    // A stub bwm (as carry.sh packs it) whose FP8 step is the faster, a stub reference and nvidia-smi.
+    // A stub bwm (as pack.sh packs it) whose FP8 step is the faster, a stub reference and nvidia-smi.
     fs::create_dir_all(d.join("stub")).unwrap();
     let bwm = d.join("stub/bwm");
     write_executable(&bwm, "#!/bin/sh\ncase \"$*\" in *train.fp8=true*) s=0.410 ;; *) s=0.448 ;; esac\necho \"breakdown of a $s s step (1 micro-batches of 1)\"\n");
-    fs::create_dir_all(d.join(".carry")).unwrap();
-    let packed = Command::new("sh").arg("-c").arg(format!("xz -c {} > {}", bwm.display(), d.join(".carry/bwm.xz").display())).status().unwrap();
+    fs::create_dir_all(d.join(".pack")).unwrap();
+    let packed = Command::new("sh").arg("-c").arg(format!("xz -c {} > {}", bwm.display(), d.join(".pack/bwm.xz").display())).status().unwrap();
     assert!(packed.success());
     write_executable(&d.join("stub/nvidia-smi"), "#!/bin/sh\necho 100\n");
     fs::create_dir_all(d.join("tests/reference")).unwrap();
@@ -599,10 +599,10 @@ fn unit_sh_fails_where_cuda_is_missing() {
     write_executable(&stand_in, &format!("#!/bin/sh\nexec '{}' needs_cuda_as_the_gpu_unit_tests_do --exact \"$@\"\n", exe.display()));
     let no_test = d.join("stub/test-trainer");
     write_executable(&no_test, "#!/bin/sh\necho 'running 0 tests'\necho 'test result: ok. 0 passed; 0 failed; 0 ignored; 0 measured; 7 filtered out; finished in 0.00s'\n");
-    fs::create_dir_all(d.join(".carry-tests")).unwrap();
+    fs::create_dir_all(d.join(".pack-tests")).unwrap();
     for stub in [&stand_in, &no_test] {
         let name = stub.file_name().unwrap().to_str().unwrap();
-        let packed = Command::new("sh").arg("-c").arg(format!("xz -c '{}' > '.carry-tests/{name}.xz'", stub.display())).current_dir(d).status().unwrap();
+        let packed = Command::new("sh").arg("-c").arg(format!("xz -c '{}' > '.pack-tests/{name}.xz'", stub.display())).current_dir(d).status().unwrap();
         assert!(packed.success());
     }
     let out = Command::new("bash")

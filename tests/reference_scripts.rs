@@ -31,7 +31,7 @@ fn reference_step(py: &std::path::Path, extra: &[&str]) -> (u64, u64) {
 
 #[test]
 fn the_reference_trains_lora_adapters_on_every_attention_and_ffn_linear() {
-    // DiffSynth and peft in the project's virtualenv (scripts/setup.sh): else a failure where
+    // DiffSynth and peft in the project's virtualenv (scripts/setup.sh --tests): else a failure where
     // BWM_REQUIRE names reference (CI), a logged skip elsewhere.
     let Some(py) = bwm_testdir::python_with(bwm_testdir::Dep::Reference, &["diffsynth", "peft"]) else { return };
     let (all, trained) = reference_step(&py, &["--mode", "plain"]);

@@ -41,7 +41,7 @@ fn cluster_missing() -> Option<String> {
 fn find_cluster_missing() -> Option<String> {
     let slurm: Vec<&str> = ["sbatch", "scontrol", "scancel", "sinfo", "slurmctld", "slurmd", "munged", "mungekey"].into_iter().filter(|p| !on_path(p)).collect();
     if !slurm.is_empty() {
-        return Some(format!("{} not on PATH (scripts/setup.sh installs slurm-wlm and munge)", slurm.join(", ")));
+        return Some(format!("{} not on PATH (scripts/setup.sh --tests installs slurm-wlm and munge)", slurm.join(", ")));
     }
     let tools: Vec<&str> = ["ip", "nsenter", "unshare", "flock"].into_iter().filter(|p| !on_path(p)).collect();
     if !tools.is_empty() {

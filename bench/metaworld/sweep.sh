@@ -9,7 +9,7 @@
 # or "euler-4-streams2" (the episodes in flight of `bwm fidelity` and of each `bwm evaluate` in 2
 # lanes on CUDA streams of their own: the same sampler, timed), measured after the rest. Each
 # setting's stages are timed (by the recipe) into its folder's timings.tsv (the table's last column). Settings
-# already measured are skipped, so the sweep can run over several device calls. SETTINGS (e.g. "euler-8 euler-12") measures those settings alone and
+# already measured are skipped, so the sweep can run over several commands or sessions. SETTINGS (e.g. "euler-8 euler-12") measures those settings alone and
 # leaves the table out: a share of the sweep for one GPU of several, e.g.
 #   CUDA_VISIBLE_DEVICES=1 SETTINGS="euler-8 euler-12" bash bench/metaworld/sweep.sh &
 # with the baseline among the shares; a last plain `bash bench/metaworld/sweep.sh` (STEPS and

@@ -3,7 +3,7 @@
 //! (`bwm_forward` of shared/golden/make_golden.py) on the exported weights matches the Rust forward.
 //!
 //! Needs the project virtualenv with `diffsynth==2.0.11`, `diffusers` and `einops` (scripts/setup.sh
-//! installs them; run through `source scripts/env.sh`) and `../shared/golden/make_golden.py`:
+//! --tests installs them; run through `source scripts/env.sh`) and `../shared/golden/make_golden.py`:
 //! without them the test fails where BWM_REQUIRE names reference (CI sets `all`) and is logged as
 //! skipped elsewhere (`bwm_testdir::need`).
 

@@ -1,12 +1,12 @@
 #!/usr/bin/env bash
-# On one GPU machine (device tool), from the repo root, with the bwm binary carried as
-# scripts/gpu/carry.sh packs it (.carry/bwm.xz): the attention kernels of libtorch 2.11 on the 5B's
+# On one GPU of a CUDA host, from the repo root, with the bwm binary copied there as
+# scripts/gpu/pack.sh packs it (.pack/bwm.xz): the attention kernels of libtorch 2.11 on the 5B's
 # shapes (scripts/gpu/sdpa_backends.py), then `bwm bench-rollout` (5B, random weights, 640x480,
 # x0 + 8 history, 72 frames, STEPS sampler steps, 2 chunks) under each --sdp-backend in BACKENDS.
-#   run(carry=[".carry"], kind="nvidia-h100-x1", command="bash scripts/gpu/attention.sh")
+#   bash scripts/gpu/attention.sh   (measured on one H100)
 set -uo pipefail
 source "$(dirname "${BASH_SOURCE[0]}")/common.sh"
-unpack .carry/bwm.xz dist/bwm || exit 1
+unpack .pack/bwm.xz dist/bwm || exit 1
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$OUT/gpu.txt"
 python3 scripts/gpu/sdpa_backends.py 2>&1 | tee "$OUT/sdpa_backends.log"
 for b in ${BACKENDS:-auto cudnn efficient}; do

@@ -26,7 +26,7 @@ second_half_median() { # $1 = a figure's unit in a log (s/step, samples/s), $2 =
   awk -v u="$1" '{ for (i = 1; i < NF; i++) if ($(i+1) == u) print $i }' "$2" | tail -n "$half" | sort -g \
     | awk -v half="$half" -v n="$n" '{ v[NR] = $1 } END { print (NR ? v[int((NR + 1) / 2)] : "none"), half, n }'
 }
-unpack() { # $1 = an xz-packed executable (.carry/bwm.xz), $2 = where it goes (dist/bwm). Unpacked beside
+unpack() { # $1 = an xz-packed executable (.pack/bwm.xz), $2 = where it goes (dist/bwm). Unpacked beside
   # and renamed into place: writing over a binary that another script on the host is running fails
   # ("Text file busy"), a rename does not.
   mkdir -p "$(dirname "$2")" && xz -dc "$1" > "$2.$$" && chmod +x "$2.$$" && mv -f "$2.$$" "$2" ||

@@ -1,4 +1,4 @@
-"""On one GPU (device tool), from the repository root, with tests/reference/wheels carried: does
+"""On one GPU, from the repository root, with tests/reference/wheels copied to the host: does
 the channels-last 3D layout (NDHWC) speed up the Wan2.2 VAE's convolutions and decode? Times one
 3x3x3 convolution at the decoder's three widths in both layouts (cuDNN autotuning off and on),
 then DiffSynth's WanVideoVAE38 (random weights, bf16) decoding 21 latents of a 640x480 chunk with

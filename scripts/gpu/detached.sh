@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Work longer than one device call (10 minutes) on a lent GPU machine: the device tool keeps a
-# process that started its own session running until the machine goes back, so
+# Work longer than one remote command may run (a shell session or batch job with a time limit,
+# e.g. 10 minutes) on a GPU host where a process that started its own session keeps running after
+# that command ends, so
 #   bash scripts/gpu/detached.sh start NAME CMD [ARG ...]   runs CMD detached (setsid), its output
 #                                                          and exit status in /tmp/detached/NAME/,
 #                                                          and $OUT pointed at /tmp/detached/NAME/out
@@ -15,7 +16,7 @@
 #                                                          $OUT/NAME-videos.tar.gz, both partial if
 #                                                          CMD is still running (then with the last line
 #                                                          of each log in the out folder)
-# Calls that follow each other within the machine's idle time find the same process. `wait` exits 0
+# Commands that follow each other on the same host find the same process. `wait` exits 0
 # when CMD ended with 0, 1 when it failed, 3 while it is still running.
 set -uo pipefail
 usage() { echo "usage: detached.sh start NAME CMD [ARG ...] | wait NAME SECONDS [DIR ...]" >&2; exit 2; }
@@ -50,8 +51,8 @@ case "$mode" in
     rm -rf "$dir/pack"; mkdir -p "$dir/pack"; cp -r "$dir/out" "$dir/pack/out"
     rm -rf "$dir/videos"; mkdir -p "$dir/videos"
     # The first episode of each videos/ folder (or those VIDEOS picks) goes in an archive of its
-    # own, as many as fit in 14 MiB (files over the device tool's 16 MiB limit do not come back,
-    # and the measurements must).
+    # own, as many as fit in 14 MiB (where results are copied back with a limit on a file's
+    # size, e.g. 16 MiB, the measurements must still come back).
     videos="${VIDEOS:-*/videos/*/episode_000.*}"
     video_bytes=0 video_left=0
     for d in "$@"; do
@@ -68,7 +69,7 @@ case "$mode" in
     done
     [ "$video_left" -gt 0 ] && echo "detached: $video_left episode videos left out of $name-videos.tar.gz (over 14 MiB in all)"
     tar -czf "${OUT:-/tmp/out}/$name.tar.gz" -C "$dir/pack" .
-    # Over the device tool's 16 MiB a file does not come back.
+    # Over 16 MiB a file may not come back (as above).
     if [ "$(stat -c %s "${OUT:-/tmp/out}/$name.tar.gz")" -gt $((15 << 20)) ]; then
       split -b 15M -d "${OUT:-/tmp/out}/$name.tar.gz" "${OUT:-/tmp/out}/$name.tar.gz.part-" && rm "${OUT:-/tmp/out}/$name.tar.gz"
       echo "detached: $name.tar.gz over 15 MiB, in parts: cat $name.tar.gz.part-* | tar -xz"
@@ -78,8 +79,8 @@ case "$mode" in
       rc=$(cat "$dir/rc"); echo "detached: $name ended with status $rc"
       [ "$rc" = 0 ] && exit 0 || exit 1
     fi
-    # Where each log under the out folder stands, so that the next call can follow at once (a
-    # machine idle for 30 s between calls goes back, and the run with it).
+    # Where each log under the out folder stands, so that the next command can follow at once (a
+    # host released when idle between commands ends the run with it).
     for f in "$dir"/out/*.log "$dir"/out/*/log; do
       [ -s "$f" ] && echo "detached: ${f#"$dir/out/"}: $(tr '\r' '\n' < "$f" | grep -v '^[[:space:]]*$' | tail -1 | cut -c1-160)"
     done

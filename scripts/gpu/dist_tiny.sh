@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# On a 2-GPU machine (device tool, kind nvidia-h200-x2), from the repo root, with dist/bwm and a
-# latent cache of the tiny config in runs/tiny/latents (carry: ["dist", "runs/tiny/latents"]).
+# On a CUDA host of 2 GPUs (measured on two H200s), from the repo root, with dist/bwm and a
+# latent cache of the tiny config in runs/tiny/latents (both copied to the host).
 # 1. NCCL parity: the tiny config in f32 trained 3 steps by 2 ranks over NCCL (`bwm launch`); the
 #    final weights land in $OUT/nccl-model.safetensors to compare with the same run over TCP on the
 #    CPU (scripts/gpu/compare_tiny.sh does that on the development machine).

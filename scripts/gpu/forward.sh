@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# On the GPU machine (device tool), from the repo root, with the binaries copied into dist/:
+# On the GPU machine, from the repo root, with the binaries copied into dist/:
 #   dist/bwm and dist/cuda_parity (the test binary of tests/cuda_parity.rs).
 # Runs the CUDA-vs-CPU parity test, then the 5B forward benchmark while sampling GPU memory.
 set -uo pipefail

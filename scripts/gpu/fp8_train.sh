@@ -1,16 +1,16 @@
 #!/usr/bin/env bash
-# On one GPU machine (device tool), from the repo root, with the bwm binary carried as
-# scripts/gpu/carry.sh packs it (.carry/bwm.xz). Times the 5B training step (random init, 640x480,
+# On one GPU of a CUDA host, from the repo root, with the bwm binary copied there as
+# scripts/gpu/pack.sh packs it (.pack/bwm.xz). Times the 5B training step (random init, 640x480,
 # 1+8+72 frames, batch 1, AdamW with fp32 masters; recomputation as RECOMPUTE, default on) with the
 # DiT blocks' linear layers in bf16 and then in FP8 (`train.fp8`), one after the other on the same
 # GPU, each with its breakdown (attention, linear layers, the rest) and its peak memory.
-# REFERENCE=1 (carry "tests/reference/wheels" too) then times the reference's best configuration
-# in the same call (tests/reference/run_gpu.sh train, checkpointing off) and prints each step
+# REFERENCE=1 (tests/reference/wheels copied too) then times the reference's best configuration
+# in the same run (tests/reference/run_gpu.sh train, checkpointing off) and prints each step
 # against it (the issue's targets: bf16 1.35x, FP8 1.7x). Each step is bench-train's median of
 # its timed steps (its breakdown's first line).
 set -uo pipefail
 source "$(dirname "${BASH_SOURCE[0]}")/common.sh"
-unpack .carry/bwm.xz dist/bwm || exit 1
+unpack .pack/bwm.xz dist/bwm || exit 1
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee "$OUT/gpu.txt"
 for mode in bf16 fp8; do
   sets=(--set 'run.device="cuda"' --set train.grad_accum=1 --set "train.recompute=${RECOMPUTE:-true}")

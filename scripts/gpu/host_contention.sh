@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # How Meta-World-sized trainings on one host slow each other through libtorch's CPU thread pool
-# (device tool, from the repo root, carry [".carry"]): the recipe's DiT step (`bwm bench-train`,
+# (from the repo root, with .pack copied to the host): the recipe's DiT step (`bwm bench-train`,
 # configs/metaworld.toml at 128x128, 24 future frames) alone on GPU 0 and then one per GPU at
 # once, each with `--cpu-threads N` for every N given (default: nproc, i.e. libtorch's own one per
 # core, 16 and 1). Usage: bash scripts/gpu/host_contention.sh [STEPS [N ...]] (default 150 steps).
@@ -10,7 +10,7 @@ set -uo pipefail
 source "$(dirname "$0")/common.sh"
 steps=${1:-150}; shift || true
 threads=("$@"); [ ${#threads[@]} -gt 0 ] || threads=("$(nproc)" 16 1)
-unpack .carry/bwm.xz dist/bwm || exit 1
+unpack .pack/bwm.xz dist/bwm || exit 1
 gpus=$(nvidia-smi -L | wc -l)
 bench() { # $1 = name, $2 = GPU, $3 = CPU threads
   CUDA_VISIBLE_DEVICES=$2 dist/bwm --cpu-threads "$3" bench-train --config configs/metaworld.toml \

@@ -1,18 +1,18 @@
 #!/usr/bin/env bash
-# On one GPU machine (device tool; the LoRA issue asks for kind nvidia-h100-x1), from the repo
-# root, with the bwm binary carried as scripts/gpu/carry.sh packs it (.carry/bwm.xz). Times the
+# On one GPU of a CUDA host (the LoRA issue asks for one H100), from the repo
+# root, with the bwm binary copied there as scripts/gpu/pack.sh packs it (.pack/bwm.xz). Times the
 # 5B training step with LoRA rank 64 on every attention and FFN linear (the README's override:
 # adapters and the action encoder trained, the base frozen in bf16), and with FULL=1 full
 # fine-tuning beside it, at 640x480, 1+8+72 frames, batch 1, random weights, while sampling GPU memory.
-#   run(carry=[".carry"], kind="nvidia-h100-x1", command="bash scripts/gpu/lora.sh")
+#   bash scripts/gpu/lora.sh
 # RECOMPUTE=false times LoRA without recomputation too; STEPS (default 5) steps each. With the
-# reference wheels carried (tests/reference/fetch_wheels.sh), DiffSynth's LoRA training of the same
-# model and shapes runs after it in the same call (tests/reference/run_gpu.sh lora-plain lora):
-#   run(carry=[".carry", "tests/reference/wheels"], kind="nvidia-h100-x1", command="bash scripts/gpu/lora.sh")
-#   run(carry=[".carry"], kind="nvidia-h200", command="FULL=1 bash scripts/gpu/lora.sh")
+# reference wheels copied too (tests/reference/fetch_wheels.sh), DiffSynth's LoRA training of the same
+# model and shapes runs after it in the same run (tests/reference/run_gpu.sh lora-plain lora):
+#   bash scripts/gpu/lora.sh            (.pack and tests/reference/wheels copied; one H100)
+#   FULL=1 bash scripts/gpu/lora.sh     (full fine-tuning needs an H200's memory)
 set -uo pipefail
 source "$(dirname "${BASH_SOURCE[0]}")/common.sh"
-unpack .carry/bwm.xz dist/bwm || exit 1
+unpack .pack/bwm.xz dist/bwm || exit 1
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee "$OUT/gpu.txt"
 LORA=(--set 'model.lora={rank=64, targets=["blocks.*.self_attn.*", "blocks.*.cross_attn.*", "blocks.*.ffn.*"]}'
       --set 'train.trainable=["*.lora_A.weight", "*.lora_B.weight", "action_encoder.*"]')

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The Meta-World recipe's stages in the order scripts/gpu/metaworld.sh runs them, once that has set
-# the lent machine up (its header says which stages and variables; it execs this). Apart so that the
+# the GPU host up (its header says which stages and variables; it execs this). Apart so that the
 # CPU tests run the orchestration over a stub recipe (tests/gpu_scripts.rs). Needs $BWM and $PYTHON
 # as recipe.sh does; logs go to $OUT.
 set -uo pipefail

@@ -1,19 +1,19 @@
 #!/usr/bin/env bash
-# bench/metaworld/recipe.sh on a lent GPU machine (device tool), from the repo root. Carry:
+# bench/metaworld/recipe.sh on a CUDA host without the toolchain, from the repo root, with these
+# copied there (scripts/gpu/pack.sh packs them):
 #   .whl          bench/metaworld's wheels for that machine's Python 3.12 (metaworld, mujoco,
-#                 gymnasium, farama-notifications, pyopengl, websockets, safetensors; README of the
-#                 device tool)
+#                 gymnasium, farama-notifications, pyopengl, websockets, safetensors)
 #   .gl           the GL loader debs (libegl1, libglvnd0, libopengl0, ...), for MuJoCo through EGL
-#   .carry/bwm.xz the bwm binary built with --no-default-features (xz: the carry limit is 64 MiB)
+#   .pack/bwm.xz  the bwm binary built with --no-default-features (xz-compressed)
 # Usage: bash scripts/gpu/metaworld.sh [STAGE ...]; logs and timings go to $OUT, the run's small
-# outputs to $OUT/run.tar.gz. With no stage, every stage (independent ones side by side); that
-# takes longer than one device call, so run it detached:
+# outputs to $OUT/run.tar.gz. With no stage, every stage (independent ones side by side); where
+# a remote command is limited in time (10 minutes), run it detached:
 #   bash scripts/gpu/detached.sh start mw bash scripts/gpu/metaworld.sh; bash scripts/gpu/detached.sh wait mw 570 runs/metaworld/study runs/metaworld/probe
-# and the same `wait` in the calls that follow, back to back (a machine idle between calls goes
-# back, and one held 30 minutes goes back when the call in flight ends). With the recipe's defaults
+# and the same `wait` in the commands that follow, back to back (on a host released when idle
+# between commands or after 30 minutes, the run ends with it). With the recipe's defaults
 # (128x128, a DiT of width 768) data to trained model takes about 17 minutes on an H200, the study
-# 5-6 more, the fidelity stage about 20 (beside the studies) and the probe about 4: four calls,
-# the last started before minute 30 (run 12 of docs/fidelity.md). SKIP_FIDELITY=1 leaves out
+# 5-6 more, the fidelity stage about 20 (beside the studies) and the probe about 4: four
+# 10-minute waits, the last started before minute 30 (run 12 of docs/fidelity.md). SKIP_FIDELITY=1 leaves out
 # the fidelity stage (which otherwise runs beside the study and slows it); SKIP_PROBE=1 the probe
 # (graded `wrong` variants, after the study); TEACHER=1 adds the teacher stage after the study
 # (each chunk drawn from the simulator's real history: $RUN/teacher/teacher.json; TEACHER_VARIANTS
@@ -52,7 +52,7 @@ source "$(dirname "$0")/common.sh"
 ) 9> /tmp/metaworld-setup.lock || exit 1
 export MUJOCO_GL=egl PYOPENGL_PLATFORM=egl PYTHONUNBUFFERED=1
 export PYTHONPATH=/tmp/site
-unpack .carry/bwm.xz dist/bwm || exit 1
+unpack .pack/bwm.xz dist/bwm || exit 1
 export BWM="$PWD/dist/bwm" PYTHON=python3
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$OUT/gpu.txt"
 python3 - <<'PY' || exit 1

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# On one GPU (device tool), from the repo root, with dist/bwm and runs/gpu-images carried (made by
+# On one GPU, from the repo root, with dist/bwm and runs/gpu-images copied to the host (made by
 # `python3 scripts/gpu/make_image_dataset.py runs/gpu-images`: the 3 bundled episodes, 120 frames
 # each, 640x480 JPEG frames inside LeRobot v2.1 parquet files, since the GPU machines have no FFmpeg).
 # Times `bwm prepare` of 81-frame clips (x0 + 8 history + 72 future, stride 8: 18 clips) at

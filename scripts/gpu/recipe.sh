@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# The paper's per-GPU recipe shape on all GPUs of one machine (device tool, kind nvidia-h200-x4 or
-# -x8), from the repo root, with dist/bwm built without FFmpeg/HDF5: 5B, 640x480, 1+8+72 frames,
+# The paper's per-GPU recipe shape on all GPUs of one CUDA host (measured on four and eight
+# H200s), from the repo root, with dist/bwm built without FFmpeg/HDF5: 5B, 640x480, 1+8+72 frames,
 # micro-batch 1 per GPU, accumulation 4, sharded optimizer state, recomputation on, random init.
 # First the same on GPU 0 alone (the scaling baseline), then `bwm launch` over every GPU.
 # OVERLAP=false reduces the gradients after the backward walk instead of during it.

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# On one GPU (device tool), from the repo root, with dist/bwm built without FFmpeg/HDF5: one rollout
+# On one GPU, from the repo root, with dist/bwm built without FFmpeg/HDF5: one rollout
 # chunk of the 5B world model at 640x480 (x0 + 8 history frames, 72 generated frames, 50 Euler
 # steps, bf16) on random weights and a random full-width Wan2.2 VAE (RESIDUAL=model: the DiT's
 # residual stream in bf16; SAMPLE_STEPS and SOLVER the sampler; FP8=tensor|row the DiT blocks'

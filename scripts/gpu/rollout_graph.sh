@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# On one GPU (device tool), from the repo root, carry [".carry"]: rollout chunks with the sampler's
+# On one GPU, from the repo root, with .pack copied to the host: rollout chunks with the sampler's
 # forward pass eager and replayed from a CUDA graph (`--cuda-graph`), for the 5B at 640x480 (x0 + 8
 # history, 72 frames, as scripts/gpu/rollout.sh) and for a model of the Meta-World recipe's size
 # (configs/metaworld.toml's [model] on random weights, 128x128, x0 + 8 history, 24 frames; the
@@ -9,7 +9,7 @@
 # $OUT/graph-*.log.
 set -uo pipefail
 source "$(dirname "$0")/common.sh"
-unpack .carry/bwm.xz dist/bwm || exit 1
+unpack .pack/bwm.xz dist/bwm || exit 1
 for steps in ${STEPS:-4 20}; do
   for g in 0 1; do
     [[ " ${MODELS:-5b mw} " == *" 5b "* ]] || break

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Whether two Meta-World recipes can share one GPU (device tool, from the repo root, carry
-# [".carry", ".whl", ".gl"]): the recipe's DiT step (`bwm bench-train`, configs/metaworld.toml at
+# Whether two Meta-World recipes can share one GPU (from the repo root, with .pack, .whl and .gl
+# copied to the host): the recipe's DiT step (`bwm bench-train`, configs/metaworld.toml at
 # 128x128, 24 future frames) and its graphed VAE step (`bwm train-vae` with the recipe's settings,
 # one candidate, on a small dataset made by the recipe's data stage), each alone and then two at
 # once on the same GPU. Usage: bash scripts/gpu/share_gpu.sh [DIT_STEPS [VAE_STEPS]] (default 300
@@ -10,8 +10,8 @@ set -uo pipefail
 source "$(dirname "$0")/common.sh"
 dit_steps=${1:-300}
 vae_steps=${2:-200}
-# The data stage's own outputs (recipe.log, run.tar.gz) stay out of $OUT: the device tool brings
-# back a limited number of files.
+# The data stage's own outputs (recipe.log, run.tar.gz) stay out of $OUT: keeps the results
+# to copy back few.
 mkdir -p /tmp/share-gpu/times
 OUT=/tmp/share-gpu/data-out RUN=/tmp/share-gpu TRAIN_EPISODES=20 VAL_EPISODES=2 WORKERS="$(nproc)" bash "$(dirname "$0")/metaworld.sh" data > "$OUT/data.log" 2>&1 \
   || { tail -20 "$OUT/data.log"; exit 1; }

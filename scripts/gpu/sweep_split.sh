@@ -1,19 +1,19 @@
 #!/usr/bin/env bash
-# The sampler sweep (bench/metaworld/sweep.sh) over the GPUs of one lent host, from the repo root,
+# The sampler sweep (bench/metaworld/sweep.sh) over the GPUs of one host, from the repo root,
 # run detached: the first chain of settings trains the recipe's model on its GPU
 # (`scripts/gpu/metaworld.sh sweep`, stages up to train, truth and judge) and then measures its
 # settings; once the model is trained, the simulator's truth and the judge's verdicts are copied
 # into every other setting's study folder and the other chains start beside it. Each chain is
 # `GPU:SETTING,SETTING,...`; the default spreads the issue's grid over two GPUs, two chains each:
 #   bash scripts/gpu/detached.sh start sw bash scripts/gpu/sweep_split.sh
-#   bash scripts/gpu/detached.sh wait sw 560 runs/metaworld/sweep   (in each call, back to back)
-# Every call of the chain must carry the same paths, [".whl", ".gl", ".carry"]: the device tool
-# removes a carried path that a later call does not name, and a chain started in such a call finds
-# no bwm binary (run 43 of docs/fidelity.md lost five settings so). With a 30-minute device budget,
+#   bash scripts/gpu/detached.sh wait sw 560 runs/metaworld/sweep   (in each command, back to back)
+# .whl, .gl and .pack must stay on the host until the last chain ends: a chain started after
+# they were removed finds no bwm binary (run 43 of docs/fidelity.md lost five settings so). In 30
+# minutes of GPU time,
 # training (about 13 minutes on an H200) and one round of chains (about 5 minutes each) fit; the
 # second settings of the chains may not. SWEEP_EPISODES (default here 10 per task) and the
 # recipe's variables apply; the table: `python3 bench/metaworld/sweep.py $RUN/sweep` on the
-# returned folders.
+# folders copied back.
 set -uo pipefail
 R=${RUN:-runs/metaworld}
 export RUN=$R SWEEP_EPISODES=${SWEEP_EPISODES:-10}

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# On one GPU machine (device tool, kind nvidia-h200), from the repo root, with dist/bwm built
+# On one GPU of a CUDA host (an H200), from the repo root, with dist/bwm built
 # without FFmpeg/HDF5 (`cargo build --release -p bwm-cli --no-default-features`, stripped).
 # Times the real 5B training step (random init, 640x480, 1+8+72 frames, batch 1, recomputation on,
 # AdamW with fp32 masters) while sampling GPU memory.

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# On one H200 (device tool, kind nvidia-h200, carry ["dist"]), from the repo root: the 5B training
+# On one H200 (dist/ copied to the host), from the repo root: the 5B training
 # step (640x480, 1+8+72 frames, batch 1, accumulation 1, random weights) with its breakdown, for
 # each setting of RUNS, logged to $OUT/NAME.log.
 #   RUNS  space-separated NAME:BINARY:RESIDUAL:KEEP, e.g. "before:bwm-old:f32:0 after:bwm:model:30"

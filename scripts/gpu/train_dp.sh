@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# On a 2-GPU machine (device tool, kind nvidia-h200-x2), from the repo root, with dist/bwm built
+# On a CUDA host of 2 GPUs (measured on two H200s), from the repo root, with dist/bwm built
 # without FFmpeg/HDF5. The 5B training step on one GPU, then data-parallel over NCCL: `bwm launch`
 # starts one rank per GPU (torchrun's variables, NCCL_NVLS_ENABLE=0, a libnccl.so link to the torch
 # wheel's NCCL), each running the real training step on random weights (identical on both ranks,

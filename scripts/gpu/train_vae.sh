@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
-# On one GPU machine (device tool), from the repo root, with dist/bwm (built without FFmpeg) and the
+# On one GPU of a CUDA host, from the repo root, with dist/bwm (built without FFmpeg) and the
 # frames dumped here (this machine has FFmpeg) by
 #   bwm train-vae --resolution 256x192 --dump-frames dist/vae/frames-256x192.safetensors
-#   gzip dist/vae/frames-256x192.safetensors        # optional: keeps the carried tree under 64 MiB
+#   gzip dist/vae/frames-256x192.safetensors        # optional: a smaller copy to the host
 # (default split: the last 20% of every bundled episode held out). Fits small VAEs on the GPU, side
 # by side, and reports each one's held-out reconstruction PSNR.
 #   RUNS     space-separated RES:DIM:CROP:BATCH settings, e.g. "256x192:32:128x96:8 192x144:32:96x64:8"

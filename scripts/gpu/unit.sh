@@ -14,7 +14,7 @@
 # Nothing is optional here: BWM_REQUIRE=all (common.sh), so a test whose CUDA device, NCCL or
 # second GPU is missing fails instead of skipping, and a test binary that runs no test (a filter
 # that matches nothing) fails too: a binary that failed to link libtorch_cuda cannot pass.
-# From the repo root of a lent machine, carry [".carry-tests"] as scripts/gpu/carry.sh prepares
+# From the repo root of a CUDA host, with .pack-tests copied there as scripts/gpu/pack.sh prepares
 # it (the groups asked for need only their own test-*.xz):
 #   bash scripts/gpu/unit.sh [GROUP ...]
 # GROUP: `vae` (cuda-graph's tests and the VAE's graphed training: what the recipe's VAE_GRAPH
@@ -29,7 +29,7 @@ set -uo pipefail
 source "$(dirname "$0")/common.sh"
 all=(vae dit rollout optim fused fp8 nccl)
 groups=("$@"); [ ${#groups[@]} -gt 0 ] || groups=("${all[@]}")
-crates=()  # the groups' own test binaries: only those need to travel
+crates=()  # the groups' own test binaries: only those need to be on the host
 for g in "${groups[@]}"; do
   case "$g" in
     vae) crates+=(cuda-graph trainer) ;; dit) crates+=(training) ;; rollout) crates+=(inference) ;;
@@ -64,8 +64,8 @@ mkdir -p dist
 status=0
 {
   for crate in $(printf '%s\n' "${crates[@]}" | sort -u); do
-    [ -f ".carry-tests/test-$crate.xz" ] || { echo "unit: .carry-tests/test-$crate.xz is missing (scripts/gpu/carry.sh --rebuild; carry [\".carry-tests\"])"; exit 2; }
-    unpack ".carry-tests/test-$crate.xz" "dist/test-$crate" || exit 2
+    [ -f ".pack-tests/test-$crate.xz" ] || { echo "unit: .pack-tests/test-$crate.xz is missing (scripts/gpu/pack.sh --rebuild, then copy .pack-tests here)"; exit 2; }
+    unpack ".pack-tests/test-$crate.xz" "dist/test-$crate" || exit 2
   done
   for g in "${groups[@]}"; do
     # One test at a time: a capture fails when another thread's CUDA work waits on the device

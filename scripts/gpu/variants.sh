@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Variants of the Meta-World recipe side by side on one lent machine (device tool), from the repo
-# root, with the carry of scripts/gpu/metaworld.sh:
+# Variants of the Meta-World recipe side by side on one GPU host, from the repo
+# root, with the files scripts/gpu/metaworld.sh needs copied there:
 #   bash scripts/gpu/variants.sh NAME "VAR=VALUE ..." [NAME "VAR=VALUE ..." ...]
 # The data are made once (runs/metaworld, when a variant uses them); each variant then runs
 # scripts/gpu/metaworld.sh in runs/NAME (its data linked to those, unless its variables give other
@@ -15,7 +15,7 @@
 # continues the value before it ("TRAIN_SETS=a=1 b=2" is one variable). Each variant's log and
 # outputs go to $OUT/NAME (its run.tar.gz holds the run's small files). The host's cores are shared:
 # each variant's WORKERS (the data's and the study's processes) defaults to nproc / variants.
-# Longer than one call:
+# Longer than one remote command may run:
 #   bash scripts/gpu/detached.sh start v bash scripts/gpu/variants.sh s8 "VAE_STRIDE=8" ...
 #   bash scripts/gpu/detached.sh wait v 570 runs/s8/study ...   (back to back)
 # Exits 1 when any variant failed.

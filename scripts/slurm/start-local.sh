@@ -9,7 +9,7 @@
 # client commands (sbatch, scontrol, ...) work from the root namespace through the bridge. The
 # nodes share the filesystem (the run folder, DIR), as a cluster's shared filesystem would.
 # Configuration, munge key and socket, state, spool folders and logs live under DIR; the daemons
-# run as root (namespaces need root). Needs Debian's slurm-wlm, munge and iproute2 (scripts/setup.sh).
+# run as root (namespaces need root). Needs Debian's slurm-wlm, munge and iproute2 (scripts/setup.sh --tests).
 #   scripts/slurm/start-local.sh DIR      then   export SLURM_CONF=DIR/slurm.conf
 # BWM_SLURM_NODES: number of nodes (default 2). BWM_SLURM_OWNER_PID: a process (the test) whose
 # end makes the cluster a leftover: every start removes the clusters whose owner is gone (a test
@@ -23,7 +23,7 @@ OWNER="${BWM_SLURM_OWNER_PID:-}"
 HERE="$(cd "$(dirname "$0")" && pwd)"
 REGISTRY=/run/bwm-slurm
 for tool in munged mungekey slurmctld slurmd sinfo ip nsenter unshare flock; do
-  command -v "$tool" >/dev/null || { echo "start-local: $tool is not installed (scripts/setup.sh installs slurm-wlm, munge and iproute2)" >&2; exit 1; }
+  command -v "$tool" >/dev/null || { echo "start-local: $tool is not installed (scripts/setup.sh --tests installs slurm-wlm, munge and iproute2)" >&2; exit 1; }
 done
 [[ "$NODES" =~ ^[1-9][0-9]?$ ]] || { echo "start-local: BWM_SLURM_NODES=$NODES is not a number of nodes (1-99)" >&2; exit 1; }
 [ "$(id -u)" = 0 ] || { echo "start-local: network namespaces need root" >&2; exit 1; }

@@ -144,7 +144,7 @@ fn try_import(modules: &[&str]) -> Result<PathBuf, String> {
     }
     let err = String::from_utf8_lossy(&out.stderr);
     let last = err.lines().last().unwrap_or("").to_string();
-    Err(format!("`{import}` fails in {}: {last} (scripts/setup.sh installs the packages)", py.display()))
+    Err(format!("`{import}` fails in {}: {last} (scripts/setup.sh --tests installs the packages)", py.display()))
 }
 
 /// The virtualenv's Python when it imports `modules`; else as [`need`] with `dep`: a failure when

@@ -1,10 +1,9 @@
 #!/usr/bin/env bash
-# On the GPU machine (device tool), from the repository root, with tests/reference/wheels carried
-# (run fetch_wheels.sh here first; the folder is git-ignored, so pass
-# carry=["tests/reference/wheels"]): installs the wheels offline into a --target folder put on
-# PYTHONPATH (a venv made from the system python would not see its torch: that python is itself a
-# venv, /opt/torch/.venv, and --system-site-packages exposes the base interpreter's packages, not
-# the venv's) and runs the reference benchmarks, logs in $OUT/reference-<name>.log.
+# On the GPU machine, from the repository root, with tests/reference/wheels copied there (run
+# fetch_wheels.sh where PyPI is reachable first; the folder is git-ignored, so copy it by name):
+# installs the wheels offline into a --target folder put on PYTHONPATH (a venv made from the
+# system python would not see its torch where that python is itself a venv, e.g. /opt/torch/.venv:
+# --system-site-packages exposes the base interpreter's packages, not the venv's) and runs the reference benchmarks, logs in $OUT/reference-<name>.log.
 #
 #   bash tests/reference/run_gpu.sh [vae] [rollout] [train] [train-plain] [lora] [lora-plain]
 #   (default: the first four)
@@ -22,7 +21,7 @@ PY=${PYTHON:-python3}
 SITE=${REF_SITE:-/tmp/bwm-reference-site}
 
 if ! ls "$HERE"/wheels/*.whl >/dev/null 2>&1; then
-  echo "no wheels in $HERE/wheels: run tests/reference/fetch_wheels.sh where PyPI is reachable and carry the folder" >&2
+  echo "no wheels in $HERE/wheels: run tests/reference/fetch_wheels.sh where PyPI is reachable and copy the folder here" >&2
   exit 1
 fi
 # --no-deps: diffsynth declares transformers, modelscope, accelerate, ... which the scripts never import.

@@ -233,7 +233,7 @@ fn exported_adapters_load_onto_the_base_as_the_merged_checkpoint() {
 
 /// diffusers' own LoRA loader (PEFT underneath) puts the exported adapters on the base export
 /// and computes what the merged export computes (tests/python/lora_interop.py). Needs diffusers
-/// and peft in the project's virtualenv (scripts/setup.sh installs them; `bwm_testdir::need`).
+/// and peft in the project's virtualenv (scripts/setup.sh --tests installs them; `bwm_testdir::need`).
 #[test]
 fn exported_adapters_load_in_diffusers_as_the_merged_export() {
     let Some(py) = bwm_testdir::python_with(bwm_testdir::Dep::Reference, &["diffusers", "peft"]) else { return };

@@ -32,7 +32,7 @@ pub fn fixtures() -> Option<&'static Path> {
     let missing = match ffmpeg {
         Ok(out) if out.status.success() => None,
         Ok(out) => Some(format!("`ffmpeg -version` failed: {}", String::from_utf8_lossy(&out.stderr).trim())),
-        Err(e) => Some(format!("no ffmpeg command ({e}); scripts/setup.sh installs it")),
+        Err(e) => Some(format!("no ffmpeg command ({e}); scripts/setup.sh --tests installs it")),
     };
     if !bwm_testdir::need(Dep::Ffmpeg, missing) {
         return None;

@@ -34,14 +34,18 @@ score: judge.py score --model judge.pt --val VAL_DATASET [...] [--reconstructed 
   real ones.
 serve: judge.py serve --model judge.pt --port 9000 [--ready FILE]
   POST (any path) msgpack-numpy {"frames": uint8 [T, H, W, 3], "task", "prompt", "policy",
-  "episode"} -> JSON {"success_probability": p (the serving rule), "obj_to_target_cm": the
+  "episode", "final": the frames end the episode (optional, default false)} -> JSON {"success_probability": p (the serving rule), "obj_to_target_cm": the
   closest the object came by the estimate and stayed for w frames (min over t of the max estimate
   over frames t .. t+w-1), "frame": where it did (the index of the frame sent), "success_distance_cm":
   the task's threshold, "model": the task judged, "window": w}; GET /healthz -> OK.
 
 Serving rule: p = max over t of min(p_t, ..., p_t+w-1), w = --window (default 3), over all frames
-sent. bwm evaluate sends every frame generated so far after each chunk and stops at the first
-success, so "at any frame" matches the simulator's measure (success at any step). Success, once
+sent; with "final" the windows that start in the last w - 1 frames hold the frames left, so a
+success reached at the episode's last frames counts as the simulator counts it (without it, the
+development families' slow policies lost 25 of their 37 missed successes there: docs/fidelity.md,
+run 46). bwm evaluate sends every frame generated so far after each chunk, "final" once they reach
+the horizon, and stops at the first success, so "at any frame" matches the simulator's measure
+(success at any step). Success, once
 reached, holds for many frames (the drawer stays open, the expert keeps the button down), so asking
 for w consecutive frames costs little recall, while a single blurry generated frame that happens
 to look open or pressed no longer decides the episode. obj_to_target_cm is the same rule on the
@@ -347,28 +351,41 @@ def phi(z) -> np.ndarray:
     return 0.5 * np.vectorize(math.erfc, otypes=[float])(-np.asarray(z, np.float64) / math.sqrt(2))
 
 
-def deciding_frame(z: np.ndarray, window: int) -> int:
+def _windows(values: np.ndarray, window: int, final: bool, pad: float) -> tuple[np.ndarray, int]:
+    """The sliding windows of `window` consecutive values (all of them when fewer) and their width;
+    with `final` (the values end the episode) also the shorter windows that start in the last
+    width - 1 values, padded with `pad` (a value that never decides)."""
+    v = np.asarray(values, np.float64)
+    w = min(window, len(v))
+    if final:
+        v = np.concatenate([v, np.full(w - 1, pad)])
+    return np.lib.stride_tricks.sliding_window_view(v, w), w
+
+
+def deciding_frame(z: np.ndarray, window: int, final: bool = False) -> int:
     """The frame that decides the serving rule max over t of min(z_t .. z_t+w-1): the least likely
-    frame of the best window of `window` consecutive frames (all of them when fewer)."""
-    w = min(window, len(z))
-    v = np.lib.stride_tricks.sliding_window_view(np.asarray(z, np.float64), w)
+    frame of the best window of `window` consecutive frames (all of them when fewer). With `final`
+    the frames end the episode, and a window may run past its last frame (it then holds the
+    frames left): a success reached in the last w - 1 frames is seen, as the simulator sees it."""
+    v, _ = _windows(z, window, final, np.inf)
     start = int(v.min(1).argmax())
     return start + int(v[start].argmin())
 
 
-def closest_held(values: np.ndarray, window: int) -> tuple[int, float]:
+def closest_held(values: np.ndarray, window: int, final: bool = False) -> tuple[int, float]:
     """min over t of max(v_t .. v_t+w-1): the closest the object came and stayed for `window`
-    consecutive frames (all of them when fewer), and the frame of the best window where it did."""
-    v = np.asarray(values, np.float64)
-    w = min(window, len(v))
-    start = int(np.lib.stride_tricks.sliding_window_view(v, w).max(1).argmin())
-    f = start + int(v[start:start + w].argmax())
-    return f, float(v[f])
+    consecutive frames (all of them when fewer; with `final`, or until the episode's last frame),
+    and the frame of the best window where it did."""
+    v, _ = _windows(values, window, final, -np.inf)
+    start = int(v.max(1).argmin())
+    f = start + int(v[start].argmax())
+    return f, float(v[start].max())
 
 
-def aggregate(probs: np.ndarray, window: int) -> float:
-    """max over t of min(p_t .. p_t+w-1): success held for `window` consecutive frames."""
-    return float(np.asarray(probs, np.float64)[deciding_frame(probs, window)])
+def aggregate(probs: np.ndarray, window: int, final: bool = False) -> float:
+    """max over t of min(p_t .. p_t+w-1): success held for `window` consecutive frames (with
+    `final`, or until the episode's last frame)."""
+    return float(np.asarray(probs, np.float64)[deciding_frame(probs, window, final)])
 
 
 def scores(truth: np.ndarray, predicted: np.ndarray) -> dict:
@@ -414,8 +431,8 @@ def held_out_scores(h: dict, mu: np.ndarray, scale: np.ndarray, threshold_cm: fl
         at = np.flatnonzero(h["episode"] == e)
         at = at[np.argsort(h["row"][at], kind="stable")]
         truth.append(bool(h["success"][at].any()))
-        guess.append(bool(z[at[deciding_frame(z[at], window)]] >= 0))
-        closest.append(abs(closest_held(mu[at], window)[1] - closest_held(truth_cm[at], window)[1]))
+        guess.append(bool(z[at[deciding_frame(z[at], window, final=True)]] >= 0))
+        closest.append(abs(closest_held(mu[at], window, final=True)[1] - closest_held(truth_cm[at], window, final=True)[1]))
     episodes = scores(np.array(truth, bool), np.array(guess, bool))
     episodes["closest_mae_cm"] = float(np.mean(closest)) if closest else None
     return {"state": state_errors(truth_cm, mu, scale, threshold_cm), "frames": scores(h["success"], z >= 0), "episodes": episodes}
@@ -654,13 +671,16 @@ class Judge:
         if not (isinstance(frames, np.ndarray) and frames.dtype == np.uint8 and frames.ndim == 4 and frames.shape[3] == 3 and len(frames)):
             shape = f"{frames.dtype} {list(frames.shape)}" if isinstance(frames, np.ndarray) else type(frames).__name__
             raise ValueError(f"frames must be a uint8 [T, H, W, 3] array with T >= 1, got {shape}")
+        final = request.get("final", False)
+        if not isinstance(final, bool):
+            raise ValueError(f"'final' must be true or false (the frames end the episode), got {final!r}")
         task = self.model_for(str(request.get("task", "")), str(request.get("prompt", "")))
         model = self.models[task]
         with self.lock:
             mu, scale = predict(model, frames, self.device)
         z = margin(mu, scale, model.threshold_cm)
-        f, closest = closest_held(mu, self.window)
-        return {"success_probability": float(phi(z[deciding_frame(z, self.window)])), "obj_to_target_cm": round(closest, 3),
+        f, closest = closest_held(mu, self.window, final)
+        return {"success_probability": float(phi(z[deciding_frame(z, self.window, final)])), "obj_to_target_cm": round(closest, 3),
                 "frame": f, "success_distance_cm": model.threshold_cm, "model": task, "window": self.window}
 
 

@@ -149,7 +149,7 @@ def _judged_job(job):
     probs = []
     for seed in seeds:
         frames = known_variants.run_episode(task, variant, seed, horizon, chunk, resolution, record=True).frames
-        probs.append(_judge.judge({"frames": frames, "task": task, "prompt": task})["success_probability"])
+        probs.append(_judge.judge({"frames": frames, "task": task, "prompt": task, "final": True})["success_probability"])
     return task, variant, probs
 
 

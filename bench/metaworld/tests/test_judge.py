@@ -12,6 +12,7 @@ import sys
 import tempfile
 import threading
 import time
+import urllib.error
 import urllib.request
 from http.server import ThreadingHTTPServer
 
@@ -81,6 +82,13 @@ def test_the_window_rule_and_the_bins():
     # The state reported: the closest held for the window (a single near frame does not count).
     assert judge.closest_held(np.array([19.0, 5.0, 19.0, 8.0, 7.0, 7.5, 12.0]), 3) == (3, 8.0)
     assert judge.closest_held(np.array([6.0, 4.0]), 3) == (0, 6.0)
+    # Frames that end the episode (final): a success reached in its last w - 1 frames counts, with
+    # the frames left; without final it waits for the frames to come; a flicker before does not.
+    late = np.array([-3.0, -3.0, -3.0, -3.0, 1.0, 2.0])
+    assert late[judge.deciding_frame(late, 3)] < 0 and judge.deciding_frame(late, 3, final=True) == 5
+    assert late[judge.deciding_frame(np.array([-3.0, 2.0, -3.0, -3.0]), 3, final=True)] < 0
+    assert judge.closest_held(np.array([19.0, 19.0, 19.0, 8.0, 2.5]), 3) == (0, 19.0)
+    assert judge.closest_held(np.array([19.0, 19.0, 19.0, 8.0, 2.5]), 3, final=True) == (4, 2.5)
     # Bins closed on the right at the threshold: a state at it is binned with the successes.
     edges = judge.bin_edges(THRESHOLD_CM)
     assert THRESHOLD_CM in edges and np.all(np.diff(edges) > 0) and edges[-1] < judge.CLIP_CM
@@ -160,6 +168,13 @@ def test_the_state_is_learned_and_the_rule_follows_the_threshold():
                 assert reply["success_distance_cm"] == THRESHOLD_CM and len(json.dumps(reply)) < 300, reply
             assert replies["open"]["success_probability"] >= 0.5 > replies["short"]["success_probability"], replies
             assert replies["open"]["obj_to_target_cm"] < THRESHOLD_CM < replies["short"]["obj_to_target_cm"], replies
+            # "final" must be a boolean: anything else is refused, naming it.
+            body = packb({"frames": episode(7, 0.5, 16)[1], "task": TASK, "final": "yes"})
+            try:
+                urllib.request.urlopen(urllib.request.Request(url, data=body, method="POST"))
+                raise AssertionError("a non-boolean final was accepted")
+            except urllib.error.HTTPError as e:
+                assert e.code == 400 and "'final'" in json.loads(e.read())["error"], e
         finally:
             server.shutdown()
         print(f"  trained in {trained:.0f} s; held-out state MAE {state['mae_cm']:.2f} cm, success rule balanced accuracy "

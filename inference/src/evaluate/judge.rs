@@ -26,6 +26,9 @@ pub struct Subject<'a> {
     pub prompt: &'a str,
     pub episode: usize,
     pub rules: &'a [ColorRule],
+    /// The frames end the episode (its horizon reached): an HTTP judge is told so (`final`), so
+    /// that a success reached in the last frames counts although no frames follow it.
+    pub ends_episode: bool,
 }
 
 pub enum Judge {
@@ -89,6 +92,7 @@ impl Judge {
                     ("prompt", Value::from(subject.prompt)),
                     ("policy", Value::from(subject.policy)),
                     ("episode", Value::from(subject.episode as u64)),
+                    ("final", Value::from(subject.ends_episode)),
                 ]));
                 let reply = match agent
                     .post(url)

@@ -446,11 +446,11 @@ fn finish(cfg: &EvalConfig, judge: &Judge, jobs: &[(&PolicyConfig, &Task, usize)
         let e = &mut live[p];
         let (policy, task, i) = jobs[e.job];
         let start = &task.starts[i];
-        let subject = Subject { policy: &policy.name, task: &task.cfg.name, prompt: &start.prompt, episode: i, rules: &task.cfg.rules };
         let judged = (|| -> std::result::Result<bool, (ErrorKind, anyhow::Error)> {
             e.run.frames.extend(tensor_to_frames(&chunk.frames).map_err(|e| (ErrorKind::WorldModel, e))?);
             e.run.chunks += 1;
             let at_horizon = e.run.frames.len() >= cfg.horizon;
+            let subject = Subject { policy: &policy.name, task: &task.cfg.name, prompt: &start.prompt, episode: i, rules: &task.cfg.rules, ends_episode: at_horizon };
             if cfg.stop_on_success || at_horizon {
                 let verdict = judge.judge(&e.run.frames, &subject).context("judge").map_err(|e| (ErrorKind::Judge, e))?;
                 let success = verdict.success;

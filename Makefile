@@ -4,14 +4,14 @@
 # ffmpeg command, Mesa's EGL, the Python packages of the tests). `make setup` installs both at once.
 SHELL := /bin/bash
 ENV := source scripts/env.sh
-DEMO_DATA ?= ../shared/data/bwm-demo
+DEMO_DATA ?= data/bwm-demo
 DEMO_VAE_STEPS ?= 300
 
 .PHONY: demo test build setup
 setup:
 	@bash scripts/setup.sh --tests
 
-# The tiny model post-trained on the bundled episodes, on CPU: fit a small VAE (real pixels, on
+# The tiny model post-trained on the bundled episodes (data/bwm-demo, in the repository), on CPU: fit a small VAE (real pixels, on
 # clips as long as the DiT's: x0 + 8 history + 8 future = 17 frames),
 # encode the clips into a latent cache, train, and write runs/tiny/{loss.svg,rollout.mp4}. Each
 # stage is skipped when its output exists; the training resumes from its last checkpoint.
@@ -25,7 +25,7 @@ demo: build
 # write under one folder of the run, removed afterwards (scripts/test.sh). The end-to-end tests
 # run the `bwm` binary, which `cargo test` does not build (it belongs to another package): build
 # first, so that `make test` works on a fresh clone without `make build`; then the tests' own
-# dependencies (scripts/setup.sh --tests).
+# dependencies and the golden files (scripts/setup.sh --tests).
 test: build
 	@$(ENV) && bash scripts/setup.sh --tests && bash scripts/test.sh
 

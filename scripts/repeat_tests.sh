@@ -18,7 +18,6 @@ while [ $# -gt 0 ]; do
   esac
 done
 [[ "$runs" =~ ^[1-9][0-9]*$ && "$load" =~ ^[0-9]+$ ]] || { echo "repeat_tests: --runs must be >= 1 and --load >= 0" >&2; exit 2; }
-[ -d "$ROOT/../shared/golden" ] || { echo "repeat_tests: ../shared must sit beside the checkout" >&2; exit 1; }
 tmp="${TMPDIR:-/tmp}"
 work=$(mktemp -d "$tmp/bwm-repeat-XXXXXX") || exit 1
 logs="${logs:-$ROOT/runs/repeat-tests}"
@@ -30,7 +29,9 @@ cleanup() {
 }
 trap cleanup EXIT
 trap 'exit 130' INT TERM
-git clone -q "$ROOT" "$work/main" && ln -s "$(cd "$ROOT/../shared" && pwd)" "$work/shared" || exit 1
+git clone -q "$ROOT" "$work/main" || exit 1
+# As .ci/run: a ../shared beside the checkout (golden/, data/) is what the tests read (BWM_SHARED).
+if [ -d "$ROOT/../shared" ]; then export BWM_SHARED; BWM_SHARED="$(cd "$ROOT/../shared" && pwd)"; fi
 commit=$(git -C "$work/main" rev-parse --short HEAD)
 export BWM_VENV="${BWM_VENV:-${HOME:-/root}/.cache/bwm-ci/venv}" CARGO_TARGET_DIR="$work/target" CARGO_TERM_COLOR=never
 for _ in $(seq 1 "$load"); do yes > /dev/null & loaders+=($!); done

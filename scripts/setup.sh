@@ -8,8 +8,9 @@
 #   scripts/setup.sh --tests  the build's, then what only the tests use: the ffmpeg command, Slurm,
 #                             munge and iproute2 (the test cluster), Mesa's EGL/OSMesa (MuJoCo's
 #                             rendering for bench/metaworld), the Python packages the tests and the
-#                             reference use and the Meta-World benchmark's pinned packages. What
-#                             `make test` and `make setup` run.
+#                             reference use and the Meta-World benchmark's pinned packages, and the
+#                             golden files of the parity tests (scripts/golden.py, cached in the
+#                             virtualenv). What `make test` and `make setup` run.
 # Idempotent: present packages and a venv that already has them are left alone.
 # BWM_VENV picks the location (default: .venv in the repository).
 set -euo pipefail
@@ -82,6 +83,21 @@ if [ $tests = 1 ]; then
   if ! "$VENV/bin/python" -c "import metaworld, mujoco, gymnasium, PIL, scipy" 2>/dev/null; then
     echo "setup: installing the Meta-World benchmark's packages ($BENCH_REQUIREMENTS)" >&2
     "$VENV/bin/pip" install --quiet --disable-pip-version-check -r "$BENCH_REQUIREMENTS"
+  fi
+fi
+if [ $tests = 1 ]; then
+  # The golden files of the parity tests, computed by the reference implementation the packages
+  # above pin (scripts/golden.py: DiffSynth-Studio on torch, on the CPU, about a minute) into the
+  # virtualenv, under the start of the generator's SHA-256: a changed generator or a new virtualenv
+  # computes them again, an unchanged one finds them. The tests read them there unless BWM_SHARED
+  # names a folder with golden/ (bwm-testdir's files.rs).
+  GOLDEN="$VENV/bwm-golden/$(sha256sum "$ROOT/scripts/golden.py" | cut -c1-16)"
+  if [ ! -f "$GOLDEN/complete" ]; then
+    echo "setup: computing the golden files with the reference (scripts/golden.py) into $GOLDEN" >&2
+    rm -rf "$GOLDEN.partial" && mkdir -p "$GOLDEN.partial"
+    "$VENV/bin/python" "$ROOT/scripts/golden.py" "$GOLDEN.partial" >&2
+    touch "$GOLDEN.partial/complete"
+    rm -rf "$GOLDEN" && mv "$GOLDEN.partial" "$GOLDEN"
   fi
 fi
 echo "setup: done" >&2

@@ -4,8 +4,8 @@
 //! - **Wan-native** (`wan`): the official `WanModel` names (`blocks.N.self_attn.q.weight`,
 //!   `head.modulation`, ...), also DiffSynth-Studio's, and this project's canonical names; the BWM
 //!   action encoder under `action_encoder.`.
-//! - **diffusers** (`diffusers`): `WanTransformer3DModel` names (spec section 5.2, the converter's
-//!   `TRANSFORMER_KEYS_RENAME_DICT`); the action encoder keeps its BWM names under
+//! - **diffusers** (`diffusers`): `WanTransformer3DModel` names (docs/wan22-ti2v-5b.md, section
+//!   "DiT"; the converter's `TRANSFORMER_KEYS_RENAME_DICT`); the action encoder keeps its BWM names under
 //!   `action_encoder.` (diffusers has no such module; an export stores it as its own component).
 //! - **BWM release** (`bwm-release`): Wan-native DiT names, the action encoder under
 //!   `pipe.action_encoder.` (DiffSynth's `export_trainable_state_dict` of the pipeline), and no

@@ -1,11 +1,11 @@
 //! Python interoperability: the exports load into the reference stack the BWM release and the
 //! diffusers ecosystem use, with only the declared missing keys, and the reference forward
-//! (`bwm_forward` of shared/golden/make_golden.py) on the exported weights matches the Rust forward.
+//! (`bwm_forward` of scripts/golden.py) on the exported weights matches the Rust forward.
 //!
 //! Needs the project virtualenv with `diffsynth==2.0.11`, `diffusers` and `einops` (scripts/setup.sh
-//! --tests installs them; run through `source scripts/env.sh`) and `../shared/golden/make_golden.py`:
-//! without them the test fails where BWM_REQUIRE names reference (CI sets `all`) and is logged as
-//! skipped elsewhere (`bwm_testdir::need`).
+//! --tests installs them; run through `source scripts/env.sh`): without them the test fails where
+//! BWM_REQUIRE names reference (CI sets `all`) and is logged as skipped elsewhere
+//! (`bwm_testdir::need`).
 
 mod common;
 
@@ -28,7 +28,7 @@ fn rel_err(a: &Tensor, b: &Tensor) -> f64 {
 #[test]
 fn exports_load_in_diffsynth_and_diffusers_and_the_reference_forward_matches() {
     let Some(py) = bwm_testdir::python_with(Dep::Reference, &["diffsynth", "diffusers", "einops"]) else { return };
-    let Some(make_golden) = bwm_testdir::reference("golden/make_golden.py") else { return };
+    let golden_py = bwm_testdir::golden_generator();
 
     let root = tmp_dir("pyinterop");
     let cfg = tiny();
@@ -56,7 +56,7 @@ fn exports_load_in_diffsynth_and_diffusers_and_the_reference_forward_matches() {
     .unwrap();
     let out = root.join("py-out.safetensors");
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/interop.py");
-    let res = Command::new(&py).arg(&script).arg(&make_golden).args(&dirs).arg(&case).arg(&out).output().unwrap();
+    let res = Command::new(&py).arg(&script).arg(&golden_py).args(&dirs).arg(&case).arg(&out).output().unwrap();
     let stdout = String::from_utf8_lossy(&res.stdout);
     assert!(res.status.success(), "python failed:\n{stdout}\n{}", String::from_utf8_lossy(&res.stderr));
     let report: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();

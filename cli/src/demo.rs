@@ -9,7 +9,7 @@ use clap::Args;
 #[derive(Args)]
 pub struct DemoArgs {
     /// Dataset in the BWM layout (demo.jsonl, stat.json, parquet, mp4).
-    #[arg(long, default_value = "../shared/data/bwm-demo")]
+    #[arg(long, default_value = "data/bwm-demo")]
     data: PathBuf,
     /// Episode (line of demo.jsonl) to take the clip from.
     #[arg(long, default_value_t = 0)]

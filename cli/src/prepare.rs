@@ -11,7 +11,7 @@ use clap::Args;
 #[derive(Args)]
 pub struct PrepareArgs {
     /// Dataset: BWM layout, LeRobot v2.1/v3.0 or RoboTwin 2.0 HDF5 (detected from the files).
-    #[arg(long, default_value = "../shared/data/bwm-demo")]
+    #[arg(long, default_value = "data/bwm-demo")]
     data: PathBuf,
     /// VAE: a `bwm train-vae` output, or the published Wan2.2_VAE.pth / safetensors (not needed
     /// with --merge).

@@ -12,7 +12,7 @@ use clap::Args;
 #[derive(Args)]
 pub struct StatsArgs {
     /// Dataset: BWM layout, LeRobot v2.1/v3.0 or RoboTwin 2.0 HDF5 (detected from the files).
-    #[arg(long, default_value = "../shared/data/bwm-demo")]
+    #[arg(long, default_value = "data/bwm-demo")]
     data: PathBuf,
     /// Output stat.json.
     #[arg(long)]

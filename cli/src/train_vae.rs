@@ -15,7 +15,7 @@ use clap::Args;
 #[derive(Args)]
 pub struct TrainVaeArgs {
     /// Dataset in any format `bwm prepare` reads (BWM layout, LeRobot v2.1/v3.0, RoboTwin HDF5).
-    #[arg(long, default_value = "../shared/data/bwm-demo")]
+    #[arg(long, default_value = "data/bwm-demo")]
     pub data: PathBuf,
     /// Cameras; several are stacked top to bottom (default: the dataset's default camera).
     #[arg(long, value_delimiter = ',')]

@@ -1,14 +1,12 @@
-//! Reads the bundled episodes (`../shared/data/bwm-demo`, three RoboTwin episodes in the BWM layout).
+//! Reads the bundled episodes (`data/bwm-demo`, three RoboTwin episodes in the BWM layout; under
+//! `BWM_SHARED` when set: `bwm_testdir::demo_data`).
 
 use std::path::PathBuf;
 
 use bwm_data::{ActionSpec, ActionStats, BwmDataset};
 
 fn demo_root() -> PathBuf {
-    let shared = std::env::var_os("BWM_SHARED")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared"));
-    shared.join("data/bwm-demo")
+    bwm_testdir::demo_data()
 }
 
 #[test]

@@ -1,18 +1,11 @@
-//! Video decoding and writing on the bundled episodes (`../shared/data/bwm-demo`), and the frame
-//! helpers.
-
-use std::path::PathBuf;
+//! Video decoding and writing on the bundled episodes (`data/bwm-demo`, or under `BWM_SHARED`:
+//! `bwm_testdir::demo_data`), and the frame helpers.
 
 use bwm_data::frames::{fit, frame_strip, frames_to_tensor, stack_views_vertically, swap_red_blue, tensor_to_frames};
 use bwm_data::ResizeMode;
 use image::{Rgb, RgbImage};
 use tch::{Kind, Tensor};
 
-fn shared() -> PathBuf {
-    std::env::var_os("BWM_SHARED")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared"))
-}
 
 /// A smooth pattern that moves with `t` (no hard edges, which 4:2:0 chroma cannot keep).
 fn synthetic(width: u32, height: u32, t: u32) -> RgbImage {
@@ -38,7 +31,7 @@ mod video {
     }
 
     fn demo() -> BwmDataset {
-        BwmDataset::open(&shared().join("data/bwm-demo")).unwrap()
+        BwmDataset::open(&bwm_testdir::demo_data()).unwrap()
     }
 
     #[test]
@@ -87,7 +80,7 @@ mod video {
         #[allow(clippy::reversed_empty_ranges)]
         let e = format!("{:#}", read_frames(&path, 4..2).unwrap_err());
         assert!(e.contains("reversed"), "{e}");
-        let missing = shared().join("data/bwm-demo/no_such_video.mp4");
+        let missing = bwm_testdir::demo_data().join("no_such_video.mp4");
         let e = format!("{:#}", probe(&missing).unwrap_err());
         assert!(e.contains("no_such_video.mp4"), "{e}");
     }
@@ -161,7 +154,7 @@ mod video {
 #[cfg(not(feature = "video"))]
 #[test]
 fn video_functions_say_the_feature_is_missing() {
-    let e = format!("{:#}", bwm_data::video::probe(&shared().join("x.mp4")).unwrap_err());
+    let e = format!("{:#}", bwm_data::video::probe(&bwm_testdir::demo_data().join("x.mp4")).unwrap_err());
     assert!(e.contains("without the `video` feature"), "{e}");
 }
 

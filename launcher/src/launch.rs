@@ -443,7 +443,7 @@ fn stop_on_signal(ranks: &mut Ranks, grace: Duration) -> Result<()> {
 
 /// LD_LIBRARY_PATH for the ranks: libtorch loads the `libnccl.so.2` of the torch wheel
 /// (`nvidia/nccl/lib`), while cudarc opens `libnccl.so`, which on the GPU machines resolves to an
-/// older system copy; two NCCLs in one process corrupt communicators (ARCHITECTURE.md). A
+/// older system copy; two NCCLs in one process corrupt communicators (docs/architecture.md). A
 /// directory holding a `libnccl.so` link to the wheel's library goes first; it lasts as long as
 /// the returned guard.
 fn nccl_library_path() -> (String, Option<tempfile::TempDir>) {

@@ -790,7 +790,7 @@ impl WanVae {
     }
 }
 
-/// The diffusers `AutoencoderKLWan` name of a `Wan2.2_VAE.pth` key (spec section 6.10).
+/// The diffusers `AutoencoderKLWan` name of a `Wan2.2_VAE.pth` key (docs/wan22-ti2v-5b.md, table "VAE keys").
 pub fn diffusers_key(wan: &str) -> String {
     let parts: Vec<&str> = wan.split('.').collect();
     let resnet = |rest: &[&str]| -> String {

@@ -1,5 +1,5 @@
-//! Parity with the reference: `../shared/golden/dit_public*.{json,weights,case}` were computed by
-//! `shared/golden/make_golden.py` with DiffSynth-Studio 2.0.11 (`WanModel` + the BWM action
+//! Parity with the reference: the golden `dit_public*.{json,weights,case}` were computed by
+//! `scripts/golden.py` with DiffSynth-Studio 2.0.11 (`WanModel` + the BWM action
 //! encoder, `model_fn_wan_video_action` semantics) in f32 on CPU. Every shape comes from the files.
 
 mod common;

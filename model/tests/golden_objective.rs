@@ -1,4 +1,4 @@
-//! The BWM sampler against `../shared/golden/objective_public.safetensors` (DiffSynth-Studio
+//! The BWM sampler against the golden `objective_public.safetensors` (DiffSynth-Studio
 //! 2.0.11 `FlowMatchScheduler("Wan")`, 4 Euler steps at shift 5, prefix re-imposed every step),
 //! on the `dit_public` weights.
 

@@ -1,6 +1,6 @@
 //! Parity of the Wan2.2 VAE with DiffSynth-Studio 2.0.11's `VideoVAE38_` (the official `WanVAE_`
-//! of Wan2.2) in f32 on CPU: on `../shared/golden/vae_public*.{json,weights,case}` (computed by
-//! `shared/golden/make_golden.py`; 5 and 9 frames), and on a 33-frame video whose reference this
+//! of Wan2.2) in f32 on CPU: on the golden `vae_public*.{json,weights,case}` (computed by
+//! `scripts/golden.py`; 5 and 9 frames), and on a 33-frame video whose reference this
 //! test computes with the same code in the project's Python environment (the causal feature cache
 //! over more chunks than the golden files hold). Widths, frame counts and sizes come from the files.
 
@@ -65,7 +65,7 @@ fn vae_public2_matches_reference() {
     check("public2", |name| golden.join(name));
 }
 
-/// make_golden.py's VAE case (random parameters at scale 0.1, a random video in [-1, 1],
+/// scripts/golden.py's VAE case (random parameters at scale 0.1, a random video in [-1, 1],
 /// normalized latents), at 33 frames of 32x48: nine latent frames, so the feature cache carries
 /// over eight chunk boundaries.
 const LONG_CASE: &str = r#"

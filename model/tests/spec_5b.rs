@@ -1,6 +1,6 @@
 //! The full Wan2.2-TI2V-5B module tree, built shape-only (no storage), checked against the key
-//! list of `../shared/design/wan22-ti2v-5b-spec.md` section 5.1 (official `WanModel` names,
-//! verified there by instantiating the reference on the meta device).
+//! table "DiT keys" of `docs/wan22-ti2v-5b.md` (the original `WanModel` names, listed from the
+//! reference module built on the meta device).
 
 mod common;
 
@@ -11,21 +11,18 @@ use bwm_model::{BwmModel, ModelConfig, ParamStore};
 use tch::Kind;
 
 fn spec_path() -> PathBuf {
-    let shared = std::env::var_os("BWM_SHARED")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared"));
-    shared.join("design/wan22-ti2v-5b-spec.md")
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../docs/wan22-ti2v-5b.md")
 }
 
 fn parse_shape(s: &str) -> Vec<i64> {
     s.trim().trim_matches(|c| c == '[' || c == ']').split(',').map(|d| d.trim().parse().unwrap()).collect()
 }
 
-/// Rows `| `key` / `.bias` | [shape] / [shape] |` of section 5.1, blocks expanded over N.
+/// Rows `| `key` / `.bias` | [shape] / [shape] |` of the section "DiT keys", blocks expanded over N.
 fn spec_keys(num_layers: i64) -> BTreeMap<String, Vec<i64>> {
     let text = std::fs::read_to_string(spec_path()).unwrap();
-    let start = text.find("### 5.1").expect("spec section 5.1");
-    let end = text[start..].find("### 5.2").expect("spec section 5.2") + start;
+    let start = text.find("### DiT keys").expect("section \"DiT keys\"");
+    let end = text[start..].find("### VAE keys").expect("section \"VAE keys\"") + start;
     let mut keys = BTreeMap::new();
     for line in text[start..end].lines() {
         let cols: Vec<&str> = line.split('|').map(str::trim).collect();

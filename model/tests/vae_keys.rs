@@ -1,6 +1,6 @@
-//! The real Wan2.2 VAE tree (shape-only) against the key table of
-//! `../shared/design/wan22-ti2v-5b-spec.md` section 6.10 (the official module's state_dict, and its
-//! diffusers `AutoencoderKLWan` names through `convert_vae_22`), and a diffusers-named file loading.
+//! The real Wan2.2 VAE tree (shape-only) against the table "VAE keys" of `docs/wan22-ti2v-5b.md`
+//! (the reference module's state_dict, and its diffusers `AutoencoderKLWan` names), and a
+//! diffusers-named file loading.
 
 mod common;
 
@@ -13,12 +13,11 @@ use common::{rel_err, tmp_dir};
 use tch::{Device, Kind, Tensor};
 
 fn spec_rows() -> Vec<(String, Vec<i64>, String)> {
-    let shared = std::env::var_os("BWM_SHARED")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared"));
-    let text = std::fs::read_to_string(shared.join("design/wan22-ti2v-5b-spec.md")).unwrap();
-    let start = text.find("### 6.10").unwrap();
-    text[start..]
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../docs/wan22-ti2v-5b.md");
+    let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    let start = text.find("### VAE keys").expect("section \"VAE keys\"");
+    let end = text[start + 1..].find("\n#").map_or(text.len(), |i| start + 1 + i);
+    text[start..end]
         .lines()
         .filter_map(|l| {
             let c: Vec<&str> = l.split('|').map(str::trim).collect();

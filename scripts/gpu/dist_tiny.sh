@@ -17,7 +17,7 @@ cp "/tmp/nccl-tiny/checkpoints/$(cat /tmp/nccl-tiny/checkpoints/latest)/model.sa
 
 [ "${KILL:-1}" = 0 ] && exit 0
 # Started by hand, the ranks need what `bwm launch` sets up: a libnccl.so link to the torch wheel's
-# NCCL first on LD_LIBRARY_PATH (ARCHITECTURE.md).
+# NCCL first on LD_LIBRARY_PATH (docs/architecture.md).
 NL=$(python3 -c 'import nvidia.nccl,os;print(os.path.join(list(nvidia.nccl.__path__)[0],"lib"))')
 mkdir -p /tmp/nccl-link && ln -sf "$NL/libnccl.so.2" /tmp/nccl-link/libnccl.so
 export LD_LIBRARY_PATH=/tmp/nccl-link:$NL:$LD_LIBRARY_PATH

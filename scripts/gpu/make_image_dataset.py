@@ -1,4 +1,4 @@
-"""Writes the bundled episodes (../shared/data/bwm-demo) as a LeRobot v2.1 dataset whose frames are
+"""Writes the bundled episodes (data/bwm-demo) as a LeRobot v2.1 dataset whose frames are
 JPEG images inside the parquet files (`image` features), for timing `bwm prepare` on the GPU
 machines, which have no FFmpeg or HDF5 libraries to read the other formats.
 
@@ -12,7 +12,7 @@ import pyarrow.parquet as pq
 
 p = argparse.ArgumentParser()
 p.add_argument("out")
-p.add_argument("--demo", default=os.path.join(os.path.dirname(__file__), "../../../shared/data/bwm-demo"))
+p.add_argument("--demo", default=os.path.join(os.path.dirname(__file__), "../../data/bwm-demo"))
 p.add_argument("--width", type=int, default=640)
 p.add_argument("--height", type=int, default=480)
 p.add_argument("--frames", type=int, default=120)

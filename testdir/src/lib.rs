@@ -3,8 +3,10 @@
 //! [`TestDir`] inside it, removed with its contents when dropped, so also when the test fails.
 //! `make test` points TMPDIR at a folder of the run, which it removes at the end.
 
+pub mod files;
 pub mod optional;
-pub use optional::{need, python, python_with, reference, shared, Dep};
+pub use files::{demo_data, golden_dir, golden_generator, reference_path};
+pub use optional::{need, python, python_with, reference, Dep};
 
 use std::ffi::OsStr;
 use std::ops::Deref;

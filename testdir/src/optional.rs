@@ -115,9 +115,7 @@ fn skip(dep: Dep, test: &str, why: &str, required: bool, log: Option<&Path>) -> 
 /// The project's virtualenv Python: `VIRTUAL_ENV`, else `BWM_VENV` (both set by
 /// `scripts/env.sh`), else the repository's `.venv`. `None` when none of them has `bin/python`.
 pub fn python() -> Option<PathBuf> {
-    let from_env = ["VIRTUAL_ENV", "BWM_VENV"].iter().filter_map(std::env::var_os).map(PathBuf::from);
-    let repo_venv = Path::new(env!("CARGO_MANIFEST_DIR")).join("../.venv");
-    from_env.chain(std::iter::once(repo_venv)).map(|v| v.join("bin/python")).find(|p| p.is_file())
+    crate::files::venv().map(|v| v.join("bin/python"))
 }
 
 /// Why the virtualenv's Python cannot import `modules`, or its path when it can. The answer is
@@ -159,16 +157,13 @@ pub fn python_with(dep: Dep, modules: &[&str]) -> Option<PathBuf> {
     }
 }
 
-/// The reference folder beside the repository: `BWM_SHARED`, else `../shared`.
-pub fn shared() -> PathBuf {
-    std::env::var_os("BWM_SHARED").map(PathBuf::from).unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared"))
-}
-
-/// `shared()/rel` (a golden file, the reference's script) when it exists; else as [`need`] with
-/// [`Dep::Reference`]: a failure when required, a skip line and `None` when not.
+/// The reference's file `rel` (`golden/<file>`, `data/bwm-demo/...`) where
+/// [`crate::files::reference_path`] finds it (`BWM_SHARED`, the golden cache or the repository),
+/// when it exists; else as [`need`] with [`Dep::Reference`]: a failure when required, a skip line
+/// and `None` when not.
 pub fn reference(rel: &str) -> Option<PathBuf> {
-    let path = shared().join(rel);
-    let missing = (!path.exists()).then(|| format!("{} does not exist (the reference folder ../shared beside the clone, or BWM_SHARED)", path.display()));
+    let path = crate::files::reference_path(rel);
+    let missing = (!path.exists()).then(|| crate::files::missing_reason(rel, &path));
     need(Dep::Reference, missing).then_some(path)
 }
 

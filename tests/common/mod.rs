@@ -31,14 +31,10 @@ pub fn python() -> String {
     }
 }
 
-/// `../shared` beside the repository (BWM_SHARED overrides).
-pub fn shared() -> PathBuf {
-    std::env::var_os("BWM_SHARED").map(PathBuf::from).unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared"))
-}
-
-/// The bundled RoboTwin episodes in the BWM layout.
+/// The bundled RoboTwin episodes in the BWM layout: the repository's `data/bwm-demo`, or
+/// `$BWM_SHARED/data/bwm-demo` when BWM_SHARED is set (`bwm_testdir::demo_data`).
 pub fn demo_data() -> PathBuf {
-    shared().join("data/bwm-demo")
+    bwm_testdir::demo_data()
 }
 
 /// A small random VAE (width 16) written as `bwm train-vae` writes its output (recorded as trained

@@ -120,7 +120,7 @@ def build_dit(dit_mod, cfg, device, dtype, seed):
 
 
 class ActionEncoder(torch.nn.Module):
-    """The BWM release's `WanVideoActionEncoder` (ti2v2 path, bwm-release-notes.md section 2.2).
+    """The BWM release's `WanVideoActionEncoder` (ti2v2 path; docs/architecture.md, The BWM release).
 
     It is not part of diffsynth; it is two small MLPs. action_mlp1: Linear(d_a, D) -> GELU ->
     Linear(D, D), one cross-attention token per pixel frame; action_mlp2: Linear(4 d_a, 4 D) ->

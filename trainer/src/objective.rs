@@ -1,4 +1,4 @@
-//! The BWM flow-matching objective (ARCHITECTURE.md, Training): per sample a timestep from the
+//! The BWM flow-matching objective (docs/architecture.md, Training): per sample a timestep from the
 //! shifted 1000-step grid; x0's latent clean, history latents (1-s_h) z + s_h e_h, future latents
 //! (1-s) z + s e; per-frame timesteps 0 on the condition latents; target v = e - z; loss =
 //! `train_weights[t]` * MSE over the future latents, in fp32, averaged over the batch.

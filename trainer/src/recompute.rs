@@ -1,6 +1,6 @@
 //! Forward + backward of the BWM model, optionally recomputing each DiT block in backward.
 //!
-//! tch has no activation-checkpoint API, so recomputation is done by hand (ARCHITECTURE.md): the
+//! tch has no activation-checkpoint API, so recomputation is done by hand (docs/architecture.md): the
 //! preparation (action encoder, patchify, time embedding) runs with autograd; its outputs are
 //! cut into leaves; the blocks run without autograd keeping only each block's input; the head and
 //! the loss run with autograd and backward; then the blocks are walked in reverse, each recomputed

@@ -2,7 +2,7 @@
 //! training run of 2 ranks against 1 rank. Ignored by default: it needs a machine with 2 GPUs and
 //! libtorch's NCCL reachable as `libnccl.so`; `bash scripts/gpu/unit.sh nccl` runs them there
 //! (BWM_REQUIRE set: with fewer than 2 GPUs they fail). By hand on such a machine
-//! (ARCHITECTURE.md, Toolchain facts):
+//! (docs/architecture.md, Toolchain facts):
 //!
 //! ```text
 //! TL=$(python3 -c 'import torch,os;print(os.path.dirname(torch.__file__))')/lib

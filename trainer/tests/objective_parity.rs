@@ -1,5 +1,5 @@
-//! The training objective against `../shared/golden/objective_public.safetensors` (DiffSynth-Studio
-//! 2.0.11 `FlowMatchScheduler("Wan")`, the BWM release's history noise; see make_golden.py): the
+//! The training objective against the golden `objective_public.safetensors` (DiffSynth-Studio
+//! 2.0.11 `FlowMatchScheduler("Wan")`, the BWM release's history noise; see scripts/golden.py): the
 //! model input built from clean latents, noise, history noise and timestep index 700, and the
 //! weighted loss of the `dit_public` model on it, both to relative 1e-5; also through the
 //! recomputing backward path (same loss).
@@ -28,8 +28,9 @@ fn public_model(golden: &Path) -> BwmModel {
 
 #[test]
 fn model_input_and_loss_match_the_reference() {
-    // ../shared/golden (BWM_SHARED); without it bwm_testdir::need decides: a failure where
-    // BWM_REQUIRE names reference, else a logged skip.
+    // The golden files (scripts/setup.sh --tests computes them; BWM_SHARED=<folder with golden/>
+    // swaps in others); without them bwm_testdir::need decides: a failure where BWM_REQUIRE names
+    // reference, else a logged skip.
     let Some(golden) = bwm_testdir::reference("golden") else { return };
     let t = weights::read_all(golden.join("objective_public.safetensors")).unwrap();
     let objective = Objective::new(&ObjectiveSection::default(), 0);

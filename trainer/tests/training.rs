@@ -407,7 +407,7 @@ fn batched_validation_rollouts_equal_one_clip_at_a_time() {
 
 /// The FLOP count behind every tflops and MFU figure (`bwm_trainer::flops`) against an independent
 /// count: PyTorch's `FlopCounterMode` on the reference DiT (DiffSynth-Studio's `WanModel` with
-/// make_golden.py's action encoder, tests/python/flop_count.py), one sample at tiny sizes. Both
+/// scripts/golden.py's action encoder, tests/python/flop_count.py), one sample at tiny sizes. Both
 /// count 2 FLOPs per multiply-add of the matrix products, convolutions and attention, and nothing
 /// element-wise (norms, modulation, RoPE, softmax, activations). The formula counts the DiT
 /// blocks (self-attention's q, k, v, o and its QK^T and AV products over the latent tokens,

@@ -1,7 +1,7 @@
 """Loads the three exports of one tiny BWM model with the Python reference stack and runs the
 reference forward on each.
 
-usage: interop.py MAKE_GOLDEN WAN_DIR DIFFUSERS_DIR RELEASE_DIR CASE OUT
+usage: interop.py GOLDEN_PY WAN_DIR DIFFUSERS_DIR RELEASE_DIR CASE OUT
 
 - wan:       DiffSynth-Studio's WanModel (diffsynth==2.0.11, the BWM release's framework), strict=False:
              the missing keys must be exactly the ones config.json declares (text_embedding.*).
@@ -10,25 +10,21 @@ usage: interop.py MAKE_GOLDEN WAN_DIR DIFFUSERS_DIR RELEASE_DIR CASE OUT
              diffusers->Wan converter (an independent key map), runs the reference forward.
 - release:   split on `pipe.action_encoder.` as the BWM release loader does, strict=False.
 
-The reference forward is `bwm_forward` (and the `ActionEncoder` it uses) of shared/golden/make_golden.py,
-taken from that file's source with `ast` (the script itself runs everything at import).
+The reference forward is `bwm_forward` (and the `ActionEncoder` it uses) of scripts/golden.py, the
+generator of the golden files (importing it computes nothing).
 """
-import ast, json, sys, os
+import importlib.util, json, sys, os
 import torch
 from safetensors.torch import load_file, save_file
-from einops import rearrange
-from diffsynth.models.wan_video_dit import WanModel, sinusoidal_embedding_1d
+from diffsynth.models.wan_video_dit import WanModel
 from diffsynth.utils.state_dict_converters.wan_video_dit import WanVideoDiTFromDiffusers
 from diffusers import WanTransformer3DModel
 
-make_golden, wan_dir, diff_dir, rel_dir, case_path, out_path = sys.argv[1:7]
+golden_py, wan_dir, diff_dir, rel_dir, case_path, out_path = sys.argv[1:7]
 
-src = open(make_golden).read()
-tree = ast.parse(src)
-wanted = [n for n in tree.body if isinstance(n, (ast.FunctionDef, ast.ClassDef)) and n.name in ("bwm_forward", "ActionEncoder")]
-assert len(wanted) == 2, "make_golden.py no longer defines bwm_forward and ActionEncoder"
-ns = {"torch": torch, "sinusoidal_embedding_1d": sinusoidal_embedding_1d, "rearrange": rearrange}
-exec(compile(ast.Module(body=wanted, type_ignores=[]), make_golden, "exec"), ns)
+spec = importlib.util.spec_from_file_location("bwm_golden", golden_py)
+golden = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(golden)
 
 def load_sharded(index_path):
     index = json.load(open(index_path))
@@ -53,11 +49,10 @@ report = {}
 def run(dit_sd, enc_sd, tag):
     dit = new_dit()
     missing, unexpected = dit.load_state_dict(dit_sd, strict=False)
-    enc = ns["ActionEncoder"](cfg["action"]["action_dim"], d["dim"]).eval()
+    enc = golden.ActionEncoder(cfg["action"]["action_dim"], d["dim"]).eval()
     enc.load_state_dict(enc_sd, strict=True)
-    ns["dit"], ns["enc"] = dit, enc
     with torch.no_grad():
-        v, _ = ns["bwm_forward"](latents, timestep, actions, cond_t=3)
+        v, _ = golden.bwm_forward(dit, enc, latents, timestep, actions, cond_t=3)
     report[tag] = {"missing": sorted(missing), "unexpected": sorted(unexpected)}
     return v.contiguous()
 

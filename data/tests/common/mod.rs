@@ -11,7 +11,7 @@ use bwm_testdir::Dep;
 use image::RgbImage;
 
 pub fn demo_root() -> PathBuf {
-    bwm_testdir::shared().join("data/bwm-demo")
+    bwm_testdir::demo_data()
 }
 
 /// Runs a python snippet with `py` and arguments; returns its stdout, panics with its stderr on

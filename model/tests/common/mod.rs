@@ -5,8 +5,9 @@ use std::path::PathBuf;
 
 use tch::{Kind, Tensor};
 
-/// `../shared/golden` beside the repository (BWM_SHARED=<path to shared> overrides), which the
-/// reference computed (`make_golden.py`). Without it: `None`, after the test failed where
+/// The golden files the reference computed (`scripts/golden.py`, run by `scripts/setup.sh --tests`
+/// into the virtualenv's cache), or `$BWM_SHARED/golden` when BWM_SHARED is set
+/// (`bwm_testdir::reference_path`). Without them: `None`, after the test failed where
 /// BWM_REQUIRE names reference (CI) or was logged as skipped elsewhere (`bwm_testdir::need`).
 pub fn golden_dir() -> Option<PathBuf> {
     bwm_testdir::reference("golden")

@@ -3,7 +3,7 @@
 //! Library. cudarc opens `libnccl.so` by that name, but libtorch has already loaded its own
 //! `nvidia/nccl/lib/libnccl.so.2`, and two NCCLs in one process fail ("corrupted comm object").
 //! The process must therefore start with a directory first on LD_LIBRARY_PATH whose `libnccl.so`
-//! links to libtorch's `libnccl.so.2` (ARCHITECTURE.md, Toolchain facts):
+//! links to libtorch's `libnccl.so.2` (docs/architecture.md, Toolchain facts):
 //! ```text
 //! TL=$(python3 -c 'import torch,os;print(os.path.dirname(torch.__file__))')/lib
 //! NL=$(python3 -c 'import nvidia;print(nvidia.__path__[0])')/nccl/lib
@@ -47,7 +47,7 @@ use std::time::{Duration, Instant};
 use tch::{Device, Kind, Tensor};
 
 const SETUP_HINT: &str = "start the process with a directory first on LD_LIBRARY_PATH whose libnccl.so links to the \
-libnccl.so.2 that libtorch loads (ARCHITECTURE.md: ln -sf $NL/libnccl.so.2 /tmp/nccl-link/libnccl.so; \
+libnccl.so.2 that libtorch loads (docs/architecture.md, Toolchain facts: ln -sf $NL/libnccl.so.2 /tmp/nccl-link/libnccl.so; \
 LD_LIBRARY_PATH=/tmp/nccl-link:$TL:$NL:...)";
 
 const NCCL_SYMBOLS: [&str; 12] = [

@@ -1,6 +1,6 @@
 """FLOPs of the reference DiT (DiffSynth-Studio's `WanModel`, with the BWM action encoder of
-shared/golden/make_golden.py), counted by PyTorch's `torch.utils.flop_counter.FlopCounterMode`:
-one sample's forward as `bwm_forward` of make_golden.py runs it, each part under a counter of its
+scripts/golden.py), counted by PyTorch's `torch.utils.flop_counter.FlopCounterMode`:
+one sample's forward as `bwm_forward` of scripts/golden.py runs it, each part under a counter of its
 own, and forward + backward.
 
 FlopCounterMode counts matrix products, convolutions and attention, 2 FLOPs per multiply-add, and
@@ -27,7 +27,7 @@ CONDITION_LATENTS = 3
 
 
 class ActionEncoder(torch.nn.Module):
-    # make_golden.py's BWM WanVideoActionEncoder (ti2v2 path).
+    # scripts/golden.py's BWM WanVideoActionEncoder (ti2v2 path).
     def __init__(self, action_dim, dim):
         super().__init__()
         self.action_mlp1 = torch.nn.Sequential(torch.nn.Linear(action_dim, dim), torch.nn.GELU(), torch.nn.Linear(dim, dim))
@@ -67,7 +67,7 @@ def count(cfg):
     actions = torch.rand(1, cfg["action_frames"], cfg["action_dim"], requires_grad=True)
 
     def forward(groups):
-        # make_golden.py's bwm_forward, each part's FLOPs added to its group.
+        # scripts/golden.py's bwm_forward, each part's FLOPs added to its group.
         def part(name, fn):
             out, n = flops(fn)
             groups[name] = groups.get(name, 0) + n

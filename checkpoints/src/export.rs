@@ -186,7 +186,7 @@ pub fn prepare(input: &str, opts: &ExportOptions) -> Result<Prepared> {
             } else {
                 Box::new(SafetensorsSource::open(&model_file)?)
             };
-            let source = match (&state.run.lora, opts.merge_lora) {
+            let source = match (state.run.lora(), opts.merge_lora) {
                 (Some(_), true) => crate::open::merge_lora_checkpoint(source, &state.run, opts.base.as_deref(), input)?,
                 (Some(_), false) => bail!(
                     "{input} is a LoRA checkpoint (model.lora): export_lora_adapters writes its adapters (`bwm export` does so by itself), --merge-lora the merged full weights"
@@ -507,7 +507,7 @@ fn model_card(f: &CardFacts) -> String {
         .as_deref()
         .and_then(|r| r.split('/').nth(1))
         .map(String::from)
-        .or_else(|| f.p.run.as_ref().map(|r| r.name.clone()).filter(|n| !n.is_empty()))
+        .or_else(|| f.p.run.as_ref().map(|r| r.name().to_string()).filter(|n| !n.is_empty()))
         .unwrap_or_else(|| "BWM world model".into());
     let mut s = String::from("---\nlicense: apache-2.0\n");
     if let Some(b) = &f.cfg.base_model {
@@ -535,7 +535,7 @@ post-trained with the `bwm` trainer. Given the first frame, recent history laten
     match (&f.p.run, &f.p.state) {
         (Some(run), state) => {
             s += "| | |\n|---|---|\n";
-            s += &format!("| run | `{}` |\n", run.name);
+            s += &format!("| run | `{}` |\n", run.name());
             if let Some(st) = state {
                 s += &format!("| steps | {} (optimizer updates {}) |\n| samples seen | {} |\n", st.step, st.optimizer_step, st.samples_seen);
             }
@@ -551,7 +551,7 @@ post-trained with the `bwm` trainer. Given the first frame, recent history laten
             if let Some(d) = run.ema_decay {
                 s += &format!("| EMA decay | {d} |\n");
             }
-            s += &format!("| training dtype | {} |\n", run.dtype.clone().unwrap_or_else(|| "?".into()));
+            s += &format!("| training dtype | {} |\n", run.stated_dtype().map_or("?", |d| d.name()));
             if let Some(cache) = &run.latent_cache {
                 s += &format!("| data | latent cache `{}` ({} clips held out) |\n", cache.display(), run.holdout_clips);
             }
@@ -685,7 +685,7 @@ pub fn export(input: &str, out: &Path, opts: &ExportOptions, progress: &mut dyn 
     }
     let cache_index = p.run.as_ref().and_then(read_cache_index);
     let conditioning = p.run.as_ref().map(|r| {
-        let mut c = serde_json::json!({ "condition_latents": r.condition_latents.unwrap_or(3) });
+        let mut c = serde_json::json!({ "condition_latents": r.record.objective.condition_latents });
         if let Some(ix) = &cache_index {
             for k in ["pixel_frames", "history_frames", "future_frames", "resolution", "fps", "latent_shape", "vae", "clips"] {
                 if let Some(v) = ix.get(k) {
@@ -756,11 +756,11 @@ pub fn export(input: &str, out: &Path, opts: &ExportOptions, progress: &mut dyn 
                 "action_dim": p.cfg.action.action_dim,
             })),
             schedule: p.run.as_ref().map(|r| {
-                serde_json::json!({"kind": "flow-matching (Wan)", "num_train_timesteps": 1000, "shift": r.shift.unwrap_or(5.0), "history_sigma": r.history_sigma})
+                serde_json::json!({"kind": "flow-matching (Wan)", "num_train_timesteps": 1000, "shift": r.record.objective.shift, "history_sigma": r.record.objective.history_sigma})
             }),
             base_model: base_model.clone(),
             training: p.run.as_ref().map(|r| {
-                let mut t = serde_json::json!({"run": r.name, "seed": r.seed, "preset": r.preset, "dtype": r.dtype, "residual": r.residual, "action_dropout": r.action_dropout.unwrap_or(0.0), "lr": r.lr, "ema_decay": r.ema_decay});
+                let mut t = serde_json::json!({"run": r.name(), "seed": r.seed(), "preset": r.record.model.preset, "dtype": r.stated_dtype().map(|d| d.name()), "residual": r.stated_residual(), "action_dropout": r.record.objective.action_dropout, "lr": r.lr, "ema_decay": r.ema_decay});
                 if let Some(st) = &p.state {
                     t["step"] = st.step.into();
                     t["samples_seen"] = st.samples_seen.into();
@@ -817,7 +817,7 @@ fn ema_weights(dir: &Path, model_file: &Path) -> Result<crate::sources::TensorSo
 /// Whether `input` is a training checkpoint folder of a LoRA run.
 pub fn is_lora_checkpoint(input: &str) -> Result<bool> {
     let dir = Path::new(input);
-    Ok(crate::run_dir::is_training_checkpoint(dir) && CheckpointState::read(dir)?.run.lora.is_some())
+    Ok(crate::run_dir::is_training_checkpoint(dir) && CheckpointState::read(dir)?.run.lora().is_some())
 }
 
 /// What [`export_lora_adapters`] wrote.
@@ -843,7 +843,7 @@ pub fn export_lora_adapters(input: &str, out: &Path, dtype: ExportDtype, overwri
     let dir = Path::new(input);
     ensure!(crate::run_dir::is_training_checkpoint(dir), "{input}: not a training checkpoint folder (an adapter export reads one)");
     let state = CheckpointState::read(dir)?;
-    let Some(lora) = state.run.lora.clone() else { bail!("{input} is not a LoRA checkpoint (its run config has no model.lora)") };
+    let Some(lora) = state.run.lora().cloned() else { bail!("{input} is not a LoRA checkpoint (its run config has no model.lora)") };
     let source = SafetensorsSource::open(&dir.join("model.safetensors"))?;
     let kind = dtype.kind();
     let mut tensors = Vec::new();

@@ -279,11 +279,11 @@ pub fn merge_lora_checkpoint(trained: Box<dyn WeightSource>, run: &RunInfo, base
 /// the config, 1 without one).
 pub fn open_lora_adapters(path: &Path) -> Result<(Box<dyn WeightSource>, f64)> {
     let (file, config) = if path.is_dir() {
-        (path.join(crate::export::LORA_WEIGHTS_FILE), path.join("adapter_config.json"))
+        (path.join(crate::lora_export::LORA_WEIGHTS_FILE), path.join("adapter_config.json"))
     } else {
         (path.to_path_buf(), path.with_file_name("adapter_config.json"))
     };
-    ensure!(file.is_file(), "{}: no LoRA weights ({} expected)", path.display(), crate::export::LORA_WEIGHTS_FILE);
+    ensure!(file.is_file(), "{}: no LoRA weights ({} expected)", path.display(), crate::lora_export::LORA_WEIGHTS_FILE);
     let source = SafetensorsSource::open(&file)?;
     let mut pairs = Vec::new();
     for name in source.names() {

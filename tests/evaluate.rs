@@ -28,7 +28,7 @@ fn root() -> PathBuf {
 }
 
 fn demo() -> PathBuf {
-    root().join("../shared/data/bwm-demo")
+    common::demo_data()
 }
 
 /// Kills the process it holds when dropped (also when an assertion fails).

@@ -259,7 +259,7 @@ fn two_ranks_train_the_weights_of_one_and_resume_across_world_sizes() {
 fn stats_writes_a_stat_json_that_normalization_reads() {
     let dir = temp_dir("stats-cli");
     let out = dir.join("stat.json");
-    let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/bwm-demo");
+    let data = common::demo_data();
     let run = Command::new(bwm()).args(["stats", "--data"]).arg(&data).arg("--out").arg(&out).output().unwrap();
     assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
     let stats = bwm_data::ActionStats::read(&out, "state_pose").unwrap();

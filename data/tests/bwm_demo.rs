@@ -5,9 +5,7 @@ use std::path::PathBuf;
 use bwm_data::{ActionSpec, ActionStats, BwmDataset};
 
 fn demo_root() -> PathBuf {
-    let shared = std::env::var_os("BWM_SHARED")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared"));
+    let shared = bwm_testdir::shared();
     shared.join("data/bwm-demo")
 }
 

@@ -1,18 +1,11 @@
 //! Video decoding and writing on the bundled episodes (`../shared/data/bwm-demo`), and the frame
 //! helpers.
 
-use std::path::PathBuf;
-
 use bwm_data::frames::{fit, frame_strip, frames_to_tensor, stack_views_vertically, swap_red_blue, tensor_to_frames};
 use bwm_data::ResizeMode;
+use bwm_testdir::shared;
 use image::{Rgb, RgbImage};
 use tch::{Kind, Tensor};
-
-fn shared() -> PathBuf {
-    std::env::var_os("BWM_SHARED")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared"))
-}
 
 /// A smooth pattern that moves with `t` (no hard edges, which 4:2:0 chroma cannot keep).
 fn synthetic(width: u32, height: u32, t: u32) -> RgbImage {

@@ -11,9 +11,7 @@ use bwm_model::{BwmModel, ModelConfig, ParamStore};
 use tch::Kind;
 
 fn spec_path() -> PathBuf {
-    let shared = std::env::var_os("BWM_SHARED")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared"));
+    let shared = bwm_testdir::shared();
     shared.join("design/wan22-ti2v-5b-spec.md")
 }
 

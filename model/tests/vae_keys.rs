@@ -5,7 +5,6 @@
 mod common;
 
 use std::collections::BTreeMap;
-use std::path::PathBuf;
 
 use bwm_model::vae::{diffusers_key, VaeConfig, WanVae};
 use bwm_model::ParamStore;
@@ -13,9 +12,7 @@ use common::{rel_err, tmp_dir};
 use tch::{Device, Kind, Tensor};
 
 fn spec_rows() -> Vec<(String, Vec<i64>, String)> {
-    let shared = std::env::var_os("BWM_SHARED")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared"));
+    let shared = bwm_testdir::shared();
     let text = std::fs::read_to_string(shared.join("design/wan22-ti2v-5b-spec.md")).unwrap();
     let start = text.find("### 6.10").unwrap();
     text[start..]

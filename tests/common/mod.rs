@@ -32,9 +32,7 @@ pub fn python() -> String {
 }
 
 /// `../shared` beside the repository (BWM_SHARED overrides).
-pub fn shared() -> PathBuf {
-    std::env::var_os("BWM_SHARED").map(PathBuf::from).unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared"))
-}
+pub use bwm_testdir::shared;
 
 /// The bundled RoboTwin episodes in the BWM layout.
 pub fn demo_data() -> PathBuf {
@@ -54,12 +52,7 @@ pub fn write_random_vae(path: &Path, seed: i64) {
 }
 
 #[allow(unused_imports)]
-pub use bwm_testdir::{shared_dir, TestDir};
-
-/// A fresh folder for one test, removed when dropped (bwm_testdir).
-pub fn temp_dir(name: &str) -> TestDir {
-    TestDir::new(name)
-}
+pub use bwm_testdir::{shared_dir, tmp_dir as temp_dir, TestDir};
 
 pub fn write_cache(dir: &Path) {
     // Drawn under with_seed's lock, so every caller writes the same clips.

@@ -39,9 +39,7 @@ fn fixtures() -> &'static Path {
     static DIR: OnceLock<PathBuf> = OnceLock::new();
     DIR.get_or_init(|| {
         let dir = shared_dir("fixtures");
-        let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/make_fixtures.py");
-        let out = Command::new(python()).arg(&script).arg(&dir).output().expect("starting python");
-        assert!(out.status.success(), "make_fixtures.py failed:\n{}", String::from_utf8_lossy(&out.stderr));
+        bwm_testdir::make_fixtures(Path::new(&python()), &dir);
         dir
     })
 }

@@ -12,7 +12,8 @@ use bwm_model::weights::WeightSource;
 use bwm_model::ModelConfig;
 use tch::{Device, Kind};
 
-use crate::export::{write_dir_atomically, write_weights, ExportDtype};
+use crate::atomic_dir::write_dir_atomically;
+use crate::export::{write_weights, ExportDtype};
 use crate::keymap::{self, DitLayout, TEXT_EMBEDDING_PREFIX};
 use crate::open::{check_fits, model_keys, open_any};
 use crate::repo::{self, RepoConfig, WeightsInfo, WrittenFile, CONFIG_FILE};

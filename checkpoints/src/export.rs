@@ -9,57 +9,29 @@
 //!
 //! The folder appears atomically: everything is written under `.<name>.tmp-<pid>` beside the
 //! destination, fsynced, then renamed; an interrupted export leaves only that hidden temporary
-//! folder (which `open_any` refuses and the next export removes).
+//! folder (which `open_any` refuses and the next export removes: `atomic_dir`).
+//!
+//! The model card is `model_card`'s; a LoRA checkpoint's adapters alone are `lora_export`'s.
 
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, ensure, Context, Result};
 use bwm_model::weights::{SafetensorsSource, WeightSource};
 use bwm_model::ModelConfig;
-use tch::{Device, Kind};
+use tch::Kind;
 
+use crate::atomic_dir::write_dir_atomically;
 use crate::keymap::{self, DitLayout, ACTION_PREFIX, TEXT_EMBEDDING_PREFIX};
+use crate::model_card::{model_card, summarize_metrics, CardFacts};
 use crate::open::{check_fits, model_keys, open_any};
 use crate::repo::{
-    self, human_bytes, Planned, RepoConfig, WeightsInfo, WrittenFile, ACTION_ENCODER_DIR, ACTION_STATS_FILE, CONFIG_FILE,
-    DIFFUSERS_BASE, MODEL_BASE, README_FILE, TRANSFORMER_DIR,
+    self, Planned, RepoConfig, WeightsInfo, WrittenFile, ACTION_ENCODER_DIR, ACTION_STATS_FILE, CONFIG_FILE, DIFFUSERS_BASE,
+    MODEL_BASE, README_FILE, TRANSFORMER_DIR,
 };
+pub use crate::repo::ExportDtype;
 use crate::run_info::{CheckpointState, RunInfo};
 use crate::sources::UnionSource;
-
-/// Stored dtype of an export.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum ExportDtype {
-    Bf16,
-    F32,
-}
-
-impl ExportDtype {
-    pub fn kind(self) -> Kind {
-        match self {
-            ExportDtype::Bf16 => Kind::BFloat16,
-            ExportDtype::F32 => Kind::Float,
-        }
-    }
-    pub fn name(self) -> &'static str {
-        match self {
-            ExportDtype::Bf16 => "bfloat16",
-            ExportDtype::F32 => "float32",
-        }
-    }
-}
-
-impl std::str::FromStr for ExportDtype {
-    type Err = anyhow::Error;
-    fn from_str(s: &str) -> Result<Self> {
-        Ok(match s {
-            "bf16" | "bfloat16" => ExportDtype::Bf16,
-            "fp32" | "f32" | "float32" => ExportDtype::F32,
-            other => bail!("unknown dtype '{other}' (allowed: bf16, fp32)"),
-        })
-    }
-}
 
 pub const DEFAULT_SHARD_SIZE: u64 = 5_000_000_000;
 
@@ -186,7 +158,7 @@ pub fn prepare(input: &str, opts: &ExportOptions) -> Result<Prepared> {
             } else {
                 Box::new(SafetensorsSource::open(&model_file)?)
             };
-            let source = match (&state.run.lora, opts.merge_lora) {
+            let source = match (state.run.lora(), opts.merge_lora) {
                 (Some(_), true) => crate::open::merge_lora_checkpoint(source, &state.run, opts.base.as_deref(), input)?,
                 (Some(_), false) => bail!(
                     "{input} is a LoRA checkpoint (model.lora): export_lora_adapters writes its adapters (`bwm export` does so by itself), --merge-lora the merged full weights"
@@ -248,80 +220,6 @@ pub fn prepare(input: &str, opts: &ExportOptions) -> Result<Prepared> {
     declared_missing.sort();
     declared_missing.dedup();
     Ok(Prepared { source, cfg, names, declared_missing, from_base, state, run, input: path.to_path_buf(), ema: opts.ema })
-}
-
-/// Removes `.{name}.tmp-<pid>` folders beside `out` whose writer process is gone.
-fn remove_stale_temporaries(parent: &Path, name: &str) {
-    let prefix = format!(".{name}.tmp-");
-    let Ok(entries) = std::fs::read_dir(parent) else { return };
-    for e in entries.flatten() {
-        let n = e.file_name().to_string_lossy().to_string();
-        if let Some(pid) = n.strip_prefix(&prefix) {
-            let alive = pid.parse::<u32>().is_ok_and(|p| p == std::process::id() || Path::new(&format!("/proc/{p}")).exists());
-            if !alive {
-                let _ = std::fs::remove_dir_all(e.path());
-            }
-        }
-    }
-}
-
-fn sync_tree(dir: &Path) -> Result<()> {
-    for e in std::fs::read_dir(dir).with_context(|| format!("listing {}", dir.display()))? {
-        let p = e?.path();
-        if p.is_dir() {
-            sync_tree(&p)?;
-        } else {
-            std::fs::File::open(&p).and_then(|f| f.sync_all()).with_context(|| format!("syncing {}", p.display()))?;
-        }
-    }
-    std::fs::File::open(dir).and_then(|f| f.sync_all()).with_context(|| format!("syncing {}", dir.display()))
-}
-
-/// Fills a fresh temporary folder beside `out` with `fill`, fsyncs it and renames it to `out`.
-/// `out` may not exist as a non-empty folder unless `overwrite`; on failure nothing is left.
-pub fn write_dir_atomically<T>(out: &Path, overwrite: bool, fill: impl FnOnce(&Path) -> Result<T>) -> Result<T> {
-    let name = out
-        .file_name()
-        .and_then(|n| n.to_str())
-        .with_context(|| format!("{}: the output must name a folder", out.display()))?
-        .to_string();
-    if out.exists() {
-        ensure!(out.is_dir(), "{} exists and is not a folder", out.display());
-        let empty = std::fs::read_dir(out).with_context(|| format!("listing {}", out.display()))?.next().is_none();
-        ensure!(empty || overwrite, "{} exists and is not empty; pass --overwrite to replace it", out.display());
-    }
-    let parent = match out.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
-        _ => PathBuf::from("."),
-    };
-    std::fs::create_dir_all(&parent).with_context(|| format!("creating {}", parent.display()))?;
-    remove_stale_temporaries(&parent, &name);
-    let tmp = parent.join(format!(".{name}.tmp-{}", std::process::id()));
-    if tmp.exists() {
-        std::fs::remove_dir_all(&tmp).with_context(|| format!("removing {}", tmp.display()))?;
-    }
-    std::fs::create_dir_all(&tmp).with_context(|| format!("creating {}", tmp.display()))?;
-    let result = fill(&tmp).and_then(|v| sync_tree(&tmp).map(|_| v));
-    let value = match result {
-        Ok(v) => v,
-        Err(e) => {
-            let _ = std::fs::remove_dir_all(&tmp);
-            return Err(e);
-        }
-    };
-    if out.exists() {
-        let old = parent.join(format!(".{name}.old-{}", std::process::id()));
-        std::fs::rename(out, &old).with_context(|| format!("moving the old {} aside", out.display()))?;
-        if let Err(e) = std::fs::rename(&tmp, out) {
-            let _ = std::fs::rename(&old, out);
-            return Err(e).with_context(|| format!("renaming {} to {}", tmp.display(), out.display()));
-        }
-        std::fs::remove_dir_all(&old).with_context(|| format!("removing the replaced {}", old.display()))?;
-    } else {
-        std::fs::rename(&tmp, out).with_context(|| format!("renaming {} to {}", tmp.display(), out.display()))?;
-    }
-    std::fs::File::open(&parent).and_then(|f| f.sync_all()).ok();
-    Ok(value)
 }
 
 /// The planned tensors of each weight component: (sub folder, shard base name, items).
@@ -434,47 +332,6 @@ fn read_action_stats(path: &Path, group: Option<&str>, action_dim: i64) -> Resul
     Ok((serde_json::json!({ name.clone(): stats }), name))
 }
 
-/// A summary of the run's `metrics.jsonl`.
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct MetricsSummary {
-    pub records: usize,
-    pub last_step: u64,
-    pub last_loss: f64,
-    pub mean_loss_recent: f64,
-    pub recent: usize,
-    pub min_loss: f64,
-    pub mean_samples_per_s: Option<f64>,
-}
-
-pub fn summarize_metrics(path: &Path) -> Result<Option<MetricsSummary>> {
-    let Ok(text) = std::fs::read_to_string(path) else { return Ok(None) };
-    let rows: Vec<(u64, f64, Option<f64>)> = text
-        .lines()
-        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
-        .filter_map(|v| {
-            let step = v.get("step")?.as_u64()?;
-            let loss = v.get("loss")?.as_f64()?;
-            Some((step, loss, v.get("samples_per_s").and_then(|s| s.as_f64())))
-        })
-        .filter(|(_, l, _)| l.is_finite())
-        .collect();
-    if rows.is_empty() {
-        return Ok(None);
-    }
-    let recent = (rows.len() / 10).clamp(1, 100);
-    let tail = &rows[rows.len() - recent..];
-    let sps: Vec<f64> = rows.iter().filter_map(|r| r.2).collect();
-    Ok(Some(MetricsSummary {
-        records: rows.len(),
-        last_step: rows[rows.len() - 1].0,
-        last_loss: rows[rows.len() - 1].1,
-        mean_loss_recent: tail.iter().map(|r| r.1).sum::<f64>() / recent as f64,
-        recent,
-        min_loss: rows.iter().map(|r| r.1).fold(f64::INFINITY, f64::min),
-        mean_samples_per_s: (!sps.is_empty()).then(|| sps.iter().sum::<f64>() / sps.len() as f64),
-    }))
-}
-
 /// The latent cache's `index.json` (clip structure), when the run's cache is reachable.
 fn read_cache_index(run: &RunInfo) -> Option<serde_json::Value> {
     let dir = run.latent_cache.as_ref()?;
@@ -487,158 +344,6 @@ fn read_cache_index(run: &RunInfo) -> Option<serde_json::Value> {
         }
     }
     Some(v)
-}
-
-struct CardFacts<'a> {
-    p: &'a Prepared,
-    opts: &'a ExportOptions,
-    cfg: &'a RepoConfig,
-    metrics: Option<MetricsSummary>,
-    stats_group: Option<String>,
-    files: &'a [WrittenFile],
-}
-
-fn model_card(f: &CardFacts) -> String {
-    let c = &f.p.cfg;
-    let repo = f.opts.repo_id.clone().unwrap_or_else(|| "OWNER/NAME".into());
-    let title = f
-        .opts
-        .repo_id
-        .as_deref()
-        .and_then(|r| r.split('/').nth(1))
-        .map(String::from)
-        .or_else(|| f.p.run.as_ref().map(|r| r.name.clone()).filter(|n| !n.is_empty()))
-        .unwrap_or_else(|| "BWM world model".into());
-    let mut s = String::from("---\nlicense: apache-2.0\n");
-    if let Some(b) = &f.cfg.base_model {
-        s += &format!("base_model: {b}\n");
-    }
-    s += "library_name: bwm\npipeline_tag: image-to-video\ntags:\n- world-model\n- robotics\n- action-conditioned\n- video-generation\n- wan2.2\n---\n\n";
-    s += &format!("# {title}\n\n");
-    s += "An action-conditioned robot world model: the Wan2.2-TI2V DiT driven by the BWM action encoder instead of text \
-(frame-level action tokens as the cross-attention context, latent-level action vectors added to the timestep embedding), \
-post-trained with the `bwm` trainer. Given the first frame, recent history latents and an action trajectory, it predicts the future video latents (Wan2.2 VAE).\n\n";
-    s += "## Model\n\n| | |\n|---|---|\n";
-    s += &format!("| base model | {} |\n", f.cfg.base_model.clone().unwrap_or_else(|| "none (trained from random initialization)".into()));
-    s += &format!(
-        "| DiT | dim {}, {} layers, {} heads, ffn {}, patch {:?}, in/out {} channels |\n",
-        c.dit.dim, c.dit.num_layers, c.dit.num_heads, c.dit.ffn_dim, c.dit.patch_size, c.dit.in_dim
-    );
-    s += &format!(
-        "| action interface | {}-D actions, P={} copies of a_0 prepended, G={} actions per latent frame |\n",
-        c.action.action_dim, c.action.prepend, c.action.group
-    );
-    s += &format!("| parameters | {} in {} tensors |\n", f.cfg.weights.parameters, f.cfg.weights.tensors);
-    s += &format!("| layout | `{}` |\n| dtype | {} |\n| EMA weights | {} |\n\n", f.cfg.layout, f.cfg.weights.dtype, if f.cfg.weights.ema { "yes" } else { "no" });
-
-    s += "## Training\n\n";
-    match (&f.p.run, &f.p.state) {
-        (Some(run), state) => {
-            s += "| | |\n|---|---|\n";
-            s += &format!("| run | `{}` |\n", run.name);
-            if let Some(st) = state {
-                s += &format!("| steps | {} (optimizer updates {}) |\n| samples seen | {} |\n", st.step, st.optimizer_step, st.samples_seen);
-            }
-            if let Some(p) = run.steps_planned {
-                s += &format!("| steps planned | {p} |\n");
-            }
-            if let Some(lr) = run.lr {
-                s += &format!("| learning rate | {lr} |\n");
-            }
-            if let (Some(mb), Some(ga)) = (run.micro_batch, run.grad_accum) {
-                s += &format!("| batch | micro-batch {mb} x accumulation {ga} |\n");
-            }
-            if let Some(d) = run.ema_decay {
-                s += &format!("| EMA decay | {d} |\n");
-            }
-            s += &format!("| training dtype | {} |\n", run.dtype.clone().unwrap_or_else(|| "?".into()));
-            if let Some(cache) = &run.latent_cache {
-                s += &format!("| data | latent cache `{}` ({} clips held out) |\n", cache.display(), run.holdout_clips);
-            }
-            if let Some(cond) = &f.cfg.conditioning {
-                let g = |k: &str| cond.get(k).map(|v| v.to_string()).unwrap_or_else(|| "?".into());
-                s += &format!(
-                    "| clips | {} pixel frames (1 + {} history + {} future), {} condition latents, resolution {}, {} fps |\n",
-                    g("pixel_frames"),
-                    g("history_frames"),
-                    g("future_frames"),
-                    g("condition_latents"),
-                    g("resolution"),
-                    g("fps")
-                );
-            }
-            s += "\n";
-        }
-        (None, _) => s += "Exported from a weights file; no training run information was given.\n\n",
-    }
-
-    s += "## Metrics\n\n";
-    match &f.metrics {
-        Some(m) => {
-            s += "From the run's `metrics.jsonl` (flow-matching training loss, timestep-weighted):\n\n| | |\n|---|---|\n";
-            s += &format!("| logged steps | {} (last step {}) |\n", m.records, m.last_step);
-            s += &format!("| final loss | {:.5} |\n", m.last_loss);
-            s += &format!("| mean loss, last {} logged steps | {:.5} |\n", m.recent, m.mean_loss_recent);
-            s += &format!("| lowest logged loss | {:.5} |\n", m.min_loss);
-            if let Some(sps) = m.mean_samples_per_s {
-                s += &format!("| throughput | {sps:.2} samples/s |\n");
-            }
-            s += "\n";
-        }
-        None => s += "No `metrics.jsonl` was found for this export.\n\n",
-    }
-
-    s += "## Actions\n\n";
-    match &f.stats_group {
-        Some(g) => {
-            s += &format!(
-                "Raw actions are normalized per dimension with the statistics in `{ACTION_STATS_FILE}` (group `{g}`): \
-`2*(x - p01)/(p99 - p01 + 1e-8) - 1`, clipped to [-1, 1] (min/max where p01 = p99).\n\n"
-            )
-        }
-        None => s += "No action statistics were exported: normalize actions to [-1, 1] as in training (`2*(x - p01)/(p99 - p01 + 1e-8) - 1` with the dataset's `stat.json`).\n\n",
-    }
-
-    s += "## Files\n\n";
-    for file in f.files {
-        s += &format!("- `{}` ({})\n", file.path, human_bytes(file.bytes));
-    }
-    s += &format!("- `{CONFIG_FILE}`: model, action interface, clip and normalization settings\n\n");
-    if !f.cfg.weights.missing_keys.is_empty() {
-        s += &format!(
-            "Deliberately absent: {} (`{}`...): {}\n\n",
-            f.cfg.weights.missing_keys.len(),
-            f.cfg.weights.missing_keys[0],
-            f.cfg.weights.missing_reason.clone().unwrap_or_default()
-        );
-    }
-
-    s += "## How to load\n\n";
-    s += &format!(
-        "With `bwm` (any layout, picked from the files; a local folder or a Hub repo id through the Hugging Face cache):\n\n```rust\nlet model = bwm_checkpoints::open::load_model(\"{repo}\", None, tch::Kind::BFloat16, tch::Device::Cuda(0))?;\n```\n\n\
-or `bwm convert dit {repo} OUT --to wan|diffusers|bwm-release`.\n\n"
-    );
-    let layout = f.cfg.layout.as_str();
-    match layout {
-        "diffusers" => {
-            s += "With diffusers (the DiT; the action encoder is the `action_encoder/` component, which diffusers has no class for):\n\n```python\nfrom diffusers import WanTransformer3DModel\n";
-            s += &format!("dit = WanTransformer3DModel.from_pretrained(\"{repo}\", subfolder=\"transformer\")\n```\n\n");
-            s += "diffusers reports `condition_embedder.text_embedder.*` as newly initialized: it is absent on purpose (unused with actions).\n\n";
-        }
-        _ => {
-            let prefix = f.cfg.weights.action_encoder_prefix.clone();
-            s += "With DiffSynth-Studio (`diffsynth==2.0.11`, as the BWM release):\n\n```python\nimport json, torch\nfrom safetensors.torch import load_file\nfrom diffsynth.models.wan_video_dit import WanModel\n";
-            s += "index = json.load(open(\"model.safetensors.index.json\"))\nsd = {}\nfor f in sorted(set(index[\"weight_map\"].values())):\n    sd.update(load_file(f))\n";
-            s += &format!("enc = {{k[len(\"{prefix}\"):]: v for k, v in sd.items() if k.startswith(\"{prefix}\")}}\ndit_sd = {{k: v for k, v in sd.items() if not k.startswith(\"{prefix}\")}}\n");
-            s += &format!(
-                "dit = WanModel(dim={}, in_dim={}, ffn_dim={}, out_dim={}, text_dim={}, freq_dim={}, eps={:e}, patch_size={:?}, num_heads={}, num_layers={},\n              has_image_input=False, seperated_timestep=True, require_clip_embedding=False, require_vae_embedding=False, fuse_vae_embedding_in_latents=True)\n",
-                c.dit.dim, c.dit.in_dim, c.dit.ffn_dim, c.dit.out_dim, c.dit.text_dim, c.dit.freq_dim, c.dit.eps, c.dit.patch_size, c.dit.num_heads, c.dit.num_layers
-            );
-            s += "missing, unexpected = dit.load_state_dict(dit_sd, strict=False)   # missing: text_embedding.* only\n```\n\n";
-        }
-    }
-    s += "## License\n\nApache-2.0, as the Wan2.2 base model.\n";
-    s
 }
 
 /// Exports `input` (a training checkpoint folder, or weights in any layout) into the model
@@ -685,7 +390,7 @@ pub fn export(input: &str, out: &Path, opts: &ExportOptions, progress: &mut dyn 
     }
     let cache_index = p.run.as_ref().and_then(read_cache_index);
     let conditioning = p.run.as_ref().map(|r| {
-        let mut c = serde_json::json!({ "condition_latents": r.condition_latents.unwrap_or(3) });
+        let mut c = serde_json::json!({ "condition_latents": r.record.objective.condition_latents });
         if let Some(ix) = &cache_index {
             for k in ["pixel_frames", "history_frames", "future_frames", "resolution", "fps", "latent_shape", "vae", "clips"] {
                 if let Some(v) = ix.get(k) {
@@ -756,11 +461,11 @@ pub fn export(input: &str, out: &Path, opts: &ExportOptions, progress: &mut dyn 
                 "action_dim": p.cfg.action.action_dim,
             })),
             schedule: p.run.as_ref().map(|r| {
-                serde_json::json!({"kind": "flow-matching (Wan)", "num_train_timesteps": 1000, "shift": r.shift.unwrap_or(5.0), "history_sigma": r.history_sigma})
+                serde_json::json!({"kind": "flow-matching (Wan)", "num_train_timesteps": 1000, "shift": r.record.objective.shift, "history_sigma": r.record.objective.history_sigma})
             }),
             base_model: base_model.clone(),
             training: p.run.as_ref().map(|r| {
-                let mut t = serde_json::json!({"run": r.name, "seed": r.seed, "preset": r.preset, "dtype": r.dtype, "residual": r.residual, "action_dropout": r.action_dropout.unwrap_or(0.0), "lr": r.lr, "ema_decay": r.ema_decay});
+                let mut t = serde_json::json!({"run": r.name(), "seed": r.seed(), "preset": r.record.model.preset, "dtype": r.stated_dtype().map(|d| d.name()), "residual": r.stated_residual(), "action_dropout": r.record.objective.action_dropout, "lr": r.lr, "ema_decay": r.ema_decay});
                 if let Some(st) = &p.state {
                     t["step"] = st.step.into();
                     t["samples_seen"] = st.samples_seen.into();
@@ -773,7 +478,16 @@ pub fn export(input: &str, out: &Path, opts: &ExportOptions, progress: &mut dyn 
                 t
             }),
         };
-        let card = model_card(&CardFacts { p: &p, opts, cfg: &repo_cfg, metrics: metrics.clone(), stats_group: stats_group.clone(), files: &files });
+        let card = model_card(&CardFacts {
+            model: &p.cfg,
+            run: p.run.as_ref(),
+            state: p.state.as_ref(),
+            repo_id: opts.repo_id.as_deref(),
+            cfg: &repo_cfg,
+            metrics: metrics.clone(),
+            stats_group: stats_group.clone(),
+            files: &files,
+        });
         std::fs::write(tmp.join(README_FILE), &card).context("writing README.md")?;
         files.push(WrittenFile { path: README_FILE.into(), bytes: card.len() as u64 });
         // config.json last: a folder without it is not a finished export.
@@ -812,73 +526,4 @@ fn ema_weights(dir: &Path, model_file: &Path) -> Result<crate::sources::TensorSo
         tensors.push((name, flat.view(shape.as_slice())));
     }
     Ok(crate::sources::TensorSource::new(tensors, format!("EMA weights of {}", dir.display())))
-}
-
-/// Whether `input` is a training checkpoint folder of a LoRA run.
-pub fn is_lora_checkpoint(input: &str) -> Result<bool> {
-    let dir = Path::new(input);
-    Ok(crate::run_dir::is_training_checkpoint(dir) && CheckpointState::read(dir)?.run.lora.is_some())
-}
-
-/// What [`export_lora_adapters`] wrote.
-#[derive(Debug, Clone)]
-pub struct AdapterExport {
-    pub out: PathBuf,
-    /// Adapted linear layers.
-    pub layers: usize,
-    pub parameters: i64,
-    /// Trained tensors besides the adapters (the action encoder), which an adapter file cannot
-    /// carry: export them with `--merge-lora`.
-    pub left_out: Vec<String>,
-}
-
-/// The file diffusers' `load_lora_weights` / `load_lora_adapter` reads from a folder.
-pub const LORA_WEIGHTS_FILE: &str = "pytorch_lora_weights.safetensors";
-
-/// A LoRA checkpoint's adapters in the layout diffusers and PEFT read for
-/// `WanTransformer3DModel`: `transformer.<diffusers module>.lora_A.weight` / `.lora_B.weight` in
-/// `LORA_WEIGHTS_FILE`, B scaled by alpha / rank (so the default alpha = rank of a loader applies
-/// the trained update), and PEFT's `adapter_config.json`. Written atomically as `export` is.
-pub fn export_lora_adapters(input: &str, out: &Path, dtype: ExportDtype, overwrite: bool) -> Result<AdapterExport> {
-    let dir = Path::new(input);
-    ensure!(crate::run_dir::is_training_checkpoint(dir), "{input}: not a training checkpoint folder (an adapter export reads one)");
-    let state = CheckpointState::read(dir)?;
-    let Some(lora) = state.run.lora.clone() else { bail!("{input} is not a LoRA checkpoint (its run config has no model.lora)") };
-    let source = SafetensorsSource::open(&dir.join("model.safetensors"))?;
-    let kind = dtype.kind();
-    let mut tensors = Vec::new();
-    let mut modules = BTreeSet::new();
-    let mut left_out = Vec::new();
-    let mut parameters = 0i64;
-    for name in source.names() {
-        let Some((module, part)) = bwm_model::lora::split_adapter_key(&name) else {
-            left_out.push(name);
-            continue;
-        };
-        let diffusers = keymap::to_layout(DitLayout::Diffusers, &format!("{module}.weight"))
-            .with_context(|| format!("{input}: the adapter {name}"))?;
-        let diffusers_module = diffusers.strip_suffix(".weight").unwrap_or(&diffusers).to_string();
-        let mut t = source.load(&name, Kind::Float, Device::Cpu)?;
-        if part == "lora_B" {
-            t = t * lora.scale();
-        }
-        parameters += t.numel() as i64;
-        modules.insert(diffusers_module.clone());
-        tensors.push((format!("transformer.{diffusers_module}.{part}.weight"), t.to_kind(kind)));
-    }
-    ensure!(!tensors.is_empty(), "{input}: the checkpoint holds no adapter tensors");
-    let config = serde_json::json!({
-        "peft_type": "LORA",
-        "r": lora.rank,
-        "lora_alpha": lora.rank,
-        "lora_dropout": lora.dropout,
-        "target_modules": modules.iter().collect::<Vec<_>>(),
-        "bias": "none",
-        "bwm": {"alpha": lora.alpha.unwrap_or(lora.rank as f64), "scale_folded_into_lora_B": lora.scale(), "step": state.step},
-    });
-    write_dir_atomically(out, overwrite, |tmp| {
-        crate::tensor_file::write_tensors(&tmp.join(LORA_WEIGHTS_FILE), &tensors, &BTreeMap::new())?;
-        std::fs::write(tmp.join("adapter_config.json"), serde_json::to_string_pretty(&config)? + "\n").context("writing adapter_config.json")
-    })?;
-    Ok(AdapterExport { out: out.to_path_buf(), layers: modules.len(), parameters, left_out })
 }

@@ -4,10 +4,13 @@
 //! key maps (Wan-native / diffusers / BWM release), export to a Hugging Face model repository,
 //! pushing it to the Hub, conversions, and loading any layout from a folder or a Hub repo id.
 
+pub mod atomic_dir;
 pub mod convert;
 pub mod export;
 pub mod hub;
 pub mod keymap;
+pub mod lora_export;
+pub mod model_card;
 pub mod open;
 pub mod optimizer_shards;
 pub mod repo;

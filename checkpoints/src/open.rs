@@ -14,7 +14,8 @@ use tch::{Device, Kind};
 
 use crate::keymap::{self, DitLayout, ACTION_PREFIX, TEXT_EMBEDDING_PREFIX};
 use crate::repo::{self, RepoConfig, ACTION_ENCODER_DIR, CONFIG_FILE, TRANSFORMER_DIR};
-use crate::run_info::{InitInfo, RunInfo};
+use crate::run_info::RunInfo;
+use bwm_run_config::{Dtype, InitSource};
 use crate::sources::{LoraMergedSource, MappedSource, TensorSource, UnionSource};
 
 /// Weights opened by [`open_any`].
@@ -230,10 +231,10 @@ fn open_training_checkpoint(dir: &Path) -> Result<OpenedWeights> {
     let state = crate::run_info::CheckpointState::read(dir)?;
     let model_file = dir.join("model.safetensors");
     ensure!(model_file.is_file(), "{}: no model.safetensors; not a complete training checkpoint", dir.display());
-    if state.run.lora.is_some() {
+    if state.run.lora().is_some() {
         let what = dir.display().to_string();
         let source = merge_lora_checkpoint(Box::new(SafetensorsSource::open(&model_file)?), &state.run, None, &what)?;
-        let kind = if state.run.dtype.as_deref() == Some("bf16") { Kind::BFloat16 } else { Kind::Float };
+        let kind = if state.run.stated_dtype() == Some(Dtype::Bf16) { Kind::BFloat16 } else { Kind::Float };
         let kinds = source.names().into_iter().map(|n| (n, kind)).collect();
         return Ok(OpenedWeights {
             source,
@@ -256,16 +257,16 @@ fn open_training_checkpoint(dir: &Path) -> Result<OpenedWeights> {
 /// `open_any` reads), else the run's `model.init`; a run from random weights gets them drawn
 /// again from its seed, as the trainer drew them.
 pub fn merge_lora_checkpoint(trained: Box<dyn WeightSource>, run: &RunInfo, base: Option<&str>, what: &str) -> Result<Box<dyn WeightSource>> {
-    let Some(lora) = &run.lora else { bail!("{what}: not a LoRA run (no model.lora in its config)") };
-    let base_source: Box<dyn WeightSource> = match (base, &run.init) {
+    let Some(lora) = run.lora() else { bail!("{what}: not a LoRA run (no model.lora in its config)") };
+    let base_source: Box<dyn WeightSource> = match (base, run.init()) {
         (Some(spec), _) => open_any(spec).with_context(|| format!("{what}: the base weights {spec}"))?.into_source(),
-        (None, InitInfo::WanPretrained(p) | InitInfo::BwmCheckpoint(p)) => open_any(&p.to_string_lossy())
+        (None, InitSource::WanPretrained { path: p } | InitSource::BwmCheckpoint { path: p }) => open_any(&p.to_string_lossy())
             .with_context(|| format!("{what}: the base weights its run started from ({})", p.display()))?
             .into_source(),
-        (None, InitInfo::Random) => {
-            let model = BwmModel::random(&run.model, Kind::Float, Device::Cpu, run.seed as i64)
+        (None, InitSource::Random) => {
+            let model = BwmModel::random(&run.model, Kind::Float, Device::Cpu, run.seed() as i64)
                 .with_context(|| format!("{what}: drawing the random base weights of its run again"))?;
-            Box::new(TensorSource::new(model.store.named_parameters(), format!("the random base weights of run {} (seed {})", run.name, run.seed)))
+            Box::new(TensorSource::new(model.store.named_parameters(), format!("the random base weights of run {} (seed {})", run.name(), run.seed())))
         }
     };
     Ok(Box::new(LoraMergedSource::over(trained, base_source, lora.scale())?))
@@ -278,11 +279,11 @@ pub fn merge_lora_checkpoint(trained: Box<dyn WeightSource>, run: &RunInfo, base
 /// the config, 1 without one).
 pub fn open_lora_adapters(path: &Path) -> Result<(Box<dyn WeightSource>, f64)> {
     let (file, config) = if path.is_dir() {
-        (path.join(crate::export::LORA_WEIGHTS_FILE), path.join("adapter_config.json"))
+        (path.join(crate::lora_export::LORA_WEIGHTS_FILE), path.join("adapter_config.json"))
     } else {
         (path.to_path_buf(), path.with_file_name("adapter_config.json"))
     };
-    ensure!(file.is_file(), "{}: no LoRA weights ({} expected)", path.display(), crate::export::LORA_WEIGHTS_FILE);
+    ensure!(file.is_file(), "{}: no LoRA weights ({} expected)", path.display(), crate::lora_export::LORA_WEIGHTS_FILE);
     let source = SafetensorsSource::open(&file)?;
     let mut pairs = Vec::new();
     for name in source.names() {
@@ -439,10 +440,10 @@ pub fn training_record(opened: &OpenedWeights) -> Result<TrainingRecord> {
     if crate::run_dir::is_training_checkpoint(&opened.location) {
         let run = crate::run_info::CheckpointState::read(&opened.location)?.run;
         return Ok(TrainingRecord {
-            residual: run.residual,
-            action_dropout: Some(run.action_dropout.unwrap_or(0.0)),
-            history_sigma: run.history_sigma,
-            shift: run.shift,
+            residual: run.stated_residual(),
+            action_dropout: Some(run.record.objective.action_dropout),
+            history_sigma: run.record.objective.history_sigma,
+            shift: run.stated_shift(),
         });
     }
     let config = opened.repo_config.as_ref();

@@ -1,6 +1,6 @@
 //! The model-repository folder format shared by `export` (writing) and `open` (reading): file
-//! names per layout, the top-level `config.json`, and sharded safetensors with their
-//! `*.safetensors.index.json`.
+//! names per layout, the top-level `config.json`, sharded safetensors with their
+//! `*.safetensors.index.json`, and the dtype they are stored in (`ExportDtype`).
 //!
 //! ```text
 //! wan / bwm-release                      diffusers
@@ -386,5 +386,38 @@ mod tests {
         let t = diffusers_transformer_config(&DitConfig::tiny());
         assert_eq!(dit_config_from_foreign(&t).unwrap(), DitConfig::tiny());
         assert!(dit_config_from_foreign(&serde_json::json!({"_class_name": "Other"})).is_none());
+    }
+}
+
+/// Stored dtype of an export.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ExportDtype {
+    Bf16,
+    F32,
+}
+
+impl ExportDtype {
+    pub fn kind(self) -> Kind {
+        match self {
+            ExportDtype::Bf16 => Kind::BFloat16,
+            ExportDtype::F32 => Kind::Float,
+        }
+    }
+    pub fn name(self) -> &'static str {
+        match self {
+            ExportDtype::Bf16 => "bfloat16",
+            ExportDtype::F32 => "float32",
+        }
+    }
+}
+
+impl std::str::FromStr for ExportDtype {
+    type Err = anyhow::Error;
+    fn from_str(s: &str) -> Result<Self> {
+        Ok(match s {
+            "bf16" | "bfloat16" => ExportDtype::Bf16,
+            "fp32" | "f32" | "float32" => ExportDtype::F32,
+            other => bail!("unknown dtype '{other}' (allowed: bf16, fp32)"),
+        })
     }
 }

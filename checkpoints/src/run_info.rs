@@ -1,129 +1,32 @@
-//! What an export needs to know about the training run behind a checkpoint, read tolerantly from
-//! the run config TOML stored in the checkpoint's `state.json` (this crate cannot depend on the
-//! trainer, which depends on it; unknown sections are ignored here, the trainer validates them).
+//! What a reader of a checkpoint (export, open, inference) knows about the training run behind it,
+//! from the run config TOML stored in the checkpoint's `state.json`. Its `[run]`, `[model]` and
+//! `[objective]` sections are read through the trainer's own types (`bwm_run_config`), strictly;
+//! the trainer's other sections are its business (this crate cannot depend on the trainer, which
+//! depends on it): a config of any earlier trainer opens, and the values an export shows of them
+//! (the model card's learning rate, batch, data) are read by name, as written.
 
 use std::path::{Path, PathBuf};
 
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result};
 use bwm_model::lora::LoraConfig;
-use bwm_model::config::{removed, Removed};
-use bwm_model::{ActionConfig, DitConfig, ModelConfig};
-use serde::Deserialize;
+use bwm_model::ModelConfig;
+use bwm_run_config::{Dtype, InitSource, RunRecord};
 
-/// Where the run's initial weights came from (`model.init`).
-#[derive(Debug, Clone, PartialEq)]
-pub enum InitInfo {
-    Random,
-    WanPretrained(PathBuf),
-    BwmCheckpoint(PathBuf),
-}
-
-#[derive(Debug, Clone, Default, Deserialize)]
-struct RunPart {
-    #[serde(default)]
-    name: String,
-    #[serde(default)]
-    seed: u64,
-}
-
-#[derive(Debug, Clone, Deserialize)]
-struct ModelPart {
-    preset: String,
-    #[serde(default)]
-    dit: Option<DitConfig>,
-    #[serde(default)]
-    action: Option<ActionConfig>,
-    #[serde(default)]
-    dtype: Option<String>,
-    #[serde(default)]
-    residual: Option<String>,
-    #[serde(default)]
-    init: Option<toml::Value>,
-    #[serde(default)]
-    lora: Option<LoraConfig>,
-}
-
-#[derive(Debug, Clone, Default, Deserialize)]
-struct DataPart {
-    #[serde(default)]
-    latent_cache: Option<PathBuf>,
-    #[serde(default)]
-    holdout_clips: usize,
-}
-
-#[derive(Debug, Clone, Default, Deserialize)]
-struct ObjectivePart {
-    #[serde(default)]
-    shift: Option<f64>,
-    #[serde(default)]
-    history_sigma: Option<f64>,
-    #[serde(default)]
-    condition_latents: Option<i64>,
-    #[serde(default)]
-    action_dropout: Option<f64>,
-    /// Removed (issue 69): read only to refuse a run that used it (`removed::MOTION_WEIGHT`).
-    #[serde(default, deserialize_with = "removed::motion_weight")]
-    #[allow(dead_code)]
-    motion_weight: Removed,
-}
-
-#[derive(Debug, Clone, Default, Deserialize)]
-struct OptimPart {
-    #[serde(default)]
-    lr: Option<f64>,
-    #[serde(default)]
-    ema_decay: Option<f64>,
-}
-
-#[derive(Debug, Clone, Default, Deserialize)]
-struct TrainPart {
-    #[serde(default)]
-    steps: Option<u64>,
-    #[serde(default)]
-    micro_batch: Option<usize>,
-    #[serde(default)]
-    grad_accum: Option<usize>,
-}
-
-#[derive(Debug, Clone, Deserialize)]
-struct RunToml {
-    #[serde(default)]
-    run: RunPart,
-    model: ModelPart,
-    #[serde(default)]
-    data: DataPart,
-    #[serde(default)]
-    objective: ObjectivePart,
-    #[serde(default)]
-    optim: OptimPart,
-    #[serde(default)]
-    train: TrainPart,
-}
-
-/// The run config, as far as an export uses it.
+/// The run config, as far as a reader of its checkpoints uses it.
 #[derive(Debug, Clone)]
 pub struct RunInfo {
-    pub name: String,
-    pub seed: u64,
-    pub preset: String,
+    /// `[run]`, `[model]` and `[objective]`, as the trainer reads them.
+    pub record: RunRecord,
+    /// The model's architecture (`[model]`'s preset or `[model.dit]`, and its action interface).
     pub model: ModelConfig,
-    /// `f32` or `bf16`: the training dtype.
-    pub dtype: Option<String>,
-    /// `f32` or `model`: the DiT's residual stream in training (`model.residual`; absent = f32).
-    pub residual: Option<String>,
-    pub init: InitInfo,
-    /// The run's LoRA adapters (`model.lora`): its checkpoints hold adapters, not whole weights.
-    pub lora: Option<LoraConfig>,
+    /// Of the trainer's own sections, what an export shows: `data.latent_cache`, and the
+    /// `data.holdout_clips` of early trainers (0 where absent).
     pub latent_cache: Option<PathBuf>,
     pub holdout_clips: usize,
-    pub shift: Option<f64>,
-    pub history_sigma: Option<f64>,
-    pub condition_latents: Option<i64>,
-    /// `objective.action_dropout`: the share of samples trained on the null action condition
-    /// (absent = 0).
-    pub action_dropout: Option<f64>,
+    /// `optim.lr`, `optim.ema_decay`.
     pub lr: Option<f64>,
     pub ema_decay: Option<f64>,
+    /// `train.steps`, `train.micro_batch`, `train.grad_accum`.
     pub steps_planned: Option<u64>,
     pub micro_batch: Option<usize>,
     pub grad_accum: Option<usize>,
@@ -134,46 +37,19 @@ pub struct RunInfo {
 impl RunInfo {
     /// Parses a run config TOML (`what` names it in errors).
     pub fn parse(text: &str, what: &str) -> Result<Self> {
-        let raw: RunToml = toml::from_str(text).map_err(|e| anyhow::anyhow!("{what}: not a BWM run config: {}", e.to_string().trim()))?;
-        let dit = match &raw.model.dit {
-            Some(d) => d.clone(),
-            None => DitConfig::preset(&raw.model.preset).with_context(|| format!("{what}: model.preset"))?,
-        };
-        let model = ModelConfig { dit, action: raw.model.action.clone().unwrap_or_default() };
-        model.validate().with_context(|| format!("{what}: model section"))?;
-        let init = match &raw.model.init {
-            None => InitInfo::Random,
-            Some(v) => {
-                let from = v.get("from").and_then(|f| f.as_str()).unwrap_or("random");
-                let path = v.get("path").and_then(|p| p.as_str()).map(PathBuf::from);
-                match (from, path) {
-                    ("random", _) => InitInfo::Random,
-                    ("wan-pretrained", Some(p)) => InitInfo::WanPretrained(p),
-                    ("bwm-checkpoint", Some(p)) => InitInfo::BwmCheckpoint(p),
-                    (other, _) => bail!("{what}: model.init.from = '{other}' is not understood (random, wan-pretrained or bwm-checkpoint with a path)"),
-                }
-            }
-        };
+        let record = RunRecord::parse(text).with_context(|| format!("{what}: not a BWM run config"))?;
+        let model = record.model.model_config().with_context(|| format!("{what}: model section"))?;
+        let what = || format!("{what}: not a BWM run config");
         Ok(Self {
-            name: raw.run.name,
-            seed: raw.run.seed,
-            preset: raw.model.preset,
+            latent_cache: record.other("data", "latent_cache").with_context(what)?,
+            holdout_clips: record.other("data", "holdout_clips").with_context(what)?.unwrap_or(0),
+            lr: record.other("optim", "lr").with_context(what)?,
+            ema_decay: record.other("optim", "ema_decay").with_context(what)?,
+            steps_planned: record.other("train", "steps").with_context(what)?,
+            micro_batch: record.other("train", "micro_batch").with_context(what)?,
+            grad_accum: record.other("train", "grad_accum").with_context(what)?,
+            record,
             model,
-            dtype: raw.model.dtype,
-            residual: raw.model.residual,
-            init,
-            lora: raw.model.lora,
-            latent_cache: raw.data.latent_cache,
-            holdout_clips: raw.data.holdout_clips,
-            shift: raw.objective.shift,
-            history_sigma: raw.objective.history_sigma,
-            condition_latents: raw.objective.condition_latents,
-            action_dropout: raw.objective.action_dropout,
-            lr: raw.optim.lr,
-            ema_decay: raw.optim.ema_decay,
-            steps_planned: raw.train.steps,
-            micro_batch: raw.train.micro_batch,
-            grad_accum: raw.train.grad_accum,
             toml: text.to_string(),
         })
     }
@@ -183,19 +59,56 @@ impl RunInfo {
         Self::parse(&text, &path.display().to_string())
     }
 
+    /// `run.name` ("" for a config without `[run]`).
+    pub fn name(&self) -> &str {
+        &self.record.run.name
+    }
+
+    /// `run.seed`, which keyed the run's random draws (its random initial weights among them).
+    pub fn seed(&self) -> u64 {
+        self.record.run.seed
+    }
+
+    /// Where the run's initial weights came from (`model.init`).
+    pub fn init(&self) -> &InitSource {
+        &self.record.model.init
+    }
+
+    /// The run's LoRA adapters (`model.lora`): its checkpoints hold adapters, not whole weights.
+    pub fn lora(&self) -> Option<&LoraConfig> {
+        self.record.model.lora.as_ref()
+    }
+
+    /// `model.dtype`, the training dtype, where the config gives it (a config written by hand
+    /// may leave it out; the trainer writes every key).
+    pub fn stated_dtype(&self) -> Option<Dtype> {
+        self.record.states("model", "dtype").then_some(self.record.model.dtype)
+    }
+
+    /// `model.residual` (`f32` or `model`: the DiT's residual stream in training) where the config
+    /// gives it.
+    pub fn stated_residual(&self) -> Option<String> {
+        self.record.states("model", "residual").then(|| match self.record.model.residual {
+            bwm_model::Residual::F32 => "f32".to_string(),
+            bwm_model::Residual::Model => "model".to_string(),
+        })
+    }
+
+    /// `objective.shift` where the config gives it (the default is Wan's 5).
+    pub fn stated_shift(&self) -> Option<f64> {
+        self.record.states("objective", "shift").then_some(self.record.objective.shift)
+    }
+
     /// The base weights the run started from, when they are a file.
     pub fn init_path(&self) -> Option<&Path> {
-        match &self.init {
-            InitInfo::Random => None,
-            InitInfo::WanPretrained(p) | InitInfo::BwmCheckpoint(p) => Some(p),
-        }
+        self.init().path()
     }
 
     /// Hub id of the base model, when the run started from published weights.
     pub fn base_model_id(&self) -> Option<String> {
-        match &self.init {
-            InitInfo::WanPretrained(_) => Some("Wan-AI/Wan2.2-TI2V-5B".into()),
-            InitInfo::BwmCheckpoint(p) if p.to_string_lossy().contains("step-12000") => Some("BLM-Lab/Boundless-World-Model".into()),
+        match self.init() {
+            InitSource::WanPretrained { .. } => Some("Wan-AI/Wan2.2-TI2V-5B".into()),
+            InitSource::BwmCheckpoint { path } if path.to_string_lossy().contains("step-12000") => Some("BLM-Lab/Boundless-World-Model".into()),
             _ => None,
         }
     }
@@ -277,7 +190,7 @@ x = 1
     fn removed_keys_read_at_their_old_defaults_and_are_refused_otherwise() {
         let old = "[run]\nname = \"t\"\n[model]\npreset = \"tiny\"\n[model.action]\naction_dim = 4\nfourier_bands = 0\ntemporal_rope = false\n[objective]\nmotion_weight = 0.0\n";
         let r = RunInfo::parse(old, "t").unwrap();
-        assert_eq!(r.model.action, ActionConfig { action_dim: 4, ..ActionConfig::default() });
+        assert_eq!(r.model.action, bwm_model::ActionConfig { action_dim: 4, ..bwm_model::ActionConfig::default() });
         for (off, on, why) in [("fourier_bands = 0", "fourier_bands = 3", "run 28"), ("temporal_rope = false", "temporal_rope = true", "run 39"), ("motion_weight = 0.0", "motion_weight = 4.0", "run 33")] {
             let e = format!("{:#}", RunInfo::parse(&old.replace(off, on), "the run config stored in c").unwrap_err());
             let key = on.split(" = ").next().unwrap();

@@ -92,14 +92,14 @@ pub fn run(args: ExportArgs) -> Result<()> {
         base_model_id: args.base_model,
         fail_after_shards: None,
     };
-    if !args.merge_lora && bwm_checkpoints::export::is_lora_checkpoint(&args.checkpoint)? {
+    if !args.merge_lora && bwm_checkpoints::lora_export::is_lora_checkpoint(&args.checkpoint)? {
         anyhow::ensure!(args.push.is_none(), "--push of a LoRA checkpoint's adapters is not supported; push the --merge-lora export, or upload the adapter folder");
-        let a = bwm_checkpoints::export::export_lora_adapters(&args.checkpoint, &args.out, args.dtype, args.overwrite)?;
+        let a = bwm_checkpoints::lora_export::export_lora_adapters(&args.checkpoint, &args.out, args.dtype, args.overwrite)?;
         println!(
             "exported the LoRA adapters of {} layers ({} parameters, diffusers/PEFT layout) to {}",
             a.layers,
             a.parameters,
-            a.out.join(bwm_checkpoints::export::LORA_WEIGHTS_FILE).display()
+            a.out.join(bwm_checkpoints::lora_export::LORA_WEIGHTS_FILE).display()
         );
         if !a.left_out.is_empty() {
             println!(

@@ -148,7 +148,8 @@ pub struct ActionConfig {
 pub struct Removed;
 
 /// The config keys that were removed, what measured them, and their checks: the model's, and the
-/// trainer's `objective.motion_weight`, which the checkpoints' tolerant reader of a run config checks too.
+/// run config's `objective.motion_weight` (`bwm_run_config::ObjectiveSection`, which the trainer
+/// and the checkpoints' reader of a run config share).
 pub mod removed {
     use super::Removed;
     use serde::de::{Deserialize, Deserializer, Error};

@@ -2,6 +2,11 @@
 //! `<temp dir>/bwm-tests-<pid>-<random>`, removed when the process exits; each test takes a
 //! [`TestDir`] inside it, removed with its contents when dropped, so also when the test fails.
 //! `make test` points TMPDIR at a folder of the run, which it removes at the end.
+//!
+//! Also what the crates' tests share beyond folders: the optional dependencies and where they are
+//! found (`optional`: the virtualenv's Python and the other optional dependencies; `files`: the
+//! reference files, from the repository, the golden cache or `BWM_SHARED`), and the fixture
+//! datasets of `scripts/make_fixtures.py` (`make_fixtures`).
 
 pub mod files;
 pub mod optional;
@@ -43,6 +48,30 @@ pub fn shared_dir(name: &str) -> PathBuf {
     let dir = root().join(name);
     std::fs::create_dir_all(&dir).unwrap_or_else(|e| panic!("creating {}: {e}", dir.display()));
     dir
+}
+
+/// A fresh folder for one test, removed when dropped ([`TestDir::new`]).
+pub fn tmp_dir(name: &str) -> TestDir {
+    TestDir::new(name)
+}
+
+/// The repository's root folder (this crate's parent).
+pub fn repo_root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+/// Writes the fixture datasets (LeRobot v2.1/v3.0, RoboTwin HDF5, written with the formats' own
+/// tools) into `dir` by running `scripts/make_fixtures.py` with `python`; panics with the script's
+/// error output when it fails.
+pub fn make_fixtures(python: &Path, dir: &Path) {
+    let script = repo_root().join("scripts/make_fixtures.py");
+    let out = std::process::Command::new(python)
+        .arg(&script)
+        .arg(dir)
+        .output()
+        .unwrap_or_else(|e| panic!("starting {}: {e}", python.display()));
+    assert!(out.status.success(), "make_fixtures.py failed:
+{}", String::from_utf8_lossy(&out.stderr));
 }
 
 /// A fresh empty folder under [`root`], removed with its contents when dropped. Derefs to its

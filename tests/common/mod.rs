@@ -50,12 +50,7 @@ pub fn write_random_vae(path: &Path, seed: i64) {
 }
 
 #[allow(unused_imports)]
-pub use bwm_testdir::{shared_dir, TestDir};
-
-/// A fresh folder for one test, removed when dropped (bwm_testdir).
-pub fn temp_dir(name: &str) -> TestDir {
-    TestDir::new(name)
-}
+pub use bwm_testdir::{shared_dir, tmp_dir as temp_dir, TestDir};
 
 pub fn write_cache(dir: &Path) {
     // Drawn under with_seed's lock, so every caller writes the same clips.

@@ -1,12 +1,13 @@
 //! The run configuration: one typed tree read from TOML, unknown keys rejected, `--set a.b=v`
-//! overrides applied before validation.
+//! overrides applied before validation. The sections every reader of a run honours (`[run]`,
+//! `[model]`, `[objective]`) are `bwm_run_config`'s, shared with the checkpoints' export and open;
+//! the trainer's own sections (`[data]`, `[optim]`, `[train]`, `[checkpoint]`, `[log]`,
+//! `[validation]`) are defined here.
 
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, ensure, Context, Result};
-use bwm_model::config::{removed, Removed};
-use bwm_model::lora::LoraConfig;
-use bwm_model::{ActionConfig, DitConfig, ModelConfig, Residual};
+pub use bwm_run_config::{Dtype, InitSource, ModelSection, ObjectiveSection, RunSection, TimestepSampling};
 use serde::{Deserialize, Serialize};
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -29,93 +30,6 @@ pub struct RunConfig {
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
-pub struct RunSection {
-    pub name: String,
-    /// Checkpoints, TensorBoard events and metrics go here (default `runs/<name>`).
-    #[serde(default)]
-    pub out_dir: Option<PathBuf>,
-    /// Keys every random draw: (seed, global sample index, purpose).
-    #[serde(default)]
-    pub seed: u64,
-    /// `auto` (CUDA when available), `cpu`, `cuda` or `cuda:N`.
-    #[serde(default = "default_device")]
-    pub device: String,
-}
-
-fn default_device() -> String {
-    "auto".into()
-}
-
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Dtype {
-    F32,
-    Bf16,
-}
-
-impl Dtype {
-    pub fn kind(self) -> tch::Kind {
-        match self {
-            Dtype::F32 => tch::Kind::Float,
-            Dtype::Bf16 => tch::Kind::BFloat16,
-        }
-    }
-}
-
-/// Where the initial weights come from.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case", deny_unknown_fields, tag = "from")]
-pub enum InitSource {
-    /// Random weights of the preset's shapes (tests, benchmarks).
-    Random,
-    /// Official Wan2.2-TI2V-5B DiT weights (Wan-native or diffusers names; a file, shard index,
-    /// folder or Hub repo id); the action encoder starts fresh with zero output layers.
-    WanPretrained { path: PathBuf },
-    /// A BWM checkpoint in any layout (the public `step-12000.safetensors`, a diffusers or Wan
-    /// export of this trainer; a file, folder or Hub repo id).
-    BwmCheckpoint { path: PathBuf },
-}
-
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct ModelSection {
-    /// `wan22_ti2v_5b` or `tiny`.
-    pub preset: String,
-    /// Overrides of the preset's DiT fields (a custom width for experiments).
-    #[serde(default)]
-    pub dit: Option<DitConfig>,
-    #[serde(default)]
-    pub action: ActionConfig,
-    pub dtype: Dtype,
-    /// dtype of the DiT's residual stream, its norms, modulation and gates.
-    #[serde(default)]
-    pub residual: Residual,
-    #[serde(default = "default_init")]
-    pub init: InitSource,
-    /// LoRA adapters on the linear layers it targets; the base stays frozen in `dtype` and, with
-    /// `train.trainable` left at its default, only the adapters train.
-    #[serde(default)]
-    pub lora: Option<LoraConfig>,
-}
-
-fn default_init() -> InitSource {
-    InitSource::Random
-}
-
-impl ModelSection {
-    pub fn model_config(&self) -> Result<ModelConfig> {
-        let dit = match &self.dit {
-            Some(d) => d.clone(),
-            None => DitConfig::preset(&self.preset).context("model.preset")?,
-        };
-        let cfg = ModelConfig { dit, action: self.action.clone() };
-        cfg.validate()?;
-        Ok(cfg)
-    }
-}
-
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
 pub struct DataSection {
     /// A latent cache written by `bwm prepare` (clips of latents + normalized actions).
     pub latent_cache: PathBuf,
@@ -128,63 +42,6 @@ pub struct DataSection {
     /// latents.
     #[serde(default)]
     pub vae: Option<PathBuf>,
-}
-
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case", deny_unknown_fields, tag = "kind")]
-pub enum TimestepSampling {
-    /// Uniform over the 1000-step shifted grid (DiffSynth-Studio / the BWM release).
-    Uniform,
-    /// sigma = sigmoid(N(mean, std)), snapped to the nearest grid point (SD3-style).
-    LogitNormal { mean: f64, std: f64 },
-}
-
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct ObjectiveSection {
-    #[serde(default = "default_sampling")]
-    pub timestep_sampling: TimestepSampling,
-    /// Flow-matching shift (Wan: 5).
-    #[serde(default = "default_shift")]
-    pub shift: f64,
-    /// History-noise level; default: the training grid's sigma 50 steps from clean (0.2083), as the
-    /// BWM release computes it.
-    #[serde(default)]
-    pub history_sigma: Option<f64>,
-    /// Condition latents (x0 + history): 1 + H/4; the loss covers the latents after them.
-    #[serde(default = "default_condition_latents")]
-    pub condition_latents: i64,
-    /// Share of samples trained with the null action condition (no action tokens, no per-frame
-    /// action term), so that sampling can guide by actions (`--guidance`, classifier-free
-    /// guidance); 0: every sample sees its actions (the BWM release).
-    #[serde(default)]
-    pub action_dropout: f64,
-    /// Removed: the loss weighted towards what moves (`removed::MOTION_WEIGHT`).
-    #[serde(default, skip_serializing, deserialize_with = "removed::motion_weight")]
-    pub motion_weight: Removed,
-}
-
-fn default_sampling() -> TimestepSampling {
-    TimestepSampling::Uniform
-}
-fn default_shift() -> f64 {
-    bwm_model::schedule::DEFAULT_SHIFT
-}
-fn default_condition_latents() -> i64 {
-    3
-}
-
-impl Default for ObjectiveSection {
-    fn default() -> Self {
-        Self {
-            timestep_sampling: default_sampling(),
-            shift: default_shift(),
-            history_sigma: None,
-            condition_latents: default_condition_latents(),
-            action_dropout: 0.0,
-            motion_weight: Removed,
-        }
-    }
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -455,22 +312,11 @@ impl RunConfig {
         if let Some(d) = self.optim.ema_decay {
             ensure!((0.0..1.0).contains(&d), "optim.ema_decay must lie in [0, 1), got {d}");
         }
-        ensure!(self.objective.condition_latents >= 1, "objective.condition_latents must be at least 1 (x0)");
-        if let Some(s) = self.objective.history_sigma {
-            ensure!((0.0..=1.0).contains(&s), "objective.history_sigma must lie in [0, 1], got {s}");
-        }
+        self.objective.validate()?;
         bwm_model::sampler::validate_guidance(self.validation.guidance).context("validation.guidance")?;
-        ensure!(
-            (0.0..1.0).contains(&self.objective.action_dropout),
-            "objective.action_dropout must lie in [0, 1), got {}",
-            self.objective.action_dropout
-        );
-        if let TimestepSampling::LogitNormal { std, .. } = self.objective.timestep_sampling {
-            ensure!(std > 0.0, "objective.timestep_sampling.std must be positive");
-        }
         ensure!(self.checkpoint.keep_last >= 1, "checkpoint.keep_last must be at least 1");
         ensure!(self.log.every >= 1, "log.every must be at least 1");
-        bwm_model::device::device_syntax(&self.run.device).context("run.device")?;
+        self.run.validate()?;
         Ok(())
     }
 

@@ -6,6 +6,7 @@ pub mod config;
 pub mod dist;
 pub mod flops;
 pub mod fused_adamw;
+pub mod grad_engine;
 /// Keyed random draws live with the model (the rollout sampler uses them too).
 pub use bwm_model::keyed_rng;
 pub mod metrics;

@@ -1,52 +1,27 @@
-//! The trained parameter set and AdamW with fp32 master weights, on flat buffers: the trained
-//! tensors are packed end to end (in the model dtype; the model's parameters become views of that
-//! buffer), their gradients are handed after each micro-step into one fp32 flat accumulator (the
-//! step's first hand-off of a tensor copies, later ones add, so the accumulator is never zeroed),
-//! and the optimizer state (fp32 master, moments, optional EMA) covers the slice this rank owns.
+//! The trained parameter set and AdamW with fp32 master weights, on flat buffers. The trained
+//! tensors, their fp32 gradient accumulator and the gradients' way across the data-parallel ranks
+//! (accumulation, early reduction, reduce-scatter into the owner of each slice, the weights'
+//! all-gather) are the [`GradEngine`]'s (`grad_engine`); the optimizer state (fp32 master,
+//! moments, optional EMA) covers the slice this rank owns.
 //! A step of one micro-step on one rank with the fused kernel skips the accumulator: the model's
 //! bf16 gradients are kept as autograd made them and the kernels read them in place
 //! ([`AdamW::take_grads`]).
-//! The step reduces the accumulated gradients (each element summed into the rank that owns it when
-//! the state is sharded across data-parallel ranks, into every rank when it is replicated), clips
-//! by the global norm, updates the slice with a few whole-buffer operations, and all-gathers the
+//! The step has the engine reduce the accumulated gradients, clips by the global norm, updates the
+//! slice with a few whole-buffer operations (or the fused kernel), and has the engine publish the
 //! new weights. Parts of the gradient that are final before the step (a DiT block's, once the
 //! backward walk of the last micro-step has passed it) can be reduced early, while the walk goes
 //! on ([`AdamW::reduce_early`]); the step reduces the rest.
 
 use std::ops::Range;
 
-use anyhow::{bail, ensure, Context, Result};
+use anyhow::{bail, Context, Result};
 use bwm_checkpoints::optimizer_shards::{Layout, OptimizerState};
 use tch::{Device, Kind, Tensor};
 
 use crate::config::{LrSchedule, OptimSection};
-use crate::fused_adamw::{FusedAdamW, GradTable, TableGradients, Update};
-use crate::dist::{Collective, FlatBuffer};
-
-pub struct TrainParam {
-    pub name: String,
-    /// The model's tensor (requires grad), in the model dtype: a view of the flat weights.
-    pub param: Tensor,
-    /// Its fp32 gradient accumulator: a view of the flat gradient.
-    pub grad: Tensor,
-}
-
-/// How the optimizer state is spread over the data-parallel ranks.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Sharding {
-    pub rank: usize,
-    pub world: usize,
-    /// Each rank keeps 1/world of the state (ZeRO-1); otherwise every rank keeps all of it.
-    pub sharded: bool,
-}
-
-impl Sharding {
-    pub const SINGLE: Self = Self {
-        rank: 0,
-        world: 1,
-        sharded: false,
-    };
-}
+use crate::dist::Collective;
+use crate::fused_adamw::{FusedAdamW, TableGradients, Update};
+pub use crate::grad_engine::{GradEngine, Sharding, TrainParam};
 
 pub struct AdamW {
     pub cfg: OptimSection,
@@ -54,25 +29,14 @@ pub struct AdamW {
     /// Optimizer steps taken (bias correction and the LR schedule count these).
     pub step: u64,
     pub total_steps: u64,
-    pub sharding: Sharding,
-    weights: FlatBuffer,
-    grads: FlatBuffer,
-    /// The elements of the flat buffers this rank's state covers.
-    slice: Range<usize>,
-    /// Ranges of the flat gradient whose reduction started before this step ([`AdamW::reduce_early`]).
-    started: Vec<Range<usize>>,
+    /// The flat weights and gradients and their movement across the ranks.
+    pub engine: GradEngine,
     pub master: Tensor,
     pub exp_avg: Tensor,
     pub exp_avg_sq: Tensor,
     pub ema: Option<Tensor>,
     /// The one-kernel update (CUDA, `optim.fused`); None: tensor operations.
     fused: Option<std::sync::Arc<FusedAdamW>>,
-    /// Per trained tensor: whether its accumulator holds a gradient of this step yet.
-    written: Vec<bool>,
-    /// The model-dtype gradients of this step's only micro-step, for the fused kernel to read.
-    pending: Option<Vec<Tensor>>,
-    /// Where each trained tensor lies in the flat state, for reading `pending` (built at first use).
-    table: Option<GradTable>,
 }
 
 /// A step between [`AdamW::begin_step`] and [`AdamW::finish_step`].
@@ -130,35 +94,6 @@ pub fn select_trainable<'a>(
     Ok(picked)
 }
 
-/// Sorted ranges with the touching ones joined.
-fn merge_adjacent(sorted: Vec<Range<usize>>) -> Vec<Range<usize>> {
-    let mut out: Vec<Range<usize>> = Vec::with_capacity(sorted.len());
-    for r in sorted {
-        match out.last_mut() {
-            Some(last) if last.end == r.start => last.end = r.end,
-            _ => out.push(r),
-        }
-    }
-    out
-}
-
-/// The parts of `0..len` outside the disjoint `covered` ranges, in order.
-fn uncovered(mut covered: Vec<Range<usize>>, len: usize) -> Vec<Range<usize>> {
-    covered.sort_by_key(|r| r.start);
-    let mut out = Vec::new();
-    let mut at = 0;
-    for r in covered {
-        if r.start > at {
-            out.push(at..r.start);
-        }
-        at = at.max(r.end);
-    }
-    if at < len {
-        out.push(at..len);
-    }
-    out
-}
-
 /// (start, length) pieces of a flat buffer of `n` elements for the chunked update.
 fn chunk_ranges(n: usize) -> Vec<(i64, i64)> {
     const CHUNK: usize = 1 << 26;
@@ -195,35 +130,9 @@ impl AdamW {
                 t.device()
             );
         }
-        let tensors: Vec<Tensor> = picked.iter().map(|(_, t)| t.shallow_clone()).collect();
-        let world = sharding.world.max(1);
-        let weights = FlatBuffer::pack_as(&tensors, world, kind, device)
-            .context("packing the trained weights")?;
-        let layout: Vec<(Vec<i64>, Kind)> =
-            tensors.iter().map(|t| (t.size(), Kind::Float)).collect();
-        let grads = FlatBuffer::zeros(&layout, world, Kind::Float, device)?;
-        let mut params = Vec::with_capacity(picked.len());
-        for (i, (name, t)) in picked.iter().enumerate() {
-            let mut t = t.shallow_clone();
-            // The parameter (and every module holding it) now reads the flat buffer's storage.
-            let view = weights.view(i)?;
-            tch::no_grad(|| t.set_data(&view));
-            let _ = t.set_requires_grad(true);
-            params.push(TrainParam {
-                name: name.clone(),
-                param: t,
-                grad: grads.view(i)?,
-            });
-        }
-        let slice = if sharding.sharded && world > 1 {
-            weights.shard_range(sharding.rank)
-        } else {
-            0..weights.len()
-        };
-        let master = weights
-            .flat()
-            .narrow(0, slice.start as i64, slice.len() as i64)
-            .to_kind(Kind::Float);
+        let picked: Vec<(String, Tensor)> = picked.iter().map(|(n, t)| (n.clone(), t.shallow_clone())).collect();
+        let (engine, params) = GradEngine::pack(&picked, sharding)?;
+        let master = engine.slice_of_weights_f32();
         let fused = match (cfg.fused, device) {
             (true, Device::Cuda(_)) => match FusedAdamW::for_device(device) {
                 Ok(k) => Some(k),
@@ -239,29 +148,22 @@ impl AdamW {
             params,
             step: 0,
             total_steps,
-            sharding: Sharding { world, ..sharding },
-            weights,
-            grads,
+            engine,
             exp_avg: master.zeros_like(),
             exp_avg_sq: master.zeros_like(),
             ema: cfg.ema_decay.map(|_| master.copy()),
             master,
-            slice,
-            started: Vec::new(),
             fused,
-            written: vec![false; picked.len()],
-            pending: None,
-            table: None,
         })
     }
 
     /// Whether each rank keeps only its slice of the state.
     pub fn is_sharded(&self) -> bool {
-        self.sharding.sharded && self.sharding.world > 1
+        self.engine.is_sharded()
     }
 
     pub fn num_trainable(&self) -> i64 {
-        self.weights.numel() as i64
+        self.engine.numel() as i64
     }
 
     /// The packing order of the flat buffers (what the checkpoint's shard files record).
@@ -274,7 +176,7 @@ impl AdamW {
 
     /// The elements of the flat state this rank keeps.
     pub fn slice(&self) -> Range<usize> {
-        self.slice.clone()
+        self.engine.slice()
     }
 
     /// Moves the model gradients of the last micro-step (their `.grad`) into the fp32
@@ -295,15 +197,7 @@ impl AdamW {
     /// when it is the step's first, added otherwise. An undefined gradient (the tensor was not
     /// used) counts as zeros.
     pub fn accumulate(&mut self, k: usize, g: &Tensor) {
-        self.flush_pending();
-        let first = !std::mem::replace(&mut self.written[k], true);
-        let mut acc = self.params[k].grad.shallow_clone();
-        tch::no_grad(|| match (g.defined(), first) {
-            (true, true) => acc.copy_(g),
-            (true, false) => drop(acc.g_add_(g)),
-            (false, true) => drop(acc.zero_()),
-            (false, false) => {}
-        });
+        self.engine.accumulate(k, g);
     }
 
     /// Takes one micro-step's gradients of every trained tensor, in order (undefined for a tensor
@@ -311,55 +205,13 @@ impl AdamW {
     /// fused kernel and bf16 weights, they are kept as they are for the step to read in place;
     /// otherwise they go into the accumulators.
     pub fn take_grads(&mut self, grads: Vec<Tensor>, last_micro_step: bool) -> Result<()> {
-        ensure!(grads.len() == self.params.len(), "{} gradients for {} trained tensors", grads.len(), self.params.len());
-        let direct = last_micro_step
-            && self.fused.is_some()
-            && self.sharding.world == 1
-            && self.pending.is_none()
-            && !self.written.iter().any(|&w| w)
-            && self.weights.flat().kind() == Kind::BFloat16
-            && grads.iter().zip(&self.params).all(|(g, p)| !g.defined() || (g.kind() == Kind::BFloat16 && g.size() == p.param.size()));
-        if !direct {
-            for (k, g) in grads.iter().enumerate() {
-                self.accumulate(k, g);
-            }
-            return Ok(());
-        }
-        let kept = grads
-            .into_iter()
-            .zip(&self.params)
-            .map(|(g, p)| if g.defined() { g.contiguous() } else { p.param.zeros_like() })
-            .collect();
-        self.pending = Some(kept);
-        Ok(())
-    }
-
-    /// Moves kept model-dtype gradients into the accumulators (a hand-off that cannot read them in
-    /// place came after them).
-    fn flush_pending(&mut self) {
-        if let Some(grads) = self.pending.take() {
-            for (k, g) in grads.iter().enumerate() {
-                self.accumulate(k, g);
-            }
-        }
-    }
-
-    /// Zeroes the accumulators no hand-off of this step wrote (they hold an earlier step's sum).
-    fn zero_unwritten(&mut self) {
-        self.flush_pending();
-        for k in 0..self.params.len() {
-            if !self.written[k] {
-                self.accumulate(k, &Tensor::new());
-            }
-        }
+        self.engine.take_grads(grads, last_micro_step && self.fused.is_some())
     }
 
     /// Drops the accumulated gradients (a skipped step). Reductions started early must be
     /// finished first (`comm.finish_started()` or any collective).
     pub fn discard_grads(&mut self) {
-        self.started.clear();
-        self.pending = None;
-        self.written.fill(false);
+        self.engine.discard();
         for p in &mut self.params {
             p.param.zero_grad();
         }
@@ -387,70 +239,7 @@ impl AdamW {
     /// final for this optimizer step, and nothing writes them until the step. The step reduces the
     /// rest of the buffer. Nothing to do on one rank.
     pub fn reduce_early(&mut self, params: &[usize], comm: &mut dyn Collective) -> Result<()> {
-        if self.sharding.world <= 1 {
-            return Ok(());
-        }
-        let mut ranges = params
-            .iter()
-            .map(|&k| self.grads.range(k).with_context(|| format!("no trained tensor {k}")))
-            .collect::<Result<Vec<_>>>()?;
-        ranges.sort_by_key(|r| r.start);
-        for r in merge_adjacent(ranges) {
-            ensure!(
-                self.started.iter().all(|s| s.end <= r.start || r.end <= s.start),
-                "the gradients at {r:?} of the flat buffer are already being reduced"
-            );
-            self.start_reduce(r.clone(), comm)?;
-            self.started.push(r);
-        }
-        Ok(())
-    }
-
-    /// Starts the sum of `range` of the flat gradient: each part into the rank whose slice holds
-    /// it when sharded, into every rank otherwise.
-    fn start_reduce(&self, range: Range<usize>, comm: &mut dyn Collective) -> Result<()> {
-        let part = |r: &Range<usize>| self.grads.flat().narrow(0, r.start as i64, r.len() as i64);
-        if !self.is_sharded() {
-            return comm.start_reduce_sum(&part(&range), None).with_context(|| format!("reducing gradients {range:?}"));
-        }
-        for rank in 0..self.sharding.world {
-            let owned = self.grads.shard_range(rank);
-            let piece = range.start.max(owned.start)..range.end.min(owned.end);
-            if !piece.is_empty() {
-                comm.start_reduce_sum(&part(&piece), Some(rank))
-                    .with_context(|| format!("reducing gradients {piece:?} into rank {rank}"))?;
-            }
-        }
-        Ok(())
-    }
-
-    /// Sums the accumulated gradients over the ranks (what `reduce_early` has not started) and
-    /// returns this rank's slice of the sum (all of it when the state is replicated).
-    fn reduce(&mut self, comm: &mut dyn Collective) -> Result<Tensor> {
-        let started = std::mem::take(&mut self.started);
-        if self.sharding.world > 1 && started.is_empty() {
-            // Nothing reduced early: one collective over the whole buffer.
-            if self.is_sharded() {
-                // In place: this rank's slice of the flat gradient receives the sum (NCCL allows
-                // an output at input + rank * n).
-                let mut mine = self.grads.shard(self.sharding.rank)?;
-                comm.reduce_scatter_sum(self.grads.flat(), &mut mine)
-                    .context("reduce-scatter of the gradients")?;
-                return Ok(mine);
-            }
-            comm.all_reduce_sum(self.grads.flat_mut())
-                .context("all-reduce of the gradients")?;
-        } else if self.sharding.world > 1 {
-            for r in uncovered(started, self.grads.len()) {
-                self.start_reduce(r, comm)?;
-            }
-            comm.finish_started().context("finishing the gradient reductions")?;
-        }
-        if self.is_sharded() {
-            self.grads.shard(self.sharding.rank)
-        } else {
-            Ok(self.grads.flat().shallow_clone())
-        }
+        self.engine.reduce_early(params, comm)
     }
 
     /// One AdamW step on the gradients accumulated on every rank, divided by `grad_divisor`
@@ -472,31 +261,21 @@ impl AdamW {
     /// reads at the step's end, in one transfer) and passes it to [`AdamW::finish_step`], or drops
     /// the step with [`AdamW::discard_grads`].
     pub fn begin_step(&mut self, comm: &mut dyn Collective) -> Result<BegunStep> {
-        let direct = match (self.pending.take(), &self.fused) {
+        // Gradients are kept in the model dtype only for the fused kernel (`take_grads`).
+        let kept = if self.fused.is_some() { self.engine.take_kept() } else { None };
+        let direct = match (kept, &self.fused) {
             (Some(grads), Some(kernel)) => {
-                if self.table.is_none() {
-                    let (offsets, numels): (Vec<i64>, Vec<i64>) = (0..self.params.len())
-                        .map(|k| self.grads.range(k).map(|r| (r.start as i64, r.len() as i64)).with_context(|| format!("no trained tensor {k}")))
-                        .collect::<Result<Vec<_>>>()?
-                        .into_iter()
-                        .unzip();
-                    self.table = Some(GradTable::new(&offsets, &numels, self.master.device())?);
-                }
-                let table = self.table.as_ref().context("the gradient table")?;
+                let table = self.engine.table(self.master.device())?;
                 let grads = table.gradients(grads)?;
                 let sq = kernel.sum_squares(table, &grads)?;
                 Some((grads, sq))
             }
-            (pending, _) => {
-                self.pending = pending;
-                None
-            }
+            _ => None,
         };
         let (gradient, sum_of_squares) = match direct {
             Some((grads, sq)) => (StepGradient::Tensors(grads), sq),
             None => {
-                self.zero_unwritten();
-                let g = self.reduce(comm)?;
+                let g = self.engine.reduce(comm)?;
                 let mut sq = Tensor::zeros([1], (Kind::Double, g.device()));
                 // One read of each chunk (its norm in fp32, squared and summed in f64): square().sum()
                 // made three passes over the 20 GB gradient of a 5B step.
@@ -544,11 +323,11 @@ impl AdamW {
         let (wd, eps, ema) = (self.cfg.weight_decay, self.cfg.eps, self.cfg.ema_decay);
         let u = Update { grad_scale, b1, b2, lr, weight_decay: wd, eps, bc1, bc2, ema_decay: ema };
         // Unsharded, the kernel writes the weights itself; sharded, they are all-gathered.
-        let publish = (!self.is_sharded()).then(|| self.weights.flat());
+        let publish = (!self.is_sharded()).then(|| self.engine.weights());
         let (state, ema_state) = ((&self.exp_avg, &self.exp_avg_sq, &self.master), self.ema.as_ref());
         let published = match (&g, &self.fused) {
             (StepGradient::Tensors(grads), Some(kernel)) => {
-                let table = self.table.as_ref().context("the gradient table")?;
+                let table = self.engine.built_table()?;
                 kernel.update_from_tensors(table, grads, state.0, state.1, state.2, ema_state, publish, &u)?;
                 publish.is_some()
             }
@@ -566,7 +345,7 @@ impl AdamW {
             self.publish_weights(comm)?;
         }
         // The next step's first hand-off of each tensor overwrites its accumulator.
-        self.written.fill(false);
+        self.engine.end_step();
         Ok(Some(StepReport {
             lr,
             grad_norm,
@@ -605,15 +384,7 @@ impl AdamW {
 
     /// Writes the masters into the model's weights on every rank (all-gather when sharded).
     fn publish_weights(&mut self, comm: &mut dyn Collective) -> Result<()> {
-        let kind = self.weights.flat().kind();
-        if self.is_sharded() {
-            let mine = self.master.to_kind(kind);
-            comm.all_gather(&mine, self.weights.flat_mut())
-                .context("all-gather of the updated weights")?;
-        } else {
-            tch::no_grad(|| self.weights.flat_mut().copy_(&self.master));
-        }
-        Ok(())
+        self.engine.publish(&self.master, comm)
     }
 
     /// This rank's optimizer state as 1-D tensors named `master`, `exp_avg`, `exp_avg_sq`, `ema`
@@ -641,7 +412,7 @@ impl AdamW {
         let device = self.master.device();
         let read = |key: &str| {
             state
-                .read_range(key, self.slice.clone(), device)
+                .read_range(key, self.engine.slice(), device)
                 .with_context(|| format!("optimizer state '{key}'"))
         };
         let (m, a, s) = (read("master")?, read("exp_avg")?, read("exp_avg_sq")?);
@@ -761,7 +532,7 @@ mod tests {
         assert!((r.grad_norm - 5.0).abs() < 1e-6, "second step: only (0, 5) of `a`, got {}", r.grad_norm);
         // Third: all at once (`take_grads`), `b` undefined; accumulated on CPU (no fused kernel).
         opt.take_grads(vec![t([0.0, 1.0]), Tensor::new()], true).unwrap();
-        assert!(opt.pending.is_none());
+        assert!(!opt.engine.has_kept());
         let r = opt.step(1.0, &mut LocalCollective::new()).unwrap().unwrap();
         assert!((r.grad_norm - 1.0).abs() < 1e-6, "third step: {}", r.grad_norm);
         let err = opt.take_grads(vec![t([0.0, 1.0])], true).unwrap_err();
@@ -824,7 +595,7 @@ mod tests {
         for sharded in [true, false] {
             let sharding = Sharding { rank: 0, world: 2, sharded };
             let mut opt = AdamW::new(&named, &["*".into()], &[], &cfg(), 10, sharding).unwrap();
-            let mut comm = Recording { world: 2, base: opt.grads.flat().data_ptr() as usize, started: vec![], finished: 0, scattered: 0 };
+            let mut comm = Recording { world: 2, base: opt.engine.grads().data_ptr() as usize, started: vec![], finished: 0, scattered: 0 };
             // Backward order: the last tensors' gradients are final first.
             opt.reduce_early(&[2], &mut comm).unwrap();
             opt.reduce_early(&[1], &mut comm).unwrap();
@@ -934,7 +705,7 @@ mod tests {
                         .collect();
                     if direct {
                         opt.take_grads(grads, true).unwrap();
-                        assert!(opt.pending.is_some(), "the gradients must be kept for the kernel");
+                        assert!(opt.engine.has_kept(), "the gradients must be kept for the kernel");
                     } else {
                         for (k, g) in grads.iter().enumerate() {
                             opt.accumulate(k, g);

@@ -187,11 +187,12 @@ struct LoraExports {
     base_file: std::path::PathBuf,
     base_out: std::path::PathBuf,
     merged_out: std::path::PathBuf,
-    adapters: bwm_checkpoints::export::AdapterExport,
+    adapters: bwm_checkpoints::lora_export::AdapterExport,
 }
 
 fn lora_exports(tag: &str) -> LoraExports {
-    use bwm_checkpoints::export::{export, export_lora_adapters, ExportDtype, ExportOptions};
+    use bwm_checkpoints::export::{export, ExportDtype, ExportOptions};
+    use bwm_checkpoints::lora_export::export_lora_adapters;
     let dir = tmp_dir(tag);
     let cache = write_cache(&dir.join("cache"), 1, 16);
     // The base: the weights of a run without adapters, written as a file the LoRA run starts from.

@@ -8,10 +8,8 @@ use bwm_checkpoints::write_tensors;
 use bwm_model::{BwmModel, ModelConfig};
 use tch::{Device, Kind, Tensor};
 
-/// A fresh folder for one test, removed when dropped (bwm_testdir).
-pub fn tmp_dir(tag: &str) -> bwm_testdir::TestDir {
-    bwm_testdir::TestDir::new(tag)
-}
+#[allow(unused_imports)]
+pub use bwm_testdir::tmp_dir;
 
 /// A run config TOML for `preset` (with an optional `[model.dit]` override block).
 pub fn run_toml(name: &str, preset: &str, dit_override: Option<&str>, cache: &Path) -> String {

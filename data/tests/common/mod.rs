@@ -40,17 +40,13 @@ pub fn fixtures() -> Option<&'static Path> {
     static DIR: OnceLock<PathBuf> = OnceLock::new();
     Some(DIR.get_or_init(|| {
         let dir = bwm_testdir::shared_dir("data-fixtures");
-        let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../scripts/make_fixtures.py");
-        let out = Command::new(&py).arg(&script).arg(&dir).output().expect("starting python");
-        assert!(out.status.success(), "make_fixtures.py failed:\n{}", String::from_utf8_lossy(&out.stderr));
+        bwm_testdir::make_fixtures(&py, &dir);
         dir
     }))
 }
 
-/// A fresh folder for one test, removed when dropped (bwm_testdir).
-pub fn tmp_dir(tag: &str) -> bwm_testdir::TestDir {
-    bwm_testdir::TestDir::new(tag)
-}
+#[allow(unused_imports)]
+pub use bwm_testdir::tmp_dir;
 
 /// Mean colour of a small square around (x, y).
 pub fn mean_rgb(img: &RgbImage, x: u32, y: u32) -> [f64; 3] {

@@ -23,10 +23,8 @@ pub fn rel_err(a: &Tensor, b: &Tensor) -> f64 {
     num / den.max(1e-30)
 }
 
-/// A fresh folder for one test, removed when dropped (bwm_testdir).
-pub fn tmp_dir(tag: &str) -> bwm_testdir::TestDir {
-    bwm_testdir::TestDir::new(tag)
-}
+#[allow(unused_imports)]
+pub use bwm_testdir::tmp_dir;
 
 /// tch draws random numbers from one global generator and the tests of a binary run on parallel
 /// threads: a test that seeds the generator and relies on what it draws holds this lock.

@@ -8,10 +8,8 @@ use bwm_data::latent_cache::{CacheIndex, CacheWriter, ClipEntry};
 use bwm_trainer::RunConfig;
 use tch::{Device, Kind, Tensor};
 
-/// A fresh folder for one test, removed when dropped (bwm_testdir).
-pub fn tmp_dir(name: &str) -> bwm_testdir::TestDir {
-    bwm_testdir::TestDir::new(name)
-}
+#[allow(unused_imports)]
+pub use bwm_testdir::tmp_dir;
 
 /// `clips` clips of 4 latent frames (3 condition + 1 future) of 4x4, with 13 action frames.
 /// Latents are smooth functions of the actions so that there is something to learn.

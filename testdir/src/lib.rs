@@ -10,7 +10,7 @@
 
 pub mod files;
 pub mod optional;
-pub use files::{demo_data, golden_dir, golden_generator, reference_path};
+pub use files::{demo_data, golden_dir, golden_generator, reference_path, repo_root};
 pub use optional::{need, python, python_with, reference, Dep};
 
 use std::ffi::OsStr;
@@ -53,11 +53,6 @@ pub fn shared_dir(name: &str) -> PathBuf {
 /// A fresh folder for one test, removed when dropped ([`TestDir::new`]).
 pub fn tmp_dir(name: &str) -> TestDir {
     TestDir::new(name)
-}
-
-/// The repository's root folder (this crate's parent).
-pub fn repo_root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
 }
 
 /// Writes the fixture datasets (LeRobot v2.1/v3.0, RoboTwin HDF5, written with the formats' own

@@ -9,6 +9,7 @@ mod export;
 mod fidelity;
 mod prepare;
 mod reconstruct;
+mod reference;
 mod rollout;
 mod serve;
 mod stats;
@@ -26,7 +27,7 @@ use clap::{Parser, Subcommand};
     version,
     about = "Boundless World Model: post-train Wan2.2-TI2V-5B into an action-conditioned robot simulator"
 )]
-struct Cli {
+pub(crate) struct Cli {
     /// Attention kernels for every scaled-dot-product attention of this run: libtorch's own choice
     /// (auto; cuDNN on Hopper with bf16) or one family forced (flash, efficient, cudnn, math), with
     /// the math path for the attentions a forced family cannot take. The bench commands print the
@@ -95,6 +96,9 @@ enum Command {
     Export(export::ExportArgs),
     /// Convert DiT weights between the wan, diffusers and bwm-release layouts, or a VAE .pth to safetensors.
     Convert(convert::ConvertArgs),
+    /// Print the CLI reference (docs/cli.md) or the run-config reference (docs/config.md), both
+    /// generated from the code; --check FILE compares instead.
+    Reference(reference::ReferenceArgs),
 }
 
 fn main() {
@@ -129,6 +133,7 @@ fn main() {
         Command::BenchTrain(a) => bench_train::run(a),
         Command::Export(a) => export::run(a),
         Command::Convert(a) => convert::run(a),
+        Command::Reference(a) => reference::run(a),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

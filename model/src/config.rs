@@ -4,22 +4,33 @@ use anyhow::{bail, ensure, Result};
 use serde::{Deserialize, Serialize};
 
 /// The Wan2.2 DiT (`WanModel` of the official code and DiffSynth-Studio).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct DitConfig {
+    /// Hidden width of the transformer blocks (the 5B: 3072).
     pub dim: i64,
+    /// Latent channels in (the VAE's z_dim: 48 for Wan2.2's VAE).
     pub in_dim: i64,
+    /// Latent channels out (as `in_dim`).
     pub out_dim: i64,
+    /// Hidden width of each block's feed-forward network (the 5B: 14336).
     pub ffn_dim: i64,
+    /// Width of the sinusoidal timestep embedding (256).
     pub freq_dim: i64,
     /// Width of the text-encoder embeddings `text_embedding` takes (umT5-XXL: 4096). The module is
     /// part of the checkpoint but unused when actions replace the text context.
     pub text_dim: i64,
+    /// Attention heads per block; `dim / num_heads` is the head width, which the 3-D rotary
+    /// embedding splits three ways.
     pub num_heads: i64,
+    /// Transformer blocks (the 5B: 30).
     pub num_layers: i64,
+    /// Epsilon of the layer and RMS norms (1e-6).
     pub eps: f64,
-    /// (t, h, w)
+    /// Latent cells per token along (t, h, w): `[1, 2, 2]` in the 5B; `[1, 1, 1]` gives a token
+    /// per latent cell.
     pub patch_size: [i64; 3],
+    /// Base of the rotary position embedding's frequencies.
     #[serde(default = "default_rope_theta")]
     pub rope_theta: f64,
 }
@@ -121,7 +132,7 @@ impl DitConfig {
 
 /// The BWM action interface (`WanVideoActionEncoder`, ti2v2 path); keys left out take the
 /// defaults (BWM's 14-D actions).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields, default)]
 pub struct ActionConfig {
     /// d_a: 14 for two arms' absolute end-effector poses (xyz, euler, gripper per arm).
@@ -133,9 +144,11 @@ pub struct ActionConfig {
     pub group: i64,
     /// Removed: Fourier features of the actions (`removed::FOURIER_BANDS`).
     #[serde(skip_serializing, deserialize_with = "removed::fourier_bands")]
+    #[schemars(skip)]
     pub fourier_bands: Removed,
     /// Removed: the actions timed in the cross-attention (`removed::TEMPORAL_ROPE`).
     #[serde(skip_serializing, deserialize_with = "removed::temporal_rope")]
+    #[schemars(skip)]
     pub temporal_rope: Removed,
 }
 
@@ -245,7 +258,7 @@ impl ActionConfig {
 }
 
 /// The whole BWM model: DiT + action encoder.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct ModelConfig {
     pub dit: DitConfig,
@@ -268,7 +281,7 @@ impl ModelConfig {
 /// dtype of the DiT's residual stream, its norms, modulation and gates (`model.residual` of a run
 /// config, `--residual` of the world-model commands). Here beside the model's config, since the
 /// trainer, the checkpoints' run record and inference all name it.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "lowercase")]
 pub enum Residual {
     /// fp32, as the official Wan code.

@@ -18,9 +18,10 @@ use crate::vb::Init;
 use crate::weights::WeightsError;
 
 /// Which linear layers get an adapter, and its shape.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct LoraConfig {
+    /// Rank of each adapter's update B A.
     pub rank: i64,
     /// The update is scaled by alpha / rank (default: alpha = rank, a scale of 1).
     #[serde(default)]

@@ -57,6 +57,17 @@ impl FromStr for Solver {
     }
 }
 
+/// The solvers' names as the config reference lists them (serde writes a solver as its name).
+impl schemars::JsonSchema for Solver {
+    fn schema_name() -> std::borrow::Cow<'static, str> {
+        "Solver".into()
+    }
+    fn json_schema(_: &mut schemars::SchemaGenerator) -> schemars::Schema {
+        let names: Vec<&str> = Self::ALL.iter().map(|solver| solver.name()).collect();
+        schemars::json_schema!({ "type": "string", "enum": names })
+    }
+}
+
 impl TryFrom<String> for Solver {
     type Error = anyhow::Error;
     fn try_from(s: String) -> anyhow::Result<Self> {

@@ -22,9 +22,11 @@ use bwm_model::{ActionConfig, DitConfig, ModelConfig, Residual};
 use serde::{Deserialize, Serialize};
 
 /// `[run]`: what the run is called, where it writes, and what keys its random draws.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct RunSection {
+    /// The run's name: its default output folder (`runs/<name>`) and the name in its logs and
+    /// exported model card.
     pub name: String,
     /// Checkpoints, TensorBoard events and metrics go here (default `runs/<name>`).
     #[serde(default)]
@@ -54,7 +56,7 @@ impl RunSection {
 }
 
 /// `model.dtype`: the dtype the weights train (and are stored) in.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "lowercase")]
 pub enum Dtype {
     F32,
@@ -79,7 +81,7 @@ impl Dtype {
 }
 
 /// Where the initial weights come from (`model.init`).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "kebab-case", deny_unknown_fields, tag = "from")]
 pub enum InitSource {
     /// Random weights of the preset's shapes (tests, benchmarks).
@@ -102,8 +104,9 @@ impl InitSource {
     }
 }
 
-/// `[model]`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+/// `[model]`: the architecture (a preset, optionally overridden), the action interface, the
+/// weights' dtype, the initial weights and LoRA adapters.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct ModelSection {
     /// `wan22_ti2v_5b` or `tiny`.
@@ -144,7 +147,7 @@ impl ModelSection {
 }
 
 /// How the training timestep of a sample is drawn (`objective.timestep_sampling`).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "kebab-case", deny_unknown_fields, tag = "kind")]
 pub enum TimestepSampling {
     /// Uniform over the 1000-step shifted grid (DiffSynth-Studio / the BWM release).
@@ -154,7 +157,7 @@ pub enum TimestepSampling {
 }
 
 /// `[objective]`: the BWM flow-matching loss.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct ObjectiveSection {
     #[serde(default = "default_sampling")]
@@ -176,6 +179,7 @@ pub struct ObjectiveSection {
     pub action_dropout: f64,
     /// Removed: the loss weighted towards what moves (`removed::MOTION_WEIGHT`).
     #[serde(default, skip_serializing, deserialize_with = "removed::motion_weight")]
+    #[schemars(skip)]
     pub motion_weight: Removed,
 }
 

@@ -10,7 +10,7 @@ use anyhow::{bail, ensure, Context, Result};
 pub use bwm_run_config::{Dtype, InitSource, ModelSection, ObjectiveSection, RunSection, TimestepSampling};
 use serde::{Deserialize, Serialize};
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct RunConfig {
     pub run: RunSection,
@@ -28,7 +28,7 @@ pub struct RunConfig {
     pub validation: ValidationSection,
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct DataSection {
     /// A latent cache written by `bwm prepare` (clips of latents + normalized actions).
@@ -44,25 +44,32 @@ pub struct DataSection {
     pub vae: Option<PathBuf>,
 }
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "lowercase")]
 pub enum LrSchedule {
     Constant,
     Cosine,
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct OptimSection {
+    /// Peak learning rate of AdamW (after warmup).
     pub lr: f64,
+    /// Decoupled weight decay (AdamW).
     #[serde(default = "default_weight_decay")]
     pub weight_decay: f64,
+    /// AdamW's (beta1, beta2).
     #[serde(default = "default_betas")]
     pub betas: [f64; 2],
+    /// AdamW's epsilon.
     #[serde(default = "default_adam_eps")]
     pub eps: f64,
+    /// Steps of linear warmup from 0 to `lr`.
     #[serde(default)]
     pub warmup_steps: u64,
+    /// The learning rate after warmup: `constant`, or `cosine` decay to `min_lr_ratio x lr` at
+    /// `train.steps`.
     #[serde(default = "default_schedule")]
     pub schedule: LrSchedule,
     /// Cosine floor as a fraction of `lr`.
@@ -101,13 +108,16 @@ fn default_grad_clip() -> f64 {
     1.0
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct TrainSection {
+    /// Optimizer steps of the run (a resumed run continues to this count).
     pub steps: u64,
     /// Clips per micro-step on each rank.
     #[serde(default = "one")]
     pub micro_batch: usize,
+    /// Micro-steps accumulated into each optimizer step: the global batch is `micro_batch x
+    /// grad_accum x ranks` clips.
     #[serde(default = "one")]
     pub grad_accum: usize,
     /// Recompute each DiT block in backward instead of keeping its activations.
@@ -132,6 +142,8 @@ pub struct TrainSection {
     /// `*.lora_B.weight`).
     #[serde(default = "default_trainable")]
     pub trainable: Vec<String>,
+    /// Parameter-name patterns kept frozen even when `trainable` matches them (the text
+    /// embedding, unused when actions replace the text).
     #[serde(default = "default_frozen")]
     pub frozen: Vec<String>,
     /// Non-finite losses or gradients skip the update; this many in a row abort the run.
@@ -175,12 +187,13 @@ fn default_max_nonfinite() -> u32 {
     5
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct CheckpointSection {
     /// Save every N optimizer steps (and always at the end); 0 = only at the end.
     #[serde(default)]
     pub every: u64,
+    /// Checkpoints kept: older ones are deleted once a newer one is complete.
     #[serde(default = "default_keep_last")]
     pub keep_last: usize,
 }
@@ -195,12 +208,13 @@ impl Default for CheckpointSection {
     }
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct LogSection {
     /// A summary line on stdout (and TensorBoard points) every N steps.
     #[serde(default = "one_u64")]
     pub every: u64,
+    /// Write TensorBoard event files under the run's `tensorboard/` folder.
     #[serde(default = "yes")]
     pub tensorboard: bool,
     /// Show a progress bar on stderr (off when stderr is not a terminal).
@@ -224,7 +238,7 @@ impl Default for LogSection {
     }
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct ValidationSection {
     /// Roll out held-out clips every N steps (0 = off).

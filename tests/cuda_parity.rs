@@ -1,5 +1,6 @@
 //! CUDA against CPU: the tiny model's forward with the same weights and inputs. Needs a GPU, so it
-//! is ignored by default; the GPU machine runs it with `--ignored` (see docs/performance.md).
+//! is ignored by default; the GPU machine runs it with `--ignored` (see docs/performance.md, "CUDA
+//! parity and the DiT forward alone").
 
 use bwm_model::{frame_timesteps, BwmModel, Layout, ModelConfig};
 use tch::{Device, Kind, Tensor};

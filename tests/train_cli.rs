@@ -371,10 +371,11 @@ fn a_lora_run_exports_and_rolls_out_through_the_cli() {
 }
 
 /// Issue 69 removed `model.action.fourier_bands`, `model.action.temporal_rope` and
-/// `objective.motion_weight` (measured worse or without effect, docs/fidelity.md). A run config, a
-/// checkpoint's stored run config and an export's `config.json` written before hold them at their
-/// old defaults: they still train, export and roll out. One that switches a key on is refused,
-/// naming the key and saying that it was removed and why, before a run folder or export is made.
+/// `objective.motion_weight` (measured worse or without effect, docs/fidelity.md, "Tried and
+/// rejected"). A run config, a checkpoint's stored run config and an export's `config.json` written
+/// before hold them at their old defaults: they still train, export and roll out. One that switches
+/// a key on is refused, naming the key and saying that it was removed and why, before a run folder
+/// or export is made.
 #[test]
 fn removed_keys_load_at_their_old_defaults_and_are_refused_by_name_otherwise() {
     let dir = temp_dir("removed-keys");

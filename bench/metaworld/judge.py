@@ -20,12 +20,12 @@ train: judge.py train --data TRAIN_DATASET [...] [--reconstructed REC [...]] --v
   datasets through the VAE a world model decodes with, one file per --data dataset), the sampled
   frames of the episodes a file holds are also learned as that VAE draws them, with the
   simulator's state of the real frame: a judge that has seen only real frames may read the
-  decoder's softened open drawer as closed (docs/fidelity.md, run 25). Writes judge.pt (weights,
-  normalisation, target scale and threshold per task) and judge.json: per task (tasks.TASK), on
-  the held-out datasets' real frames, the state's error (held_out_state: MAE in cm overall and
-  within 3 cm of the threshold, bias, how often the truth lies within the predicted scale), the
-  success rule's accuracy, balanced accuracy and confusion counts (held_out_frames), and the same
-  per episode under the serving rule (held_out_episodes).
+  decoder's softened open drawer as closed (docs/fidelity.md at abaed68, run 25). Writes judge.pt
+  (weights, normalisation, target scale and threshold per task) and judge.json: per task
+  (tasks.TASK), on the held-out datasets' real frames, the state's error (held_out_state: MAE in
+  cm overall and within 3 cm of the threshold, bias, how often the truth lies within the predicted
+  scale), the success rule's accuracy, balanced accuracy and confusion counts (held_out_frames),
+  and the same per episode under the serving rule (held_out_episodes).
 score: judge.py score --model judge.pt --val VAL_DATASET [...] [--reconstructed REC [...]] --out FILE
   The trained judge on every held-out frame (JSON tasks.TASK.real) and, with --reconstructed, on
   the same frames after a round trip through the world model's VAE (`bwm reconstruct`, one file per
@@ -43,9 +43,9 @@ Serving rule: p = max over t of min(p_t, ..., p_t+w-1), w = --window (default 3)
 sent; with "final" the windows that start in the last w - 1 frames hold the frames left, so a
 success reached at the episode's last frames counts as the simulator counts it (without it, the
 development families' slow policies lost 25 of their 37 missed successes there: docs/fidelity.md,
-run 46). bwm evaluate sends every frame generated so far after each chunk, "final" once they reach
-the horizon, and stops at the first success, so "at any frame" matches the simulator's measure
-(success at any step). Success, once
+"What the two trainings show"). bwm evaluate sends every frame generated so far after each chunk,
+"final" once they reach the horizon, and stops at the first success, so "at any frame" matches the
+simulator's measure (success at any step). Success, once
 reached, holds for many frames (the drawer stays open, the expert keeps the button down), so asking
 for w consecutive frames costs little recall, while a single blurry generated frame that happens
 to look open or pressed no longer decides the episode. obj_to_target_cm is the same rule on the

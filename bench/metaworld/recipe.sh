@@ -69,7 +69,7 @@ case "$VAE_GRAPH" in 0|1|auto) ;; *) echo "recipe: VAE_GRAPH must be 0, 1 or aut
 VAE_EVAL_EVERY="${VAE_EVAL_EVERY:-1000}"  # held-out reconstruction PSNR every N VAE steps (and at the end)
 # The VAE trains on clips as long as the DiT's (x0 + 8 + 24 = 33 frames): its causal convolutions
 # see the video's start in every 9-frame clip, and one trained on those decodes the later latents
-# of a 33-frame clip poorly (docs/fidelity.md, runs 10 and 11).
+# of a 33-frame clip poorly (docs/fidelity.md at abaed68, runs 10 and 11).
 VAE_CLIP_FRAMES="${VAE_CLIP_FRAMES:-33}"  # frames per VAE training clip (1+4k)
 # Share of each VAE episode held out for its PSNR; default: enough frames for one clip.
 VAE_HOLDOUT_TAIL="${VAE_HOLDOUT_TAIL:-$(awk -v c="$VAE_CLIP_FRAMES" -v f="$FRAMES" 'BEGIN { t = int(100 * (c + 2) / f + 0.999) / 100; print (t < 0.1 ? 0.1 : t) }')}"
@@ -79,9 +79,9 @@ VAE_DEC_DIM="${VAE_DEC_DIM:-32}"         # bwm train-vae --dec-dim: the decoder'
 VAE_SEED="${VAE_SEED:-0}"                # bwm train-vae --seed: initial weights and clip order
 # bwm train-vae --candidates: VAEs trained from seeds VAE_SEED, VAE_SEED + 1, ..., the best held-out
 # PSNR kept. One seed in four settled about 1 dB under the others in every run, and the world model
-# on its latents reached r 0.64-0.70 where the others reached 0.78-0.91 (docs/fidelity.md, run 31).
-# 2 on CUDA devices (with VAE_GRAPH's graphed steps two cost less than one eager VAE; eager, as
-# after a graph's failure, they cost about 1.3 times one), 1 elsewhere.
+# on its latents reached r 0.64-0.70 where the others reached 0.78-0.91 (docs/fidelity.md at
+# abaed68, run 31). 2 on CUDA devices (with VAE_GRAPH's graphed steps two cost less than one eager
+# VAE; eager, as after a graph's failure, they cost about 1.3 times one), 1 elsewhere.
 VAE_CANDIDATES="${VAE_CANDIDATES:-$([[ $DEVICE == cuda* ]] && echo 2 || echo 1)}"
 # bwm train-vae --choose-at: the candidates' steps before the best goes on alone (the poor seed's
 # gap showed early in run 27's training losses: 2.3 dB under the others around step 200, 1.1
@@ -93,10 +93,10 @@ TRAIN_STEPS="${TRAIN_STEPS:-}"            # default: configs/metaworld.toml's
 TRAIN_SETS="${TRAIN_SETS:-}"              # more `--set KEY=VALUE` for bwm train, space-separated
 # The DiT's weights averaged over its training (optim.ema_decay, e.g. 0.999: about the last 1000
 # steps); every stage that rolls out then uses the average of the newest checkpoint (bwm export
-# --ema into $RUN/ema/STEP), not its last step's weights. Empty (default): no average.
-# At 0.999 the average drew the drawer worse than the last step (docs/fidelity.md, run 36).
+# --ema into $RUN/ema/STEP), not its last step's weights. Empty (default): no average. At 0.999 the
+# average drew the drawer worse than the last step (docs/fidelity.md at abaed68, run 36).
 EMA_DECAY="${EMA_DECAY:-}"
-SAMPLE_STEPS="${SAMPLE_STEPS:-4}"         # sampler steps per generated chunk (the sweep's pick, docs/fidelity.md run 15)
+SAMPLE_STEPS="${SAMPLE_STEPS:-4}"         # sampler steps per generated chunk (the sweep's pick, docs/fidelity.md, "The sampler: 4 Euler steps")
 SOLVER="${SOLVER:-euler}"                 # euler or dpm++2m (bwm --solver)
 FP8="${FP8:-}"                            # tensor or row: the DiT blocks' linears in FP8 (bwm --fp8); default off
 SAMPLER_GRAPH="${SAMPLER_GRAPH:-0}"       # 1: the sampler's forward pass replayed from CUDA graphs (bwm --cuda-graph)
@@ -107,7 +107,7 @@ GUIDANCE="${GUIDANCE:-1}"                 # bwm --guidance: classifier-free guid
 JUDGE_STEPS="${JUDGE_STEPS:-600}"
 JUDGE_FRAMES="${JUDGE_FRAMES:-reconstructed}"  # what the judge learns from: reconstructed (the simulator's frames and
                                           # training frames through this run's VAE) or real (the former alone; it misreads
-                                          # some VAEs' open drawer as closed: docs/fidelity.md, runs 25 and 26)
+                                          # some VAEs' open drawer as closed: docs/fidelity.md at abaed68, runs 25 and 26)
 JUDGE_RECONSTRUCT_EPISODES="${JUDGE_RECONSTRUCT_EPISODES:-400}"  # training episodes reconstructed for it (the first: both tasks, seeds interleaved)
 case "$JUDGE_FRAMES" in
   real) JUDGE_NAME=judge ;;

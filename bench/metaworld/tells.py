@@ -10,7 +10,7 @@ A world model sees the commands of a whole chunk beside its frames. If the data'
 its commands (an expert that sees the drawer stay behind stops pulling; one that sees the button
 go down follows it), the world model can learn the commands instead of the contact, and draws a
 policy's pull that misses but goes on, as a policy acting on one frame per chunk does, opening
-the drawer (docs/fidelity.md, run 39).
+the drawer (docs/fidelity.md at abaed68, run 39).
 
     python tells.py DATA [--tasks drawer-open-v3] [--behaviours near,expert] [--variants wrong,blind] [--json OUT]
 """

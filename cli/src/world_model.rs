@@ -58,7 +58,7 @@ pub struct WorldModelArgs {
     #[arg(long, default_value_t = 72)]
     pub future: usize,
     /// Sampler steps per chunk (the reference samples with 50; 4 held the Meta-World model's
-    /// fidelity, docs/fidelity.md).
+    /// fidelity, docs/fidelity.md, "The sampler: 4 Euler steps").
     #[arg(long, default_value_t = bwm_model::schedule::DEFAULT_SAMPLE_STEPS)]
     pub sample_steps: usize,
     /// The flow-matching shift of the sampler's grid (default: the shift the weights were trained

@@ -177,14 +177,14 @@ pub mod removed {
     pub const FOURIER_BANDS: Key<i64> = Key {
         name: "action.fourier_bands",
         default: 0,
-        why: "Fourier features of the actions measured worse (run 28 in docs/fidelity.md: closed-loop Pearson r 0.805 / 0.638 \
+        why: "Fourier features of the actions measured worse (run 28 in docs/fidelity.md at abaed68: closed-loop Pearson r 0.805 / 0.638 \
               against 0.836 / 0.669 from the same two seeds without them)",
     };
 
     pub const TEMPORAL_ROPE: Key<bool> = Key {
         name: "action.temporal_rope",
         default: false,
-        why: "the actions timed in the cross-attention changed nothing measurable (run 39 in docs/fidelity.md: r 0.904 against \
+        why: "the actions timed in the cross-attention changed nothing measurable (run 39 in docs/fidelity.md at abaed68: r 0.904 against \
               0.899 from the same seeds without it, the 16 estimates closer than two trainings of one recipe, at 12% more DiT time)",
     };
 
@@ -192,7 +192,7 @@ pub mod removed {
         name: "objective.motion_weight",
         default: 0.0,
         why: "weighting the DiT's loss towards the latent cells that move changed nothing the seeds do not (run 33 in \
-              docs/fidelity.md: r 0.850 / 0.816, each training's 16 estimates 0.017-0.031 from the same seed's plain-loss \
+              docs/fidelity.md at abaed68: r 0.850 / 0.816, each training's 16 estimates 0.017-0.031 from the same seed's plain-loss \
               trainings, as close as those lie to each other)",
     };
 

@@ -346,7 +346,7 @@ impl<'m> Rollout<'m> {
         // The causal decoder runs through the prefix latents for its cache; their pixels are dropped.
         // Widened, joined and clamped where they were decoded: on the host these passes over
         // every pixel ran on libtorch's CPU pool (0.4 s of a 5B chunk's decode with one thread,
-        // docs/performance.md).
+        // docs/performance.md at abaed68, "CPU threads beside the GPU").
         let start = Instant::now();
         let frames = tch::no_grad(|| -> Result<Tensor> {
             let mut stream = vae.decoder_stream();

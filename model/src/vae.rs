@@ -859,8 +859,8 @@ pub const TRAINED_CLIP_FRAMES_KEY: &str = "bwm.clip_frames";
 
 /// A warning when a VAE trained on `trained`-frame clips is to encode or decode `used`-frame
 /// clips: its causal convolutions always saw the video's start during training, and the latents
-/// past its training clip come out poorly (docs/fidelity.md, run 10: 27.8 dB on training-length
-/// clips, 18.6 dB on whole episodes).
+/// past its training clip come out poorly (docs/fidelity.md at abaed68, run 10: 27.8 dB on
+/// training-length clips, 18.6 dB on whole episodes).
 pub fn clip_length_warning(trained: Option<usize>, used: usize) -> Option<String> {
     let trained = trained?;
     (used > trained).then(|| {

@@ -13,9 +13,10 @@
 # between commands or after 30 minutes, the run ends with it). With the recipe's defaults
 # (128x128, a DiT of width 768) data to trained model takes about 17 minutes on an H200, the study
 # 5-6 more, the fidelity stage about 20 (beside the studies) and the probe about 4: four
-# 10-minute waits, the last started before minute 30 (run 12 of docs/fidelity.md). SKIP_FIDELITY=1 leaves out
-# the fidelity stage (which otherwise runs beside the study and slows it); SKIP_PROBE=1 the probe
-# (graded `wrong` variants, after the study); TEACHER=1 adds the teacher stage after the study
+# 10-minute waits, the last started before minute 30 (docs/fidelity.md at abaed68, run 12).
+# SKIP_FIDELITY=1 leaves out the fidelity stage (which otherwise runs beside the study and slows
+# it); SKIP_PROBE=1 the probe (graded `wrong` variants, after the study); TEACHER=1 adds the
+# teacher stage after the study
 # (each chunk drawn from the simulator's real history: $RUN/teacher/teacher.json; TEACHER_VARIANTS
 # picks variants); OWN=1 the own stage after that (the same over the training and held-out
 # datasets' own near misses: $RUN/own/{train,val}/; OWN_BEHAVIOURS, OWN_EPISODES). COMPARE_STREAMS=2

@@ -8,8 +8,8 @@
 #   bash scripts/gpu/detached.sh start sw bash scripts/gpu/sweep_split.sh
 #   bash scripts/gpu/detached.sh wait sw 560 runs/metaworld/sweep   (in each command, back to back)
 # .whl, .gl and .pack must stay on the host until the last chain ends: a chain started after
-# they were removed finds no bwm binary (run 43 of docs/fidelity.md lost five settings so). In 30
-# minutes of GPU time,
+# they were removed finds no bwm binary (run 43, docs/fidelity.md at abaed68, lost five settings
+# so). In 30 minutes of GPU time,
 # training (about 13 minutes on an H200) and one round of chains (about 5 minutes each) fit; the
 # second settings of the chains may not. SWEEP_EPISODES (default here 10 per task) and the
 # recipe's variables apply; the table: `python3 bench/metaworld/sweep.py $RUN/sweep` on the

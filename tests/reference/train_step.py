@@ -37,7 +37,7 @@ def parse():
     p.add_argument("--batch", type=int, default=1)
     p.add_argument("--grad-accum", type=int, default=1,
                    help="micro-steps per optimizer step (configs/bwm-wan22-ti2v-5b.toml says 4; "
-                        "docs/performance.md measured 1 and 2)")
+                        "docs/performance.md at abaed68 measured 1 and 2)")
     p.add_argument("--mode", default="master", choices=["master", "plain"])
     p.add_argument("--no-checkpointing", dest="checkpointing", action="store_false",
                    help="keep every block's activations (DiffSynth's training default is checkpointing on)")

@@ -125,7 +125,7 @@ pub struct TrainSection {
     pub recompute: bool,
     /// With recomputation, the last N DiT blocks keep their activations from the forward instead
     /// of being recomputed in backward: faster by their recompute forward, at the memory of their
-    /// activations (`docs/performance.md` lists what fits).
+    /// activations (`docs/performance.md`, "MFU and memory", lists what fits).
     #[serde(default)]
     pub recompute_keep_last: usize,
     /// With several data-parallel ranks, each keeps 1/world of the optimizer state (fp32 master

@@ -59,7 +59,7 @@ pub enum ReconLoss {
 
 /// Why the motion loss (`--recon-loss motion`, MSE weighted towards where the clip changes, and
 /// its `--motion-weight`) was removed (issue 69).
-pub const REMOVED_MOTION_LOSS: &str = "run 34 in docs/fidelity.md did not adopt it: seed 0's world model drew what seed 0 draws \
+pub const REMOVED_MOTION_LOSS: &str = "run 34 in docs/fidelity.md at abaed68 did not adopt it: seed 0's world model drew what seed 0 draws \
      with the plain MSE (r 0.861, within its band 0.819-0.910), seed 3's moved (r 0.845), one seed's signal and smaller than the \
      data's; not measured on the recipe's data since";
 
@@ -322,16 +322,16 @@ impl<'a> VaeRun<'a> {
     }
 }
 
-/// Trains one VAE from each seed (same frames and settings) and keeps the one that reconstructs
-/// the held-out frames best. Some initialisations settle about 1 dB under the others, and a world
-/// model trained on their latents simulates worse (docs/fidelity.md, run 31); the held-out PSNR
-/// tells them apart before anything trains on the latents, and early: the gap shows from the
-/// first few hundred steps. With `choose_at` = Some(k) < the settings' steps every candidate
-/// trains k steps, the one with the best held-out PSNR then goes on alone to the end (the others
-/// are dropped there; its training is the one an uninterrupted run of its seed does), so N
-/// candidates cost (N - 1) k steps more than one VAE; otherwise each trains in full, one after
-/// another, and the best at the end is kept. Only the kept one gets its latent statistics and
-/// training PSNR. The report's candidates hold every seed's held-out PSNR where it was compared.
+/// Trains one VAE from each seed (same frames and settings) and keeps the one that reconstructs the
+/// held-out frames best. Some initialisations settle about 1 dB under the others, and a world model
+/// trained on their latents simulates worse (docs/fidelity.md at abaed68, run 31); the held-out
+/// PSNR tells them apart before anything trains on the latents, and early: the gap shows from the
+/// first few hundred steps. With `choose_at` = Some(k) < the settings' steps every candidate trains
+/// k steps, the one with the best held-out PSNR then goes on alone to the end (the others are
+/// dropped there; its training is the one an uninterrupted run of its seed does), so N candidates
+/// cost (N - 1) k steps more than one VAE; otherwise each trains in full, one after another, and
+/// the best at the end is kept. Only the kept one gets its latent statistics and training PSNR. The
+/// report's candidates hold every seed's held-out PSNR where it was compared.
 pub fn train_best_vae(
     data: &FrameSets,
     s: &VaeTrainSettings,

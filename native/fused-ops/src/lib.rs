@@ -15,7 +15,8 @@
 //!   through a function pointer): a tensor scaled by its largest magnitude into float8, row-major
 //!   and transposed, in one pass with the scale computed where the values are. libtorch casts to
 //!   float8 and copies float8 tensors with its one-element-per-thread kernels and needs several
-//!   small kernels for the scale (docs/performance.md, "FP8 training"). On the CPU the same
+//!   small kernels for the scale (docs/performance.md at abaed68, "FP8 training of the block
+//!   linears"). On the CPU the same
 //!   arithmetic is a loop.
 
 mod kernel;

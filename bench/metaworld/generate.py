@@ -1,5 +1,6 @@
 """Writes a LeRobot v2.1 dataset of Meta-World episodes (frames as PNG `image` cells inside the
-parquet files, no video). README.md describes the layout and the seed convention.
+parquet files, no video). docs/metaworld.md (the `data` stage) describes the layout and the seed
+convention.
 
     python generate.py --tasks drawer-open-v3,button-press-topdown-v3 --episodes 200 \\
         --seed-start 0 --frames 120 --resolution 64 --out DIR --workers 2

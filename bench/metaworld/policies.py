@@ -6,7 +6,7 @@ SawyerButtonPressTopdownV3Policy) in terms of the estimated object and the comma
 integrating their own commands with `next_state` over the chunk they return.
 
 Variants degrade the expert in one way each, with per-episode parameters drawn from the policy's
-seed, so their true success rates spread (README.md has them). Beside the named ones,
+seed, so their true success rates spread (docs/fidelity.md has them). Beside the named ones,
 `wrong-<d>cm` is the expert with every target moved d cm along the task's `wrong` offset: a
 graded `wrong` whose success falls with d, for probing whether a world model's contact follows a
 shifted command.

@@ -51,7 +51,7 @@ pub(crate) struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Run the tiny model on the bundled episodes and print what it does (the README's first command).
+    /// One sampling pass of the tiny model (random weights) on a bundled clip's actions, printed step by step.
     Demo(demo::DemoArgs),
     /// Per-dimension action statistics of a dataset's training split, as a stat.json.
     Stats(stats::StatsArgs),

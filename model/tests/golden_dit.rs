@@ -12,8 +12,8 @@ use common::{golden_dir, rel_err};
 use tch::{Device, Kind, Tensor};
 
 /// Relative error allowed against the reference, f32 on the CPU, for the velocity and every
-/// intermediate (README, Model notes): measured up to 3.9e-7 (f32 rounding in another order of
-/// operations), so 1e-6 leaves a factor of 2.5 for other CPUs' kernels.
+/// intermediate (docs/architecture.md, Model notes): measured up to 3.9e-7 (f32 rounding in
+/// another order of operations), so 1e-6 leaves a factor of 2.5 for other CPUs' kernels.
 const DIT_BOUND: f64 = 1e-6;
 
 struct Case {

@@ -14,8 +14,9 @@ use common::{golden_dir, rel_err, tmp_dir};
 use tch::{Device, Kind, Tensor};
 
 /// Relative error allowed against the reference, f32 on the CPU, for the latents and the decoded
-/// frames (README, VAE notes): measured up to 1.3e-6 (the decoder's many convolutions summing in
-/// another order), so 5e-6 leaves a factor of about 4 for other CPUs' kernels.
+/// frames (docs/architecture.md, VAE notes): measured up to 1.3e-6 (the decoder's many
+/// convolutions summing in another order), so 5e-6 leaves a factor of about 4 for other CPUs'
+/// kernels.
 const VAE_BOUND: f64 = 5e-6;
 
 fn config(json: &Path) -> VaeConfig {

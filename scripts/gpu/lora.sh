@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # On one GPU of a CUDA host (the LoRA issue asks for one H100), from the repo
 # root, with the bwm binary copied there as scripts/gpu/pack.sh packs it (.pack/bwm.xz). Times the
-# 5B training step with LoRA rank 64 on every attention and FFN linear (the README's override:
-# adapters and the action encoder trained, the base frozen in bf16), and with FULL=1 full
+# 5B training step with LoRA rank 64 on every attention and FFN linear (the override of the README's
+# LoRA guide: adapters and the action encoder trained, the base frozen in bf16), and with FULL=1 full
 # fine-tuning beside it, at 640x480, 1+8+72 frames, batch 1, random weights, while sampling GPU memory.
 #   bash scripts/gpu/lora.sh
 # RECOMPUTE=false times LoRA without recomputation too; STEPS (default 5) steps each. With the

@@ -98,7 +98,7 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
 
     // Training closes with its held-out rollout next to the copy-last-frame baseline, and the
     // loss of every step goes to losses.tsv (the loss curve's source).
-    assert!(log.contains("predicted frames: PSNR") && log.contains("holding the last given frame"), "{log}");
+    assert!(log.contains("predicted frames each:") && log.contains("holding the last given frame"), "{log}");
     let losses = std::fs::read_to_string(runs.join("losses.tsv")).unwrap();
     assert_eq!(losses.lines().map(|l| l.split('\t').next().unwrap()).collect::<Vec<_>>(), ["1", "2"], "{losses}");
 

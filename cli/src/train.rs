@@ -76,19 +76,21 @@ pub fn run(args: TrainArgs) -> Result<()> {
     if let Some(vae) = trainer.cfg.validation.vae.clone() {
         let video = trainer.out_path("rollout.mp4");
         let r = bwm_trainer::report::rollout_video(&trainer, &vae, &video)?;
-        println!(
-            "rollout of a held-out clip (ground truth left, model right): {}",
-            r.path.display()
-        );
-        let (verdict, margin) = if r.model_psnr >= r.copy_last_psnr {
-            ("ahead of", r.model_psnr - r.copy_last_psnr)
-        } else {
-            ("behind", r.copy_last_psnr - r.model_psnr)
+        let shown = if r.recorded.is_some() { "recorded left, the VAE's reconstruction middle, model right" } else { "the VAE's reconstruction left, model right" };
+        println!("rollout of the held-out clip that moves most ({shown}): {}", r.path.display());
+        let line = |what: &str, s: bwm_trainer::report::Scores| {
+            let (verdict, margin) = if s.model_psnr >= s.copy_last_psnr { ("AHEAD of", s.model_psnr - s.copy_last_psnr) } else { ("BEHIND", s.copy_last_psnr - s.model_psnr) };
+            println!(
+                "  against {what}: model PSNR {:.2} dB, holding the last given frame {:.2} dB: the model is {verdict} that baseline by {margin:.2} dB",
+                s.model_psnr, s.copy_last_psnr
+            );
         };
-        println!(
-            "  its {} predicted frames: PSNR {:.2} dB; holding the last given frame: {:.2} dB (the model is {verdict} that baseline by {margin:.2} dB)",
-            r.future_frames, r.model_psnr, r.copy_last_psnr
-        );
+        println!("{} held-out clips, {} predicted frames each:", r.clips, r.future_frames);
+        line("the VAE's reconstruction of the true frames (what the model learns to predict)", r.decoded);
+        if let (Some(s), Some(ceiling)) = (r.recorded, r.vae_ceiling_psnr) {
+            line("the recorded frames", s);
+            println!("  (the VAE's reconstruction itself scores {ceiling:.2} dB against the recorded frames: no model decoding with it can do better there)");
+        }
     }
     Ok(())
 }

@@ -201,8 +201,10 @@ fn bench_rollout_samples_with_the_default_steps_and_takes_cudnn_autotuning() {
         .unwrap();
     let (stdout, stderr) = (String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
     assert!(out.status.success(), "{stdout}\n{stderr}");
-    let steps = bwm_model::schedule::DEFAULT_SAMPLE_STEPS;
+    // Random weights record no sampler: the reference's 50 Euler steps, and the command says so.
+    let steps = bwm_checkpoints::sampler::UNRECORDED_STEPS;
     assert!(line(&stdout, "bench-rollout:").contains(&format!("4 frames per chunk, {steps} euler steps")), "{stdout}");
+    assert!(stdout.contains("these weights record no sampler"), "{stdout}");
     assert!(stderr.contains("cuDNN convolution autotuning on"), "{stderr}");
 }
 

@@ -62,3 +62,14 @@ for setting in "${settings[@]}"; do
 done
 [ -n "${SETTINGS:-}" ] && { echo "sweep: $SETTINGS measured; the table comes from a plain sweep.sh"; exit 0; }
 "$PYTHON" bench/metaworld/sweep.py "$RUN/sweep" --baseline "$baseline"
+# The pick travels with the weights it was measured on: `bwm sampler` records it beside the newest
+# checkpoint (sampler.json), so that every world-model command on it (and `bwm export`'s copy)
+# samples at this setting unless told otherwise.
+BWM="${BWM:-${CARGO_TARGET_DIR:-target}/release/bwm}"
+read -r pick_solver pick_steps < <("$PYTHON" -c '
+import json, sys
+r = json.load(open(sys.argv[1]))
+row = next(s for s in r["settings"] if s["setting"] == r["default"])
+print(row["solver"], row["steps"])' "$RUN/sweep/sweep.json")
+"$BWM" sampler --checkpoint "$RUN/checkpoints/$(cat "$RUN/checkpoints/latest")" --steps "$pick_steps" --solver "$pick_solver" \
+  --measured "bench/metaworld/sweep.sh: the fewest steps within 0.5 dB of $baseline at h = 32 (every task) and its success estimates within 2 points ($RUN/sweep/sweep.json)"

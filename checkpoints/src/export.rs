@@ -436,6 +436,11 @@ pub fn export(input: &str, out: &Path, opts: &ExportOptions, progress: &mut dyn 
             }
             None => None,
         };
+        // The sampler the checkpoint's fidelity was measured at travels with its weights.
+        if let Some(record) = crate::sampler::read(&p.input)? {
+            let path = crate::sampler::write(tmp, &record)?;
+            files.push(WrittenFile { path: crate::sampler::SAMPLER_FILE.into(), bytes: std::fs::metadata(&path)?.len() });
+        }
         let repo_cfg = RepoConfig {
             model_type: repo::MODEL_TYPE.into(),
             bwm_format_version: repo::FORMAT_VERSION,

@@ -16,6 +16,7 @@ pub mod optimizer_shards;
 pub mod repo;
 pub mod run_dir;
 pub mod run_info;
+pub mod sampler;
 pub mod sources;
 pub mod tensor_file;
 

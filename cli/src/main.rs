@@ -11,6 +11,7 @@ mod prepare;
 mod reconstruct;
 mod reference;
 mod rollout;
+mod sampler;
 mod serve;
 mod stats;
 mod train;
@@ -60,6 +61,9 @@ enum Command {
     /// Data engine: roll the world model out from each episode's first frame with recorded, file or
     /// perturbed actions, and write the result as a LeRobot v2.1 dataset.
     Rollout(rollout::RolloutArgs),
+    /// Show or record the sampler (steps, solver) a checkpoint's fidelity was measured at, which
+    /// rollout, fidelity, evaluate, serve and bench-rollout then use by default.
+    Sampler(sampler::SamplerArgs),
     /// Score the world model on held-out episodes: whole-episode rollouts driven by their own and
     /// by another episode's actions, PSNR/SSIM per frame and at horizons, against copy-last-frame.
     Fidelity(fidelity::FidelityArgs),
@@ -118,6 +122,7 @@ fn main() {
         Command::Stats(a) => stats::run(a),
         Command::Prepare(a) => prepare::run(a),
         Command::Rollout(a) => rollout::run(a),
+        Command::Sampler(a) => sampler::run(a),
         Command::Fidelity(a) => fidelity::run(a),
         Command::Evaluate(a) => evaluate::run(a),
         Command::Serve(a) => serve::run(a),

@@ -57,18 +57,20 @@ pub struct WorldModelArgs {
     /// Frames K generated per chunk (the training clips' K).
     #[arg(long, default_value_t = 72)]
     pub future: usize,
-    /// Sampler steps per chunk (the reference samples with 50; 4 held the Meta-World model's
-    /// fidelity, docs/fidelity.md, "The sampler: 4 Euler steps").
-    #[arg(long, default_value_t = bwm_model::schedule::DEFAULT_SAMPLE_STEPS)]
-    pub sample_steps: usize,
+    /// Sampler steps per chunk. Default: the sampler recorded with the weights (`sampler.json`
+    /// beside them: the setting their fidelity was measured at, written by `bwm sampler`), else
+    /// the reference's 50; the command says which it took. 4 held the Meta-World model's
+    /// fidelity (docs/fidelity.md, "The sampler: 4 Euler steps").
+    #[arg(long)]
+    pub sample_steps: Option<usize>,
     /// The flow-matching shift of the sampler's grid (default: the shift the weights were trained
     /// with, `objective.shift`, else Wan's 5).
     #[arg(long)]
     pub shift: Option<f64>,
     /// How the sampler steps: euler (the reference's) or dpm++2m (DPM-Solver++(2M), second
-    /// order at one model evaluation per step).
-    #[arg(long, default_value = "euler")]
-    pub solver: bwm_model::schedule::Solver,
+    /// order at one model evaluation per step). Default: the weights' recorded sampler, else euler.
+    #[arg(long)]
+    pub solver: Option<bwm_model::schedule::Solver>,
     /// Noise level of the history latents (default: the level the weights were trained with,
     /// `objective.history_sigma`, else their training grid's sigma 50 steps from clean, 0.2083 at
     /// shift 5); 0 turns it off.

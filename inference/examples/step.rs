@@ -17,7 +17,7 @@ fn main() -> Result<()> {
         device: "cpu".into(),
         history: 4,
         future: 4,
-        sample_steps: 2,
+        sample_steps: Some(2),
         ..Default::default()
     }
     .load()?;

@@ -8,6 +8,7 @@ use std::rc::Rc;
 use anyhow::{bail, ensure, Context, Result};
 use bwm_checkpoints::open::{build_model, open_any, training_record, with_lora_adapters, OpenedWeights};
 use bwm_checkpoints::run_info::{CheckpointState, RunInfo};
+use bwm_checkpoints::sampler::{self, UNRECORDED_STEPS};
 use bwm_data::ActionStats;
 use bwm_model::device::{parse_device, parse_kind};
 use bwm_model::fp8::{quantize_linears, Fp8Scaling, BLOCK_LINEARS};
@@ -51,13 +52,14 @@ pub struct WorldModelOptions {
     pub history: usize,
     /// Frames K generated per chunk (the training clips' K).
     pub future: usize,
-    /// Sampler steps per chunk.
-    pub sample_steps: usize,
+    /// Sampler steps per chunk; None: the weights' recorded sampler (`sampler.json`), else 50.
+    pub sample_steps: Option<usize>,
     /// The flow-matching shift of the sampler's grid; None: the shift the weights were trained
     /// with (a training checkpoint's `objective.shift`, an export's schedule), else Wan's 5.
     pub shift: Option<f64>,
-    /// How the sampler steps: Euler (the reference's) or DPM-Solver++(2M).
-    pub solver: Solver,
+    /// How the sampler steps: Euler (the reference's) or DPM-Solver++(2M); None: the weights'
+    /// recorded sampler, else Euler.
+    pub solver: Option<Solver>,
     /// Noise level of the history latents; None: the level the weights were trained with (a
     /// training checkpoint's run config, an export's schedule), else their training grid's sigma
     /// 50 steps from clean (the BWM release's 0.2083 at shift 5); 0 turns it off.
@@ -87,9 +89,9 @@ impl Default for WorldModelOptions {
             residual: None,
             history: 8,
             future: 72,
-            sample_steps: bwm_model::schedule::DEFAULT_SAMPLE_STEPS,
+            sample_steps: None,
             shift: None,
-            solver: Solver::Euler,
+            solver: None,
             history_sigma: None,
             guidance: 1.0,
             seed: 0,
@@ -151,15 +153,16 @@ impl WorldModelOptions {
     /// The rollout settings, for weights trained with history noise `trained_history_sigma` and
     /// shift `trained_shift` (None: the default or not recorded). Unset history noise is the
     /// level training gave it at that shift, whatever the sampler's `--shift`.
-    pub fn spec(&self, trained_history_sigma: Option<f64>, trained_shift: Option<f64>) -> Result<RolloutSpec> {
+    /// `sampler` is the resolved (steps, solver): `bwm_checkpoints::sampler::resolve`.
+    pub fn spec(&self, sampler: (usize, Solver), trained_history_sigma: Option<f64>, trained_shift: Option<f64>) -> Result<RolloutSpec> {
         let trained_grid = trained_shift.unwrap_or(bwm_model::schedule::DEFAULT_SHIFT);
         let sigma = self.history_sigma.or(trained_history_sigma).unwrap_or_else(|| history_sigma_for_shift(trained_grid));
         let spec = RolloutSpec {
             history: self.history,
             future: self.future,
-            steps: self.sample_steps,
+            steps: sampler.0,
             shift: self.shift.unwrap_or(trained_grid),
-            solver: self.solver,
+            solver: sampler.1,
             history_sigma: (sigma > 0.0).then_some(sigma),
             guidance: self.guidance,
             seed: self.seed,
@@ -169,7 +172,8 @@ impl WorldModelOptions {
     }
 
     pub fn load(&self) -> Result<WorldModel> {
-        self.spec(None, None)?; // wrong flags are named before any weights are opened
+        // Wrong flags are named before any weights are opened.
+        self.spec((self.sample_steps.unwrap_or(UNRECORDED_STEPS), self.solver.unwrap_or_default()), None, None)?;
         let device = parse_device(&self.device)?;
         let graphed = if self.cuda_graph { Some(Rc::new(RefCell::new(GraphedDenoiser::new(device)?))) } else { None };
         let kind = match self.dtype.as_str() {
@@ -180,9 +184,11 @@ impl WorldModelOptions {
         let preset = self.model_preset.as_deref().map(ModelConfig::preset).transpose()?;
         ensure!(self.lora.is_none() || self.checkpoint.is_some(), "--lora needs --checkpoint: the base weights its adapters go onto");
         // The residual stream the weights were trained with, unless --residual says otherwise.
+        let mut recorded_sampler = None;
         let (mut model, trained, trained_history_sigma, trained_shift, trained_resolution) = match (&self.checkpoint, &self.random_weights) {
             (Some(ckpt), _) => {
                 let mut opened = open_any(ckpt).with_context(|| format!("--checkpoint {ckpt}"))?;
+                recorded_sampler = sampler::read(&opened.location).with_context(|| format!("--checkpoint {ckpt}"))?.map(|r| (r, sampler::record_path(&opened.location)));
                 let record = training_record(&opened).with_context(|| format!("--checkpoint {ckpt}"))?;
                 let resolution = trained_resolution(&opened);
                 check_guidance(self.guidance, record.action_dropout).with_context(|| format!("--checkpoint {ckpt}"))?;
@@ -195,7 +201,9 @@ impl WorldModelOptions {
             (None, Some(name)) => (BwmModel::random(&random_model_config(name)?, kind, device, self.seed as i64)?, None, None, None, None),
             (None, None) => bail!("pass --checkpoint (trained weights) or --random-weights PRESET"),
         };
-        let spec = self.spec(trained_history_sigma, trained_shift).context("the history noise and shift the weights were trained with")?;
+        let (steps, solver, said) = sampler::resolve(self.sample_steps, self.solver, recorded_sampler.as_ref().map(|(r, p)| (r, p.as_path())));
+        println!("{said}");
+        let spec = self.spec((steps, solver), trained_history_sigma, trained_shift).context("the history noise and shift the weights were trained with")?;
         model.dit.residual = self.residual.or(trained).unwrap_or_default().kind(kind);
         if let Some(scaling) = self.fp8 {
             quantize_linears(&mut model, BLOCK_LINEARS, scaling).context("--fp8")?;
@@ -333,7 +341,7 @@ mod tests {
 
     #[test]
     fn history_noise_follows_the_flag_then_the_training_then_the_release() {
-        let sigma = |flag: Option<f64>, trained: Option<f64>| WorldModelOptions { history_sigma: flag, ..Default::default() }.spec(trained, None).unwrap().history_sigma;
+        let sigma = |flag: Option<f64>, trained: Option<f64>| WorldModelOptions { history_sigma: flag, ..Default::default() }.spec((4, Solver::Euler), trained, None).unwrap().history_sigma;
         assert_eq!(sigma(None, None), Some(default_history_sigma()), "weights that record nothing: the release's level");
         assert_eq!(sigma(None, Some(0.05)), Some(0.05), "the level the weights were trained with");
         assert_eq!(sigma(Some(0.1), Some(0.05)), Some(0.1), "--history-sigma overrides it");
@@ -343,12 +351,12 @@ mod tests {
 
     #[test]
     fn the_sampler_shift_follows_the_flag_then_the_training_then_wan() {
-        let shift = |flag: Option<f64>, trained: Option<f64>| WorldModelOptions { shift: flag, ..Default::default() }.spec(None, trained).unwrap().shift;
+        let shift = |flag: Option<f64>, trained: Option<f64>| WorldModelOptions { shift: flag, ..Default::default() }.spec((4, Solver::Euler), None, trained).unwrap().shift;
         assert_eq!(shift(None, None), bwm_model::schedule::DEFAULT_SHIFT, "weights that record nothing: Wan's shift");
         assert_eq!(shift(None, Some(2.0)), 2.0, "the shift the weights were trained with");
         assert_eq!(shift(Some(3.0), Some(2.0)), 3.0, "--shift overrides it");
         // History noise left unset in training was the trained grid's, and sampling matches it.
-        let sigma = |flag: Option<f64>, trained: Option<f64>| WorldModelOptions { shift: flag, ..Default::default() }.spec(None, trained).unwrap().history_sigma;
+        let sigma = |flag: Option<f64>, trained: Option<f64>| WorldModelOptions { shift: flag, ..Default::default() }.spec((4, Solver::Euler), None, trained).unwrap().history_sigma;
         let at_2 = bwm_model::rollout::history_sigma_for_shift(2.0);
         assert!((at_2 - 2.0 * 0.05 / 1.05).abs() < 1e-9, "{at_2}");
         assert_eq!(sigma(None, Some(2.0)), Some(at_2));

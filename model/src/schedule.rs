@@ -10,12 +10,6 @@ use tch::Tensor;
 
 pub const NUM_TRAIN_TIMESTEPS: usize = 1000;
 pub const DEFAULT_SHIFT: f64 = 5.0;
-/// Sampler steps per rollout chunk unless a run says otherwise: the fewest of the real-time
-/// issue's sweep (4-50 Euler and DPM-Solver++ steps) whose open-loop PSNR stayed within 0.5 dB and
-/// whose closed-loop success estimates stayed within 2 points of 50 Euler steps on the Meta-World
-/// world model (docs/fidelity.md, "The sampler: 4 Euler steps"). A model whose futures its
-/// condition determines less may need more: `bench/metaworld/sweep.sh` measures it.
-pub const DEFAULT_SAMPLE_STEPS: usize = 4;
 
 pub fn shift_sigma(sigma: f64, shift: f64) -> f64 {
     shift * sigma / (1.0 + (shift - 1.0) * sigma)

@@ -93,6 +93,8 @@ pub struct Trainer {
     pub checkpoints: CheckpointRoot,
     events: Option<EventWriter>,
     metrics_file: Option<LineLog>,
+    /// Validations in a row whose action gap was negligible (`validation::NEGLIGIBLE_ACTION_GAP`).
+    negligible_action_gaps: u32,
     /// `losses.tsv`: every step's loss (the loss curve; `metrics.jsonl` holds logged steps only).
     loss_file: Option<LineLog>,
     /// The data-parallel group (a group of one without torchrun's variables).
@@ -250,7 +252,7 @@ impl Trainer {
         let events = if cfg.log.tensorboard && lead { Some(EventWriter::create(&out_dir.join("tensorboard"))?) } else { None };
         let append = |name: &str| -> Result<Option<LineLog>> { if lead { LineLog::open(&out_dir.join(name)).map(Some) } else { Ok(None) } };
         let (metrics_file, loss_file) = (append("metrics.jsonl")?, append(crate::run_log::LOSSES_FILE)?);
-        Ok(Self { cfg, model, lora, opt, objective, cache, clip_encoder, loader: Default::default(), train_clips, device, state, out_dir, checkpoints, events, metrics_file, loss_file, comm, run_lock, history: Vec::new(), block_params, graph })
+        Ok(Self { cfg, model, lora, opt, objective, cache, clip_encoder, loader: Default::default(), train_clips, device, state, out_dir, checkpoints, events, metrics_file, negligible_action_gaps: 0, loss_file, comm, run_lock, history: Vec::new(), block_params, graph })
     }
 
     /// Trains to `train.steps`, checkpointing and validating as configured.
@@ -285,6 +287,24 @@ impl Trainer {
             if every > 0 && (step % every == 0 || step == total) && self.train_clips < self.cache.len() && lead {
                 let report = validation::run(self, step)?;
                 progress.println(&report.summary_line(step));
+                if let Some(f) = self.metrics_file.as_mut() {
+                    let line = serde_json::json!({"step": step, "validation": {"latent_mse": report.latent_mse, "psnr": report.psnr, "ssim": report.ssim, "actions": report.actions, "action_gap": report.actions.relative_gap()}});
+                    f.append(&line.to_string(), step)?;
+                }
+                // After warm-up, two validations in a row whose held-out loss barely moves with
+                // the actions: the model is learning a video model, not a simulator of them.
+                if step > self.cfg.optim.warmup_steps && report.actions.relative_gap() < validation::NEGLIGIBLE_ACTION_GAP {
+                    self.negligible_action_gaps += 1;
+                    if self.negligible_action_gaps == 2 {
+                        progress.println(&format!(
+                            "warning: the held-out loss with other clips' actions is within {:.0}% of the loss with their own at two validations in a row (now {:+.2}%): the model is not using its actions; check the actions in the cache (`bwm prepare --actions`) and `objective.action_dropout`",
+                            100.0 * validation::NEGLIGIBLE_ACTION_GAP,
+                            100.0 * report.actions.relative_gap()
+                        ));
+                    }
+                } else {
+                    self.negligible_action_gaps = 0;
+                }
             }
             self.history.push(m);
             let mut requested = stop.load(std::sync::atomic::Ordering::SeqCst);

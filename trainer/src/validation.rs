@@ -1,6 +1,7 @@
 //! Validation: roll out each held-out clip from its condition latents and actions, and compare
 //! the predicted future with the real one: latent MSE always; PSNR, SSIM and a frame strip
-//! (ground truth over prediction) when a VAE is configured.
+//! (ground truth over prediction) when a VAE is configured. Beside it, the action sensitivity:
+//! the held-out loss with the clips' own actions, another clip's and zero actions.
 
 use std::ops::Range;
 use std::path::PathBuf;
@@ -40,6 +41,70 @@ pub struct ValidationReport {
     pub psnr: Option<f64>,
     pub ssim: Option<f64>,
     pub strip: Option<std::path::PathBuf>,
+    /// How much the held-out loss depends on the actions.
+    pub actions: ActionGap,
+}
+
+/// The flow-matching loss of the held-out clips on fixed draws (the same noise and timesteps in
+/// each), with their own actions, with another held-out clip's actions, and with zero actions: a
+/// model that uses its actions predicts worse with the wrong ones.
+#[derive(Debug, Clone, Copy, serde::Serialize)]
+pub struct ActionGap {
+    pub loss_own_actions: f64,
+    pub loss_other_actions: f64,
+    pub loss_zero_actions: f64,
+}
+
+impl ActionGap {
+    /// How much worse other clips' actions make the loss, as a fraction of the loss with the
+    /// clips' own (0: the actions are ignored).
+    pub fn relative_gap(&self) -> f64 {
+        (self.loss_other_actions - self.loss_own_actions) / self.loss_own_actions.max(1e-12)
+    }
+}
+
+/// Below this relative gap the actions count as unused (`ActionGap::relative_gap`).
+pub const NEGLIGIBLE_ACTION_GAP: f64 = 0.01;
+
+/// Keys of the held-out loss draws: apart from every training sample's index.
+const VALIDATION_DRAW: u64 = 1 << 62;
+
+/// The held-out clips' loss on keyed draws with their own, other and zero actions.
+fn action_gap(run: &(impl ValidationRun + ?Sized), held_out: &[usize], batch: usize) -> Result<ActionGap> {
+    let (model, objective) = (run.model(), run.objective());
+    let kind = model.store.kind();
+    let n = held_out.len();
+    let (mut own, mut other, mut zero) = (0.0, 0.0, 0.0);
+    for (start, indices) in (0..).step_by(batch).zip(held_out.chunks(batch)) {
+        let clips = indices.iter().map(|&i| run.clip(i)).collect::<Result<Vec<_>>>()?;
+        let clean = Tensor::stack(&clips.iter().map(|c| c.latents.shallow_clone()).collect::<Vec<_>>(), 0);
+        let actions = Tensor::stack(&clips.iter().map(|c| c.actions.shallow_clone()).collect::<Vec<_>>(), 0);
+        // Each clip's stand-in: the held-out clip half the set away; a lone clip's own actions
+        // reversed in time.
+        let others = (0..indices.len())
+            .map(|j| match n {
+                1 => Ok(clips[j].actions.flip([0])),
+                _ => Ok(run.clip(held_out[(start + j + (n / 2).max(1)) % n])?.actions),
+            })
+            .collect::<Result<Vec<_>>>()?;
+        let other_actions = Tensor::stack(&others, 0);
+        let shape = clean.size()[1..].to_vec();
+        let draws: Vec<_> = indices.iter().map(|&i| objective.draw(VALIDATION_DRAW | i as u64, &shape)).collect();
+        let stack = |f: &dyn Fn(&crate::objective::Draw) -> Tensor| Tensor::stack(&draws.iter().map(f).collect::<Vec<_>>(), 0).to_device(clean.device());
+        let (noise, history_noise) = (stack(&|d| d.noise.shallow_clone()), stack(&|d| d.history_noise.shallow_clone()));
+        let tids: Vec<usize> = draws.iter().map(|d| d.timestep_index).collect();
+        let prepared = objective.prepare(&clean, &noise, &history_noise, &tids)?;
+        let input = prepared.input.to_kind(kind);
+        let loss = |a: &Tensor| -> Result<f64> {
+            let prediction = tch::no_grad(|| model.forward(&input, &prepared.frame_timesteps, a))?;
+            Ok(objective.per_sample_loss(&prediction, &prepared).sum(Kind::Double).double_value(&[]))
+        };
+        own += loss(&actions)?;
+        other += loss(&other_actions)?;
+        zero += loss(&actions.zeros_like())?;
+    }
+    let n = n.max(1) as f64;
+    Ok(ActionGap { loss_own_actions: own / n, loss_other_actions: other / n, loss_zero_actions: zero / n })
 }
 
 impl ValidationReport {
@@ -48,6 +113,14 @@ impl ValidationReport {
         if let (Some(p), Some(q)) = (self.psnr, self.ssim) {
             s += &format!("  PSNR {p:.2} dB  SSIM {q:.4}");
         }
+        let a = &self.actions;
+        s += &format!(
+            "  loss with own / other / zero actions {:.5} / {:.5} / {:.5} (gap {:+.1}%)",
+            a.loss_own_actions,
+            a.loss_other_actions,
+            a.loss_zero_actions,
+            100.0 * a.relative_gap()
+        );
         if let Some(path) = &self.strip {
             s += &format!("  strip {}", path.display());
         }
@@ -134,7 +207,8 @@ pub fn run(run: &mut (impl ValidationRun + ?Sized), step: u64) -> Result<Validat
             }
         }
     }
-    let mut report = ValidationReport { latent_mse: mse_sum / n as f64, psnr: None, ssim: None, strip: None };
+    let actions = action_gap(run, &held_out, batch)?;
+    let mut report = ValidationReport { latent_mse: mse_sum / n as f64, psnr: None, ssim: None, strip: None, actions };
     if vae.is_some() {
         report.psnr = Some(psnr_sum / n as f64);
         report.ssim = Some(ssim_sum / n as f64);
@@ -150,6 +224,10 @@ pub fn run(run: &mut (impl ValidationRun + ?Sized), step: u64) -> Result<Validat
     }
     if let Some(ev) = run.events() {
         ev.scalar("validation/latent_mse", report.latent_mse, step)?;
+        ev.scalar("validation/loss_own_actions", report.actions.loss_own_actions, step)?;
+        ev.scalar("validation/loss_other_actions", report.actions.loss_other_actions, step)?;
+        ev.scalar("validation/loss_zero_actions", report.actions.loss_zero_actions, step)?;
+        ev.scalar("validation/action_gap", report.actions.relative_gap(), step)?;
         if let (Some(p), Some(s)) = (report.psnr, report.ssim) {
             ev.scalar("validation/psnr", p, step)?;
             ev.scalar("validation/ssim", s, step)?;

@@ -122,7 +122,7 @@ post-trained with the `bwm` trainer. Given the first frame, recent history laten
             }
             s += &format!("| training dtype | {} |\n", run.stated_dtype().map_or("?", |d| d.name()));
             if let Some(cache) = &run.latent_cache {
-                s += &format!("| data | latent cache `{}` ({} clips held out) |\n", cache.display(), run.holdout_clips);
+                s += &format!("| data | latent cache `{}` ({}) |\n", cache.display(), run.held_out);
             }
             if let Some(cond) = &f.cfg.conditioning {
                 let g = |k: &str| cond.get(k).map(|v| v.to_string()).unwrap_or_else(|| "?".into());

@@ -12,6 +12,23 @@ use bwm_model::lora::LoraConfig;
 use bwm_model::ModelConfig;
 use bwm_run_config::{Dtype, InitSource, RunRecord};
 
+/// What a run held out of its latent cache for validation: `data.holdout_episodes` (the
+/// trainer's key), or the `data.holdout_clips` of early trainers (0 where neither is given).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum HeldOut {
+    Episodes(usize),
+    Clips(usize),
+}
+
+impl std::fmt::Display for HeldOut {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            HeldOut::Episodes(n) => write!(f, "{n} episode{} held out", if *n == 1 { "" } else { "s" }),
+            HeldOut::Clips(n) => write!(f, "{n} clip{} held out", if *n == 1 { "" } else { "s" }),
+        }
+    }
+}
+
 /// The run config, as far as a reader of its checkpoints uses it.
 #[derive(Debug, Clone)]
 pub struct RunInfo {
@@ -19,10 +36,10 @@ pub struct RunInfo {
     pub record: RunRecord,
     /// The model's architecture (`[model]`'s preset or `[model.dit]`, and its action interface).
     pub model: ModelConfig,
-    /// Of the trainer's own sections, what an export shows: `data.latent_cache`, and the
-    /// `data.holdout_clips` of early trainers (0 where absent).
+    /// Of the trainer's own sections, what an export shows: `data.latent_cache`, and what was
+    /// held out of it for validation.
     pub latent_cache: Option<PathBuf>,
-    pub holdout_clips: usize,
+    pub held_out: HeldOut,
     /// `optim.lr`, `optim.ema_decay`.
     pub lr: Option<f64>,
     pub ema_decay: Option<f64>,
@@ -42,7 +59,10 @@ impl RunInfo {
         let what = || format!("{what}: not a BWM run config");
         Ok(Self {
             latent_cache: record.other("data", "latent_cache").with_context(what)?,
-            holdout_clips: record.other("data", "holdout_clips").with_context(what)?.unwrap_or(0),
+            held_out: match record.other("data", "holdout_episodes").with_context(what)? {
+                Some(n) => HeldOut::Episodes(n),
+                None => HeldOut::Clips(record.other("data", "holdout_clips").with_context(what)?.unwrap_or(0)),
+            },
             lr: record.other("optim", "lr").with_context(what)?,
             ema_decay: record.other("optim", "ema_decay").with_context(what)?,
             steps_planned: record.other("train", "steps").with_context(what)?,
@@ -195,6 +215,18 @@ x = 1
             let e = format!("{:#}", RunInfo::parse(&old.replace(off, on), "the run config stored in c").unwrap_err());
             let key = on.split(" = ").next().unwrap();
             assert!(e.contains("the run config stored in c") && e.contains(key) && e.contains("was removed") && e.contains(why), "{e}");
+        }
+    }
+
+    /// What the model card shows as held out: the trainer's `data.holdout_episodes`, or an early
+    /// trainer's `data.holdout_clips` (a current run's card said "0 clips" before it read the
+    /// trainer's key).
+    #[test]
+    fn held_out_reads_episodes_and_the_early_clips_key() {
+        let base = "[run]\nname = \"t\"\n[model]\npreset = \"tiny\"\ndtype = \"f32\"\n[data]\nlatent_cache = \"c\"\n";
+        for (extra, want) in [("holdout_episodes = 2\n", "2 episodes held out"), ("holdout_episodes = 1\n", "1 episode held out"), ("holdout_clips = 3\n", "3 clips held out"), ("", "0 clips held out")] {
+            let r = RunInfo::parse(&format!("{base}{extra}"), "t").unwrap();
+            assert_eq!(r.held_out.to_string(), want, "{extra}");
         }
     }
 }

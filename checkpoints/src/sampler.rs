@@ -112,7 +112,7 @@ mod tests {
     /// as None.
     #[test]
     fn records_round_trip_and_bad_ones_are_named() {
-        let dir = tempfile::tempdir().unwrap();
+        let dir = bwm_testdir::tmp_dir("sampler");
         assert_eq!(read(dir.path()).unwrap(), None);
         let path = write(dir.path(), &record(4)).unwrap();
         assert_eq!(path, dir.path().join(SAMPLER_FILE));

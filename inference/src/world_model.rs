@@ -336,7 +336,7 @@ pub fn tensor_rows(t: &Tensor) -> Result<Vec<Vec<f32>>> {
 
 #[cfg(test)]
 mod tests {
-    use super::{check_guidance, WorldModelOptions};
+    use super::{check_guidance, Solver, WorldModelOptions};
     use bwm_model::rollout::default_history_sigma;
 
     #[test]

@@ -409,10 +409,14 @@ fn the_sweep_times_each_settings_stages_and_passes_fp8_and_lanes_on() {
     fs::write(d.join("bench/metaworld/recipe.sh"), STUB_SWEEP_RECIPE).unwrap();
     fs::create_dir_all(d.join("runs/w/data/val/meta")).unwrap();
     fs::write(d.join("runs/w/data/val/meta/info.json"), r#"{"total_tasks": 1}"#).unwrap();
+    // The trained run's newest checkpoint, where the sweep records its pick.
+    fs::create_dir_all(d.join("runs/w/checkpoints/step-00000010")).unwrap();
+    fs::write(d.join("runs/w/checkpoints/latest"), "step-00000010").unwrap();
     let out = Command::new("bash")
         .arg(d.join("bench/metaworld/sweep.sh"))
         .current_dir(d)
         .env("RUN", "runs/w")
+        .env("BWM", common::bwm())
         .env("CALLS", d.join("calls.txt"))
         .env("STEPS", "8 50")
         .env("SOLVERS", "euler")
@@ -443,6 +447,10 @@ fn the_sweep_times_each_settings_stages_and_passes_fp8_and_lanes_on() {
     let lanes = report["settings"].as_array().unwrap().iter().find(|r| r["setting"] == "euler-8-fp8row-streams2").unwrap();
     assert_eq!((lanes["fp8"].as_str(), lanes["streams"].as_u64()), (Some("row"), Some(2)), "{lanes}");
     assert!(lanes["seconds"]["study"].is_number(), "{lanes}");
+    // The pick travels with the weights: `bwm sampler` recorded it beside the newest checkpoint.
+    let record: serde_json::Value = serde_json::from_str(&fs::read_to_string(d.join("runs/w/checkpoints/step-00000010/sampler.json")).unwrap()).unwrap();
+    assert_eq!((record["steps"].as_u64(), record["solver"].as_str()), (Some(8), Some("euler")), "{record}");
+    assert!(record["measured"].as_str().unwrap().contains("sweep.json"), "{record}");
 }
 
 #[test]

@@ -59,7 +59,7 @@ fn fidelity_report_scores_rollouts_and_baselines_per_frame_and_horizon() {
     // Horizon 4: the mean over frames 1..4 of each episode, then over episodes; margins are differences.
     let task = source.episodes()[0].task.clone();
     let summary = &report["tasks"][&task];
-    for predictor in ["model", "other_actions", "copy_last_frame"] {
+    for predictor in ["model", "other_actions", "zero_actions", "copy_last_frame"] {
         let want: f64 = lines.iter().map(|l| l["psnr"][predictor].as_array().unwrap()[..4].iter().map(|v| v.as_f64().unwrap()).sum::<f64>() / 4.0).sum::<f64>() / 3.0;
         let got = summary["horizons"]["4"][predictor]["psnr"].as_f64().unwrap();
         assert!((got - want).abs() < 1e-9, "{predictor}: {got} vs {want}");
@@ -67,6 +67,8 @@ fn fidelity_report_scores_rollouts_and_baselines_per_frame_and_horizon() {
     let h4 = &summary["horizons"]["4"];
     let margin = summary["margins"]["4"]["psnr_over_copy_last_frame_db"].as_f64().unwrap();
     assert!((margin - (h4["model"]["psnr"].as_f64().unwrap() - h4["copy_last_frame"]["psnr"].as_f64().unwrap())).abs() < 1e-9);
+    let zero = summary["margins"]["4"]["psnr_over_zero_actions_db"].as_f64().unwrap();
+    assert!((zero - (h4["model"]["psnr"].as_f64().unwrap() - h4["zero_actions"]["psnr"].as_f64().unwrap())).abs() < 1e-9);
     assert!(summary["horizons"]["full"]["model"]["ssim"].as_f64().unwrap().is_finite());
     assert_eq!(report["all"]["episodes"], 3);
 
@@ -76,23 +78,23 @@ fn fidelity_report_scores_rollouts_and_baselines_per_frame_and_horizon() {
     let videos: Vec<_> = std::fs::read_dir(out.join("videos")).unwrap().collect();
     assert_eq!(videos.len(), 1, "one side-by-side video per task (--videos 1)");
 
-    // Episodes rolled out two at a time (four rollouts, then two) in three lanes taking turns (two
-    // rollouts, one and one; then one and one) score what they score alone.
+    // Episodes rolled out two at a time (six rollouts: own, other and zero actions each, then
+    // three) in three lanes taking turns score what they score alone.
     let together = fidelity(&[
         "--vae", vae.to_str().unwrap(), "--data", data.to_str().unwrap(), "--out", dir.join("together").to_str().unwrap(), "--episodes-in-flight", "2", "--streams", "3",
     ]);
     assert!(together.status.success(), "{}", String::from_utf8_lossy(&together.stderr));
     assert!(String::from_utf8_lossy(&together.stdout).contains("for 2 episodes together"));
     assert!(String::from_utf8_lossy(&together.stdout).contains("2 episode(s) in flight in 3 stream(s)"));
-    let too_many = fidelity(&["--vae", vae.to_str().unwrap(), "--data", data.to_str().unwrap(), "--out", dir.join("lanes").to_str().unwrap(), "--streams", "3"]);
+    let too_many = fidelity(&["--vae", vae.to_str().unwrap(), "--data", data.to_str().unwrap(), "--out", dir.join("lanes").to_str().unwrap(), "--streams", "4"]);
     assert!(!too_many.status.success());
-    assert!(String::from_utf8_lossy(&too_many.stderr).contains("2 episode(s) in flight cannot fill 3 streams"), "{}", String::from_utf8_lossy(&too_many.stderr));
+    assert!(String::from_utf8_lossy(&too_many.stderr).contains("3 episode(s) in flight cannot fill 4 streams"), "{}", String::from_utf8_lossy(&too_many.stderr));
     let together: Vec<Value> =
         std::fs::read_to_string(dir.join("together/episodes.jsonl")).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect();
     assert_eq!(together.len(), 3);
     for (a, b) in lines.iter().zip(&together) {
         assert_eq!(a["episode_index"], b["episode_index"]);
-        for predictor in ["model", "other_actions"] {
+        for predictor in ["model", "other_actions", "zero_actions"] {
             for (x, y) in a["psnr"][predictor].as_array().unwrap().iter().zip(b["psnr"][predictor].as_array().unwrap()) {
                 assert!((x.as_f64().unwrap() - y.as_f64().unwrap()).abs() < 1e-3, "episode {} {predictor}: {x} alone, {y} together", a["episode_index"]);
             }

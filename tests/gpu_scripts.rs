@@ -447,8 +447,10 @@ fn the_sweep_times_each_settings_stages_and_passes_fp8_and_lanes_on() {
     let lanes = report["settings"].as_array().unwrap().iter().find(|r| r["setting"] == "euler-8-fp8row-streams2").unwrap();
     assert_eq!((lanes["fp8"].as_str(), lanes["streams"].as_u64()), (Some("row"), Some(2)), "{lanes}");
     assert!(lanes["seconds"]["study"].is_number(), "{lanes}");
-    // The pick travels with the weights: `bwm sampler` recorded it beside the newest checkpoint.
-    let record: serde_json::Value = serde_json::from_str(&fs::read_to_string(d.join("runs/w/checkpoints/step-00000010/sampler.json")).unwrap()).unwrap();
+    // The pick travels with the weights: `bwm sampler` recorded it in the newest checkpoint's
+    // input contract.
+    let contract: serde_json::Value = serde_json::from_str(&fs::read_to_string(d.join("runs/w/checkpoints/step-00000010/contract.json")).unwrap()).unwrap();
+    let record = &contract["sampler"];
     assert_eq!((record["steps"].as_u64(), record["solver"].as_str()), (Some(8), Some("euler")), "{record}");
     assert!(record["measured"].as_str().unwrap().contains("sweep.json"), "{record}");
 }

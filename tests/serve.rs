@@ -87,13 +87,16 @@ fn http(addr: &str, method: &str, path: &str, body: &[u8], declared: Option<usiz
 }
 
 /// Starts `bwm serve` on the CPU with a free port, `model` (weights flags) and `extra` flags,
-/// stdout to `log`; returns the guard and the address it listens on.
+/// stdout to `log`; returns the guard and the address it listens on. Random weights get H = K =
+/// 4; a checkpoint, its contract's.
 fn start_server(model: &[&std::ffi::OsStr], extra: &[&str], log: &Path) -> (Guard, String) {
+    let chunk: &[&str] = if model.first() == Some(&OsStr::new("--random-weights")) { &["--history", "4", "--future", "4"] } else { &[] };
     let server = Guard(
         Command::new(bwm())
             .arg("serve")
             .args(model)
-            .args(["--device", "cpu", "--history", "4", "--future", "4", "--sample-steps", "2", "--port", "0"])
+            .args(chunk)
+            .args(["--device", "cpu", "--sample-steps", "2", "--port", "0"])
             .args(extra)
             .stdout(File::create(log).unwrap())
             .stderr(Stdio::inherit())
@@ -394,11 +397,12 @@ fn a_request_past_its_time_limit_is_answered_504_and_abandoned() {
     assert!(request_lines(&log).iter().any(|l| l.contains("status=504") && l.contains(&format!("bytes_in={} ", good.len()))), "{text}");
 }
 
-/// With a trained checkpoint and no --max-frame-pixels, frames are bounded by the training
-/// resolution its run recorded (the latent cache's 64x64): larger ones are refused with 413,
-/// frames of that size are served.
+/// With a trained checkpoint, requests are held to its input contract (the latent cache's 64x64
+/// frames, 14-D actions, H 8 and K 4): it is served at /v1/contract, frames of another size are
+/// refused with 422 naming both sizes, frames of that size are served, and the frame budget is
+/// the training resolution.
 #[test]
-fn a_checkpoints_frames_are_bounded_by_its_training_resolution() {
+fn a_checkpoints_requests_are_held_to_its_contract() {
     let Some(py) = python_with(Dep::Python, &["msgpack", "numpy"]) else { return };
     let dir = temp_dir("serve-trained");
     write_cache(&dir.join("cache"));
@@ -412,14 +416,59 @@ fn a_checkpoints_frames_are_bounded_by_its_training_resolution() {
     let (_server, addr) =
         start_server(&[OsStr::new("--checkpoint"), checkpoint.as_os_str(), OsStr::new("--vae"), vae.as_os_str()], &[], &log);
     let h = health(&addr);
-    assert_eq!(h["max_frame_pixels"], 64 * 64, "{h}");
-    let wide = body_of(&py, &dir.join("wide.msgpack"), 1, 64, 96, 4, 14);
-    let r = http(&addr, "POST", "/v1/chunk", &wide, None);
-    assert_eq!(r.status, 413, "{}", r.text());
-    assert!(r.text().contains("64x96") && r.text().contains("training resolution 64x64"), "{}", r.text());
+    assert_eq!((h["max_frame_pixels"].as_u64(), h["history"].as_u64(), h["future"].as_u64()), (Some(64 * 64), Some(8), Some(4)), "{h}");
+    let r = http(&addr, "GET", "/v1/contract", b"", None);
+    let contract: Value = serde_json::from_slice(&r.body).unwrap();
+    assert_eq!((r.status, &contract["frames"]["width"], &contract["actions"]["dim"]), (200, &json!(64), &json!(14)), "{contract}");
+    for (h, w) in [(64, 96), (32, 32)] {
+        let other = body_of(&py, &dir.join("other.msgpack"), 1, h, w, 4, 14);
+        let r = http(&addr, "POST", "/v1/chunk", &other, None);
+        assert_eq!(r.status, 422, "{}", r.text());
+        assert!(r.text().contains(&format!("'frames': {w}x{h} frames, but this model was trained on 64x64")), "{}", r.text());
+    }
     let fits = body_of(&py, &dir.join("fits.msgpack"), 1, 64, 64, 4, 14);
     let r = http(&addr, "POST", "/v1/chunk", &fits, None);
     assert_eq!(r.status, 200, "{}", r.text());
     let h = health(&addr);
     assert_eq!((h["served"].as_u64(), h["failed"].as_u64()), (Some(1), Some(0)), "{h}");
+}
+
+/// WorldArena 2.0's environment API on loopback, driven by a client written from that API's
+/// documentation (tests/python/worldarena_client.py): /health, /reset of 3 environments from their
+/// first frames and raw states, 2 chunk steps of 4 actions, the reply's observation keys and
+/// shapes, the same frames again from the same seed, and the refusals of a step for another
+/// number of environments and of a reset without states.
+#[test]
+fn the_worldarena_environment_api_serves_a_batch_of_environments() {
+    let Some(py) = python_with(Dep::Python, &["msgpack", "numpy"]) else { return };
+    let dir = temp_dir("serve-worldarena");
+    let vae = dir.join("vae.safetensors");
+    write_random_vae(&vae, 4);
+    let stats = common::demo_data().join("stat.json");
+    let log = dir.join("serve.stdout");
+    let (_server, addr) = start_server(
+        &[OsStr::new("--random-weights"), OsStr::new("tiny"), OsStr::new("--vae"), vae.as_os_str(), OsStr::new("--stats"), stats.as_os_str()],
+        &[],
+        &log,
+    );
+    let out = Command::new(&py)
+        .arg(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/python/worldarena_client.py"))
+        .args(["episode", &format!("http://{addr}"), "3", "2", "14"])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let seen: Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!((seen["health_before"]["status"].as_str(), seen["health_before"]["num_envs"].as_u64()), (Some("ok"), Some(0)), "{seen}");
+    assert_eq!(seen["health_after"]["num_envs"], 3, "{seen}");
+    let obs = &seen["reset_obs"];
+    assert_eq!((&obs["main_images"], &obs["states"], &obs["wrist_images"]), (&json!([[3, 32, 32, 3], "|u1"]), &json!([[3, 14], "<f4"]), &Value::Null), "{seen}");
+    assert_eq!(obs["task_descriptions"], json!(["task 0", "task 1", "task 2"]), "{seen}");
+    assert_eq!((seen["num_envs"].as_u64(), seen["elapsed_steps"].as_u64()), (Some(3), Some(8)), "{seen}");
+    assert_eq!(seen["frames_shape"], json!([[3, 4, 32, 32, 3], [3, 4, 32, 32, 3]]), "{seen}");
+    assert_eq!(seen["step_keys"], json!(["elapsed_steps", "frames", "obs"]), "no reward, no done: those are the caller's: {seen}");
+    for k in ["reset_images_are_the_first_frames", "last_frame_is_main_image", "states_are_the_last_actions", "same_seed_same_frames"] {
+        assert_eq!(seen[k], true, "{k}: {seen}");
+    }
+    assert!(seen["wrong_batch"].as_str().unwrap().contains("HTTP 422") && seen["wrong_batch"].as_str().unwrap().contains("for 1 environments; /reset made 3"), "{seen}");
+    assert!(seen["no_states"].as_str().unwrap().contains("HTTP 422: 'states' is missing"), "{seen}");
 }

@@ -357,7 +357,7 @@ fn a_lora_run_exports_and_rolls_out_through_the_cli() {
         let out = Command::new(bwm())
             .arg("bench-rollout")
             .args(args)
-            .args(["--random-vae", "--device", "cpu", "--history", "4", "--future", "4", "--sample-steps", "1", "--height", "32", "--width", "64", "--chunks", "1"])
+            .args(["--random-vae", "--device", "cpu", "--sample-steps", "1", "--height", "32", "--width", "64", "--chunks", "1"])
             .output()
             .unwrap();
         (out.status.success(), format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr)))
@@ -420,7 +420,7 @@ fn removed_keys_load_at_their_old_defaults_and_are_refused_by_name_otherwise() {
     let mut json: serde_json::Value = serde_json::from_slice(&std::fs::read(&repo_config).unwrap()).unwrap();
     assert!(json["action"].get("fourier_bands").is_none() && json["action"].get("temporal_rope").is_none(), "{json}");
     let roll = |model: &Path| {
-        let sizes = ["--history", "4", "--future", "4", "--sample-steps", "1", "--height", "32", "--width", "64", "--chunks", "1"];
+        let sizes = ["--sample-steps", "1", "--height", "32", "--width", "64", "--chunks", "1"];
         run(&[&["bench-rollout", "--checkpoint", &path(model), "--random-vae", "--device", "cpu"][..], &sizes].concat())
     };
     for (bands, ok_wanted) in [(0, true), (3, false)] {
@@ -453,4 +453,66 @@ fn fp8_training_follows_the_exact_run_closely_but_not_exactly() {
     let (we, wf) = (final_weights(&dir.join("exact")), final_weights(&dir.join("fp8")));
     let moved = we.iter().zip(&wf).filter(|((_, a), (_, b))| !a.equal(b)).count();
     assert!(moved > 0, "FP8 gradients moved the block weights differently");
+}
+
+/// The input contract (issue 71): training writes it into every checkpoint from what its cache
+/// records, `bwm info --checkpoint` shows it, `bwm export` carries it (with `--action-stats`'
+/// normalization), and the world-model commands take their defaults from it and refuse what
+/// contradicts it, in one line naming the value and the contract's: an action definition of
+/// another width, another frame size, another history length.
+#[test]
+fn training_writes_the_input_contract_and_the_commands_hold_to_it() {
+    let dir = temp_dir("contract");
+    write_cache(&dir.join("cache"));
+    train(&write_config(&dir, "run.toml", &dir.join("run"), 1, 1), &[]);
+    let ckpt = dir.join("run/checkpoints/step-00000001");
+    let contract: serde_json::Value = serde_json::from_slice(&std::fs::read(ckpt.join("contract.json")).unwrap()).unwrap();
+    // The cache of `write_cache`: 14-D actions, 64x64 frames at 30 fps, H 8, K 4.
+    assert_eq!(contract["actions"]["dim"], 14, "{contract}");
+    assert_eq!((contract["frames"]["width"].as_u64(), contract["frames"]["height"].as_u64(), contract["frames"]["fps"].as_f64()), (Some(64), Some(64), Some(30.0)), "{contract}");
+    assert_eq!((contract["chunk"]["history"].as_u64(), contract["chunk"]["future"].as_u64()), (Some(8), Some(4)), "{contract}");
+    assert!(contract["sampler"].is_null() && contract["observation_keys"]["serve POST /v1/chunk"].is_array(), "{contract}");
+
+    let run = |args: &[&std::ffi::OsStr]| {
+        let out = Command::new(bwm()).args(args).output().unwrap();
+        (out.status.success(), format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr)))
+    };
+    let os = |s: &str| std::ffi::OsString::from(s);
+    let (ok, text) = run(&[&os("info"), &os("--checkpoint"), ckpt.as_os_str()]);
+    assert!(ok && text.contains("actions: 14 values per frame") && text.contains("frames: 64x64") && text.contains("x0 + 8 history frames, 4 generated"), "{text}");
+
+    let stats = common::demo_data().join("stat.json");
+    let export = dir.join("export");
+    let (ok, text) = run(&[&os("export"), &os("--checkpoint"), ckpt.as_os_str(), &os("--action-stats"), stats.as_os_str(), &os("--out"), export.as_os_str()]);
+    assert!(ok, "{text}");
+    let exported: serde_json::Value = serde_json::from_slice(&std::fs::read(export.join("contract.json")).unwrap()).unwrap();
+    assert_eq!((&exported["frames"], &exported["chunk"]), (&contract["frames"], &contract["chunk"]), "{exported}");
+    assert_eq!(exported["actions"]["normalization"]["group"], "state_pose", "{exported}");
+    let (ok, text) = run(&[&os("info"), &os("--checkpoint"), export.as_os_str(), &os("--json")]);
+    assert!(ok && serde_json::from_str::<serde_json::Value>(&text).unwrap() == exported, "{text}");
+
+    // A rollout of the bundled episodes (14-D eef_abs actions): one line naming what contradicts
+    // the contract, before any episode is read.
+    let rollout = |extra: &[&str]| {
+        let mut args: Vec<std::ffi::OsString> = ["rollout", "--checkpoint"].map(os).to_vec();
+        args.push(export.clone().into_os_string());
+        args.extend(["--random-vae", "--device", "cpu", "--sample-steps", "1", "--max-frames", "5", "--episodes", "0", "--data"].map(os));
+        args.push(common::demo_data().into_os_string());
+        args.push(os("--out"));
+        args.push(dir.join("rollout").into_os_string());
+        args.extend(extra.iter().map(|s| os(s)));
+        run(&args.iter().map(|s| s.as_os_str()).collect::<Vec<_>>())
+    };
+    let refused = |extra: &[&str], wanted: &[&str]| {
+        let (ok, text) = rollout(extra);
+        let error = text.lines().find(|l| l.starts_with("error:")).unwrap_or_default().to_string();
+        assert!(!ok && wanted.iter().all(|w| error.contains(w)), "{extra:?}: {text}");
+    };
+    refused(&["--actions", "observation.state:0-6"], &["--actions observation.state:0-6: 7-D actions, but this model takes 14-D actions"]);
+    refused(&["--resolution", "128x128"], &["--resolution 128x128: 128x128 frames, but this model was trained on 64x64"]);
+    refused(&["--history", "4"], &["--history 4: this model was trained with 8"]);
+    // What the contract says is taken without flags: the export's statistics normalize the raw
+    // actions, frames come at 64x64.
+    let (ok, text) = rollout(&[]);
+    assert!(ok && text.contains("action statistics: the weights' input contract (group 'state_pose')"), "{text}");
 }

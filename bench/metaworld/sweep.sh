@@ -63,7 +63,7 @@ done
 [ -n "${SETTINGS:-}" ] && { echo "sweep: $SETTINGS measured; the table comes from a plain sweep.sh"; exit 0; }
 "$PYTHON" bench/metaworld/sweep.py "$RUN/sweep" --baseline "$baseline"
 # The pick travels with the weights it was measured on: `bwm sampler` records it beside the newest
-# checkpoint (sampler.json), so that every world-model command on it (and `bwm export`'s copy)
+# checkpoint (its input contract, contract.json), so that every world-model command on it (and `bwm export`'s copy)
 # samples at this setting unless told otherwise.
 BWM="${BWM:-${CARGO_TARGET_DIR:-target}/release/bwm}"
 read -r pick_solver pick_steps < <("$PYTHON" -c '

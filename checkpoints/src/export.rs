@@ -332,6 +332,27 @@ fn read_action_stats(path: &Path, group: Option<&str>, action_dim: i64) -> Resul
     Ok((serde_json::json!({ name.clone(): stats }), name))
 }
 
+/// The input contract an export carries: the checkpoint's (its `contract.json`), else one made
+/// from the run's latent cache where it is still reachable, else the action width alone; the
+/// normalization of `--action-stats` replaces the recorded one.
+fn export_contract(input: &Path, run: Option<&RunInfo>, action_dim: usize, stats: Option<&(serde_json::Value, String)>) -> Result<crate::contract::InputContract> {
+    use crate::contract::{read, InputContract, Normalization, NORMALIZATION_FORMULA};
+    let mut contract = match read(input)? {
+        Some(c) => c,
+        None => match run.and_then(|r| r.latent_cache.as_ref()).filter(|c| c.join("index.json").is_file()) {
+            Some(cache) => InputContract::from_cache(action_dim, cache).with_context(|| format!("the input contract of {}", input.display()))?,
+            None => InputContract::of_model(action_dim),
+        },
+    };
+    if let Some((value, group)) = stats {
+        let parsed: bwm_data::ActionStats = serde_json::from_value(value[group].clone()).with_context(|| format!("--action-stats group '{group}'"))?;
+        let actions = contract.actions.get_or_insert_with(|| InputContract::of_model(action_dim).actions.unwrap());
+        actions.normalization = Some(Normalization { formula: NORMALIZATION_FORMULA.into(), group: group.clone(), stats: parsed });
+    }
+    contract.check_action_dim(action_dim, "the weights")?;
+    Ok(contract)
+}
+
 /// The latent cache's `index.json` (clip structure), when the run's cache is reachable.
 fn read_cache_index(run: &RunInfo) -> Option<serde_json::Value> {
     let dir = run.latent_cache.as_ref()?;
@@ -389,6 +410,13 @@ pub fn export(input: &str, out: &Path, opts: &ExportOptions, progress: &mut dyn 
         bail!("{}: no readable metrics (expected one JSON object with step and loss per line)", metrics_path.unwrap_or_default().display());
     }
     let cache_index = p.run.as_ref().and_then(read_cache_index);
+    let contract = export_contract(&p.input, p.run.as_ref(), p.cfg.action.action_dim as usize, stats.as_ref())?;
+    // Without --action-stats, the statistics the contract records (the training cache's) become
+    // action_stats.json.
+    let stats = stats.or_else(|| {
+        let n = contract.actions.as_ref()?.normalization.as_ref()?;
+        Some((serde_json::json!({ n.group.clone(): n.stats }), n.group.clone()))
+    });
     let conditioning = p.run.as_ref().map(|r| {
         let mut c = serde_json::json!({ "condition_latents": r.record.objective.condition_latents });
         if let Some(ix) = &cache_index {
@@ -436,11 +464,9 @@ pub fn export(input: &str, out: &Path, opts: &ExportOptions, progress: &mut dyn 
             }
             None => None,
         };
-        // The sampler the checkpoint's fidelity was measured at travels with its weights.
-        if let Some(record) = crate::sampler::read(&p.input)? {
-            let path = crate::sampler::write(tmp, &record)?;
-            files.push(WrittenFile { path: crate::sampler::SAMPLER_FILE.into(), bytes: std::fs::metadata(&path)?.len() });
-        }
+        // The input contract (with the sampler the fidelity was measured at) travels with the weights.
+        let path = crate::contract::write(tmp, &contract)?;
+        files.push(WrittenFile { path: crate::contract::CONTRACT_FILE.into(), bytes: std::fs::metadata(&path)?.len() });
         let repo_cfg = RepoConfig {
             model_type: repo::MODEL_TYPE.into(),
             bwm_format_version: repo::FORMAT_VERSION,

@@ -5,6 +5,7 @@
 //! pushing it to the Hub, conversions, and loading any layout from a folder or a Hub repo id.
 
 pub mod atomic_dir;
+pub mod contract;
 pub mod convert;
 pub mod export;
 pub mod hub;

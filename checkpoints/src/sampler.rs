@@ -1,69 +1,35 @@
-//! The sampler a model's fidelity was measured at, recorded with its weights: `sampler.json` in a
-//! training checkpoint's folder (`step-N/`) or at the root of an export, written by the sampler
-//! sweep or by hand (`bwm sampler`), copied by `bwm export`, and used by the world-model commands
+//! The sampler a model's fidelity was measured at, recorded with its weights in their input
+//! contract (`contract.json`, see `contract`) in a training checkpoint's folder (`step-N/`) or at
+//! the root of an export, written by the sampler sweep or by hand (`bwm sampler`), carried by
+//! `bwm export`, and used by the world-model commands
 //! (rollout, fidelity, evaluate, serve, bench-rollout) when no `--sample-steps` / `--solver` is
 //! given. Weights without one are sampled at [`UNRECORDED_STEPS`] Euler steps, the reference's.
 
 use std::path::{Path, PathBuf};
 
-use anyhow::{ensure, Context, Result};
+use anyhow::Result;
 use bwm_model::schedule::Solver;
-use serde::{Deserialize, Serialize};
 
-/// The file's name, beside the weights.
-pub const SAMPLER_FILE: &str = "sampler.json";
-
-/// Sampler steps for weights that record no sampler: the reference implementation's 50.
-pub const UNRECORDED_STEPS: usize = 50;
-
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct SamplerRecord {
-    /// Sampler steps per generated chunk.
-    pub steps: usize,
-    pub solver: Solver,
-    /// What measured the model's fidelity at this setting (a command, a report, a number).
-    pub measured: String,
-}
-
-impl SamplerRecord {
-    pub fn validate(&self) -> Result<()> {
-        ensure!(self.steps > 0, "sampler steps must be positive, got {}", self.steps);
-        ensure!(!self.measured.trim().is_empty(), "say what measured the model's fidelity at this sampler (`measured`)");
-        Ok(())
-    }
-}
+pub use crate::contract::{SamplerRecord, UNRECORDED_STEPS};
 
 /// Where the record of weights at `location` (a checkpoint or export folder, or a weights file)
-/// lives: in the folder, or beside the file.
+/// lives: their input contract.
 pub fn record_path(location: &Path) -> PathBuf {
-    if location.is_dir() {
-        location.join(SAMPLER_FILE)
-    } else {
-        location.parent().unwrap_or(Path::new(".")).join(SAMPLER_FILE)
-    }
+    crate::contract::path_of(location)
 }
 
 /// The record of weights at `location`; None when there is none.
 pub fn read(location: &Path) -> Result<Option<SamplerRecord>> {
-    let path = record_path(location);
-    if !path.is_file() {
-        return Ok(None);
-    }
-    let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
-    let record: SamplerRecord = serde_json::from_str(&text).with_context(|| format!("{}: not a sampler record", path.display()))?;
-    record.validate().with_context(|| path.display().to_string())?;
-    Ok(Some(record))
+    Ok(crate::contract::read(location)?.and_then(|c| c.sampler))
 }
 
-/// Writes the record of the weights at `location` (replacing any), whole or not at all.
+/// Records the sampler in the contract of the weights at `location` (replacing any record; a
+/// contract that recorded nothing else is made), whole or not at all.
 pub fn write(location: &Path, record: &SamplerRecord) -> Result<PathBuf> {
     record.validate()?;
-    let path = record_path(location);
-    let tmp = path.with_extension("json.tmp");
-    std::fs::write(&tmp, serde_json::to_string_pretty(record)? + "\n").with_context(|| format!("writing {}", tmp.display()))?;
-    std::fs::rename(&tmp, &path).with_context(|| format!("renaming {} to {}", tmp.display(), path.display()))?;
-    Ok(path)
+    let mut contract = crate::contract::read(location)?.unwrap_or_else(crate::contract::InputContract::unknown);
+    contract.sampler = Some(record.clone());
+    crate::contract::write(location, &contract)
 }
 
 /// The sampler a rollout uses: the one asked for, else the weights' record, else
@@ -76,7 +42,8 @@ pub fn resolve(asked_steps: Option<usize>, asked_solver: Option<Solver>, recorde
         (true, _) => format!("sampler: {what} (asked for)"),
         (false, Some((r, path))) => format!("sampler: {what}; recorded with the weights: {} steps {} ({}: {})", r.steps, r.solver.name(), path.display(), r.measured),
         (false, None) => format!(
-            "sampler: {what}; these weights record no sampler ({SAMPLER_FILE}), so unset settings take the reference's {UNRECORDED_STEPS} Euler steps (pass --sample-steps, or record the measured setting with `bwm sampler`)"
+            "sampler: {what}; these weights record no sampler (in their {}), so unset settings take the reference's {UNRECORDED_STEPS} Euler steps (pass --sample-steps, or record the measured setting with `bwm sampler`)",
+            crate::contract::CONTRACT_FILE
         ),
     };
     (steps, solver, line)
@@ -94,7 +61,7 @@ mod tests {
     #[test]
     fn asked_then_recorded_then_fifty() {
         let r = record(4);
-        let p = Path::new("ckpt/sampler.json");
+        let p = Path::new("ckpt/contract.json");
         let (s, solver, line) = resolve(None, None, Some((&r, p)));
         assert_eq!((s, solver), (4, Solver::Euler));
         assert!(line.contains("recorded with the weights") && line.contains("r 0.95"), "{line}");
@@ -115,13 +82,21 @@ mod tests {
         let dir = bwm_testdir::tmp_dir("sampler");
         assert_eq!(read(dir.path()).unwrap(), None);
         let path = write(dir.path(), &record(4)).unwrap();
-        assert_eq!(path, dir.path().join(SAMPLER_FILE));
+        assert_eq!(path, dir.path().join(crate::contract::CONTRACT_FILE));
         assert_eq!(read(dir.path()).unwrap(), Some(record(4)));
         // A weights file's record is the one beside it.
         assert_eq!(read(&dir.path().join("model.safetensors")).unwrap(), Some(record(4)));
         assert!(write(dir.path(), &record(0)).is_err());
-        std::fs::write(&path, r#"{"steps": 4, "solver": "heun", "measured": "x"}"#).unwrap();
+        // Recording a sampler keeps what else the contract says.
+        let mut contract = crate::contract::InputContract::of_model(4);
+        contract.sampler = Some(record(4));
+        crate::contract::write(dir.path(), &contract).unwrap();
+        write(dir.path(), &record(8)).unwrap();
+        let now = crate::contract::read(dir.path()).unwrap().unwrap();
+        assert_eq!((now.actions, now.sampler), (contract.actions, Some(record(8))));
+        let text = std::fs::read_to_string(&path).unwrap().replace("\"euler\"", "\"heun\"");
+        std::fs::write(&path, text).unwrap();
         let e = format!("{:#}", read(dir.path()).unwrap_err());
-        assert!(e.contains("sampler.json") && e.contains("heun"), "{e}");
+        assert!(e.contains("contract.json") && e.contains("heun"), "{e}");
     }
 }

@@ -1,20 +1,46 @@
 //! `bwm info`, `bwm bench-forward`, `bwm bench-vae` and `bwm bench-rollout`: `bwm_inference::bench`
 //! from the command line.
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use bwm_inference::bench::{BenchShape, ForwardOptions, VaeBenchOptions};
 use bwm_model::device::{parse_device, parse_kind};
 use clap::Args;
 
 #[derive(Args)]
 pub struct InfoArgs {
-    /// Model preset: wan22_ti2v_5b or tiny.
+    /// Model preset whose parameters to count: wan22_ti2v_5b or tiny.
     #[arg(long, default_value = "wan22_ti2v_5b")]
     preset: String,
+    /// Instead: the input contract of trained weights (a checkpoint folder or file, an exported
+    /// repo, local or a Hub id): the actions, frames, chunk and sampler they expect.
+    #[arg(long)]
+    checkpoint: Option<String>,
+    /// With --checkpoint: print the contract's JSON (contract.json) instead of lines.
+    #[arg(long, requires = "checkpoint")]
+    json: bool,
 }
 
 pub fn info(args: InfoArgs) -> Result<()> {
-    bwm_inference::bench::info(&args.preset)
+    let Some(weights) = &args.checkpoint else { return bwm_inference::bench::info(&args.preset) };
+    let opened = bwm_checkpoints::open::open_any(weights).with_context(|| format!("--checkpoint {weights}"))?;
+    let path = bwm_checkpoints::contract::path_of(&opened.location);
+    let contract = match bwm_checkpoints::contract::read(&opened.location).with_context(|| format!("--checkpoint {weights}"))? {
+        Some(c) => c,
+        None => {
+            let dim = opened.config.as_ref().map(|c| c.action.action_dim as usize);
+            println!("{weights}: no {} (weights written before the input contract, or elsewhere); what the weights themselves say:", path.display());
+            dim.map(bwm_checkpoints::contract::InputContract::of_model).unwrap_or_else(bwm_checkpoints::contract::InputContract::unknown)
+        }
+    };
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&contract)?);
+    } else {
+        println!("input contract of {weights} ({})", path.display());
+        for line in contract.describe() {
+            println!("{line}");
+        }
+    }
+    Ok(())
 }
 
 /// Where and at what clip size a benchmark runs.

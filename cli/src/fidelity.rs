@@ -24,7 +24,8 @@ pub struct FidelityArgs {
     /// Horizons (frames after x0) at which mean PSNR/SSIM are reported, besides the full episode.
     #[arg(long, value_delimiter = ',', default_value = "8,16,32,64")]
     horizons: Vec<usize>,
-    /// Side-by-side videos per task (real | own actions | other actions | copy-last-frame).
+    /// Side-by-side videos per task (real | own actions | other actions | zero actions |
+    /// copy-last-frame).
     #[arg(long, default_value_t = 4)]
     videos: usize,
     #[command(flatten)]
@@ -39,10 +40,7 @@ pub fn run(a: FidelityArgs) -> Result<()> {
     let options = FidelityOptions {
         data: a.data,
         episodes: a.episodes,
-        actions: a.episode.actions,
-        camera: a.episode.camera,
-        resolution: a.episode.resolution,
-        resize: a.episode.resize,
+        reading: a.episode.flags(),
         max_frames: a.episode.max_frames,
         horizons: a.horizons,
         videos: a.videos,

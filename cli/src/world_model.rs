@@ -5,7 +5,7 @@
 use std::path::PathBuf;
 
 use anyhow::Result;
-pub use bwm_inference::world_model::{WorldModel, WorldModelOptions};
+pub use bwm_inference::world_model::{EpisodeFlags, WorldModel, WorldModelOptions};
 use bwm_data::frames::parse_resize;
 use bwm_data::ResizeMode;
 use bwm_model::Residual;
@@ -36,6 +36,8 @@ pub struct WorldModelArgs {
     #[arg(long, conflicts_with = "vae")]
     pub random_vae: bool,
     /// The stat.json the model was trained with (turns raw actions into the model's [-1, 1]).
+    /// Default: the statistics in the weights' input contract (contract.json), else the dataset's
+    /// own stat.json.
     #[arg(long)]
     pub stats: Option<PathBuf>,
     /// Statistics group of the action definition (state_pose for eef_abs).
@@ -51,15 +53,18 @@ pub struct WorldModelArgs {
     /// Default: what the checkpoint was trained with (its run config's `model.residual`), else f32.
     #[arg(long)]
     pub residual: Option<Residual>,
-    /// History frames H in each chunk's condition (the training clips' H).
-    #[arg(long, default_value_t = 8)]
-    pub history: usize,
-    /// Frames K generated per chunk (the training clips' K).
-    #[arg(long, default_value_t = 72)]
-    pub future: usize,
-    /// Sampler steps per chunk. Default: the sampler recorded with the weights (`sampler.json`
-    /// beside them: the setting their fidelity was measured at, written by `bwm sampler`), else
-    /// the reference's 50; the command says which it took. 4 held the Meta-World model's
+    /// History frames H in each chunk's condition. Default: the training clips' H recorded in the
+    /// weights' input contract (contract.json), else 8; another value than the contract's is
+    /// refused.
+    #[arg(long)]
+    pub history: Option<usize>,
+    /// Frames K generated per chunk. Default: the contract's, else 72; another value than the
+    /// contract's is refused.
+    #[arg(long)]
+    pub future: Option<usize>,
+    /// Sampler steps per chunk. Default: the sampler recorded in the weights' input contract
+    /// (`contract.json`: the setting their fidelity was measured at, written by `bwm sampler`),
+    /// else the reference's 50; the command says which it took. 4 held the Meta-World model's
     /// fidelity (docs/fidelity.md, "The sampler: 4 Euler steps").
     #[arg(long)]
     pub sample_steps: Option<usize>,
@@ -103,6 +108,7 @@ impl WorldModelArgs {
             model_preset: self.model_preset.clone(),
             vae: if self.random_vae { None } else { self.vae.clone() },
             stats: self.stats.clone(),
+            dataset_stats: None,
             stats_group: self.stats_group.clone(),
             device: self.device.clone(),
             dtype: self.dtype.clone(),
@@ -155,19 +161,29 @@ impl InFlightArgs {
 pub struct EpisodeArgs {
     /// How the dataset's action vectors are read: a preset (eef_abs, joint_abs, eef_delta,
     /// joint_delta, robotwin_eef_abs), COLUMN:INDICES (e.g. observation.state:0-3) or a spec JSON
-    /// file; the definition the model was trained with.
-    #[arg(long, default_value = "eef_abs")]
-    pub actions: String,
-    /// Cameras; several are stacked top to bottom (default: the dataset's default camera).
+    /// file. Default: the definition in the weights' input contract (contract.json), else eef_abs;
+    /// another than the contract's is refused.
+    #[arg(long)]
+    pub actions: Option<String>,
+    /// Cameras; several are stacked top to bottom (default: the contract's, else the dataset's
+    /// default camera).
     #[arg(long, value_delimiter = ',')]
     pub camera: Vec<String>,
-    /// Frame size WIDTHxHEIGHT, the size the model was trained at.
-    #[arg(long, default_value = "640x480")]
-    pub resolution: String,
-    /// How frames of another aspect ratio are fitted to --resolution: crop, pad or stretch.
-    #[arg(long, default_value = "crop", value_parser = parse_resize)]
-    pub resize: ResizeMode,
+    /// Frame size WIDTHxHEIGHT. Default: the size the weights were trained at (their contract),
+    /// else 640x480; another than the contract's is refused.
+    #[arg(long)]
+    pub resolution: Option<String>,
+    /// How frames of another aspect ratio are fitted to --resolution: crop, pad or stretch
+    /// (default: the contract's, else crop).
+    #[arg(long, value_parser = parse_resize)]
+    pub resize: Option<ResizeMode>,
     /// Longest rollout, in frames including x0 (default: the whole episode).
     #[arg(long)]
     pub max_frames: Option<usize>,
+}
+
+impl EpisodeArgs {
+    pub fn flags(&self) -> EpisodeFlags {
+        EpisodeFlags { actions: self.actions.clone(), camera: self.camera.clone(), resolution: self.resolution.clone(), resize: self.resize }
+    }
 }

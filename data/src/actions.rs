@@ -214,6 +214,36 @@ impl ActionSpec {
         Ok(out)
     }
 
+    /// What each value of the final action vector means, in order: the named components of BWM's
+    /// presets (`left x`, ..., `right gripper`), else `COLUMN[i]` per selected index, a converted
+    /// quaternion as its roll, pitch and yaw, and `(change since the previous frame)` after the
+    /// values `absolute_to_delta` turns into differences.
+    pub fn components(&self) -> Vec<String> {
+        const EEF: [&str; 7] = ["x", "y", "z", "roll", "pitch", "yaw", "gripper"];
+        const JOINT: [&str; 7] = ["joint 1", "joint 2", "joint 3", "joint 4", "joint 5", "joint 6", "gripper"];
+        let sides = |names: [&str; 7]| ["left", "right"].iter().flat_map(|s| names.iter().map(move |n| format!("{s} {n}"))).collect::<Vec<_>>();
+        if *self == Self::eef_abs() || *self == Self::eef_delta() || *self == Self::robotwin_eef_abs() {
+            return sides(EEF);
+        }
+        if *self == Self::joint_abs() || *self == Self::joint_delta() {
+            return sides(JOINT);
+        }
+        let mut names: Vec<String> = self.indices.iter().map(|i| format!("{}[{i}]", self.column)).collect();
+        let mut quats = self.quat_to_euler.clone();
+        quats.sort_unstable_by_key(|q| std::cmp::Reverse(q.start));
+        for q in quats {
+            let s = q.start;
+            let source = format!("{}[{}]", self.column, self.indices[s..s + 4].iter().map(|i| i.to_string()).collect::<Vec<_>>().join(","));
+            names.splice(s..s + 4, ["roll", "pitch", "yaw"].map(|a| format!("{a} of the quaternion {source}")));
+        }
+        for &p in &self.absolute_to_delta {
+            if let Some(n) = names.get_mut(p) {
+                n.push_str(" (change since the previous frame)");
+            }
+        }
+        names
+    }
+
     fn convert_row(&self, mut v: Vec<f32>, row: usize, what: &str) -> Result<Vec<f32>> {
         let mut quats = self.quat_to_euler.clone();
         quats.sort_unstable_by_key(|q| std::cmp::Reverse(q.start));
@@ -276,6 +306,27 @@ mod tests {
             cy * sp * cr + sy * cp * sr,
             sy * cp * cr - cy * sp * sr,
         ]
+    }
+
+    /// Every component is named, as many as the vector has values: the presets by meaning, a
+    /// column selection by index, conversions by what they do.
+    #[test]
+    fn components_name_every_value_in_order() {
+        let eef = ActionSpec::eef_abs().components();
+        assert_eq!((eef.len(), eef[0].as_str(), eef[6].as_str(), eef[13].as_str()), (14, "left x", "left gripper", "right gripper"));
+        assert_eq!(ActionSpec::robotwin_eef_abs().components(), eef);
+        assert_eq!(ActionSpec::joint_abs().components()[7], "right joint 1");
+        assert_eq!(ActionSpec::parse("observation.state:0-3").unwrap().components(), ["observation.state[0]", "observation.state[1]", "observation.state[2]", "observation.state[3]"]);
+        let spec = ActionSpec {
+            quat_to_euler: vec![QuatToEuler { start: 1, order: QuatOrder::Xyzw }],
+            absolute_to_delta: vec![0],
+            ..ActionSpec::parse("pose:0-4").unwrap()
+        };
+        let c = spec.components();
+        assert_eq!(c.len(), spec.dim());
+        assert_eq!(c[0], "pose[0] (change since the previous frame)");
+        assert_eq!(c[1], "roll of the quaternion pose[1,2,3,4]");
+        assert_eq!(c[3], "yaw of the quaternion pose[1,2,3,4]");
     }
 
     #[test]

@@ -273,6 +273,13 @@ impl LatentCache {
         })
     }
 
+    /// Clip `i`'s actions [F_pixel, d_a] as f32, read alone (a raw clip's frames are not read).
+    pub fn load_actions(&self, i: usize, device: Device) -> Result<Tensor> {
+        let (mut file, row) = self.open_clip(i)?;
+        let f = self.field(&mut file, "actions", row)?;
+        Ok(Tensor::f_from_data_size(&f.bytes, &f.shape, f.kind).with_context(|| format!("{}: 'actions'", file.path.display()))?.to_kind(Kind::Float).to_device(device))
+    }
+
     /// Clip `i`'s latents (or, raw, pixel frames) and actions as f32 values, converted without
     /// tensor operations.
     pub fn load_values(&self, i: usize) -> Result<ClipValues> {

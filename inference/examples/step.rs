@@ -15,8 +15,8 @@ fn main() -> Result<()> {
     let wm = WorldModelOptions {
         random_weights: Some("tiny".into()),
         device: "cpu".into(),
-        history: 4,
-        future: 4,
+        history: Some(4),
+        future: Some(4),
         sample_steps: Some(2),
         ..Default::default()
     }

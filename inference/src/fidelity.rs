@@ -1,7 +1,9 @@
 //! The fidelity report (`bwm fidelity`): how well the world model simulates held-out episodes. Each episode is rolled
 //! out autoregressively from its first frame over its whole length, driven by its own recorded
-//! actions and by another episode's, and scored frame by frame (PSNR, SSIM) against the real
-//! frames, next to the copy-last-frame baseline (x0 held for the whole episode).
+//! actions, by another episode's and by zero actions (the model's [-1, 1] centre), and scored
+//! frame by frame (PSNR, SSIM) against the real frames, next to the copy-last-frame baseline (x0
+//! held for the whole episode). The margins over the other and the zero actions are the model's
+//! action sensitivity, as training's validation reports it on held-out clips.
 
 use std::collections::BTreeMap;
 use std::io::Write;
@@ -10,16 +12,14 @@ use std::time::Instant;
 
 use anyhow::{ensure, Context, Result};
 use bwm_data::frames::{fit, frame_strip, frames_to_tensor};
-use bwm_data::{open_dataset, CameraSelection};
-use bwm_data::{ActionSpec, ResizeMode};
+use bwm_data::open_dataset;
 use bwm_metrics::image::{psnr, ssim};
 use image::RgbImage;
 use serde_json::{json, Value};
 use tch::Tensor;
 
 use crate::rollout::generate_frames_together;
-use bwm_data::frames::parse_resolution;
-use crate::world_model::WorldModelOptions;
+use crate::world_model::{EpisodeFlags, WorldModelOptions};
 
 /// What `run` scores and where it writes the report (the flags of `bwm fidelity`).
 #[derive(Clone, Debug)]
@@ -29,20 +29,15 @@ pub struct FidelityOptions {
     /// Episode positions to score (default: all); at least two, as each is also driven by
     /// another's actions (the next listed episode of the same task).
     pub episodes: Vec<usize>,
-    /// How the dataset's action vectors are read: a preset (eef_abs, ...), COLUMN:INDICES or a
-    /// spec JSON file; the definition the model was trained with.
-    pub actions: String,
-    /// Cameras; several are stacked top to bottom (default: the dataset's default camera).
-    pub camera: Vec<String>,
-    /// Frame size WIDTHxHEIGHT, the size the model was trained at.
-    pub resolution: String,
-    /// How frames of another aspect ratio are fitted to --resolution.
-    pub resize: ResizeMode,
+    /// How the dataset's episodes are read (actions, cameras, frame size); unset: as the
+    /// weights' input contract says.
+    pub reading: EpisodeFlags,
     /// Longest rollout, in frames including x0 (default: the whole episode).
     pub max_frames: Option<usize>,
     /// Horizons (frames after x0) at which mean PSNR/SSIM are reported, besides the full episode.
     pub horizons: Vec<usize>,
-    /// Side-by-side videos per task (real | own actions | other actions | copy-last-frame).
+    /// Side-by-side videos per task (real | own actions | other actions | zero actions |
+    /// copy-last-frame).
     pub videos: usize,
     /// Episodes rolled out at once (both of each one's rollouts), their chunks generated as one
     /// batch; the scores are what each episode gets alone.
@@ -56,7 +51,7 @@ pub struct FidelityOptions {
 }
 
 /// The predictors scored, in report order.
-const PREDICTORS: [&str; 3] = ["model", "other_actions", "copy_last_frame"];
+const PREDICTORS: [&str; 4] = ["model", "other_actions", "zero_actions", "copy_last_frame"];
 
 /// Per-frame scores of one episode (frame 1 first; x0 is given, not scored).
 struct Scored {
@@ -68,14 +63,11 @@ struct Scored {
 /// Scores the world model that `options` opens on the held-out episodes `a` names and writes
 /// fidelity.json, episodes.jsonl, the per-task curves and side-by-side videos into `a.out`.
 pub fn run(options: &WorldModelOptions, a: &FidelityOptions) -> Result<()> {
-    let size = parse_resolution(&a.resolution, 16)?;
     ensure!(a.horizons.iter().all(|&h| h > 0), "--horizons must be positive frame counts");
     ensure!(a.in_flight >= 1, "episodes in flight must be at least 1");
-    crate::lanes::check(2 * a.in_flight, a.streams)?;
-    let options = options.with_stats_beside(Some(&a.data), "fidelity");
+    crate::lanes::check(3 * a.in_flight, a.streams)?;
+    let options = options.with_stats_beside(Some(&a.data));
     let source = open_dataset(&a.data)?;
-    let spec = ActionSpec::parse(&a.actions).context("--actions")?;
-    let cameras = CameraSelection::from_names(&a.camera);
     let infos = source.episodes();
     let episodes: Vec<usize> = if a.episodes.is_empty() { (0..infos.len()).collect() } else { a.episodes.clone() };
     ensure!(episodes.len() >= 2, "fidelity needs at least two episodes (each is also driven by another's actions); {} selected", episodes.len());
@@ -83,7 +75,9 @@ pub fn run(options: &WorldModelOptions, a: &FidelityOptions) -> Result<()> {
         ensure!(e < infos.len(), "--episodes {e}: the dataset has {} episodes", infos.len());
     }
     let wm = options.load()?;
-    wm.check_frame_size(&format!("--resolution {}", a.resolution), size.1 as i64, size.0 as i64, 2 * a.in_flight)?;
+    let reading = wm.episode_reading(&a.reading, 16)?;
+    let (spec, cameras, size) = (&reading.actions, &reading.cameras, reading.size);
+    wm.check_frame_size(&format!("frames of {}x{} (--resolution)", size.0, size.1), size.1 as i64, size.0 as i64, 3 * a.in_flight)?;
     let lanes = wm.lanes(a.streams)?;
     println!(
         "fidelity: {} episodes of {}; chunks of {} frames, {} history frames, {} sampler steps, {} episode(s) in flight in {} stream(s)",
@@ -111,12 +105,13 @@ pub fn run(options: &WorldModelOptions, a: &FidelityOptions) -> Result<()> {
         "residual": format!("{:?}", options.residual),
         "fp8": options.fp8.map(|s| s.to_string()),
         "shift": wm.spec.shift,
-        "actions": a.actions,
-        "camera": a.camera,
-        "resolution": a.resolution,
-        "resize": format!("{:?}", a.resize),
+        "actions": reading.actions,
+        "camera": reading.cameras,
+        "resolution": format!("{}x{}", size.0, size.1),
+        "resize": format!("{:?}", reading.resize),
         "max_frames": a.max_frames,
         "episodes": episodes,
+        "predictors": PREDICTORS,
         "spec": { "history": wm.spec.history, "future": wm.spec.future, "steps": wm.spec.steps, "solver": wm.spec.solver.to_string(), "guidance": wm.spec.guidance, "seed": wm.spec.seed, "history_sigma": wm.spec.history_sigma },
     });
     let episodes_path = a.out.join("episodes.jsonl");
@@ -155,36 +150,43 @@ pub fn run(options: &WorldModelOptions, a: &FidelityOptions) -> Result<()> {
             let length = info.length.min(infos[other].length).min(a.max_frames.unwrap_or(usize::MAX)).max(1);
             ensure!(length >= 2, "episode {} has fewer than two frames to score", info.index);
             let what = |p: usize| format!("episode {} (position {p})", infos[p].index);
-            let own = source.vectors(e, &spec).with_context(|| what(e))?[..length].to_vec();
-            let others = source.vectors(other, &spec).with_context(|| what(other))?[..length].to_vec();
+            let own = source.vectors(e, spec).with_context(|| what(e))?[..length].to_vec();
+            let others = source.vectors(other, spec).with_context(|| what(other))?[..length].to_vec();
             let truth: Vec<RgbImage> =
-                source.frames(e, 0..length, &cameras).with_context(|| what(e))?.iter().map(|f| fit(f, size.0, size.1, a.resize)).collect();
+                source.frames(e, 0..length, cameras).with_context(|| what(e))?.iter().map(|f| fit(f, size.0, size.1, reading.resize)).collect();
             inputs.push((e, other, length, truth, wm.normalize(&own)?, wm.normalize(&others)?));
         }
+        // Each episode three times: its own actions, another episode's, zero actions (the model's
+        // [-1, 1] centre) after x0's own.
         let jobs: Vec<(&RgbImage, Tensor)> = inputs
             .iter()
-            .flat_map(|(_, _, _, truth, own, others)| [(&truth[0], own.shallow_clone()), (&truth[0], others.shallow_clone())])
+            .flat_map(|(_, _, _, truth, own, others)| {
+                let zero = Tensor::cat(&[own.narrow(0, 0, 1), own.narrow(0, 1, own.size()[0] - 1).zeros_like()], 0);
+                [(&truth[0], own.shallow_clone()), (&truth[0], others.shallow_clone()), (&truth[0], zero)]
+            })
             .collect();
         let names: Vec<String> = group.iter().map(|&(_, e)| infos[e].index.to_string()).collect();
         let mut generated = generate_frames_together(&wm, &lanes, &jobs, &mut |chunk: usize, total: usize, made: usize| {
-            print!("\r  episode(s) {}: chunk {chunk} ({made}/{total} frames, own and other actions)   ", names.join(", "));
+            print!("\r  episode(s) {}: chunk {chunk} ({made}/{total} frames, own, other and zero actions)   ", names.join(", "));
             let _ = std::io::stdout().flush();
         })?
         .into_iter();
         for (e, other, length, truth, _, _) in inputs {
             let info = &infos[e];
-            let (model, driven_by_other) = (generated.next().context("a rollout is missing")?, generated.next().context("a rollout is missing")?);
+            let mut next = || generated.next().context("a rollout is missing");
+            let (model, driven_by_other, zero_actions) = (next()?, next()?, next()?);
             let copy_last = vec![truth[0].clone(); length];
-            let record = score(&info.task, &truth, [&model, &driven_by_other, &copy_last])?;
+            let record = score(&info.task, &truth, [&model, &driven_by_other, &zero_actions, &copy_last])?;
             let mean = |m: &BTreeMap<&str, Vec<f64>>, k: &str| m[k].iter().sum::<f64>() / m[k].len() as f64;
             println!(
-                "\r  episode {} ({}; other actions from episode {}): {} frames, PSNR model {:.2} / other actions {:.2} / copy-last {:.2} dB ({:.1} s{})",
+                "\r  episode {} ({}; other actions from episode {}): {} frames, PSNR model {:.2} / other actions {:.2} / zero actions {:.2} / copy-last {:.2} dB ({:.1} s{})",
                 info.index,
                 display_task(&info.task),
                 infos[other].index,
                 length,
                 mean(&record.psnr, "model"),
                 mean(&record.psnr, "other_actions"),
+                mean(&record.psnr, "zero_actions"),
                 mean(&record.psnr, "copy_last_frame"),
                 t0.elapsed().as_secs_f64(),
                 if group.len() > 1 { format!(" for {} episodes together", group.len()) } else { String::new() }
@@ -202,7 +204,7 @@ pub fn run(options: &WorldModelOptions, a: &FidelityOptions) -> Result<()> {
             if *shown < a.videos {
                 *shown += 1;
                 let panels: Vec<RgbImage> = (0..length)
-                    .map(|k| frame_strip(&[vec![truth[k].clone(), model[k].clone(), driven_by_other[k].clone(), copy_last[k].clone()]]))
+                    .map(|k| frame_strip(&[vec![truth[k].clone(), model[k].clone(), driven_by_other[k].clone(), zero_actions[k].clone(), copy_last[k].clone()]]))
                     .collect::<Result<_>>()?;
                 let path = video_path(a, &info.task, info.index);
                 bwm_data::video::write_mp4_or_sheet(&path, &panels, source.fps(e)?, 8)?;
@@ -236,7 +238,7 @@ pub fn run(options: &WorldModelOptions, a: &FidelityOptions) -> Result<()> {
         "data": a.data.display().to_string(),
         "checkpoint": options.checkpoint,
         "episodes": scored.len(),
-        "resolution": a.resolution,
+        "resolution": format!("{}x{}", reading.size.0, reading.size.1),
         "history": wm.spec.history,
         "future": wm.spec.future,
         "sample_steps": wm.spec.steps,
@@ -310,7 +312,7 @@ fn other_episode<'a>(episodes: &[usize], i: usize, task: impl Fn(usize) -> &'a s
     after.clone().find(|&p| task(p) == task(episodes[i])).unwrap_or_else(|| episodes[(i + 1) % n])
 }
 
-fn score(task: &str, truth: &[RgbImage], predicted: [&Vec<RgbImage>; 3]) -> Result<Scored> {
+fn score(task: &str, truth: &[RgbImage], predicted: [&Vec<RgbImage>; 4]) -> Result<Scored> {
     let real = frames_to_tensor(truth)?;
     let mut out = Scored { task: task.to_string(), psnr: BTreeMap::new(), ssim: BTreeMap::new() };
     for (name, frames) in PREDICTORS.iter().zip(predicted) {
@@ -375,6 +377,7 @@ fn summarize(group: &[&Scored], horizons: &[usize]) -> Value {
             json!({
                 "psnr_over_copy_last_frame_db": model - mean_of(|s| &s.psnr, "copy_last_frame"),
                 "psnr_over_other_actions_db": model - mean_of(|s| &s.psnr, "other_actions"),
+                "psnr_over_zero_actions_db": model - mean_of(|s| &s.psnr, "zero_actions"),
             }),
         );
         at.insert(key, Value::Object(row));
@@ -389,7 +392,10 @@ fn render(report: &Value, horizons: &[usize]) -> String {
     let mut sections: Vec<(String, &Value)> = report["tasks"].as_object().map(|m| m.iter().map(|(k, v)| (display_task(k), v)).collect()).unwrap_or_default();
     sections.push(("all tasks".into(), &report["all"]));
     for (name, v) in sections {
-        out += &format!("  {name} ({} episodes)\n    {:>6} {:>16} {:>16} {:>16} {:>10} {:>10}\n", v["episodes"], "h", "model", "other actions", "copy-last", "vs copy", "vs other");
+        out += &format!(
+            "  {name} ({} episodes)\n    {:>6} {:>16} {:>16} {:>16} {:>16} {:>10} {:>10} {:>10}\n",
+            v["episodes"], "h", "model", "other actions", "zero actions", "copy-last", "vs copy", "vs other", "vs zero"
+        );
         for k in &keys {
             let row = &v["horizons"][k];
             if row.is_null() {
@@ -398,12 +404,14 @@ fn render(report: &Value, horizons: &[usize]) -> String {
             let cell = |p: &str| format!("{:.2} ({:.3})", row[p]["psnr"].as_f64().unwrap_or(f64::NAN), row[p]["ssim"].as_f64().unwrap_or(f64::NAN));
             let m = &v["margins"][k];
             out += &format!(
-                "    {k:>6} {:>16} {:>16} {:>16} {:>+10.2} {:>+10.2}\n",
+                "    {k:>6} {:>16} {:>16} {:>16} {:>16} {:>+10.2} {:>+10.2} {:>+10.2}\n",
                 cell("model"),
                 cell("other_actions"),
+                cell("zero_actions"),
                 cell("copy_last_frame"),
                 m["psnr_over_copy_last_frame_db"].as_f64().unwrap_or(f64::NAN),
-                m["psnr_over_other_actions_db"].as_f64().unwrap_or(f64::NAN)
+                m["psnr_over_other_actions_db"].as_f64().unwrap_or(f64::NAN),
+                m["psnr_over_zero_actions_db"].as_f64().unwrap_or(f64::NAN)
             );
         }
     }
@@ -448,7 +456,7 @@ mod tests {
         let mk = |task: &str, model: Vec<f64>| {
             let n = model.len();
             let m: BTreeMap<&'static str, Vec<f64>> =
-                [("model", model), ("other_actions", vec![10.0; n]), ("copy_last_frame", vec![5.0; n])].into_iter().collect();
+                [("model", model), ("other_actions", vec![10.0; n]), ("zero_actions", vec![12.0; n]), ("copy_last_frame", vec![5.0; n])].into_iter().collect();
             Scored { task: task.into(), psnr: m.clone(), ssim: m }
         };
         let (a, b) = (mk("t", vec![30.0, 20.0, 10.0, 0.0]), mk("t", vec![20.0, 20.0]));
@@ -457,6 +465,7 @@ mod tests {
         assert_eq!(s["horizons"]["4"]["episodes"], json!(1));
         assert_eq!(s["horizons"]["4"]["model"]["psnr"], json!(15.0));
         assert_eq!(s["margins"]["2"]["psnr_over_copy_last_frame_db"], json!(17.5));
+        assert_eq!(s["margins"]["2"]["psnr_over_zero_actions_db"], json!(10.5));
         assert_eq!(s["per_frame"]["model"]["psnr"], json!([25.0, 20.0, 10.0, 0.0]));
     }
 }

@@ -16,7 +16,7 @@
 //!
 //! ```no_run
 //! use bwm_inference::{WorldModelOptions, tch::{Kind, Tensor}};
-//! let wm = WorldModelOptions { random_weights: Some("tiny".into()), future: 4, sample_steps: Some(2), ..Default::default() }.load()?;
+//! let wm = WorldModelOptions { random_weights: Some("tiny".into()), future: Some(4), sample_steps: Some(2), ..Default::default() }.load()?;
 //! let x0 = Tensor::zeros([3, 32, 32], (Kind::Float, wm.device));
 //! let a0 = Tensor::zeros([wm.action_dim() as i64], (Kind::Float, wm.device));
 //! let mut rollout = wm.rollout(&x0, &a0)?;

@@ -10,17 +10,15 @@ use std::time::Instant;
 use anyhow::{bail, ensure, Context, Result};
 use bwm_data::frames::{fit, frames_to_tensor, tensor_to_frames};
 use bwm_data::lerobot_writer::{DatasetFeatures, LeRobotWriter};
-use bwm_data::{open_dataset, CameraSelection};
-use bwm_data::{ActionSpec, ResizeMode};
+use bwm_data::open_dataset;
 use bwm_metrics::image::{psnr, ssim};
 use bwm_model::keyed_rng::{self, Purpose};
 use image::RgbImage;
 use serde::Deserialize;
 use tch::Tensor;
 
-use bwm_data::frames::parse_resolution;
 use crate::lanes::Lanes;
-use crate::world_model::{WorldModel, WorldModelOptions};
+use crate::world_model::{EpisodeFlags, EpisodeReading, WorldModel, WorldModelOptions};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Drive {
@@ -63,15 +61,9 @@ pub struct RolloutOptions {
     pub perturb_std: f64,
     /// Action CSV files hold normalized values (default: raw, normalized with --stats).
     pub normalized: bool,
-    /// How the dataset's action vectors are read: a preset (eef_abs, joint_abs, eef_delta,
-    /// joint_delta, robotwin_eef_abs), COLUMN:INDICES (e.g. observation.state:0-3) or a spec JSON file.
-    pub actions: String,
-    /// Cameras; several are stacked top to bottom (default: the dataset's default camera).
-    pub camera: Vec<String>,
-    /// Frame size WIDTHxHEIGHT (multiples of 32), the size the model was trained at.
-    pub resolution: String,
-    /// How frames of another aspect ratio are fitted to --resolution.
-    pub resize: ResizeMode,
+    /// How the dataset's episodes are read (actions, cameras, frame size); unset: as the
+    /// weights' input contract says.
+    pub reading: EpisodeFlags,
     /// Longest episode to generate, in frames including x0 (default: the whole episode).
     pub max_frames: Option<usize>,
     /// Frame rate of --inputs episodes (dataset episodes keep theirs).
@@ -114,8 +106,7 @@ struct InputLine {
 /// Rolls the world model that `options` opens out over the episodes `a` names and writes them as a
 /// LeRobot v2.1 dataset (with comparisons against the real frames under the ground-truth drive).
 pub fn run(options: &WorldModelOptions, a: &RolloutOptions) -> Result<()> {
-    let options = options.with_stats_beside(a.data.as_deref(), "rollout");
-    let size = parse_resolution(&a.resolution, 32)?;
+    let options = options.with_stats_beside(a.data.as_deref());
     match (a.drive, &a.inputs, &a.actions_dir) {
         (Drive::File, None, None) => bail!("--drive file needs --actions-dir (with --data) or --inputs"),
         (Drive::Gt | Drive::Perturbed, Some(_), _) => bail!("--inputs gives no recorded actions to replay: use --drive file"),
@@ -125,8 +116,10 @@ pub fn run(options: &WorldModelOptions, a: &RolloutOptions) -> Result<()> {
     ensure!(a.in_flight >= 1, "episodes in flight must be at least 1");
     crate::lanes::check(a.in_flight, a.streams)?;
     let wm = options.load()?;
+    let reading = wm.episode_reading(&a.reading, 32)?;
+    let size = reading.size;
     // Before any frame is resized to it: an impossible size is named, not an aborted allocation.
-    wm.check_frame_size(&format!("--resolution {}", a.resolution), size.1 as i64, size.0 as i64, a.in_flight)?;
+    wm.check_frame_size(&format!("frames of {}x{} (--resolution)", size.0, size.1), size.1 as i64, size.0 as i64, a.in_flight)?;
     let lanes = wm.lanes(a.streams)?;
     println!(
         "rollout: {} on {:?}; chunks of {} frames, {} history frames, {} sampler steps, {} episode(s) in flight in {} stream(s)",
@@ -138,12 +131,15 @@ pub fn run(options: &WorldModelOptions, a: &RolloutOptions) -> Result<()> {
         a.in_flight,
         a.streams
     );
-    let jobs = plan(a, options.seed, &wm, size)?;
+    let jobs = plan(a, options.seed, &wm, &reading)?;
     ensure!(!jobs.is_empty(), "nothing to roll out");
     let d = wm.action_dim();
+    // The values' meanings where the weights' contract names them.
+    let named = wm.contract.actions.as_ref().map(|c| c.components.clone()).filter(|c| c.len() == d);
+    let names: Vec<String> = named.unwrap_or_else(|| (0..d).map(|j| format!("a{j}")).collect());
     let features = DatasetFeatures {
-        action_names: (0..d).map(|j| format!("a{j}")).collect(),
-        state_names: (0..d).map(|j| format!("a{j}")).collect(),
+        action_names: names.clone(),
+        state_names: names,
         video_key: "observation.images.generated".into(),
         size,
         fps: jobs[0].fps,
@@ -240,7 +236,8 @@ fn generate_together(wm: &WorldModel, lanes: &Lanes, episodes: &[(&RgbImage, Ten
     Ok(frames)
 }
 
-fn plan(a: &RolloutOptions, seed: u64, wm: &WorldModel, size: (u32, u32)) -> Result<Vec<Job>> {
+fn plan(a: &RolloutOptions, seed: u64, wm: &WorldModel, reading: &EpisodeReading) -> Result<Vec<Job>> {
+    let size = reading.size;
     let cap = |n: usize| a.max_frames.map_or(n, |m| n.min(m.max(1)));
     let mut jobs = Vec::new();
     if let Some(list) = &a.inputs {
@@ -254,21 +251,20 @@ fn plan(a: &RolloutOptions, seed: u64, wm: &WorldModel, size: (u32, u32)) -> Res
             let rows = read_csv(&base.join(&input.actions)).with_context(at)?;
             let rows = rows[..cap(rows.len())].to_vec();
             let (raw, normalized) = driving(wm, rows, a.normalized)?;
-            jobs.push(Job { name: format!("input {}", n + 1), task: input.task, x0: fit(&x0, size.0, size.1, a.resize), raw, normalized, truth: None, fps: a.fps });
+            jobs.push(Job { name: format!("input {}", n + 1), task: input.task, x0: fit(&x0, size.0, size.1, reading.resize), raw, normalized, truth: None, fps: a.fps });
         }
         return Ok(jobs);
     }
     let data = a.data.as_ref().context("--data or --inputs")?;
     let source = open_dataset(data)?;
-    let spec = ActionSpec::parse(&a.actions).context("--actions")?;
-    let cameras = CameraSelection::from_names(&a.camera);
+    let (spec, cameras) = (&reading.actions, &reading.cameras);
     let episodes: Vec<usize> = if a.episodes.is_empty() { (0..source.episodes().len()).collect() } else { a.episodes.clone() };
     println!("rollout: {} ({} episodes selected)", source.describe(), episodes.len());
     for &e in &episodes {
         let info = source.episodes().get(e).with_context(|| format!("--episodes {e}: the dataset has {} episodes", source.episodes().len()))?;
         let length = cap(info.length);
         let name = format!("episode {}", info.index);
-        let recorded = || -> Result<Vec<Vec<f32>>> { Ok(source.vectors(e, &spec)?[..length].to_vec()) };
+        let recorded = || -> Result<Vec<Vec<f32>>> { Ok(source.vectors(e, spec)?[..length].to_vec()) };
         let (raw, normalized) = match a.drive {
             Drive::Gt => driving(wm, recorded()?, false)?,
             Drive::Perturbed => {
@@ -284,8 +280,8 @@ fn plan(a: &RolloutOptions, seed: u64, wm: &WorldModel, size: (u32, u32)) -> Res
             }
         };
         let frames_needed = if a.drive == Drive::Gt { length } else { 1 };
-        let frames = source.frames(e, 0..frames_needed, &cameras).with_context(|| name.clone())?;
-        let frames: Vec<RgbImage> = frames.iter().map(|f| fit(f, size.0, size.1, a.resize)).collect();
+        let frames = source.frames(e, 0..frames_needed, cameras).with_context(|| name.clone())?;
+        let frames: Vec<RgbImage> = frames.iter().map(|f| fit(f, size.0, size.1, reading.resize)).collect();
         let truth = (a.drive == Drive::Gt).then(|| frames.clone());
         jobs.push(Job { name, task: info.task.clone(), x0: frames[0].clone(), raw, normalized, truth, fps: source.fps(e)? });
     }

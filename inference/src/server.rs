@@ -47,6 +47,9 @@ use crate::graphed::GraphedDenoiser;
 use crate::msgpack_numpy::{self, map_get, scalar, str_map, Dtype, NdArray};
 use crate::world_model::{tensor_rows, WorldModel, WorldModelOptions};
 
+mod worldarena;
+use bwm_checkpoints::contract::InputContract;
+
 /// How the server listens and what it admits (`bwm serve`'s flags of the same names).
 #[derive(Clone, Debug)]
 pub struct ServeOptions {
@@ -108,8 +111,18 @@ struct ChunkRequest {
     seed: Option<u64>,
 }
 
+/// What a request asks of the model worker.
+enum Work {
+    /// `/v1/chunk`: one chunk, from the context the request carries.
+    Chunk(ChunkRequest),
+    /// WorldArena's `/reset`: new environments.
+    Reset(worldarena::ResetRequest),
+    /// WorldArena's `/chunk_step`: the environments advanced by one chunk.
+    Step(worldarena::StepRequest),
+}
+
 struct Job {
-    request: ChunkRequest,
+    request: Work,
     received: Instant,
     /// When the request's time limit ends (None: no limit).
     deadline: Option<Instant>,
@@ -149,6 +162,8 @@ struct ModelInfo {
     frame_budget: String,
     /// The per-request time limit (None: none).
     request_timeout: Option<Duration>,
+    /// What requests must send (`GET /v1/contract`); frames and actions are checked against it.
+    contract: InputContract,
 }
 
 #[derive(Default)]
@@ -162,6 +177,8 @@ struct Counters {
     failed: AtomicU64,
     /// Requests answered 504: abandoned by the worker past their time limit.
     timed_out: AtomicU64,
+    /// WorldArena environments of the last `/reset` (0: none yet).
+    envs: AtomicUsize,
 }
 
 struct Shared {
@@ -225,6 +242,7 @@ pub fn serve(wm: &WorldModelOptions, a: &ServeOptions) -> Result<()> {
                 max_frame_pixels: 0,
                 frame_budget: String::new(),
                 request_timeout,
+                contract: wm.contract.clone(),
             };
             let info = match (max_frame_pixels, wm.trained_resolution) {
                 (Some(n), _) => ModelInfo { max_frame_pixels: n, frame_budget: "--max-frame-pixels".into(), ..info },
@@ -243,6 +261,8 @@ pub fn serve(wm: &WorldModelOptions, a: &ServeOptions) -> Result<()> {
                 return;
             }
             let counters = worker_counters;
+            // The WorldArena environments, between `/reset` and the next one.
+            let mut envs: Option<worldarena::Envs> = None;
             for job in job_rx {
                 let past = |job: &Job| job.deadline.is_some_and(|d| Instant::now() >= d);
                 if job.reply.is_closed() || past(&job) {
@@ -259,8 +279,24 @@ pub fn serve(wm: &WorldModelOptions, a: &ServeOptions) -> Result<()> {
                 let queued = job.received.elapsed().as_secs_f64();
                 let watch = Watch { deadline: job.deadline, hold: hold.clone() };
                 // A panic that is not libtorch's (those are errors already) still answers 500.
-                let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| generate(&wm, &job.request, queued, watch)))
-                    .unwrap_or_else(|_| Err(api(500, "the model worker panicked on this request")));
+                let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| match &job.request {
+                    Work::Chunk(request) => generate(&wm, request, queued, watch),
+                    Work::Reset(request) => {
+                        // A failed reset leaves no environments behind.
+                        envs = None;
+                        counters.envs.store(0, Ordering::SeqCst);
+                        let (new, out) = answered("resetting the environments", || worldarena::Envs::reset(&wm, request))?;
+                        counters.envs.store(new.len(), Ordering::SeqCst);
+                        envs = Some(new);
+                        Ok(out)
+                    }
+                    Work::Step(request) => match envs.as_mut() {
+                        None => Err(api(409, "no environments: POST /reset first")),
+                        Some(e) if e.len() != request.len() => Err(api(422, format!("'actions' is for {} environments; /reset made {}", request.len(), e.len()))),
+                        Some(e) => answered("stepping the environments", || e.step(&wm, request, watch)),
+                    },
+                }))
+                .unwrap_or_else(|_| Err(api(500, "the model worker panicked on this request")));
                 let result = match result {
                     Err(e) if e.status == 504 => {
                         counters.timed_out.fetch_add(1, Ordering::SeqCst);
@@ -480,12 +516,18 @@ async fn route(req: Request<Incoming>, shared: &Shared, arrived: Instant, bytes_
     let path = req.uri().path();
     match (req.method(), path) {
         (&Method::GET, "/health") => Ok(reply(200, "application/json", health(shared).into_bytes())),
-        (&Method::POST, "/v1/chunk") => chunk(req, shared, arrived, bytes_in).await,
-        (m, "/health" | "/v1/chunk") => {
-            let allowed = if path == "/health" { "GET" } else { "POST" };
+        (&Method::POST, "/reset") => submit(req, shared, arrived, bytes_in, |b, i| worldarena::parse_reset(b, i).map(Work::Reset)).await,
+        (&Method::POST, "/chunk_step") => submit(req, shared, arrived, bytes_in, |b, i| worldarena::parse_step(b, i).map(Work::Step)).await,
+        (&Method::GET, "/v1/contract") => {
+            let text = serde_json::to_string_pretty(&shared.info.contract).map_err(|e| api(500, format!("the contract: {e}")))?;
+            Ok(reply(200, "application/json", text.into_bytes()))
+        }
+        (&Method::POST, "/v1/chunk") => submit(req, shared, arrived, bytes_in, |b, i| parse_chunk(b, i).map(Work::Chunk)).await,
+        (m, "/health" | "/v1/chunk" | "/v1/contract" | "/reset" | "/chunk_step") => {
+            let allowed = if path == "/health" || path == "/v1/contract" { "GET" } else { "POST" };
             Err(api(405, format!("{m} {path} is not served; use {allowed}")))
         }
-        _ => Err(api(404, format!("no endpoint {path} (endpoints: POST /v1/chunk, GET /health)"))),
+        _ => Err(api(404, format!("no endpoint {path} (endpoints: POST /v1/chunk, GET /v1/contract, GET /health; WorldArena's POST /reset, POST /chunk_step)"))),
     }
 }
 
@@ -511,6 +553,7 @@ fn health(shared: &Shared) -> String {
         "queue_capacity": shared.queue_capacity,
         "busy": c.busy.load(Ordering::SeqCst),
         "served": c.served.load(Ordering::SeqCst),
+        "num_envs": c.envs.load(Ordering::SeqCst),
         "rejected_busy": c.rejected_busy.load(Ordering::SeqCst),
         "failed": c.failed.load(Ordering::SeqCst),
         "timed_out": c.timed_out.load(Ordering::SeqCst),
@@ -519,8 +562,15 @@ fn health(shared: &Shared) -> String {
 }
 
 /// Reads the body within the limit and the rest of the read timeout (counting what it read into
-/// `bytes_in`), checks it and waits for the model worker's answer until the request's time limit.
-async fn chunk(req: Request<Incoming>, shared: &Shared, arrived: Instant, bytes_in: &mut usize) -> Result<Reply, ApiError> {
+/// `bytes_in`), checks it with `parse` and waits for the model worker's answer until the
+/// request's time limit.
+async fn submit(
+    req: Request<Incoming>,
+    shared: &Shared,
+    arrived: Instant,
+    bytes_in: &mut usize,
+    parse: impl FnOnce(&[u8], &ModelInfo) -> Result<Work, ApiError>,
+) -> Result<Reply, ApiError> {
     if req.headers().contains_key(TRANSFER_ENCODING) {
         return Err(api(411, "send the body with a Content-Length (chunked transfer encoding is not supported)"));
     }
@@ -554,7 +604,7 @@ async fn chunk(req: Request<Incoming>, shared: &Shared, arrived: Instant, bytes_
             body.extend_from_slice(&data);
         }
     }
-    let request = parse_chunk(&body, &shared.info)?;
+    let request = parse(&body, &shared.info)?;
     drop(body);
     let capacity = shared.queue_capacity + 1;
     let admitted = shared
@@ -600,90 +650,95 @@ async fn chunk(req: Request<Incoming>, shared: &Shared, arrived: Instant, bytes_
     }
 }
 
-/// Checks a /v1/chunk body against the model: every problem is a 4xx naming it.
-fn parse_chunk(body: &[u8], info: &ModelInfo) -> Result<ChunkRequest, ApiError> {
+/// The body as a msgpack map holding only `keys` (400 when it is no map, 422 naming an unknown
+/// entry).
+fn body_map(body: &[u8], keys: &[&str]) -> Result<Value, ApiError> {
     let v = msgpack_numpy::decode(body).map_err(|e| api(400, format!("body: {e:#}")))?;
-    let entries = v.as_map().ok_or_else(|| {
-        api(
-            400,
-            "body: expected a msgpack map {frames, actions, normalized, seed}",
-        )
-    })?;
+    let entries = v.as_map().ok_or_else(|| api(400, format!("body: expected a msgpack map {{{}}}", keys.join(", "))))?;
     for (k, _) in entries {
-        let name = k
-            .as_str()
-            .map(str::to_string)
-            .unwrap_or_else(|| format!("{k}"));
-        if !["frames", "actions", "normalized", "seed"].contains(&name.as_str()) {
-            return Err(api(
-                422,
-                format!("unknown entry '{name}' (expected frames, actions, normalized, seed)"),
-            ));
+        let name = k.as_str().map(str::to_string).unwrap_or_else(|| format!("{k}"));
+        if !keys.contains(&name.as_str()) {
+            return Err(api(422, format!("unknown entry '{name}' (expected {})", keys.join(", "))));
         }
     }
-    let frames = msgpack_numpy::array_at(&v, "frames").map_err(|e| api(422, format!("{e:#}")))?;
+    Ok(v)
+}
+
+/// `key`'s uint8 images, shaped `(..., H, W, 3)` with `lead` leading dimensions (each at least
+/// 1; `shape` names them in errors), checked against the model: multiples of 32 (422), the
+/// contract's frame size (422), the frame budget (413). Returns the array and (H, W).
+fn images(v: &Value, key: &str, lead: usize, shape: &str, info: &ModelInfo) -> Result<(NdArray, usize, usize), ApiError> {
+    let frames = msgpack_numpy::array_at(v, key).map_err(|e| api(422, format!("{e:#}")))?;
     if frames.dtype != Dtype::U8 {
-        return Err(api(
-            422,
-            format!("'frames' must be uint8, got {}", frames.describe()),
-        ));
+        return Err(api(422, format!("'{key}' must be uint8, got {}", frames.describe())));
     }
-    let (t, h, w) = match frames.shape.as_slice() {
-        &[t, h, w, 3] if t >= 1 => (t, h, w),
-        _ => {
-            return Err(api(
-                422,
-                format!(
-                    "'frames' must be (T >= 1, H, W, 3): x0 then the history frames; got {}",
-                    frames.describe()
-                ),
-            ))
-        }
-    };
+    let s = &frames.shape;
+    if s.len() != lead + 3 || s[lead + 2] != 3 || s[..lead].contains(&0) {
+        return Err(api(422, format!("'{key}' must be {shape}; got {}", frames.describe())));
+    }
+    let (h, w) = (s[lead], s[lead + 1]);
     if h == 0 || w == 0 || h % 32 != 0 || w % 32 != 0 {
-        return Err(api(
-            422,
-            format!("frames are {h}x{w} (HxW); height and width must be positive multiples of 32"),
-        ));
+        return Err(api(422, format!("frames are {h}x{w} (HxW); height and width must be positive multiples of 32")));
     }
+    info.contract.check_frame_size(w as u32, h as u32, &format!("'{key}'")).map_err(|e| api(422, e.to_string()))?;
     let pixels = h.saturating_mul(w);
     if pixels > info.max_frame_pixels {
         return Err(api(
             413,
-            format!(
-                "frames are {h}x{w} (HxW), {pixels} pixels; this server takes at most {} pixels per frame ({})",
-                info.max_frame_pixels, info.frame_budget
-            ),
+            format!("frames are {h}x{w} (HxW), {pixels} pixels; this server takes at most {} pixels per frame ({})", info.max_frame_pixels, info.frame_budget),
         ));
     }
-    let actions = msgpack_numpy::array_at(&v, "actions").map_err(|e| api(422, format!("{e:#}")))?;
+    Ok((frames, h, w))
+}
+
+/// `key`'s float32 (or float64) action values of `rank` dimensions, the last the model's action
+/// width (the contract's check); finite. Returns the shape and the values.
+fn action_values(v: &Value, key: &str, rank: usize, shape: &str, info: &ModelInfo) -> Result<(Vec<usize>, Vec<f32>), ApiError> {
+    let actions = msgpack_numpy::array_at(v, key).map_err(|e| api(422, format!("{e:#}")))?;
     if !matches!(actions.dtype, Dtype::F32 | Dtype::F64) {
-        return Err(api(
-            422,
-            format!(
-                "'actions' must be float32 (or float64), got {}",
-                actions.describe()
-            ),
-        ));
+        return Err(api(422, format!("'{key}' must be float32 (or float64), got {}", actions.describe())));
     }
-    let (rows, d) = match actions.shape.as_slice() {
-        &[f, d] => (f, d),
-        _ => {
-            return Err(api(
-                422,
-                format!("'actions' must be (F, d_a), got {}", actions.describe()),
-            ))
-        }
+    if actions.shape.len() != rank {
+        return Err(api(422, format!("'{key}' must be {shape}, got {}", actions.describe())));
+    }
+    info.contract.check_action_dim(actions.shape[rank - 1], &format!("'{key}'")).map_err(|e| api(422, e.to_string()))?;
+    let values = actions.to_f32();
+    if values.iter().any(|x| !x.is_finite()) {
+        return Err(api(422, format!("'{key}' holds NaN or infinite values")));
+    }
+    Ok((actions.shape.clone(), values))
+}
+
+/// `normalized`: required, or when `default` is given, that when absent; raw actions need the
+/// server's statistics.
+fn normalized_flag(v: &Value, default: Option<bool>, info: &ModelInfo) -> Result<bool, ApiError> {
+    let normalized = match (map_get(v, "normalized").map(scalar), default) {
+        (Some(Value::Boolean(b)), _) => *b,
+        (Some(other), _) => return Err(api(422, format!("'normalized' must be a bool, got {other}"))),
+        (None, Some(d)) => d,
+        (None, None) => return Err(api(422, "'normalized' (bool) is required: true when the actions are already in the model's [-1, 1]")),
     };
-    if d != info.action_dim {
-        return Err(api(
-            422,
-            format!(
-                "'actions' has {d} values per row; the model takes {}",
-                info.action_dim
-            ),
-        ));
+    if !normalized && !info.stats {
+        return Err(api(422, "raw actions ('normalized': false) need the training statistics, and neither the weights' contract nor --stats gives them; send normalized actions, or restart the server with --stats"));
     }
+    Ok(normalized)
+}
+
+/// The optional `seed`.
+fn seed_of(v: &Value) -> Result<Option<u64>, ApiError> {
+    match map_get(v, "seed").map(scalar) {
+        None | Some(Value::Nil) => Ok(None),
+        Some(s) => s.as_u64().map(Some).ok_or_else(|| api(422, format!("'seed' must be a non-negative integer, got {s}"))),
+    }
+}
+
+/// Checks a /v1/chunk body against the model: every problem is a 4xx naming it.
+fn parse_chunk(body: &[u8], info: &ModelInfo) -> Result<ChunkRequest, ApiError> {
+    let v = body_map(body, &["frames", "actions", "normalized", "seed"])?;
+    let (frames, h, w) = images(&v, "frames", 1, "(T >= 1, H, W, 3): x0 then the history frames", info)?;
+    let t = frames.shape[0];
+    let (shape, values) = action_values(&v, "actions", 2, "(F, d_a)", info)?;
+    let (rows, d) = (shape[0], shape[1]);
     if rows <= t || rows - t > info.future {
         return Err(api(
             422,
@@ -695,36 +750,8 @@ fn parse_chunk(body: &[u8], info: &ModelInfo) -> Result<ChunkRequest, ApiError> 
             ),
         ));
     }
-    let values = actions.to_f32();
-    if values.iter().any(|x| !x.is_finite()) {
-        return Err(api(422, "'actions' holds NaN or infinite values"));
-    }
-    let normalized = match map_get(&v, "normalized").map(scalar) {
-        Some(Value::Boolean(b)) => *b,
-        Some(other) => return Err(api(422, format!("'normalized' must be a bool, got {other}"))),
-        None => return Err(api(422, "'normalized' (bool) is required: true when the actions are already in the model's [-1, 1]")),
-    };
-    if !normalized && !info.stats {
-        return Err(api(422, "raw actions ('normalized': false) need the server to run with --stats; send normalized actions instead"));
-    }
-    let seed = match map_get(&v, "seed").map(scalar) {
-        None | Some(Value::Nil) => None,
-        Some(s) => Some(s.as_u64().ok_or_else(|| {
-            api(
-                422,
-                format!("'seed' must be a non-negative integer, got {s}"),
-            )
-        })?),
-    };
-    Ok(ChunkRequest {
-        frames: frames.data,
-        t,
-        h,
-        w,
-        actions: values.chunks(d).map(<[f32]>::to_vec).collect(),
-        normalized,
-        seed,
-    })
+    let normalized = normalized_flag(&v, None, info)?;
+    Ok(ChunkRequest { frames: frames.data, t, h, w, actions: values.chunks(d).map(<[f32]>::to_vec).collect(), normalized, seed: seed_of(&v)? })
 }
 
 /// What the worker watches while it generates a request: its deadline and the test hook's file.
@@ -821,16 +848,20 @@ fn generate_chunk(wm: &WorldModel, req: &ChunkRequest, watch: Watch) -> anyhow::
     Ok(Generated { pixels, n: n as usize, actions, seconds: [chunk.encode_seconds, chunk.dit_seconds, chunk.decode_seconds] })
 }
 
+/// `work` where libtorch's failures are errors (`fallible::guarded`), as the answer: 504 for a
+/// request abandoned past its time limit, 500 naming `what` for any other failure.
+fn answered<T>(what: &str, work: impl FnOnce() -> anyhow::Result<T>) -> Result<T, ApiError> {
+    guarded(|| what.to_string(), work).map_err(|e| match e.chain().find_map(|c| c.downcast_ref::<PastDeadline>()) {
+        Some(past) => api(504, past.to_string()),
+        None => api(500, format!("{what} failed: {e:#}")),
+    })
+}
+
 fn generate(wm: &WorldModel, req: &ChunkRequest, queued: f64, watch: Watch) -> Result<Vec<u8>, ApiError> {
     let start = Instant::now();
     let size = format!("{} given frame(s) of {}x{} (HxW), {} action rows", req.t, req.h, req.w, req.actions.len());
     let failed = |e: anyhow::Error| api(500, format!("generation failed ({size}): {e:#}"));
-    let g = guarded(|| format!("generating the chunk of {size}"), || generate_chunk(wm, req, watch)).map_err(|e| {
-        match e.chain().find_map(|c| c.downcast_ref::<PastDeadline>()) {
-            Some(past) => api(504, past.to_string()),
-            None => failed(e),
-        }
-    })?;
+    let g = answered(&format!("generating the chunk of {size}"), || generate_chunk(wm, req, watch))?;
     let d = wm.action_dim();
     let flat: Vec<f32> = g.actions.into_iter().flatten().collect();
     let timings = str_map(vec![
@@ -853,7 +884,7 @@ fn generate(wm: &WorldModel, req: &ChunkRequest, queued: f64, watch: Watch) -> R
 mod tests {
     use super::*;
 
-    fn info() -> ModelInfo {
+    pub(super) fn info() -> ModelInfo {
         ModelInfo {
             model: "m".into(),
             device: "cpu".into(),
@@ -870,6 +901,7 @@ mod tests {
             max_frame_pixels: 2048,
             frame_budget: "--max-frame-pixels".into(),
             request_timeout: None,
+            contract: InputContract::of_model(2),
         }
     }
 
@@ -882,11 +914,11 @@ mod tests {
         msgpack_numpy::encode(&str_map(entries))
     }
 
-    fn frames(t: usize, h: usize, w: usize) -> NdArray {
+    pub(super) fn frames(t: usize, h: usize, w: usize) -> NdArray {
         NdArray::from_u8(vec![t, h, w, 3], vec![7; t * h * w * 3]).unwrap()
     }
 
-    fn actions(rows: usize, d: usize) -> NdArray {
+    pub(super) fn actions(rows: usize, d: usize) -> NdArray {
         NdArray::from_f32(vec![rows, d], &vec![0.5; rows * d]).unwrap()
     }
 
@@ -926,7 +958,7 @@ mod tests {
         let floats = NdArray::from_f32(vec![1, 32, 32, 3], &vec![0.0; 3072]).unwrap();
         assert!(err(&body(floats, actions(2, 2), yes()))
             .contains("'frames' must be uint8, got float32 (1, 32, 32, 3)"));
-        assert!(err(&body(frames(1, 32, 32), actions(2, 3), yes())).contains("3 values per row"));
+        assert!(err(&body(frames(1, 32, 32), actions(2, 3), yes())).contains("'actions': 3-D actions, but this model takes 2-D actions"));
         assert!(err(&body(frames(1, 32, 32), actions(6, 2), yes())).contains("2..=5 rows"));
         assert!(err(&body(frames(1, 32, 32), actions(1, 2), yes())).contains("2..=5 rows"));
         assert!(err(&body(frames(1, 32, 32), actions(2, 2), vec![]))
@@ -957,6 +989,28 @@ mod tests {
         .contains("'seed'"));
         let ints = NdArray::new(Dtype::I64, vec![2, 2], vec![0; 32]).unwrap();
         assert!(err(&body(frames(1, 32, 32), ints, yes())).contains("'actions' must be float32"));
+    }
+
+    /// Frames of another size than the contract's and actions of another width are refused with
+    /// 422, in one line naming both.
+    #[test]
+    fn requests_are_checked_against_the_contract() {
+        let yes = || vec![("normalized", Value::Boolean(true))];
+        let mut contract = InputContract::of_model(2);
+        contract.actions.as_mut().unwrap().components = vec!["x".into(), "gripper".into()];
+        contract.frames = Some(bwm_checkpoints::contract::FrameContract {
+            width: 64,
+            height: 32,
+            fps: 10.0,
+            cameras: vec![],
+            layout: bwm_data::CameraLayout::Single,
+            resize: bwm_data::ResizeMode::Crop,
+        });
+        let with = ModelInfo { contract, ..info() };
+        let e = |b: &[u8]| parse_chunk(b, &with).err().map(|e| format!("{} {}", e.status, e.message)).unwrap_or_else(|| "accepted".into());
+        assert_eq!(e(&body(frames(1, 32, 64), actions(2, 2), yes())), "accepted");
+        assert_eq!(e(&body(frames(1, 32, 32), actions(2, 2), yes())), "422 'frames': 32x32 frames, but this model was trained on 64x32 (contract.json; WIDTHxHEIGHT)");
+        assert_eq!(e(&body(frames(1, 32, 64), actions(2, 7), yes())), "422 'actions': 7-D actions, but this model takes 2-D actions: x, gripper (contract.json)");
     }
 
     #[test]

@@ -8,8 +8,10 @@ use std::rc::Rc;
 use anyhow::{bail, ensure, Context, Result};
 use bwm_checkpoints::open::{build_model, open_any, training_record, with_lora_adapters, OpenedWeights};
 use bwm_checkpoints::run_info::{CheckpointState, RunInfo};
+use bwm_checkpoints::contract::{self, InputContract};
 use bwm_checkpoints::sampler::{self, UNRECORDED_STEPS};
-use bwm_data::ActionStats;
+use bwm_data::frames::parse_resolution;
+use bwm_data::{ActionSpec, ActionStats, CameraSelection, ResizeMode};
 use bwm_model::device::{parse_device, parse_kind};
 use bwm_model::fp8::{quantize_linears, Fp8Scaling, BLOCK_LINEARS};
 use bwm_model::rollout::{history_sigma_for_shift, Rollout, RolloutSpec};
@@ -38,8 +40,12 @@ pub struct WorldModelOptions {
     /// VAE weights: Wan2.2_VAE.pth, its safetensors, or a `bwm train-vae` output; None: a random
     /// full-width Wan2.2 VAE (timing only).
     pub vae: Option<PathBuf>,
-    /// The stat.json the model was trained with (turns raw actions into the model's [-1, 1]).
+    /// The stat.json the model was trained with (turns raw actions into the model's [-1, 1]);
+    /// None: the statistics in the weights' input contract, else `dataset_stats`.
     pub stats: Option<PathBuf>,
+    /// A dataset's own `stat.json` (`with_stats_beside`), used only when neither `stats` nor the
+    /// weights' contract gives statistics.
+    pub dataset_stats: Option<PathBuf>,
     /// Statistics group of the action definition (state_pose for eef_abs).
     pub stats_group: String,
     /// auto, cpu, cuda or cuda:N.
@@ -48,11 +54,13 @@ pub struct WorldModelOptions {
     pub dtype: String,
     /// dtype of the DiT's residual stream; None: what the checkpoint was trained with, else f32.
     pub residual: Option<Residual>,
-    /// History frames H in each chunk's condition (the training clips' H).
-    pub history: usize,
-    /// Frames K generated per chunk (the training clips' K).
-    pub future: usize,
-    /// Sampler steps per chunk; None: the weights' recorded sampler (`sampler.json`), else 50.
+    /// History frames H in each chunk's condition; None: the weights' contract's (the training
+    /// clips' H), else 8. A value the contract contradicts is refused.
+    pub history: Option<usize>,
+    /// Frames K generated per chunk; None: the contract's, else 72.
+    pub future: Option<usize>,
+    /// Sampler steps per chunk; None: the sampler recorded in the weights' input contract
+    /// (`contract.json`), else 50.
     pub sample_steps: Option<usize>,
     /// The flow-matching shift of the sampler's grid; None: the shift the weights were trained
     /// with (a training checkpoint's `objective.shift`, an export's schedule), else Wan's 5.
@@ -83,12 +91,13 @@ impl Default for WorldModelOptions {
             model_preset: None,
             vae: None,
             stats: None,
+            dataset_stats: None,
             stats_group: "state_pose".into(),
             device: "auto".into(),
             dtype: "auto".into(),
             residual: None,
-            history: 8,
-            future: 72,
+            history: None,
+            future: None,
             sample_steps: None,
             shift: None,
             solver: None,
@@ -131,22 +140,47 @@ pub struct WorldModel {
     pub fp8: Option<Fp8Scaling>,
     /// Runs the sampler's forward passes of every rollout from CUDA graphs (`--cuda-graph`).
     pub graphed: Option<Rc<RefCell<GraphedDenoiser>>>,
-    /// The frame size (width, height) the weights were trained at, where they record it (an
-    /// export's `conditioning.resolution`, a training checkpoint's latent cache).
+    /// The frame size (width, height) the weights were trained at, where they record it (their
+    /// contract; an older export's `conditioning.resolution` or checkpoint's latent cache).
     pub trained_resolution: Option<(u32, u32)>,
+    /// What a caller must send the model (`bwm_checkpoints::contract`): the weights' own, or for
+    /// weights without one, the action width alone.
+    pub contract: InputContract,
+}
+
+/// How a caller asks for a dataset's episodes to be read (`bwm rollout` and `bwm fidelity`'s
+/// flags of the same names); None and empty take the weights' contract's (`EpisodeReading`).
+#[derive(Debug, Clone, Default)]
+pub struct EpisodeFlags {
+    /// A preset (eef_abs, joint_abs, eef_delta, joint_delta, robotwin_eef_abs), COLUMN:INDICES
+    /// (e.g. observation.state:0-3) or a spec JSON file.
+    pub actions: Option<String>,
+    /// Cameras; several are stacked top to bottom.
+    pub camera: Vec<String>,
+    /// Frame size WIDTHxHEIGHT.
+    pub resolution: Option<String>,
+    /// How frames of another aspect ratio are fitted to the size.
+    pub resize: Option<ResizeMode>,
+}
+
+/// How a dataset's episodes are read for a model: as asked, else as its contract says, else
+/// BWM's defaults (`eef_abs`, the dataset's default camera, 640x480, crop); what is asked is
+/// checked against the contract.
+#[derive(Debug, Clone)]
+pub struct EpisodeReading {
+    pub actions: ActionSpec,
+    pub cameras: CameraSelection,
+    /// (width, height).
+    pub size: (u32, u32),
+    pub resize: ResizeMode,
 }
 
 impl WorldModelOptions {
-    /// These options, with `stats` set to the `stat.json` beside `dataset` when none is given and
-    /// that file exists (said on stdout, after `who`).
-    pub fn with_stats_beside(&self, dataset: Option<&Path>, who: &str) -> WorldModelOptions {
+    /// These options, with the `stat.json` beside `dataset` (when it exists) as the statistics of
+    /// last resort: used when neither `--stats` nor the weights' contract gives any.
+    pub fn with_stats_beside(&self, dataset: Option<&Path>) -> WorldModelOptions {
         let mut options = self.clone();
-        if options.stats.is_none() {
-            if let Some(found) = dataset.map(|d| d.join("stat.json")).filter(|p| p.exists()) {
-                println!("{who}: action statistics from {}", found.display());
-                options.stats = Some(found);
-            }
-        }
+        options.dataset_stats = dataset.map(|d| d.join("stat.json")).filter(|p| p.exists());
         options
     }
 
@@ -154,12 +188,13 @@ impl WorldModelOptions {
     /// shift `trained_shift` (None: the default or not recorded). Unset history noise is the
     /// level training gave it at that shift, whatever the sampler's `--shift`.
     /// `sampler` is the resolved (steps, solver): `bwm_checkpoints::sampler::resolve`.
-    pub fn spec(&self, sampler: (usize, Solver), trained_history_sigma: Option<f64>, trained_shift: Option<f64>) -> Result<RolloutSpec> {
+    /// `chunk` is the resolved (history, future): `InputContract::chunk_or`.
+    pub fn spec(&self, sampler: (usize, Solver), chunk: (usize, usize), trained_history_sigma: Option<f64>, trained_shift: Option<f64>) -> Result<RolloutSpec> {
         let trained_grid = trained_shift.unwrap_or(bwm_model::schedule::DEFAULT_SHIFT);
         let sigma = self.history_sigma.or(trained_history_sigma).unwrap_or_else(|| history_sigma_for_shift(trained_grid));
         let spec = RolloutSpec {
-            history: self.history,
-            future: self.future,
+            history: chunk.0,
+            future: chunk.1,
             steps: sampler.0,
             shift: self.shift.unwrap_or(trained_grid),
             solver: sampler.1,
@@ -173,7 +208,8 @@ impl WorldModelOptions {
 
     pub fn load(&self) -> Result<WorldModel> {
         // Wrong flags are named before any weights are opened.
-        self.spec((self.sample_steps.unwrap_or(UNRECORDED_STEPS), self.solver.unwrap_or_default()), None, None)?;
+        let unrecorded = InputContract::unknown();
+        self.spec((self.sample_steps.unwrap_or(UNRECORDED_STEPS), self.solver.unwrap_or_default()), unrecorded.chunk_or(self.history, self.future)?, None, None)?;
         let device = parse_device(&self.device)?;
         let graphed = if self.cuda_graph { Some(Rc::new(RefCell::new(GraphedDenoiser::new(device)?))) } else { None };
         let kind = match self.dtype.as_str() {
@@ -184,13 +220,13 @@ impl WorldModelOptions {
         let preset = self.model_preset.as_deref().map(ModelConfig::preset).transpose()?;
         ensure!(self.lora.is_none() || self.checkpoint.is_some(), "--lora needs --checkpoint: the base weights its adapters go onto");
         // The residual stream the weights were trained with, unless --residual says otherwise.
-        let mut recorded_sampler = None;
+        let mut recorded = None;
         let (mut model, trained, trained_history_sigma, trained_shift, trained_resolution) = match (&self.checkpoint, &self.random_weights) {
             (Some(ckpt), _) => {
                 let mut opened = open_any(ckpt).with_context(|| format!("--checkpoint {ckpt}"))?;
-                recorded_sampler = sampler::read(&opened.location).with_context(|| format!("--checkpoint {ckpt}"))?.map(|r| (r, sampler::record_path(&opened.location)));
+                recorded = contract::read(&opened.location).with_context(|| format!("--checkpoint {ckpt}"))?.map(|c| (c, contract::path_of(&opened.location)));
                 let record = training_record(&opened).with_context(|| format!("--checkpoint {ckpt}"))?;
-                let resolution = trained_resolution(&opened);
+                let resolution = recorded.as_ref().and_then(|(c, _)| c.frames.as_ref()).map(|f| (f.width, f.height)).or_else(|| trained_resolution(&opened));
                 check_guidance(self.guidance, record.action_dropout).with_context(|| format!("--checkpoint {ckpt}"))?;
                 if let Some(adapters) = &self.lora {
                     opened = with_lora_adapters(opened, adapters).with_context(|| format!("--lora {}", adapters.display()))?;
@@ -201,9 +237,19 @@ impl WorldModelOptions {
             (None, Some(name)) => (BwmModel::random(&random_model_config(name)?, kind, device, self.seed as i64)?, None, None, None, None),
             (None, None) => bail!("pass --checkpoint (trained weights) or --random-weights PRESET"),
         };
-        let (steps, solver, said) = sampler::resolve(self.sample_steps, self.solver, recorded_sampler.as_ref().map(|(r, p)| (r, p.as_path())));
+        let action_dim = model.cfg.action.action_dim as usize;
+        let contract = match &recorded {
+            Some((c, path)) => {
+                c.check_action_dim(action_dim, "the weights").with_context(|| path.display().to_string())?;
+                c.clone()
+            }
+            None => InputContract::of_model(action_dim),
+        };
+        let recorded_sampler = recorded.as_ref().and_then(|(c, p)| c.sampler.as_ref().map(|s| (s, p.as_path())));
+        let (steps, solver, said) = sampler::resolve(self.sample_steps, self.solver, recorded_sampler);
         println!("{said}");
-        let spec = self.spec((steps, solver), trained_history_sigma, trained_shift).context("the history noise and shift the weights were trained with")?;
+        let chunk = contract.chunk_or(self.history, self.future)?;
+        let spec = self.spec((steps, solver), chunk, trained_history_sigma, trained_shift).context("the history noise and shift the weights were trained with")?;
         model.dit.residual = self.residual.or(trained).unwrap_or_default().kind(kind);
         if let Some(scaling) = self.fp8 {
             quantize_linears(&mut model, BLOCK_LINEARS, scaling).context("--fp8")?;
@@ -218,22 +264,29 @@ impl WorldModelOptions {
             vae.cfg.z_dim,
             model.cfg.dit.in_dim
         );
-        let stats = match &self.stats {
-            Some(path) => {
-                let s = ActionStats::read(path, &self.stats_group)?;
-                ensure!(
-                    s.dim() as i64 == model.cfg.action.action_dim,
-                    "{} group '{}' has {} dimensions, the model takes {} action values",
-                    path.display(),
-                    self.stats_group,
-                    s.dim(),
-                    model.cfg.action.action_dim
-                );
-                Some(s)
-            }
-            None => None,
+        let from_file = |path: &Path, how: &str| -> Result<ActionStats> {
+            let s = ActionStats::read(path, &self.stats_group)?;
+            ensure!(
+                s.dim() == action_dim,
+                "{} group '{}' has {} dimensions, the model takes {action_dim} action values",
+                path.display(),
+                self.stats_group,
+                s.dim()
+            );
+            println!("action statistics: {} ({how})", path.display());
+            Ok(s)
         };
-        Ok(WorldModel { model, vae, stats, spec, device, fp8: self.fp8, graphed, trained_resolution })
+        let recorded_stats = contract.actions.as_ref().and_then(|a| a.normalization.as_ref());
+        let stats = match (&self.stats, recorded_stats, &self.dataset_stats) {
+            (Some(path), _, _) => Some(from_file(path, "--stats")?),
+            (None, Some(n), _) => {
+                println!("action statistics: the weights' input contract (group '{}')", n.group);
+                Some(n.stats.clone())
+            }
+            (None, None, Some(path)) => Some(from_file(path, "beside the dataset; the weights record none")?),
+            (None, None, None) => None,
+        };
+        Ok(WorldModel { model, vae, stats, spec, device, fp8: self.fp8, graphed, trained_resolution, contract })
     }
 }
 
@@ -264,15 +317,48 @@ impl WorldModel {
         self.model.cfg.action.action_dim as usize
     }
 
+    /// How episodes are read for this model (see `EpisodeReading`): what `flags` ask for (the
+    /// resolution a multiple of `multiple`), the rest from the contract; a flag that contradicts
+    /// the contract is refused by its name.
+    pub fn episode_reading(&self, flags: &EpisodeFlags, multiple: u32) -> Result<EpisodeReading> {
+        let (actions, camera, resolution, resize) = (flags.actions.as_deref(), &flags.camera, flags.resolution.as_deref(), flags.resize);
+        let c = &self.contract;
+        let recorded = c.actions.as_ref().and_then(|a| a.definition.clone());
+        let actions = match actions {
+            Some(arg) => {
+                let spec = ActionSpec::parse(arg).context("--actions")?;
+                c.check_definition(&spec, &format!("--actions {arg}"))?;
+                spec
+            }
+            None => recorded.unwrap_or_else(ActionSpec::eef_abs),
+        };
+        c.check_action_dim(actions.dim(), "--actions")?;
+        let frames = c.frames.as_ref();
+        let size = match resolution {
+            Some(r) => {
+                let size = parse_resolution(r, multiple).context("--resolution")?;
+                c.check_frame_size(size.0, size.1, &format!("--resolution {r}"))?;
+                size
+            }
+            None => frames.map(|f| (f.width, f.height)).unwrap_or((640, 480)),
+        };
+        let cameras = match (camera.is_empty(), frames) {
+            (true, Some(f)) => CameraSelection { cameras: f.cameras.clone(), layout: f.layout },
+            _ => CameraSelection::from_names(camera),
+        };
+        let resize = resize.or(frames.map(|f| f.resize)).unwrap_or_default();
+        Ok(EpisodeReading { actions, cameras, size, resize })
+    }
+
     /// Raw action rows to the model's normalized [rows, d_a] tensor (needs --stats).
     pub fn normalize(&self, rows: &[Vec<f32>]) -> Result<Tensor> {
-        let stats = self.stats.as_ref().context("raw actions need the training statistics: pass --stats stat.json")?;
+        let stats = self.stats.as_ref().context("raw actions need the training statistics, and neither the weights' contract nor the dataset gives them: pass --stats stat.json")?;
         self.rows_to_tensor(rows.iter().map(|r| stats.normalize(r)).collect())
     }
 
     /// Normalized rows back to raw units (needs --stats).
     pub fn denormalize(&self, normalized: &Tensor) -> Result<Vec<Vec<f32>>> {
-        let stats = self.stats.as_ref().context("raw actions need the training statistics: pass --stats stat.json")?;
+        let stats = self.stats.as_ref().context("raw actions need the training statistics, and neither the weights' contract nor the dataset gives them: pass --stats stat.json")?;
         Ok(tensor_rows(normalized)?.iter().map(|r| stats.denormalize(r)).collect())
     }
 
@@ -341,7 +427,7 @@ mod tests {
 
     #[test]
     fn history_noise_follows_the_flag_then_the_training_then_the_release() {
-        let sigma = |flag: Option<f64>, trained: Option<f64>| WorldModelOptions { history_sigma: flag, ..Default::default() }.spec((4, Solver::Euler), trained, None).unwrap().history_sigma;
+        let sigma = |flag: Option<f64>, trained: Option<f64>| WorldModelOptions { history_sigma: flag, ..Default::default() }.spec((4, Solver::Euler), (8, 72), trained, None).unwrap().history_sigma;
         assert_eq!(sigma(None, None), Some(default_history_sigma()), "weights that record nothing: the release's level");
         assert_eq!(sigma(None, Some(0.05)), Some(0.05), "the level the weights were trained with");
         assert_eq!(sigma(Some(0.1), Some(0.05)), Some(0.1), "--history-sigma overrides it");
@@ -351,12 +437,12 @@ mod tests {
 
     #[test]
     fn the_sampler_shift_follows_the_flag_then_the_training_then_wan() {
-        let shift = |flag: Option<f64>, trained: Option<f64>| WorldModelOptions { shift: flag, ..Default::default() }.spec((4, Solver::Euler), None, trained).unwrap().shift;
+        let shift = |flag: Option<f64>, trained: Option<f64>| WorldModelOptions { shift: flag, ..Default::default() }.spec((4, Solver::Euler), (8, 72), None, trained).unwrap().shift;
         assert_eq!(shift(None, None), bwm_model::schedule::DEFAULT_SHIFT, "weights that record nothing: Wan's shift");
         assert_eq!(shift(None, Some(2.0)), 2.0, "the shift the weights were trained with");
         assert_eq!(shift(Some(3.0), Some(2.0)), 3.0, "--shift overrides it");
         // History noise left unset in training was the trained grid's, and sampling matches it.
-        let sigma = |flag: Option<f64>, trained: Option<f64>| WorldModelOptions { shift: flag, ..Default::default() }.spec((4, Solver::Euler), None, trained).unwrap().history_sigma;
+        let sigma = |flag: Option<f64>, trained: Option<f64>| WorldModelOptions { shift: flag, ..Default::default() }.spec((4, Solver::Euler), (8, 72), None, trained).unwrap().history_sigma;
         let at_2 = bwm_model::rollout::history_sigma_for_shift(2.0);
         assert!((at_2 - 2.0 * 0.05 / 1.05).abs() < 1e-9, "{at_2}");
         assert_eq!(sigma(None, Some(2.0)), Some(at_2));

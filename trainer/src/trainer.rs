@@ -10,6 +10,7 @@ use anyhow::{bail, ensure, Context, Result};
 use bwm_checkpoints::optimizer_shards::OptimizerState;
 use bwm_checkpoints::run_dir::RunLock;
 use bwm_checkpoints::{write_tensors, CheckpointRoot};
+use bwm_checkpoints::contract::InputContract;
 use bwm_data::latent_cache::{clip_for_sample, global_sample_index, Clip, LatentCache};
 use bwm_data::prefetch::{load_clips, ClipBatch, Prefetcher};
 use bwm_model::lora::LoraState;
@@ -82,6 +83,9 @@ pub struct Trainer {
     pub opt: AdamW,
     pub objective: Objective,
     pub cache: LatentCache,
+    /// What a caller of the trained model must send it, written into every checkpoint
+    /// (`contract.json`), from what the cache records of how its clips were made.
+    pub contract: InputContract,
     /// Encodes the clips of a raw cache as they are read (`data.vae`); None for a cache of latents.
     pub clip_encoder: Option<WanVae>,
     /// Reads the next micro-batches in the background (started by the first `load_batch`).
@@ -186,6 +190,7 @@ impl Trainer {
 
         let cache = LatentCache::open(&cfg.data.latent_cache)?;
         let train_clips = cache.training_clips(cfg.data.holdout_episodes)?;
+        let contract = InputContract::from_cache(model_cfg.action.action_dim as usize, &cfg.data.latent_cache).context("the input contract of the run's latent cache")?;
         let latent_frames = cache.index.latent_shape[1];
         ensure!(
             latent_frames > cfg.objective.condition_latents,
@@ -252,7 +257,7 @@ impl Trainer {
         let events = if cfg.log.tensorboard && lead { Some(EventWriter::create(&out_dir.join("tensorboard"))?) } else { None };
         let append = |name: &str| -> Result<Option<LineLog>> { if lead { LineLog::open(&out_dir.join(name)).map(Some) } else { Ok(None) } };
         let (metrics_file, loss_file) = (append("metrics.jsonl")?, append(crate::run_log::LOSSES_FILE)?);
-        Ok(Self { cfg, model, lora, opt, objective, cache, clip_encoder, loader: Default::default(), train_clips, device, state, out_dir, checkpoints, events, metrics_file, negligible_action_gaps: 0, loss_file, comm, run_lock, history: Vec::new(), block_params, graph })
+        Ok(Self { cfg, model, lora, opt, objective, cache, contract, clip_encoder, loader: Default::default(), train_clips, device, state, out_dir, checkpoints, events, metrics_file, negligible_action_gaps: 0, loss_file, comm, run_lock, history: Vec::new(), block_params, graph })
     }
 
     /// Trains to `train.steps`, checkpointing and validating as configured.
@@ -585,6 +590,7 @@ impl Trainer {
         let state = serde_json::to_string_pretty(&self.state)?;
         let config = self.cfg.to_toml()?;
         let meta = BTreeMap::from([("format".to_string(), "pt".to_string()), ("step".to_string(), self.state.step.to_string())]);
+        let contract = &self.contract;
         let slow = std::env::var("BWM_FAULT_SLOW_CHECKPOINT_MS").ok().and_then(|v| v.parse::<u64>().ok());
         let dir = self.checkpoints.save(self.state.step, self.cfg.checkpoint.keep_last, |tmp| {
             write_tensors(&tmp.join("model.safetensors"), &weights, &meta)?;
@@ -598,6 +604,7 @@ impl Trainer {
                 std::fs::rename(staging.join(&name), tmp.join(&name)).with_context(|| format!("moving the optimizer shard of rank {r}"))?;
             }
             std::fs::write(tmp.join("config.toml"), &config)?;
+            bwm_checkpoints::contract::write(tmp, contract)?;
             std::fs::write(tmp.join(bwm_checkpoints::run_dir::STATE_FILE), &state)?;
             Ok(())
         })?;
@@ -631,6 +638,9 @@ impl validation::ValidationRun for Trainer {
     }
     fn clip(&self, i: usize) -> Result<Clip> {
         Trainer::clip(self, i)
+    }
+    fn clip_actions(&self, i: usize) -> Result<Tensor> {
+        self.cache.load_actions(i, self.device)
     }
     fn out_path(&self, name: &str) -> PathBuf {
         Trainer::out_path(self, name)

@@ -32,6 +32,8 @@ pub trait ValidationRun {
     fn validation_clips(&self) -> Range<usize>;
     /// Clip `i` of the cache with its latents (encoded now for a raw cache).
     fn clip(&self, i: usize) -> Result<Clip>;
+    /// Clip `i`'s actions alone (without its latents, or a raw clip's encode).
+    fn clip_actions(&self, i: usize) -> Result<Tensor>;
     fn out_path(&self, name: &str) -> PathBuf;
     fn events(&mut self) -> Option<&mut EventWriter>;
 }
@@ -69,42 +71,35 @@ pub const NEGLIGIBLE_ACTION_GAP: f64 = 0.01;
 /// Keys of the held-out loss draws: apart from every training sample's index.
 const VALIDATION_DRAW: u64 = 1 << 62;
 
-/// The held-out clips' loss on keyed draws with their own, other and zero actions.
-fn action_gap(run: &(impl ValidationRun + ?Sized), held_out: &[usize], batch: usize) -> Result<ActionGap> {
+/// Summed losses of one batch of held-out clips (`clean` [B, ...] with their `actions`; the batch
+/// starts at position `start` of `held_out`) on keyed draws with their own, other and zero
+/// actions.
+fn action_losses(run: &(impl ValidationRun + ?Sized), held_out: &[usize], start: usize, clean: &Tensor, actions: &Tensor) -> Result<[f64; 3]> {
     let (model, objective) = (run.model(), run.objective());
     let kind = model.store.kind();
     let n = held_out.len();
-    let (mut own, mut other, mut zero) = (0.0, 0.0, 0.0);
-    for (start, indices) in (0..).step_by(batch).zip(held_out.chunks(batch)) {
-        let clips = indices.iter().map(|&i| run.clip(i)).collect::<Result<Vec<_>>>()?;
-        let clean = Tensor::stack(&clips.iter().map(|c| c.latents.shallow_clone()).collect::<Vec<_>>(), 0);
-        let actions = Tensor::stack(&clips.iter().map(|c| c.actions.shallow_clone()).collect::<Vec<_>>(), 0);
-        // Each clip's stand-in: the held-out clip half the set away; a lone clip's own actions
-        // reversed in time.
-        let others = (0..indices.len())
-            .map(|j| match n {
-                1 => Ok(clips[j].actions.flip([0])),
-                _ => Ok(run.clip(held_out[(start + j + (n / 2).max(1)) % n])?.actions),
-            })
-            .collect::<Result<Vec<_>>>()?;
-        let other_actions = Tensor::stack(&others, 0);
-        let shape = clean.size()[1..].to_vec();
-        let draws: Vec<_> = indices.iter().map(|&i| objective.draw(VALIDATION_DRAW | i as u64, &shape)).collect();
-        let stack = |f: &dyn Fn(&crate::objective::Draw) -> Tensor| Tensor::stack(&draws.iter().map(f).collect::<Vec<_>>(), 0).to_device(clean.device());
-        let (noise, history_noise) = (stack(&|d| d.noise.shallow_clone()), stack(&|d| d.history_noise.shallow_clone()));
-        let tids: Vec<usize> = draws.iter().map(|d| d.timestep_index).collect();
-        let prepared = objective.prepare(&clean, &noise, &history_noise, &tids)?;
-        let input = prepared.input.to_kind(kind);
-        let loss = |a: &Tensor| -> Result<f64> {
-            let prediction = tch::no_grad(|| model.forward(&input, &prepared.frame_timesteps, a))?;
-            Ok(objective.per_sample_loss(&prediction, &prepared).sum(Kind::Double).double_value(&[]))
-        };
-        own += loss(&actions)?;
-        other += loss(&other_actions)?;
-        zero += loss(&actions.zeros_like())?;
-    }
-    let n = n.max(1) as f64;
-    Ok(ActionGap { loss_own_actions: own / n, loss_other_actions: other / n, loss_zero_actions: zero / n })
+    let indices = &held_out[start..start + clean.size()[0] as usize];
+    // Each clip's stand-in: the held-out clip half the set away (its actions alone are read); a
+    // lone clip's own actions reversed in time.
+    let others = (0..indices.len())
+        .map(|j| match n {
+            1 => Ok(actions.get(j as i64).flip([0])),
+            _ => run.clip_actions(held_out[(start + j + (n / 2).max(1)) % n]),
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let other_actions = Tensor::stack(&others, 0);
+    let shape = clean.size()[1..].to_vec();
+    let draws: Vec<_> = indices.iter().map(|&i| objective.draw(VALIDATION_DRAW | i as u64, &shape)).collect();
+    let stack = |f: &dyn Fn(&crate::objective::Draw) -> Tensor| Tensor::stack(&draws.iter().map(f).collect::<Vec<_>>(), 0).to_device(clean.device());
+    let (noise, history_noise) = (stack(&|d| d.noise.shallow_clone()), stack(&|d| d.history_noise.shallow_clone()));
+    let tids: Vec<usize> = draws.iter().map(|d| d.timestep_index).collect();
+    let prepared = objective.prepare(&clean, &noise, &history_noise, &tids)?;
+    let input = prepared.input.to_kind(kind);
+    let loss = |a: &Tensor| -> Result<f64> {
+        let prediction = tch::no_grad(|| model.forward(&input, &prepared.frame_timesteps, a))?;
+        Ok(objective.per_sample_loss(&prediction, &prepared).sum(Kind::Double).double_value(&[]))
+    };
+    Ok([loss(actions)?, loss(&other_actions)?, loss(&actions.zeros_like())?])
 }
 
 impl ValidationReport {
@@ -174,10 +169,15 @@ pub fn run(run: &mut (impl ValidationRun + ?Sized), step: u64) -> Result<Validat
     // made validation cost more than the training between two validations on small models.
     let batch = run.config().train.micro_batch.max(1);
     let held_out: Vec<usize> = run.validation_clips().collect();
-    for indices in held_out.chunks(batch) {
+    // Each clip is read once: its loss with own, other and zero actions, and its rollout.
+    let mut losses = [0.0; 3];
+    for (start, indices) in (0..).step_by(batch).zip(held_out.chunks(batch)) {
         let clips = indices.iter().map(|&i| run.clip(i)).collect::<Result<Vec<_>>>()?;
         let clean = Tensor::stack(&clips.iter().map(|c| c.latents.shallow_clone()).collect::<Vec<_>>(), 0);
         let actions = Tensor::stack(&clips.iter().map(|c| c.actions.shallow_clone()).collect::<Vec<_>>(), 0);
+        for (sum, l) in losses.iter_mut().zip(action_losses(run, &held_out, start, &clean, &actions)?) {
+            *sum += l;
+        }
         let keys: Vec<u64> = indices.iter().map(|&i| i as u64).collect();
         let predicted = rollout_clips(run, &clean, &actions, &keys, cfg.sample_steps)?;
         let f = clean.size()[2];
@@ -207,7 +207,8 @@ pub fn run(run: &mut (impl ValidationRun + ?Sized), step: u64) -> Result<Validat
             }
         }
     }
-    let actions = action_gap(run, &held_out, batch)?;
+    let held = held_out.len().max(1) as f64;
+    let actions = ActionGap { loss_own_actions: losses[0] / held, loss_other_actions: losses[1] / held, loss_zero_actions: losses[2] / held };
     let mut report = ValidationReport { latent_mse: mse_sum / n as f64, psnr: None, ssim: None, strip: None, actions };
     if vae.is_some() {
         report.psnr = Some(psnr_sum / n as f64);

@@ -88,20 +88,20 @@ pub fn run(options: &WorldModelOptions, config: &Path, out: &Path, in_flight: us
     }
     let wm = options.load()?;
     let (width, height) = cfg.frame_size()?;
+    // What the episodes give the model is checked against its input contract first: the frame
+    // size, how the dataset's pose is read, and each start's initial pose (its state).
+    wm.contract.check_frame_size(width, height, &format!("resolution {}", cfg.resolution))?;
     wm.check_frame_size(&format!("resolution {}", cfg.resolution), height as i64, width as i64, in_flight)?;
     let lanes = wm.lanes(streams)?;
     let capacities = lanes.shares(in_flight)?;
-    let d = wm.action_dim();
     for t in &tasks {
+        if t.cfg.dataset.is_some() && need_pose {
+            let spec = bwm_data::ActionSpec::parse(&t.cfg.pose_actions)?;
+            wm.contract.check_definition(&spec, &format!("task '{}': pose_actions {}", t.cfg.name, t.cfg.pose_actions))?;
+        }
         for s in &t.starts {
             if let Some(pose) = &s.pose {
-                ensure!(
-                    pose.len() == d,
-                    "task '{}' ({}): the initial pose has {} values; the model takes {d}",
-                    t.cfg.name,
-                    s.source,
-                    pose.len()
-                );
+                wm.contract.check_action_dim(pose.len(), &format!("task '{}' ({}): the initial pose", t.cfg.name, s.source))?;
             }
         }
     }

@@ -19,7 +19,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{ensure, Context, Result};
 use bwm_data::latent_cache::{read_index, write_atomically, INDEX_FILE};
-use bwm_data::{ActionSpec, ActionStats, CameraLayout, CameraSelection, ResizeMode};
+use bwm_data::{ActionSpec, ActionStats, CacheIndex, CameraLayout, CameraSelection, IndexExtras, ResizeMode};
 use serde::{Deserialize, Serialize};
 
 use bwm_model::schedule::Solver;
@@ -138,8 +138,14 @@ impl InputContract {
     /// `index.json` records of how the clips were made.
     pub fn from_cache(action_dim: usize, cache: &Path) -> Result<Self> {
         let (index, extras) = read_index(&cache.join(INDEX_FILE))?;
+        Self::from_index(action_dim, &index, &extras, cache)
+    }
+
+    /// `from_cache` of an index already read (`LatentCache::index` and `extras`) from the cache
+    /// folder `cache`.
+    pub fn from_index(action_dim: usize, index: &CacheIndex, extras: &IndexExtras, cache: &Path) -> Result<Self> {
         let what = || format!("{}: the plan it was prepared from", cache.join(INDEX_FILE).display());
-        let plan = extras.plan.unwrap_or(serde_json::Value::Null);
+        let plan = extras.plan.clone().unwrap_or(serde_json::Value::Null);
         let field = |k: &str| plan.get(k).cloned().filter(|v| !v.is_null());
         let definition: Option<ActionSpec> = field("actions").map(serde_json::from_value).transpose().with_context(what)?;
         let cameras: CameraSelection = field("cameras").map(serde_json::from_value).transpose().with_context(what)?.unwrap_or_default();
@@ -339,7 +345,6 @@ pub fn write(location: &Path, contract: &InputContract) -> Result<PathBuf> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use bwm_data::CacheIndex;
 
     fn stats(dim: usize) -> ActionStats {
         let v = |x: f64| vec![x; dim];
@@ -351,7 +356,7 @@ mod tests {
     fn cache(dir: &Path) {
         let mut index = CacheIndex::new(vec![16, 9, 6, 8], 4, 8, 24, [128, 96], 10.0, "vae");
         index.has_frames = false;
-        let extras = bwm_data::IndexExtras {
+        let extras = IndexExtras {
             plan: Some(serde_json::json!({
                 "actions": ActionSpec::parse("observation.state:0-3").unwrap(),
                 "cameras": CameraSelection::single("corner"),

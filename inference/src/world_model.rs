@@ -323,16 +323,20 @@ impl WorldModel {
     pub fn episode_reading(&self, flags: &EpisodeFlags, multiple: u32) -> Result<EpisodeReading> {
         let (actions, camera, resolution, resize) = (flags.actions.as_deref(), &flags.camera, flags.resolution.as_deref(), flags.resize);
         let c = &self.contract;
-        let recorded = c.actions.as_ref().and_then(|a| a.definition.clone());
+        // A definition asked for is checked whole (`check_definition` checks its width too); the
+        // recorded one, or eef_abs where none is, by its width.
         let actions = match actions {
             Some(arg) => {
                 let spec = ActionSpec::parse(arg).context("--actions")?;
                 c.check_definition(&spec, &format!("--actions {arg}"))?;
                 spec
             }
-            None => recorded.unwrap_or_else(ActionSpec::eef_abs),
+            None => {
+                let spec = c.actions.as_ref().and_then(|a| a.definition.clone()).unwrap_or_else(ActionSpec::eef_abs);
+                c.check_action_dim(spec.dim(), "--actions")?;
+                spec
+            }
         };
-        c.check_action_dim(actions.dim(), "--actions")?;
         let frames = c.frames.as_ref();
         let size = match resolution {
             Some(r) => {
@@ -350,15 +354,20 @@ impl WorldModel {
         Ok(EpisodeReading { actions, cameras, size, resize })
     }
 
-    /// Raw action rows to the model's normalized [rows, d_a] tensor (needs --stats).
+    /// The statistics that raw actions need.
+    fn raw_stats(&self) -> Result<&ActionStats> {
+        self.stats.as_ref().context("raw actions need the training statistics, and neither the weights' contract nor the dataset gives them: pass --stats stat.json")
+    }
+
+    /// Raw action rows to the model's normalized [rows, d_a] tensor (needs statistics).
     pub fn normalize(&self, rows: &[Vec<f32>]) -> Result<Tensor> {
-        let stats = self.stats.as_ref().context("raw actions need the training statistics, and neither the weights' contract nor the dataset gives them: pass --stats stat.json")?;
+        let stats = self.raw_stats()?;
         self.rows_to_tensor(rows.iter().map(|r| stats.normalize(r)).collect())
     }
 
-    /// Normalized rows back to raw units (needs --stats).
+    /// Normalized rows back to raw units (needs statistics).
     pub fn denormalize(&self, normalized: &Tensor) -> Result<Vec<Vec<f32>>> {
-        let stats = self.stats.as_ref().context("raw actions need the training statistics, and neither the weights' contract nor the dataset gives them: pass --stats stat.json")?;
+        let stats = self.raw_stats()?;
         Ok(tensor_rows(normalized)?.iter().map(|r| stats.denormalize(r)).collect())
     }
 

@@ -190,7 +190,8 @@ impl Trainer {
 
         let cache = LatentCache::open(&cfg.data.latent_cache)?;
         let train_clips = cache.training_clips(cfg.data.holdout_episodes)?;
-        let contract = InputContract::from_cache(model_cfg.action.action_dim as usize, &cfg.data.latent_cache).context("the input contract of the run's latent cache")?;
+        let contract = InputContract::from_index(model_cfg.action.action_dim as usize, &cache.index, &cache.extras, &cfg.data.latent_cache)
+            .context("the input contract of the run's latent cache")?;
         let latent_frames = cache.index.latent_shape[1];
         ensure!(
             latent_frames > cfg.objective.condition_latents,

@@ -20,7 +20,7 @@ use rmpv::Value;
 use tch::{Kind, Tensor};
 
 use super::{action_values, api, body_map, images, normalized_flag, seed_of, str_map, ApiError, ModelInfo, NdArray, Watch, Watched};
-use crate::world_model::{tensor_rows, WorldModel};
+use crate::world_model::WorldModel;
 
 /// A checked `/reset` body.
 pub(super) struct ResetRequest {
@@ -193,7 +193,7 @@ impl<'m> Envs<'m> {
             let pixels = Vec::<u8>::try_from(pixels.view([-1]))?;
             self.latest[e * frame..(e + 1) * frame].copy_from_slice(&pixels[(rows - 1) * frame..]);
             frames.extend_from_slice(&pixels);
-            self.states[e] = if self.normalized { tensor_rows(&chunk.actions)?.pop().unwrap_or_default() } else { req.actions[e][rows - 1].clone() };
+            self.states[e] = req.actions[e][rows - 1].clone();
         }
         self.elapsed_steps += rows;
         let out = str_map(vec![

@@ -111,11 +111,20 @@ print(json.dumps(t["action"]))
         assert!((a.1 - b.1).abs() < 1e-3, "{}: PSNR {} alone, {} together", a.0, a.1, b.1);
     }
 
-    // Perturbed actions stay within the recorded range's normalization and differ from it.
+    // Perturbed actions stay within the recorded range's normalization and differ from it; this
+    // dataset stores its frames as PNG cells in the parquet (what a build without video writes),
+    // losslessly: its x0 is the video dataset's x0 as decoded from the source, pixel for pixel.
     let perturbed = dir.join("perturbed");
-    let p = rollout(&["--vae", vae.to_str().unwrap(), "--data", data.to_str().unwrap(), "--out", perturbed.to_str().unwrap(), "--episodes", "0", "--drive", "perturbed", "--perturb-std", "0.1"]);
+    let p = rollout(&["--vae", vae.to_str().unwrap(), "--data", data.to_str().unwrap(), "--out", perturbed.to_str().unwrap(), "--episodes", "0", "--drive", "perturbed", "--perturb-std", "0.1", "--frame-storage", "image"]);
     assert!(p.status.success());
+    assert!(String::from_utf8_lossy(&p.stdout).contains("frames stored as image features"));
+    assert!(!perturbed.join("videos").exists());
     let got = open_dataset(&perturbed).unwrap();
+    let x0 = source.frames(0, 0..1, &CameraSelection::default()).unwrap();
+    let x0 = bwm_data::frames::fit(&x0[0], 64, 32, bwm_data::frames::ResizeMode::default());
+    let cells = got.frames(0, 0..11, &CameraSelection::default()).unwrap();
+    assert_eq!(cells.len(), 11);
+    assert!(cells[0] == x0, "x0 changed on its way through the PNG cell");
     let spec = ActionSpec { column: "action".into(), indices: (0..14).collect(), stats_group: "state_pose".into(), quat_to_euler: vec![], absolute_to_delta: vec![] };
     let rows = got.vectors(0, &spec).unwrap();
     assert!(rows.iter().zip(&recorded).any(|(a, r)| a.iter().zip(r).any(|(x, y)| (x - y).abs() > 1e-4)));

@@ -3,6 +3,7 @@
 use std::path::PathBuf;
 
 use anyhow::Result;
+use bwm_data::lerobot_writer::FrameStorage;
 use bwm_inference::rollout::{Drive, RolloutOptions};
 use clap::Args;
 
@@ -45,6 +46,11 @@ pub struct RolloutArgs {
     /// Continue an interrupted run into --out (finished episodes are kept).
     #[arg(long)]
     resume: bool,
+    /// How the output stores its frames: video (one mp4 per episode) or image (PNG cells in the
+    /// episode's parquet). Default: as the dataset being resumed does, else video where this build
+    /// has it and image otherwise.
+    #[arg(long)]
+    frame_storage: Option<FrameStorage>,
     #[command(flatten)]
     in_flight: InFlightArgs,
 }
@@ -63,6 +69,7 @@ pub fn run(a: RolloutArgs) -> Result<()> {
         fps: a.fps,
         out: a.out,
         resume: a.resume,
+        frame_storage: a.frame_storage,
         in_flight: a.in_flight.get(),
         streams: a.in_flight.streams(),
     };

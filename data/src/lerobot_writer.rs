@@ -1,7 +1,8 @@
 //! Writes a LeRobotDataset v2.1 (what policy trainers read): one parquet per episode with
 //! `action`, `observation.state`, `timestamp`, `frame_index`, `episode_index`, `index`,
-//! `task_index`, one mp4 per episode for the camera, and `meta/{info.json, episodes.jsonl,
-//! tasks.jsonl, episodes_stats.jsonl}`. Each episode's files are written under temporary names
+//! `task_index`, the camera's frames as one mp4 per episode (a `video` feature) or as PNG cells in
+//! the parquet (an `image` feature, for builds without video), and `meta/{info.json,
+//! episodes.jsonl, tasks.jsonl, episodes_stats.jsonl}`. Each episode's files are written under temporary names
 //! and renamed when complete (the parquet and the metadata fsynced before the rename, their folder
 //! after it), and the metadata is rewritten after every episode, so an interrupted run (a crash of
 //! the machine too) leaves a readable dataset of the finished episodes that `resume` continues.
@@ -11,7 +12,8 @@ use std::sync::Arc;
 
 use anyhow::{bail, ensure, Context, Result};
 use arrow_array::builder::{FixedSizeListBuilder, Float32Builder};
-use arrow_array::{ArrayRef, Float32Array, Int64Array, RecordBatch};
+use arrow_array::{ArrayRef, BinaryArray, Float32Array, Int64Array, RecordBatch, StringArray, StructArray};
+use arrow_schema::{DataType, Field};
 use image::RgbImage;
 use serde_json::{json, Value};
 
@@ -33,6 +35,50 @@ pub struct DatasetFeatures {
     pub size: (u32, u32),
     pub fps: f64,
     pub robot_type: String,
+    /// How the frames are stored; unset: as the dataset being resumed stores them, else
+    /// `FrameStorage::default_for_build`.
+    pub storage: Option<FrameStorage>,
+}
+
+/// How a dataset stores its camera's frames (LeRobot's feature dtypes).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FrameStorage {
+    /// One mp4 per episode (dtype `video`), what LeRobot's own recordings use.
+    Video,
+    /// Each frame a PNG cell `{bytes, path}` in the episode's parquet (dtype `image`): larger,
+    /// lossless, and written by builds without video.
+    Image,
+}
+
+impl FrameStorage {
+    /// Video where this build encodes it, PNG cells otherwise.
+    pub fn default_for_build() -> Self {
+        if video::AVAILABLE {
+            FrameStorage::Video
+        } else {
+            FrameStorage::Image
+        }
+    }
+
+    /// LeRobot's dtype for it.
+    pub fn dtype(self) -> &'static str {
+        match self {
+            FrameStorage::Video => "video",
+            FrameStorage::Image => "image",
+        }
+    }
+}
+
+impl std::str::FromStr for FrameStorage {
+    type Err = String;
+
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s {
+            "video" => Ok(FrameStorage::Video),
+            "image" => Ok(FrameStorage::Image),
+            _ => Err(format!("'{s}': expected video (mp4 files) or image (PNG cells in the parquet)")),
+        }
+    }
 }
 
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -48,7 +94,9 @@ pub struct LeRobotWriter {
     episodes: Vec<EpisodeMeta>,
     tasks: Vec<String>,
     stats_lines: Vec<String>,
-    codec: &'static str,
+    storage: FrameStorage,
+    /// The mp4 codec (video storage only).
+    codec: Option<&'static str>,
 }
 
 impl LeRobotWriter {
@@ -60,9 +108,20 @@ impl LeRobotWriter {
             root.display()
         );
         Self::check(&features)?;
+        let storage = features.storage.unwrap_or_else(FrameStorage::default_for_build);
+        let codec = Self::codec(storage)?;
         std::fs::create_dir_all(root.join("meta")).with_context(|| format!("creating {}", root.display()))?;
-        let codec = codec_name(video::Mp4Encoder::best()?);
-        Ok(Self { root: root.to_path_buf(), features, episodes: Vec::new(), tasks: Vec::new(), stats_lines: Vec::new(), codec })
+        Ok(Self { root: root.to_path_buf(), features, episodes: Vec::new(), tasks: Vec::new(), stats_lines: Vec::new(), storage, codec })
+    }
+
+    fn codec(storage: FrameStorage) -> Result<Option<&'static str>> {
+        match storage {
+            FrameStorage::Image => Ok(None),
+            FrameStorage::Video if !video::AVAILABLE => {
+                bail!("this build has no video (FFmpeg): store the frames as PNG cells in the parquet (image storage) or rebuild with the `video` feature")
+            }
+            FrameStorage::Video => Ok(Some(codec_name(video::Mp4Encoder::best()?))),
+        }
     }
 
     /// Continues a dataset this writer started: the episodes listed in its metadata are kept,
@@ -78,7 +137,22 @@ impl LeRobotWriter {
             text.lines().filter(|l| !l.trim().is_empty()).map(|l| serde_json::from_str(l).with_context(|| format!("{}: bad line", path.display()))).collect()
         };
         let info: Value = serde_json::from_str(&std::fs::read_to_string(root.join("meta/info.json"))?).context("meta/info.json")?;
-        let shape = &info["features"][&features.video_key]["shape"];
+        let feature = &info["features"][&features.video_key];
+        let stored = match feature["dtype"].as_str() {
+            Some("video") => FrameStorage::Video,
+            Some("image") => FrameStorage::Image,
+            _ => bail!("{}: no video or image feature '{}' in meta/info.json", root.display(), features.video_key),
+        };
+        if let Some(asked) = features.storage {
+            ensure!(
+                asked == stored,
+                "{}: its frames are stored as {} features, this run asks for {}",
+                root.display(),
+                stored.dtype(),
+                asked.dtype()
+            );
+        }
+        let shape = &feature["shape"];
         ensure!(
             shape == &json!([features.size.1, features.size.0, 3]),
             "{}: its frames are {shape}, this run makes {}x{} (HxW) frames",
@@ -103,8 +177,8 @@ impl LeRobotWriter {
             .map(str::to_string)
             .take(episodes.len())
             .collect();
-        let codec = codec_name(video::Mp4Encoder::best()?);
-        Ok(Self { root: root.to_path_buf(), features, episodes, tasks, stats_lines, codec })
+        let codec = Self::codec(stored)?;
+        Ok(Self { root: root.to_path_buf(), features, episodes, tasks, stats_lines, storage: stored, codec })
     }
 
     fn check(f: &DatasetFeatures) -> Result<()> {
@@ -117,6 +191,11 @@ impl LeRobotWriter {
 
     pub fn root(&self) -> &Path {
         &self.root
+    }
+
+    /// How this dataset stores its frames.
+    pub fn storage(&self) -> FrameStorage {
+        self.storage
     }
 
     /// Episodes already in the dataset.
@@ -157,12 +236,17 @@ impl LeRobotWriter {
         let fps = self.features.fps;
 
         let data = self.root.join(fill(DATA_PATH, episode, None));
-        let video_path = self.root.join(fill(VIDEO_PATH, episode, Some(&self.features.video_key)));
-        for p in [&data, &video_path] {
-            std::fs::create_dir_all(p.parent().expect("templated paths have folders"))?;
+        std::fs::create_dir_all(data.parent().expect("templated paths have folders"))?;
+        let mut columns: Vec<(&str, ArrayRef)> = Vec::new();
+        match self.storage {
+            FrameStorage::Video => {
+                let video_path = self.root.join(fill(VIDEO_PATH, episode, Some(&self.features.video_key)));
+                std::fs::create_dir_all(video_path.parent().expect("templated paths have folders"))?;
+                video::write_mp4(&video_path, frames, fps)?;
+            }
+            FrameStorage::Image => columns.push((self.features.video_key.as_str(), png_cells(frames)?)),
         }
-        video::write_mp4(&video_path, frames, fps)?;
-        let batch = RecordBatch::try_from_iter([
+        columns.extend([
             ("action", vectors(actions, da)?),
             ("observation.state", vectors(states, ds)?),
             ("timestamp", Arc::new(Float32Array::from_iter_values((0..n).map(|t| (t as f64 / fps) as f32))) as ArrayRef),
@@ -170,7 +254,8 @@ impl LeRobotWriter {
             ("episode_index", int_column((0..n).map(|_| episode as i64))),
             ("index", int_column((0..n).map(|t| (first_index + t) as i64))),
             ("task_index", int_column((0..n).map(|_| task_index as i64))),
-        ])?;
+        ]);
+        let batch = RecordBatch::try_from_iter(columns)?;
         write_parquet(&data, &batch)?;
 
         self.stats_lines.push(
@@ -199,32 +284,35 @@ impl LeRobotWriter {
         let names = |v: &[String]| json!({ "dtype": "float32", "shape": [v.len()], "names": v });
         let scalar = |dtype: &str| json!({ "dtype": dtype, "shape": [1], "names": null });
         let total_frames: usize = self.episodes.iter().map(|e| e.length).sum();
+        let mut camera = json!({
+            "dtype": self.storage.dtype(),
+            "shape": [f.size.1, f.size.0, 3],
+            "names": ["height", "width", "channels"],
+        });
+        if let Some(codec) = self.codec {
+            camera["info"] = json!({
+                "video.height": f.size.1, "video.width": f.size.0, "video.codec": codec,
+                "video.pix_fmt": "yuv420p", "video.is_depth_map": false, "video.fps": f.fps,
+                "video.channels": 3, "has_audio": false
+            });
+        }
         let info = json!({
             "codebase_version": CODEBASE_VERSION,
             "robot_type": f.robot_type,
             "total_episodes": self.episodes.len(),
             "total_frames": total_frames,
             "total_tasks": self.tasks.len(),
-            "total_videos": self.episodes.len(),
+            "total_videos": if self.storage == FrameStorage::Video { self.episodes.len() } else { 0 },
             "total_chunks": self.episodes.len().div_ceil(CHUNKS_SIZE),
             "chunks_size": CHUNKS_SIZE,
             "fps": f.fps,
             "splits": { "train": format!("0:{}", self.episodes.len()) },
             "data_path": DATA_PATH,
-            "video_path": VIDEO_PATH,
+            "video_path": if self.storage == FrameStorage::Video { json!(VIDEO_PATH) } else { Value::Null },
             "features": {
                 "action": names(&f.action_names),
                 "observation.state": names(&f.state_names),
-                f.video_key.clone(): {
-                    "dtype": "video",
-                    "shape": [f.size.1, f.size.0, 3],
-                    "names": ["height", "width", "channels"],
-                    "info": {
-                        "video.height": f.size.1, "video.width": f.size.0, "video.codec": self.codec,
-                        "video.pix_fmt": "yuv420p", "video.is_depth_map": false, "video.fps": f.fps,
-                        "video.channels": 3, "has_audio": false
-                    }
-                },
+                f.video_key.clone(): camera,
                 "timestamp": scalar("float32"),
                 "frame_index": scalar("int64"),
                 "episode_index": scalar("int64"),
@@ -270,6 +358,22 @@ fn vectors(rows: &[Vec<f32>], d: usize) -> Result<ArrayRef> {
         b.append(true);
     }
     Ok(Arc::new(b.finish()))
+}
+
+/// Frames as Hugging Face `datasets.Image` cells: structs of PNG `bytes` and a null `path`.
+fn png_cells(frames: &[RgbImage]) -> Result<ArrayRef> {
+    let mut encoded = Vec::with_capacity(frames.len());
+    for (t, frame) in frames.iter().enumerate() {
+        let mut bytes = std::io::Cursor::new(Vec::new());
+        frame.write_to(&mut bytes, image::ImageFormat::Png).with_context(|| format!("encoding frame {t} as PNG"))?;
+        encoded.push(bytes.into_inner());
+    }
+    let bytes: ArrayRef = Arc::new(BinaryArray::from_iter_values(encoded.iter()));
+    let paths: ArrayRef = Arc::new(StringArray::new_null(frames.len()));
+    Ok(Arc::new(StructArray::from(vec![
+        (Arc::new(Field::new("bytes", DataType::Binary, true)), bytes),
+        (Arc::new(Field::new("path", DataType::Utf8, true)), paths),
+    ])))
 }
 
 fn int_column(v: impl Iterator<Item = i64>) -> ArrayRef {
@@ -345,6 +449,48 @@ fn image_stats(frames: &[RgbImage]) -> Value {
 mod tests {
     use super::*;
     use crate::fsync_log::synced_in;
+    use crate::source::CameraSelection;
+
+    fn features(storage: Option<FrameStorage>) -> DatasetFeatures {
+        DatasetFeatures {
+            action_names: vec!["x".into(), "g".into()],
+            state_names: vec!["x".into(), "g".into()],
+            video_key: "observation.images.generated".into(),
+            size: (6, 4),
+            fps: 10.0,
+            robot_type: "test".into(),
+            storage,
+        }
+    }
+
+    #[test]
+    fn image_storage_keeps_every_frame_exactly_and_a_resume_holds_to_it() {
+        let dir = bwm_testdir::TestDir::new("lerobot-png");
+        let root = dir.join("out");
+        let frames: Vec<RgbImage> = (0..3u8).map(|t| RgbImage::from_fn(6, 4, |x, y| image::Rgb([t * 40 + x as u8, y as u8 * 9, 200 - t]))).collect();
+        let rows: Vec<Vec<f32>> = (0..3).map(|t| vec![t as f32 * 0.5, -1.0]).collect();
+        let mut w = LeRobotWriter::create(&root, features(Some(FrameStorage::Image))).unwrap();
+        w.add_episode(&frames, &rows, &rows, "open").unwrap();
+        drop(w);
+        // Asked for video, the dataset's image features are named; left unset, they are kept.
+        let err = LeRobotWriter::resume(&root, features(Some(FrameStorage::Video))).err().expect("video storage accepted on an image dataset");
+        assert!(err.to_string().contains("stored as image features"), "{err:#}");
+        let mut w = LeRobotWriter::resume(&root, features(None)).unwrap();
+        assert_eq!(w.storage(), FrameStorage::Image);
+        w.add_episode(&frames[..2], &rows[..2], &rows[..2], "open").unwrap();
+
+        assert!(!root.join("videos").exists(), "image storage wrote videos");
+        let info: Value = serde_json::from_str(&std::fs::read_to_string(root.join("meta/info.json")).unwrap()).unwrap();
+        assert_eq!(info["features"]["observation.images.generated"]["dtype"], "image");
+        assert_eq!(info["total_videos"], 0);
+        let source = crate::open_dataset(&root).unwrap();
+        assert_eq!(source.episodes().len(), 2);
+        let read = source.frames(0, 0..3, &CameraSelection::default()).unwrap();
+        assert_eq!(read, frames, "PNG cells changed the frames");
+        assert_eq!(source.frames(1, 0..2, &CameraSelection::default()).unwrap(), frames[..2]);
+        let spec = crate::actions::ActionSpec::parse("action:0-1").unwrap();
+        assert_eq!(source.vectors(0, &spec).unwrap(), rows);
+    }
 
     #[test]
     fn metadata_and_episode_data_are_synced_under_their_temporary_name_then_their_folder() {

@@ -112,8 +112,8 @@ pub fn write_mp4(path: &Path, frames: &[RgbImage], fps: f64) -> Result<()> {
 pub const AVAILABLE: bool = cfg!(feature = "video");
 
 /// `frames` as an mp4 at `path` when this build has video, else as a PNG contact sheet (rows of
-/// `per_row` frames) beside it with the extension `png`, so that builds without FFmpeg (the GPU
-/// machines) still leave something to look at. Returns the path written.
+/// `per_row` frames) beside it with the extension `png`, so that builds without FFmpeg still
+/// leave something to look at. Returns the path written.
 pub fn write_mp4_or_sheet(path: &Path, frames: &[RgbImage], fps: f64, per_row: usize) -> Result<PathBuf> {
     if AVAILABLE {
         write_mp4(path, frames, fps)?;

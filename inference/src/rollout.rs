@@ -9,7 +9,7 @@ use std::time::Instant;
 
 use anyhow::{bail, ensure, Context, Result};
 use bwm_data::frames::{fit, frames_to_tensor, tensor_to_frames};
-use bwm_data::lerobot_writer::{DatasetFeatures, LeRobotWriter};
+use bwm_data::lerobot_writer::{DatasetFeatures, FrameStorage, LeRobotWriter};
 use bwm_data::open_dataset;
 use bwm_metrics::image::{psnr, ssim};
 use bwm_model::keyed_rng::{self, Purpose};
@@ -78,6 +78,9 @@ pub struct RolloutOptions {
     pub streams: usize,
     /// Continue an interrupted run into --out (finished episodes are kept).
     pub resume: bool,
+    /// How the output stores its frames (unset: as a resumed dataset does, else
+    /// `FrameStorage::default_for_build`).
+    pub frame_storage: Option<FrameStorage>,
 }
 
 /// One episode to generate.
@@ -144,8 +147,10 @@ pub fn run(options: &WorldModelOptions, a: &RolloutOptions) -> Result<()> {
         size,
         fps: jobs[0].fps,
         robot_type: "bwm_world_model".into(),
+        storage: a.frame_storage,
     };
     let mut writer = if a.resume { LeRobotWriter::resume(&a.out, features)? } else { LeRobotWriter::create(&a.out, features)? };
+    println!("rollout: frames stored as {} features", writer.storage().dtype());
     let done = writer.len();
     if done > 0 {
         println!("rollout: {} episodes already in {}; continuing", done, a.out.display());

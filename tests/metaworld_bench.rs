@@ -366,6 +366,38 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
         assert!(names.iter().any(|n| n.ends_with(&format!("/{v}"))), "{v} missing: {names:?}");
     }
 
+    // The data engine: the expert's commands planned from two new placements per task, drawn by
+    // the world model into PNG cells (what builds without video write), and one real
+    // demonstration cloned alone, with the generated episodes the judge passes, with all of them
+    // and with two more real ones, each policy run twice in the simulator.
+    let engine_envs = [("ENGINE_SEEDS", "1"), ("ENGINE_GENERATED", "2"), ("ENGINE_DEMOS", "1"), ("ENGINE_EPISODES", "2"), ("ENGINE_NET_STEPS", "5"), ("ENGINE_IN_FLIGHT", "2")];
+    run(toy("recipe.sh", &runs).arg("engine").envs(TOY_STUDY).envs(engine_envs), "recipe.sh engine");
+    let generated = json(&runs.join("engine/generated/meta/info.json"));
+    assert_eq!(generated["total_episodes"], 4, "{generated}");
+    assert_eq!(generated["features"]["observation.images.generated"]["dtype"], "image", "{generated}");
+    let planned = json(&runs.join("engine/plan/plan.json"));
+    assert!(planned["episodes"].as_array().unwrap().iter().all(|e| e["commands"].as_array().unwrap().len() == 100), "{planned}");
+    let engine = json(&runs.join("engine/engine.json"));
+    let rows = engine["rows"].as_array().unwrap();
+    assert_eq!(rows.len(), 8, "2 tasks x 4 arms: {engine}");
+    for r in rows {
+        let task = r["task"].as_str().unwrap();
+        assert!(r["success_rate"].as_f64().is_some_and(|v| (0.0..=1.0).contains(&v)) && r["episodes"] == 2, "{r}");
+        let judged = engine["judged"][task]["judged_success"].as_u64().unwrap();
+        let expected = match r["arm"].as_str().unwrap() {
+            "real" => 1,
+            "real+judged" => 1 + judged,
+            "real+generated" | "real+real" => 3,
+            other => panic!("unknown arm {other}"),
+        };
+        assert_eq!(r["demonstrations"], expected, "{r}");
+    }
+    assert_eq!(engine["verdicts"].as_array().unwrap().len(), 4, "{engine}");
+    let timings = std::fs::read_to_string(runs.join("timings.tsv")).unwrap();
+    for stage in ["engine-plan", "engine-rollout", "engine-measure"] {
+        assert!(timings.lines().any(|l| l.split('\t').next() == Some(stage)), "no {stage} in timings.tsv:\n{timings}");
+    }
+
     // The judge of real frames only, beside the recipe's (its own file, report and ceiling; the
     // recipe's judge left as it was).
     let before = std::fs::read(runs.join("judge-reconstructed.pt")).unwrap();

@@ -311,23 +311,35 @@ def _cached(name: str, key: tuple, build: Callable[[], dict]) -> dict:
     return arrays
 
 
+def demo_arrays(task: str, frames, commands) -> dict:
+    """A demonstration as a cloned policy learns from it: `commands` [T, 4] issued from the task's
+    initial state, `frames` the T + 1 (or T) frames shown before each of them (and after the last):
+    observations x [len(frames), D], and per command the next CHUNK commands relative to the state
+    then (action units, x 1 cm) with their gripper commands: targets y [T, CHUNK, 4]. A world
+    model's episode (frames drawn from the commanded states) is read the same way as the
+    simulator's."""
+    commands = np.asarray(commands, np.float32).reshape(-1, 4)
+    states = [initial_state(task)]
+    for c in commands:
+        states.append(next_state(states[-1], c))
+    states = np.stack(states)
+    hold = np.append(states[-1, :3], commands[-1, 3])
+    padded = np.concatenate([commands, np.repeat(hold[None], CHUNK, 0)])
+    t = np.arange(len(commands))[:, None] + np.arange(CHUNK)
+    targets = padded[t].copy()
+    targets[..., :3] = (targets[..., :3] - states[:-1, None, :3]) / ACTION_SCALE
+    if len(frames) not in (len(commands), len(commands) + 1):
+        raise ValueError(f"{len(frames)} frames for {len(commands)} commands (expected one before each command, and one after the last or not)")
+    x = np.stack([observation(f, s) for f, s in zip(frames, states)])
+    return {"x": x.astype(np.float32), "y": targets.astype(np.float32)}
+
+
 def demo(task: str, seed: int, resolution: int) -> dict:
-    """The expert's episode on `seed`: observations [T+1, D], and per step the next CHUNK commands
-    relative to the state (action units, x 1 cm) and their gripper commands: targets [T, CHUNK, 4]."""
+    """The expert's episode on `seed` in the simulator, as `demo_arrays` (x [T+1, D], y [T, CHUNK, 4])."""
 
     def record() -> dict:
         e = policies.run(policies.Policy(task, "expert", seed), task, seed, HORIZON, CHUNK, resolution, record=True)
-        states = [initial_state(task)]
-        for c in e.commands:
-            states.append(next_state(states[-1], c))
-        states = np.stack(states)
-        hold = np.append(states[-1, :3], e.commands[-1, 3])
-        commands = np.concatenate([e.commands, np.repeat(hold[None], CHUNK, 0)])
-        t = np.arange(len(e.commands))[:, None] + np.arange(CHUNK)
-        targets = commands[t].copy()
-        targets[..., :3] = (targets[..., :3] - states[:-1, None, :3]) / ACTION_SCALE
-        x = np.stack([observation(f, s) for f, s in zip(e.frames, states)])
-        return {"x": x.astype(np.float32), "y": targets.astype(np.float32)}
+        return demo_arrays(task, e.frames, e.commands)
 
     return _cached(f"demo-{task}-{seed}-{resolution}", ("demo", task, seed, resolution, HORIZON, CHUNK, SIZE), record)
 
@@ -341,19 +353,20 @@ def normalizer(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return xm, np.maximum(xs, 1e-3)
 
 
-def _train_net(x: np.ndarray, y: np.ndarray, steps: int) -> dict:
-    """A two-hidden-layer MLP fitted to standardized inputs and targets (deterministic, one CPU thread)."""
+def train_net(x: np.ndarray, y: np.ndarray, steps: int = NET_STEPS, seed: int = 0) -> dict:
+    """A two-hidden-layer MLP fitted to standardized inputs and targets [N, CHUNK * 4]
+    (deterministic for a seed, one CPU thread): the arrays `Cloned` runs."""
     import torch
 
     torch.set_num_threads(1)
-    torch.manual_seed(0)
+    torch.manual_seed(seed)
     xm, xs = normalizer(x)
     ym, ys = y.mean(0), np.maximum(y.std(0), 0.05)
     X, Y = torch.tensor((x - xm) / xs), torch.tensor((y - ym) / ys)
     net = torch.nn.Sequential(torch.nn.Linear(x.shape[1], 256), torch.nn.ReLU(), torch.nn.Linear(256, 256), torch.nn.ReLU(),
                               torch.nn.Linear(256, y.shape[1]))
     opt = torch.optim.Adam(net.parameters(), lr=1e-3, weight_decay=1e-5)
-    g = torch.Generator().manual_seed(0)
+    g = torch.Generator().manual_seed(seed)
     for _ in range(steps):
         batch = torch.randint(len(X), (min(256, len(X)),), generator=g)
         loss = torch.nn.functional.mse_loss(net(X[batch]), Y[batch])
@@ -385,7 +398,7 @@ def model(task: str, kind: str, demos: int, demo_seed_start: int = DEMO_SEED_STA
         if kind == "nn":
             xm, xs = normalizer(x)
             return {"xm": xm, "xs": xs, "x": (x - xm) / xs, "y": y}
-        return _train_net(x, y, steps)
+        return train_net(x, y, steps)
 
     key = (kind, task, demos, demo_seed_start, resolution, HORIZON, CHUNK, SIZE) + (_trainer() + (steps,) if kind == "net" else ())
     return _cached(f"bc-{kind}-{task}-{demos}x{demo_seed_start}-{resolution}", key, train)

@@ -33,6 +33,12 @@
 #   probe    the same study over graded `wrong-<d>cm` variants (the expert with its targets moved d
 #            cm along the task's `wrong` offset): does the model's contact follow a shifted
 #            command as the simulator's does? $RUN/probe/ (same files as study/)
+#   engine   (only when named) the data engine measured, bench/metaworld/engine.py: the expert's
+#            commands planned from the first frame of new placements, drawn by `bwm rollout`, and
+#            behaviour-cloned policies trained on N real demonstrations with and without them
+#            (those the judge calls successes, or all), run in the simulator: $ENGINE_DIR
+#            (default $RUN/engine/: plan/, generated/, engine.json); ENGINE_SEEDS,
+#            ENGINE_GENERATED, ENGINE_DEMOS, ENGINE_EPISODES, ENGINE_NET_STEPS size it
 # Usage (repository root): bash bench/metaworld/recipe.sh [STAGE ...]   (default: all)
 # A stage whose output exists keeps it only when it was made by the same command from the same
 # inputs (the data: generate.py --reuse; the VAE, latent cache, judge, the held-out round trip and
@@ -130,11 +136,18 @@ PROBE_VARIANTS="${PROBE_VARIANTS:-wrong-0cm,wrong-1cm,wrong-2cm,wrong-3cm,wrong-
 TEACHER_VARIANTS="${TEACHER_VARIANTS:-$STUDY_VARIANTS}"  # the teacher stage's variants (default: the study's)
 OWN_BEHAVIOURS="${OWN_BEHAVIOURS-near}"   # the own stage's generator behaviours, comma-separated (empty: all)
 OWN_EPISODES="${OWN_EPISODES:-400}"       # the own stage's episodes per task and dataset (the first of those behaviours)
+ENGINE_DIR="${ENGINE_DIR:-$RUN/engine}"   # where the engine stage writes
+ENGINE_SEEDS="${ENGINE_SEEDS:-3}"         # data seeds: each its own real and generated placements and network seed
+ENGINE_GENERATED="${ENGINE_GENERATED:-16}"  # generated episodes per task and data seed (M)
+ENGINE_DEMOS="${ENGINE_DEMOS:-2,4,8}"     # real demonstration counts N
+ENGINE_EPISODES="${ENGINE_EPISODES:-100}" # simulator episodes per cloned policy
+ENGINE_NET_STEPS="${ENGINE_NET_STEPS:-}"  # the cloned network's training steps (default: families.py's NET_STEPS)
+ENGINE_IN_FLIGHT="${ENGINE_IN_FLIGHT:-16}"  # generated episodes rolled out at once
 STAGES=()
 for arg in "$@"; do
   case "$arg" in
-    data|vae|latents|train|fidelity|truth|judge|ceiling|study|teacher|own|probe) STAGES+=("$arg") ;;
-    *) echo "recipe: unknown stage '$arg' (stages: data vae latents train fidelity truth judge ceiling study teacher own probe)" >&2; exit 2 ;;
+    data|vae|latents|train|fidelity|truth|judge|ceiling|study|teacher|own|probe|engine) STAGES+=("$arg") ;;
+    *) echo "recipe: unknown stage '$arg' (stages: data vae latents train fidelity truth judge ceiling study teacher own probe engine)" >&2; exit 2 ;;
   esac
 done
 [ ${#STAGES[@]} -gt 0 ] || STAGES=(data vae latents train fidelity truth judge ceiling study teacher own probe)
@@ -395,5 +408,19 @@ if wants probe; then
   world_model
   timed probe "$PYTHON" bench/metaworld/study.py "${COMMON_STUDY_ARGS[@]}" --variants "$PROBE_VARIANTS" --out "$RUN/probe" \
     --judge "$JUDGE" --bwm "$BWM" --jobs "$STUDY_JOBS" --episodes-in-flight "$STUDY_IN_FLIGHT" --streams "$STUDY_STREAMS" -- "${WM[@]}"
+fi
+if wants engine; then
+  world_model
+  # Made afresh each time: the plan, the rollout and the policies take minutes, and a half-made
+  # set from other settings must not be mixed into the next.
+  rm -rf "$ENGINE_DIR/plan" "$ENGINE_DIR/generated"
+  fps=$(cd bench/metaworld && "$PYTHON" -c 'from mw import FPS; print(FPS)')
+  timed engine-plan "$PYTHON" bench/metaworld/engine.py plan --out "$ENGINE_DIR/plan" --tasks "$TASKS" --seeds "$ENGINE_SEEDS" \
+    --generated "$ENGINE_GENERATED" --frames "$FRAMES" --resolution "$RESOLUTION" --workers "$WORKERS" || exit 1
+  timed engine-rollout "$BWM" rollout "${WM[@]}" --inputs "$ENGINE_DIR/plan/inputs.jsonl" --drive file --fps "$fps" \
+    --resolution "${RESOLUTION}x$RESOLUTION" --frame-storage image --episodes-in-flight "$ENGINE_IN_FLIGHT" --out "$ENGINE_DIR/generated" || exit 1
+  timed engine-measure "$PYTHON" bench/metaworld/engine.py measure --plan "$ENGINE_DIR/plan" --generated "$ENGINE_DIR/generated" \
+    --judge "$JUDGE" --demos "$ENGINE_DEMOS" --episodes "$ENGINE_EPISODES" ${ENGINE_NET_STEPS:+--net-steps "$ENGINE_NET_STEPS"} \
+    --workers "$WORKERS" --device "$DEVICE" --out "$ENGINE_DIR/engine.json" || exit 1
 fi
 echo "recipe: done; stage times in $TIMINGS"

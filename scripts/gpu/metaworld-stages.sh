@@ -63,6 +63,13 @@ elif [ "${1:-}" = sweep ]; then
     bash bench/metaworld/sweep.sh 2>&1 | tee -a "$OUT/sweep.log"
     status=${PIPESTATUS[0]}
   fi
+elif [ "${1:-}" = engine ]; then
+  # The data engine measured (recipe.sh's engine stage) on a model trained here first.
+  train_stages
+  if [ $status = 0 ]; then
+    recipe engine 2>&1 | tee -a "$OUT/recipe.log"
+    status=${PIPESTATUS[0]}
+  fi
 elif [ $# -gt 0 ]; then
   recipe "$@" 2>&1 | tee -a "$OUT/recipe.log"
   status=${PIPESTATUS[0]}

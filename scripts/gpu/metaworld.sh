@@ -34,6 +34,9 @@
 # study's own, and COMPARE_JUDGE=reconstructed then adds the recipe's default judge).
 # `bash scripts/gpu/metaworld.sh transfer` runs bench/metaworld/transfer.sh (the base-versus-scratch
 # study of the LoRA issue; its variables apply) instead, its small outputs in $OUT/run.tar.gz;
+# `bash scripts/gpu/metaworld.sh engine` trains the model (stages up to train, truth and judge)
+# where it has not, then runs the recipe's engine stage (the data engine measured; its ENGINE_*
+# variables apply): $RUN/engine/engine.json comes back in run.tar.gz. Run it detached as the recipe.
 # `bash scripts/gpu/metaworld.sh sweep` runs bench/metaworld/sweep.sh (the real-time issue's sampler
 # sweep; its variables apply) over the run the recipe trained on this machine, training it first
 # (stages up to train, truth and judge) where it has not; run it detached as the recipe.

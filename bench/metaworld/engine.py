@@ -20,7 +20,7 @@ steps in order; docs/fidelity.md, "The data engine", has the table.)
      (judge.py, on the generated frames, the episode's end final) calls successes;
    - `real+generated`: those and every generated episode of seed s;
    - `real+real` (what generated data could reach at best): those and M more real
-     demonstrations, on the generated episodes' placements;
+     demonstrations, on placements of their own (REAL_SEED_START + 1000 s + max(N) + j, j < M);
    each run in the simulator on the same EPISODES placements (EVAL_SEED_START + i) with the
    `learned` family's loop (policies.run: a frame every 24 steps, 120 steps, frames at the
    data's resolution), its success rate the share of them that succeed. Writes engine.json: every

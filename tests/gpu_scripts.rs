@@ -145,13 +145,18 @@ fn variants_with_the_same_data_variables_share_one_dataset() {
 }
 
 /// A stub of bench/metaworld/recipe.sh: records each call's stages with the judge and study folder
-/// it would use (recipe.sh's defaults), and leaves a study.json naming the judge in that folder.
+/// it would use (recipe.sh's defaults), and leaves a study.json naming the judge in that folder,
+/// and a truth.json naming the folder it was measured in where none is there yet.
 const STUB_STAGES: &str = r#"
 study=${STUDY_DIR:-$RUN/study} judge=${JUDGE_FRAMES:-reconstructed}
 echo "$* judge=$judge study=$study ema=${EMA_DECAY:-}" >> "$CALLS"
 [ -z "${STUDY_STREAMS:-}" ] || echo "streams $STUDY_STREAMS study=$study" >> "$CALLS"
+[ -z "${HISTORY_SIGMA:-}" ] || echo "history-sigma $HISTORY_SIGMA study=$study" >> "$CALLS"
 for s in "$@"; do
-  if [ "$s" = study ]; then mkdir -p "$study"; echo "{\"judge\": \"$judge\"}" > "$study/study.json"; fi
+  if [ "$s" = study ]; then
+    mkdir -p "$study"; echo "{\"judge\": \"$judge\"}" > "$study/study.json"
+    [ -f "$study/truth.json" ] || echo "$study" > "$study/truth.json"
+  fi
 done
 "#;
 
@@ -181,6 +186,8 @@ fn stages(dir: &Path, vars: &[(&str, &str)]) -> (Output, Vec<String>) {
         .env_remove("COMPARE_EMA")
         .env_remove("EMA_DECAY")
         .env_remove("OTHER_SEEDS")
+        .env_remove("COMPARE_HISTORY_SIGMA")
+        .env_remove("HISTORY_SIGMA")
         .env("RUN", "runs/x")
         .env("OUT", dir.join("out"))
         .env("CALLS", &calls)
@@ -293,6 +300,29 @@ fn the_study_in_lanes_follows_the_study_when_asked() {
         "{log}"
     );
     assert!(d.join("runs/x/study-streams2/study.json").is_file(), "{log}");
+}
+
+#[test]
+fn the_study_is_repeated_per_history_noise_level_from_its_truth_when_asked() {
+    let dir = common::temp_dir("gpu-history-sigma");
+    let d = dir.path();
+    let (calls, log) = stages_ran(d, &[("COMPARE_HISTORY_SIGMA", "0 0.1")]);
+    let studies: Vec<&String> = calls.iter().filter(|c| c.starts_with("study ") || c.starts_with("history-sigma ")).collect();
+    assert_eq!(
+        studies,
+        [
+            "study judge=reconstructed study=runs/x/study ema=",
+            "study judge=reconstructed study=runs/x/study-h0 ema=",
+            "history-sigma 0 study=runs/x/study-h0",
+            "study judge=reconstructed study=runs/x/study-h0.1 ema=",
+            "history-sigma 0.1 study=runs/x/study-h0.1",
+        ],
+        "{log}"
+    );
+    // Each comparison starts from the study's own truth (copied, not measured again).
+    for s in ["study-h0", "study-h0.1"] {
+        assert_eq!(fs::read_to_string(d.join("runs/x").join(s).join("truth.json")).unwrap().trim(), "runs/x/study", "{log}");
+    }
 }
 
 #[test]

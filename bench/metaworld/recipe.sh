@@ -108,6 +108,8 @@ FP8="${FP8:-}"                            # tensor or row: the DiT blocks' linea
 SAMPLER_GRAPH="${SAMPLER_GRAPH:-0}"       # 1: the sampler's forward pass replayed from CUDA graphs (bwm --cuda-graph)
                                           # in the fidelity, study, teacher and probe stages; CUDA only
 case "$SAMPLER_GRAPH" in 0|1) ;; *) echo "recipe: SAMPLER_GRAPH must be 0 or 1, not '$SAMPLER_GRAPH'" >&2; exit 2 ;; esac
+HISTORY_SIGMA="${HISTORY_SIGMA:-}"        # bwm --history-sigma when sampling: the history latents' noise level (empty: the
+                                          # level the DiT trained with; 0: clean history)
 GUIDANCE="${GUIDANCE:-1}"                 # bwm --guidance: classifier-free guidance by the actions (1 = off; other
                                           # values need TRAIN_SETS=objective.action_dropout=P with P > 0)
 JUDGE_STEPS="${JUDGE_STEPS:-600}"
@@ -313,7 +315,7 @@ world_model() {
     ckpt="$RUN/ema/$step"
   fi
   WM=(--checkpoint "$ckpt" --vae "$RUN/vae.safetensors" --stats "$RUN/latents/stat.json" --stats-group observation.state
-      --history 8 --future 24 --sample-steps "$SAMPLE_STEPS" --solver "$SOLVER" --guidance "$GUIDANCE" ${FP8:+--fp8 "$FP8"} --device "$DEVICE")
+      --history 8 --future 24 --sample-steps "$SAMPLE_STEPS" --solver "$SOLVER" --guidance "$GUIDANCE" ${HISTORY_SIGMA:+--history-sigma "$HISTORY_SIGMA"} ${FP8:+--fp8 "$FP8"} --device "$DEVICE")
   if [ "$SAMPLER_GRAPH" = 1 ]; then WM+=(--cuda-graph); fi
 }
 

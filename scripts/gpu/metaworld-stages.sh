@@ -30,6 +30,15 @@ fi
 judge_log() { if [ "$1" = real ]; then echo "$OUT/judge.log"; else echo "$OUT/judge-$1.log"; fi; }
 # The study each judge is for (its judge stage leaves the judge on the simulator's frames there).
 study_dir() { if [ "$1" = "$OWN_JUDGE" ]; then echo "$OWN_STUDY"; else echo "$R/study-judge-$1"; fi; }
+# A study of the same model and episodes under other sampler settings starts from the study's
+# truth and its judge's verdicts on the simulator's frames (study.py re-measures a cached file
+# whose key differs, so a copy made for other episodes or variants costs nothing but the copy).
+seed_study() {
+  mkdir -p "$1"
+  for f in truth.json judged.json; do
+    [ -e "$1/$f" ] || [ ! -f "$OWN_STUDY/$f" ] || cp "$OWN_STUDY/$f" "$1/$f"
+  done
+}
 train_stages() {
   status=0
   recipe data 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
@@ -92,21 +101,31 @@ else
     if [ $status = 0 ] && [ -n "${COMPARE_STREAMS:-}" ]; then
       # The same study with the episodes in flight in lanes on CUDA streams of their own (the same
       # estimates; what changes is the time).
+      seed_study "$R/study-streams$COMPARE_STREAMS"
       STUDY_STREAMS=$COMPARE_STREAMS STUDY_DIR=$R/study-streams$COMPARE_STREAMS recipe study 2>&1 | tee -a "$OUT/recipe.log"
       [ "${PIPESTATUS[0]}" = 0 ] || status=1
     fi
     if [ $status = 0 ] && [ -n "${COMPARE_SOLVER:-}" ]; then
+      seed_study "$R/study-$COMPARE_SOLVER"
       SOLVER=$COMPARE_SOLVER STUDY_DIR=$R/study-$COMPARE_SOLVER recipe study 2>&1 | tee -a "$OUT/recipe.log"
       [ "${PIPESTATUS[0]}" = 0 ] || status=1
     fi
     if [ $status = 0 ] && [ "${COMPARE_EMA:-0}" = 1 ]; then
       # The same training's last step's weights, beside the average the study rolled out.
+      seed_study "$R/study-last"
       EMA_DECAY= STUDY_DIR=$R/study-last recipe study 2>&1 | tee -a "$OUT/recipe.log"
       [ "${PIPESTATUS[0]}" = 0 ] || status=1
     fi
     for w in ${COMPARE_GUIDANCE:-}; do
       [ $status = 0 ] || break
+      seed_study "$R/study-g$w"
       GUIDANCE=$w STUDY_DIR=$R/study-g$w recipe study 2>&1 | tee -a "$OUT/recipe.log"
+      [ "${PIPESTATUS[0]}" = 0 ] || status=1
+    done
+    for s in ${COMPARE_HISTORY_SIGMA:-}; do
+      [ $status = 0 ] || break
+      seed_study "$R/study-h$s"
+      HISTORY_SIGMA=$s STUDY_DIR=$R/study-h$s recipe study 2>&1 | tee -a "$OUT/recipe.log"
       [ "${PIPESTATUS[0]}" = 0 ] || status=1
     done
     if [ $status = 0 ] && [ "${TEACHER:-0}" = 1 ]; then

@@ -25,6 +25,8 @@
 # timings). COMPARE_SOLVER=dpm++2m studies the same model a
 # second time with that sampler ($RUN/study-dpm++2m); COMPARE_GUIDANCE="2 3" once more per
 # action-guidance value ($RUN/study-g2, ...; the model trained with objective.action_dropout > 0);
+# COMPARE_HISTORY_SIGMA="0" once more per history-noise level when sampling ($RUN/study-h0, ...;
+# recipe.sh's HISTORY_SIGMA); each such study starts from the study's truth and judged episodes;
 # COMPARE_EMA=1 (with EMA_DECAY) once more with the newest checkpoint's last step's weights instead
 # of their average ($RUN/study-last);
 # OTHER_SEEDS=S once more on held-out seeds from S (bench/metaworld/other-seeds.sh, without

@@ -25,4 +25,4 @@ pub use export::{export, ExportDtype, ExportOptions, ExportReport};
 pub use keymap::DitLayout;
 pub use open::{load_model, open_any, OpenedWeights};
 pub use run_dir::{CheckpointRoot, StepDir};
-pub use tensor_file::{read_tensors, write_tensors};
+pub use tensor_file::{read_tensors, write_tensors, write_tensors_replacing};

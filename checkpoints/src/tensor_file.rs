@@ -75,6 +75,22 @@ pub fn write_tensors(path: &Path, tensors: &[(String, Tensor)], metadata: &BTree
     Ok(())
 }
 
+/// `write_tensors` into `path` as a whole or not at all: written beside it (`NAME.tmp`, its folder
+/// created) and renamed into place, so that a reader never sees half a file.
+pub fn write_tensors_replacing(path: &Path, tensors: &[(String, Tensor)], metadata: &BTreeMap<String, String>) -> Result<()> {
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    let mut tmp = path.as_os_str().to_owned();
+    tmp.push(".tmp");
+    let tmp = std::path::PathBuf::from(tmp);
+    if let Err(e) = write_tensors(&tmp, tensors, metadata) {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(e);
+    }
+    std::fs::rename(&tmp, path).with_context(|| format!("renaming {} to {}", tmp.display(), path.display()))
+}
+
 /// Every tensor of a safetensors file, in its stored dtype, on `device`.
 pub fn read_tensors(path: &Path, device: Device) -> Result<BTreeMap<String, Tensor>> {
     let source = SafetensorsSource::open(path)?;

@@ -15,6 +15,7 @@ mod sampler;
 mod serve;
 mod stats;
 mod train;
+mod train_light_decoder;
 mod train_vae;
 mod world_model;
 
@@ -82,6 +83,9 @@ enum Command {
     Train(train::TrainArgs),
     /// Fit a small Wan2.2-architecture VAE to a dataset's frames (real pixels for CPU runs).
     TrainVae(train_vae::TrainVaeArgs),
+    /// Fit a light decoder (a few per-frame convolutions) to a trained VAE's decoder, for the
+    /// world-model commands' --light-decoder.
+    TrainLightDecoder(train_light_decoder::TrainLightDecoderArgs),
     /// Round-trip a dataset's frames through a trained VAE: what a world model decoding with it
     /// can show at best (u8 safetensors per episode, and the PSNR).
     Reconstruct(reconstruct::ReconstructArgs),
@@ -130,6 +134,7 @@ fn main() {
         Command::Submit(a) => submit::run(a),
         Command::Train(a) => train::run(a),
         Command::TrainVae(a) => train_vae::run(a),
+        Command::TrainLightDecoder(a) => train_light_decoder::run(a),
         Command::Reconstruct(a) => reconstruct::run(a),
         Command::Info(a) => bench::info(a),
         Command::BenchForward(a) => bench::forward(a),

@@ -14,24 +14,11 @@ use clap::Args;
 
 #[derive(Args)]
 pub struct TrainVaeArgs {
-    /// Dataset in any format `bwm prepare` reads (BWM layout, LeRobot v2.1/v3.0, RoboTwin HDF5).
-    #[arg(long, default_value = "data/bwm-demo")]
-    pub data: PathBuf,
-    /// Cameras; several are stacked top to bottom (default: the dataset's default camera).
-    #[arg(long, value_delimiter = ',')]
-    pub camera: Vec<String>,
-    /// Use only the first N episodes (default: all).
-    #[arg(long)]
-    pub max_episodes: Option<usize>,
+    #[command(flatten)]
+    pub frames: FrameArgs,
     /// Output VAE file (safetensors with its config and latent statistics).
     #[arg(long, default_value = "runs/vae/vae.safetensors")]
     pub out: PathBuf,
-    /// Frame size WIDTHxHEIGHT, multiples of the spatial stride.
-    #[arg(long, default_value = "64x48")]
-    pub resolution: String,
-    /// How frames of another aspect ratio are fitted: crop (BWM), pad or stretch.
-    #[arg(long, default_value = "crop", value_parser = parse_resize)]
-    pub resize: ResizeMode,
     /// Encoder and decoder base widths (Wan2.2: 160 and 256).
     #[arg(long, default_value_t = 16)]
     pub dim: i64,
@@ -58,13 +45,6 @@ pub struct TrainVaeArgs {
     pub lr: f64,
     #[arg(long, default_value_t = 1e-6)]
     pub kl_weight: f64,
-    /// Whole episodes (by manifest line) held out for the PSNR measurement. Without it, the
-    /// last --holdout-tail of every episode's frames is held out instead.
-    #[arg(long, value_delimiter = ',')]
-    pub holdout: Vec<usize>,
-    /// Fraction of each episode's frames (its end) held out when --holdout names no episode.
-    #[arg(long, default_value_t = 0.2)]
-    pub holdout_tail: f64,
     /// Do not mirror training clips left-right at random (augmentation against memorizing).
     #[arg(long)]
     pub no_flip: bool,
@@ -109,11 +89,60 @@ pub struct TrainVaeArgs {
     pub eval_every: u64,
     /// Write the decoded, resized frames (training and held-out episodes) to this safetensors file
     /// and stop: a machine without FFmpeg (the GPU machines) can then train from it with --frames.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "frames_file")]
     pub dump_frames: Option<PathBuf>,
-    /// Train from frames written by --dump-frames instead of decoding the dataset's videos.
-    #[arg(long, conflicts_with = "dump_frames")]
-    pub frames: Option<PathBuf>,
+}
+
+/// Where the training and held-out frames come from: a dataset's episodes (decoded and resized),
+/// or a file of frames `bwm train-vae --dump-frames` wrote. Shared with `bwm train-light-decoder`.
+#[derive(Args)]
+pub struct FrameArgs {
+    /// Dataset in any format `bwm prepare` reads (BWM layout, LeRobot v2.1/v3.0, RoboTwin HDF5).
+    #[arg(long, default_value = "data/bwm-demo")]
+    pub data: PathBuf,
+    /// Cameras; several are stacked top to bottom (default: the dataset's default camera).
+    #[arg(long, value_delimiter = ',')]
+    pub camera: Vec<String>,
+    /// Use only the first N episodes (default: all).
+    #[arg(long)]
+    pub max_episodes: Option<usize>,
+    /// Frame size WIDTHxHEIGHT, multiples of the spatial stride.
+    #[arg(long, default_value = "64x48")]
+    pub resolution: String,
+    /// How frames of another aspect ratio are fitted: crop (BWM), pad or stretch.
+    #[arg(long, default_value = "crop", value_parser = parse_resize)]
+    pub resize: ResizeMode,
+    /// Whole episodes (by manifest line) held out for the PSNR measurement. Without it, the
+    /// last --holdout-tail of every episode's frames is held out instead.
+    #[arg(long, value_delimiter = ',')]
+    pub holdout: Vec<usize>,
+    /// Fraction of each episode's frames (its end) held out when --holdout names no episode.
+    #[arg(long, default_value_t = 0.2)]
+    pub holdout_tail: f64,
+    /// Train from frames written by `bwm train-vae --dump-frames` instead of decoding the dataset's
+    /// videos.
+    #[arg(long = "frames", id = "frames_file", value_name = "FILE")]
+    pub file: Option<PathBuf>,
+}
+
+impl FrameArgs {
+    /// The frame sets at `size` (width, height), from the file or the dataset; `who` names the
+    /// command in what it prints.
+    pub fn load(&self, size: (u32, u32), who: &str) -> Result<FrameSets> {
+        match &self.file {
+            Some(path) => {
+                let data = FrameSets::read(path)?;
+                println!("{who}: {} training and {} held-out videos from {}", data.train.len(), data.holdout.len(), path.display());
+                Ok(data)
+            }
+            None => {
+                let source = open_dataset(&self.data)?;
+                let cameras = CameraSelection::from_names(&self.camera);
+                let selection = FrameSelection { cameras, max_episodes: self.max_episodes, holdout: self.holdout.clone(), holdout_tail: self.holdout_tail, size, resize: self.resize };
+                FrameSets::from_dataset(source.as_ref(), &selection)
+            }
+        }
+    }
 }
 
 pub fn run(a: TrainVaeArgs) -> Result<()> {
@@ -123,30 +152,16 @@ pub fn run(a: TrainVaeArgs) -> Result<()> {
     let cfg = VaeConfig { z_dim: a.z_dim, ..VaeConfig::with_width(a.dim, a.dec_dim) };
     let cfg = cfg.with_spatial_stride(a.spatial_stride).context("--spatial-stride")?;
     cfg.validate().context("--dim, --dec-dim, --z-dim")?;
-    let size = parse_resolution(&a.resolution, cfg.spatial_stride() as u32)?;
+    let size = parse_resolution(&a.frames.resolution, cfg.spatial_stride() as u32)?;
     let device = parse_device(&a.device)?;
     let dtype = parse_kind(&a.dtype).context("--dtype")?;
-    let data = match &a.frames {
-        Some(path) => {
-            let data = FrameSets::read(path)?;
-            println!("train-vae: {} training and {} held-out videos from {}", data.train.len(), data.holdout.len(), path.display());
-            data
-        }
-        None => decode_frame_sets(&a, size)?,
-    };
+    let data = a.frames.load(size, "train-vae")?;
     if let Some(path) = &a.dump_frames {
         data.write(path)?;
         println!("train-vae: wrote the frames to {}", path.display());
         return Ok(());
     }
     train(&a, cfg, data, device, dtype)
-}
-
-fn decode_frame_sets(a: &TrainVaeArgs, size: (u32, u32)) -> Result<FrameSets> {
-    let source = open_dataset(&a.data)?;
-    let cameras = CameraSelection::from_names(&a.camera);
-    let selection = FrameSelection { cameras, max_episodes: a.max_episodes, holdout: a.holdout.clone(), holdout_tail: a.holdout_tail, size, resize: a.resize };
-    FrameSets::from_dataset(source.as_ref(), &selection)
 }
 
 fn train(a: &TrainVaeArgs, cfg: VaeConfig, data: FrameSets, device: tch::Device, dtype: tch::Kind) -> Result<()> {

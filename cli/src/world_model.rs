@@ -35,6 +35,14 @@ pub struct WorldModelArgs {
     /// A random full-width Wan2.2 VAE instead (timing only).
     #[arg(long, conflicts_with = "vae")]
     pub random_vae: bool,
+    /// Decode the generated chunks with a light decoder trained for this VAE (`bwm
+    /// train-light-decoder`) instead of the VAE's decoder; the VAE still encodes the condition
+    /// frames. Default: the VAE's decoder.
+    #[arg(long)]
+    pub light_decoder: Option<PathBuf>,
+    /// A light decoder of random weights (TAEHV's widths) instead (timing only).
+    #[arg(long, conflicts_with = "light_decoder")]
+    pub random_light_decoder: bool,
     /// The stat.json the model was trained with (turns raw actions into the model's [-1, 1]).
     /// Default: the statistics in the weights' input contract (contract.json), else the dataset's
     /// own stat.json.
@@ -107,6 +115,8 @@ impl WorldModelArgs {
             random_weights: self.random_weights.clone(),
             model_preset: self.model_preset.clone(),
             vae: if self.random_vae { None } else { self.vae.clone() },
+            light_decoder: self.light_decoder.clone(),
+            random_light_decoder: self.random_light_decoder,
             stats: self.stats.clone(),
             dataset_stats: None,
             stats_group: self.stats_group.clone(),

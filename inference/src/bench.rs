@@ -218,7 +218,7 @@ pub fn rollout(wm: &WorldModel, height: i64, width: i64, chunks: usize, batch: u
     let dit = &wm.model.cfg.dit;
     let kernel = bwm_sdp::kernel_for_shape(dit.num_heads, dit.head_dim(), 1024, wm.model.store.kind(), wm.device)?;
     println!(
-        "bench-rollout: {:?} {:?}, {}x{}, {batch} rollout(s) at once in {streams} stream(s), x0 + {} history frames, {} frames per chunk, {} {} steps, attention backend {} ({kernel}), libtorch CPU threads {}, {}, sampler forward {}",
+        "bench-rollout: {:?} {:?}, {}x{}, {batch} rollout(s) at once in {streams} stream(s), x0 + {} history frames, {} frames per chunk, {} {} steps, attention backend {} ({kernel}), libtorch CPU threads {}, {}, sampler forward {}, decoded by {}",
         wm.device,
         wm.model.store.kind(),
         width,
@@ -230,7 +230,8 @@ pub fn rollout(wm: &WorldModel, height: i64, width: i64, chunks: usize, batch: u
         bwm_sdp::backend(),
         tch::get_num_threads(),
         wm.fp8.map_or("block linears in the weights' dtype".to_string(), |s| format!("block linears in FP8 ({s} scaling)")),
-        if wm.graphed.is_some() { "replayed from a CUDA graph (warm-up and capture in the first chunk)" } else { "eager" }
+        if wm.graphed.is_some() { "replayed from a CUDA graph (warm-up and capture in the first chunk)" } else { "eager" },
+        if wm.light_decoder.is_some() { "the light decoder" } else { "the VAE's decoder" }
     );
     let memory = || bwm_model::device::memory::used_mib(wm.device).map_or("n/a".to_string(), |m| format!("{m:.0} MiB used"));
     let frames_per_chunk = (batch * spec.future) as f64;

@@ -29,7 +29,6 @@ use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Context, Result};
 use bytes::Bytes;
-use bwm_model::rollout::Rollout;
 use bwm_model::sampler::{Denoiser, Eager};
 use bwm_model::BwmModel;
 use http_body_util::{BodyExt, Full};
@@ -836,7 +835,7 @@ fn generate_chunk(wm: &WorldModel, req: &ChunkRequest, watch: Watch) -> anyhow::
     let spec = bwm_model::rollout::RolloutSpec { seed: req.seed.unwrap_or(wm.spec.seed), ..wm.spec.clone() };
     let steps = spec.steps;
     let denoiser = Watched { inner: wm.graphed.clone(), watch, step: 0, steps };
-    let mut rollout = Rollout::new(&wm.model, &wm.vae, spec, &frames.select(1, 0), &actions.get(0))?.with_denoiser(Rc::new(RefCell::new(denoiser)));
+    let mut rollout = wm.rollout_with(spec, &frames.select(1, 0), &actions.get(0))?.with_denoiser(Rc::new(RefCell::new(denoiser)));
     if kept > 0 {
         rollout = rollout.with_history(&frames.narrow(1, 1, kept), &actions.narrow(0, t - kept, kept))?;
     }

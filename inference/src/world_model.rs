@@ -16,6 +16,7 @@ use bwm_model::device::{parse_device, parse_kind};
 use bwm_model::fp8::{quantize_linears, Fp8Scaling, BLOCK_LINEARS};
 use bwm_model::rollout::{history_sigma_for_shift, Rollout, RolloutSpec};
 use bwm_model::schedule::Solver;
+use bwm_model::light_decoder::{LightDecoder, LightDecoderConfig};
 use bwm_model::vae::{VaeConfig, WanVae};
 use bwm_model::{BwmModel, ModelConfig, Residual};
 use tch::{Device, Kind, Tensor};
@@ -40,6 +41,11 @@ pub struct WorldModelOptions {
     /// VAE weights: Wan2.2_VAE.pth, its safetensors, or a `bwm train-vae` output; None: a random
     /// full-width Wan2.2 VAE (timing only).
     pub vae: Option<PathBuf>,
+    /// Decode the generated chunks with this light decoder (`bwm train-light-decoder` for the
+    /// same VAE) instead of the VAE's decoder; the VAE still encodes the condition frames.
+    pub light_decoder: Option<PathBuf>,
+    /// A light decoder of random weights instead (timing only).
+    pub random_light_decoder: bool,
     /// The stat.json the model was trained with (turns raw actions into the model's [-1, 1]);
     /// None: the statistics in the weights' input contract, else `dataset_stats`.
     pub stats: Option<PathBuf>,
@@ -90,6 +96,8 @@ impl Default for WorldModelOptions {
             random_weights: None,
             model_preset: None,
             vae: None,
+            light_decoder: None,
+            random_light_decoder: false,
             stats: None,
             dataset_stats: None,
             stats_group: "state_pose".into(),
@@ -133,6 +141,8 @@ fn random_model_config(name: &str) -> Result<ModelConfig> {
 pub struct WorldModel {
     pub model: BwmModel,
     pub vae: WanVae,
+    /// Decodes the generated chunks in place of the VAE's decoder, where one was given.
+    pub light_decoder: Option<LightDecoder>,
     pub stats: Option<ActionStats>,
     pub spec: RolloutSpec,
     pub device: Device,
@@ -264,6 +274,15 @@ impl WorldModelOptions {
             vae.cfg.z_dim,
             model.cfg.dit.in_dim
         );
+        let light_decoder = match (&self.light_decoder, self.random_light_decoder) {
+            (Some(path), _) => Some(LightDecoder::load(path, kind, device).with_context(|| format!("--light-decoder {}", path.display()))?),
+            (None, true) => Some(LightDecoder::random(&LightDecoderConfig::for_vae(&vae.cfg), kind, device, self.seed as i64)?.0),
+            (None, false) => None,
+        };
+        if let (Some(d), Some(path)) = (&light_decoder, &self.light_decoder) {
+            d.check_vae(&vae.cfg).with_context(|| format!("--light-decoder {} with this --vae", path.display()))?;
+            println!("decoder: the light decoder {}", path.display());
+        }
         let from_file = |path: &Path, how: &str| -> Result<ActionStats> {
             let s = ActionStats::read(path, &self.stats_group)?;
             ensure!(
@@ -286,7 +305,7 @@ impl WorldModelOptions {
             (None, None, Some(path)) => Some(from_file(path, "beside the dataset; the weights record none")?),
             (None, None, None) => None,
         };
-        Ok(WorldModel { model, vae, stats, spec, device, fp8: self.fp8, graphed, trained_resolution, contract })
+        Ok(WorldModel { model, vae, light_decoder, stats, spec, device, fp8: self.fp8, graphed, trained_resolution, contract })
     }
 }
 
@@ -413,7 +432,10 @@ impl WorldModel {
 
     /// `rollout` with other settings than the loaded ones (a request's seed).
     pub fn rollout_with(&self, spec: RolloutSpec, x0: &Tensor, a0: &Tensor) -> Result<Rollout<'_>> {
-        let rollout = Rollout::new(&self.model, &self.vae, spec, x0, a0)?;
+        let mut rollout = Rollout::new(&self.model, &self.vae, spec, x0, a0)?;
+        if let Some(d) = &self.light_decoder {
+            rollout = rollout.with_light_decoder(d)?;
+        }
         Ok(match &self.graphed {
             Some(g) => rollout.with_denoiser(g.clone()),
             None => rollout,

@@ -9,6 +9,7 @@ pub mod device;
 pub mod dit;
 pub mod fp8;
 pub mod keyed_rng;
+pub mod light_decoder;
 pub mod lora;
 pub mod nn;
 pub mod pth;

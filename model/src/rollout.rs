@@ -15,6 +15,7 @@ use tch::{Device, Kind, Tensor};
 
 use crate::bwm::BwmModel;
 use crate::keyed_rng::{self, Purpose};
+use crate::light_decoder::LightDecoder;
 use crate::sampler::{sample_chunk, Denoiser, Eager};
 use crate::schedule::{FlowSchedule, Solver, DEFAULT_SHIFT, NUM_TRAIN_TIMESTEPS};
 use crate::vae::WanVae;
@@ -113,6 +114,8 @@ pub struct Rollout<'m> {
     sync: Box<dyn Fn()>,
     /// Runs the sampler's forward passes; None: eagerly.
     denoiser: Option<SharedDenoiser<'m>>,
+    /// Decodes the generated latents instead of the VAE's decoder (the VAE still encodes).
+    light_decoder: Option<&'m LightDecoder>,
 }
 
 /// A denoiser that several rollouts (and their batches) share.
@@ -148,6 +151,7 @@ impl<'m> Rollout<'m> {
             chunks: 0,
             sync,
             denoiser: None,
+            light_decoder: None,
         })
     }
 
@@ -156,6 +160,15 @@ impl<'m> Rollout<'m> {
     pub fn with_denoiser(mut self, denoiser: SharedDenoiser<'m>) -> Self {
         self.denoiser = Some(denoiser);
         self
+    }
+
+    /// This rollout with its chunks decoded by `decoder` instead of the VAE's decoder (a batch of
+    /// rollouts advanced together must share one). It must read the VAE's latents
+    /// ([`LightDecoder::check_vae`]).
+    pub fn with_light_decoder(mut self, decoder: &'m LightDecoder) -> Result<Self> {
+        decoder.check_vae(&self.vae.cfg)?;
+        self.light_decoder = Some(decoder);
+        Ok(self)
     }
 
     /// Frames already seen after x0 ([3, T, H, W]) with their actions ([T, d_a]); the last H are
@@ -264,6 +277,12 @@ impl<'m> Rollout<'m> {
                 _ => false,
             };
             ensure!(same_denoiser, "rollout {i} runs its sampler through another denoiser than rollout 0; a batch shares one");
+            let same_decoder = match (r.light_decoder, first.light_decoder) {
+                (Some(a), Some(b)) => std::ptr::eq(a, b),
+                (None, None) => true,
+                _ => false,
+            };
+            ensure!(same_decoder, "rollout {i} decodes with another decoder than rollout 0; a batch shares one");
         }
         let (k, d) = (first.spec.future as i64, first.a0.size()[0]);
         let p = first.spec.condition_latents() as i64;
@@ -349,15 +368,26 @@ impl<'m> Rollout<'m> {
         // docs/performance.md at abaed68, "CPU threads beside the GPU").
         let start = Instant::now();
         let frames = tch::no_grad(|| -> Result<Tensor> {
-            let mut stream = vae.decoder_stream();
-            let mut future = Vec::new();
-            for i in 0..latents.size()[2] {
-                let px = stream.next(&latents.narrow(2, i, 1))?;
-                if i >= p {
-                    future.push(px);
+            let mut pixels = match first.light_decoder {
+                Some(light) => {
+                    // Every latent at once; the prefix's frames (1 + 4 (p - 1)) are dropped.
+                    let all = light.decode(&latents)?;
+                    let prefix = 1 + vae.cfg.temporal_stride() * (p - 1);
+                    all.narrow(2, prefix, all.size()[2] - prefix)
+                }
+                None => {
+                    let mut stream = vae.decoder_stream();
+                    let mut future = Vec::new();
+                    for i in 0..latents.size()[2] {
+                        let px = stream.next(&latents.narrow(2, i, 1))?;
+                        if i >= p {
+                            future.push(px);
+                        }
+                    }
+                    Tensor::cat(&future, 2)
                 }
             }
-            let mut pixels = Tensor::cat(&future, 2).to_kind(Kind::Float);
+            .to_kind(Kind::Float);
             let _ = pixels.clamp_(-1.0, 1.0);
             Ok(pixels)
         })

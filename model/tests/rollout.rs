@@ -316,3 +316,31 @@ fn action_guidance_blends_the_conditional_and_null_velocities() {
     let e = RolloutSpec { guidance: f64::NAN, ..spec(4, 4, 0) }.validate().unwrap_err().to_string();
     assert!(e.contains("guidance"), "{e}");
 }
+
+/// A light decoder in place of the VAE's decoder: the same chunk shapes from the same latents,
+/// other pixels; the VAE still encodes the history. A decoder for other latents, or a batch that
+/// mixes decoders, is refused.
+#[test]
+fn a_light_decoder_decodes_the_chunks_in_place_of_the_vae() {
+    use bwm_model::light_decoder::{LightDecoder, LightDecoderConfig};
+    let (model, vae) = parts(Kind::Float);
+    let d = model.cfg.action.action_dim;
+    let (x0, a0, actions) = inputs(d, 6);
+    let cfg = LightDecoderConfig { widths: [8, 8, 4, 4], blocks: 1, ..LightDecoderConfig::for_vae(&vae.cfg) };
+    let (light, _) = LightDecoder::random(&cfg, Kind::Float, Device::Cpu, 5).unwrap();
+    let mut full = Rollout::new(&model, &vae, spec(4, 4, 5), &x0, &a0).unwrap();
+    let mut lit = Rollout::new(&model, &vae, spec(4, 4, 5), &x0, &a0).unwrap().with_light_decoder(&light).unwrap();
+    for w in [actions.narrow(0, 0, 4), actions.narrow(0, 4, 2)] {
+        let (a, b) = (full.next_chunk(&w).unwrap(), lit.next_chunk(&w).unwrap());
+        assert_eq!(a.frames.size(), b.frames.size());
+        assert!(b.frames.max().double_value(&[]) <= 1.0 && b.frames.min().double_value(&[]) >= -1.0);
+        assert!(!a.frames.allclose(&b.frames, 1e-3, 1e-3, false), "the light decoder's pixels are its own");
+    }
+    let mut other = Rollout::new(&model, &vae, spec(4, 4, 6), &x0, &a0).unwrap();
+    let mut lit2 = Rollout::new(&model, &vae, spec(4, 4, 5), &x0, &a0).unwrap().with_light_decoder(&light).unwrap();
+    let e = Rollout::next_chunks(&mut [&mut lit2, &mut other], &[actions.narrow(0, 0, 4), actions.narrow(0, 0, 4)]).err().expect("mixed decoders are refused");
+    assert!(e.to_string().contains("another decoder"), "{e}");
+    let wrong = LightDecoderConfig { z_dim: cfg.z_dim + 1, ..cfg };
+    let (wrong, _) = LightDecoder::random(&wrong, Kind::Float, Device::Cpu, 5).unwrap();
+    assert!(Rollout::new(&model, &vae, spec(4, 4, 5), &x0, &a0).unwrap().with_light_decoder(&wrong).is_err());
+}

@@ -26,6 +26,28 @@ pub struct RunConfig {
     pub log: LogSection,
     #[serde(default)]
     pub validation: ValidationSection,
+    /// Step distillation: the model trains to take in few sampler steps what a teacher takes in
+    /// many (`trainer/src/distill.rs`); absent, the flow-matching objective.
+    #[serde(default)]
+    pub distill: Option<DistillSection>,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct DistillSection {
+    /// The teacher's weights: a checkpoint of this trainer (or any layout `bwm convert` reads) of
+    /// the run's model, frozen. The student is the run's model; `model.init = { from =
+    /// "bwm-checkpoint", path = ... }` with the same weights starts it from the teacher.
+    pub teacher: PathBuf,
+    /// Euler steps the student samples with (its grid: that many sigmas at `objective.shift`).
+    pub student_steps: usize,
+    /// Teacher Euler steps per student step: the teacher samples `student_steps` x this many.
+    #[serde(default = "default_teacher_substeps")]
+    pub teacher_substeps: usize,
+}
+
+fn default_teacher_substeps() -> usize {
+    8
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
@@ -328,6 +350,14 @@ impl RunConfig {
         }
         self.objective.validate()?;
         bwm_model::sampler::validate_guidance(self.validation.guidance).context("validation.guidance")?;
+        if let Some(d) = &self.distill {
+            ensure!(d.student_steps >= 1 && d.teacher_substeps >= 1, "distill.student_steps and distill.teacher_substeps must be at least 1");
+            ensure!(
+                self.objective.action_dropout == 0.0,
+                "distill with objective.action_dropout = {}: the teacher's steps are conditioned on the actions, so a student without them would learn another target; set it to 0",
+                self.objective.action_dropout
+            );
+        }
         ensure!(self.checkpoint.keep_last >= 1, "checkpoint.keep_last must be at least 1");
         ensure!(self.log.every >= 1, "log.every must be at least 1");
         self.run.validate()?;

@@ -4,9 +4,11 @@
 pub mod bench;
 pub mod config;
 pub mod dist;
+pub mod distill;
 pub mod flops;
 pub mod fused_adamw;
 pub mod grad_engine;
+pub mod light_decoder_train;
 /// Keyed random draws live with the model (the rollout sampler uses them too).
 pub use bwm_model::keyed_rng;
 pub mod metrics;

@@ -22,6 +22,7 @@ use tch::{Device, Kind, Tensor};
 
 use crate::config::{InitSource, RunConfig};
 use crate::dist::{Backend, Collective, DistEnv};
+use crate::distill::Distillation;
 use crate::flops;
 use crate::metrics::{Progress, StepMetrics};
 use crate::objective::Objective;
@@ -111,6 +112,8 @@ pub struct Trainer {
     block_params: Vec<Vec<usize>>,
     /// The step recorded as a CUDA graph (`train.cuda_graph`).
     graph: Option<StepGraph>,
+    /// The teacher and grid of step distillation (`[distill]`), which then makes the batches.
+    pub distill: Option<Distillation>,
 }
 
 /// The run's model, with its LoRA adapters (`model.lora`) and their shared state.
@@ -236,6 +239,10 @@ impl Trainer {
             })
             .collect();
         let objective = Objective::new(&cfg.objective, cfg.run.seed);
+        let distill = match &cfg.distill {
+            Some(d) => Some(Distillation::new(d, &model_cfg, cfg.objective.shift, cfg.model.dtype.kind(), device, cfg.run.seed)?),
+            None => None,
+        };
         let config_text = cfg.to_toml()?;
         let mut state = TrainState {
             step: 0,
@@ -258,7 +265,7 @@ impl Trainer {
         let events = if cfg.log.tensorboard && lead { Some(EventWriter::create(&out_dir.join("tensorboard"))?) } else { None };
         let append = |name: &str| -> Result<Option<LineLog>> { if lead { LineLog::open(&out_dir.join(name)).map(Some) } else { Ok(None) } };
         let (metrics_file, loss_file) = (append("metrics.jsonl")?, append(crate::run_log::LOSSES_FILE)?);
-        Ok(Self { cfg, model, lora, opt, objective, cache, contract, clip_encoder, loader: Default::default(), train_clips, device, state, out_dir, checkpoints, events, metrics_file, negligible_action_gaps: 0, loss_file, comm, run_lock, history: Vec::new(), block_params, graph })
+        Ok(Self { cfg, model, lora, opt, objective, cache, contract, clip_encoder, loader: Default::default(), train_clips, device, state, out_dir, checkpoints, events, metrics_file, negligible_action_gaps: 0, loss_file, comm, run_lock, history: Vec::new(), block_params, graph, distill })
     }
 
     /// Trains to `train.steps`, checkpointing and validating as configured.
@@ -373,7 +380,13 @@ impl Trainer {
         for micro in 0..accum {
             let indices: Vec<u64> = (0..mb).map(|i| global_sample_index(step, micro, rank, i, mb, accum, world)).collect();
             let batch = self.load_batch(&indices)?;
-            let prepared = self.objective.prepare(&batch.latents, &batch.noise, &batch.history_noise, &batch.tids)?;
+            let prepared = match &self.distill {
+                Some(d) => {
+                    let segments: Vec<usize> = indices.iter().map(|&i| d.segment(i)).collect();
+                    d.prepare(&self.objective, &batch.latents, &batch.noise, &batch.history_noise, &batch.actions, &segments)?
+                }
+                None => self.objective.prepare(&batch.latents, &batch.noise, &batch.history_noise, &batch.tids)?,
+            };
             let grid = self.model.dit.token_grid(&prepared.input)?;
             let sample_tokens = grid.0 * grid.1 * grid.2;
             tokens += mb as i64 * sample_tokens;
@@ -391,7 +404,7 @@ impl Trainer {
                 }
             };
             sample_losses.push(per_sample.to_kind(Kind::Float));
-            tids.extend(batch.tids);
+            tids.extend(prepared.timestep_indices.iter().copied());
             self.opt.collect_grads();
         }
         // The gradients' reduction and norm are queued before anything is read back, and the

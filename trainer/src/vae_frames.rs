@@ -101,14 +101,14 @@ impl FrameSets {
                 train.push(v.narrow(1, 0, f - held));
                 holdout.push(v.narrow(1, f - held, held));
             }
-            println!("train-vae: {n} episodes, the last {:.0}% of each held out, frames at {}x{} ({:?})", s.holdout_tail * 100.0, s.size.0, s.size.1, s.resize);
+            println!("frames: {n} episodes, the last {:.0}% of each held out, frames at {}x{} ({:?})", s.holdout_tail * 100.0, s.size.0, s.size.1, s.resize);
             return Ok(FrameSets { train, holdout });
         }
         let holdout = &s.holdout;
         ensure!(holdout.iter().all(|&i| i < n), "--holdout {holdout:?}: the dataset has episodes 0..{n}");
         let train: Vec<usize> = (0..n).filter(|i| !holdout.contains(i)).collect();
         ensure!(!train.is_empty(), "every episode is held out; nothing to train on");
-        println!("train-vae: {} episodes for training {:?}, held out {:?}, frames at {}x{} ({:?})", train.len(), train, holdout, s.size.0, s.size.1, s.resize);
+        println!("frames: {} episodes for training {:?}, held out {:?}, frames at {}x{} ({:?})", train.len(), train, holdout, s.size.0, s.size.1, s.resize);
         Ok(FrameSets {
             train: episode_videos(source, &train, &s.cameras, s.size, s.resize)?,
             holdout: episode_videos(source, holdout, &s.cameras, s.size, s.resize)?,

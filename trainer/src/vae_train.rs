@@ -107,7 +107,7 @@ pub struct FrameSets {
 }
 
 /// Clip starting positions `(video, first frame)` of `frames`-long clips covering `videos`.
-fn clip_starts(videos: &[Tensor], frames: usize, stride: usize) -> Vec<(usize, i64)> {
+pub(crate) fn clip_starts(videos: &[Tensor], frames: usize, stride: usize) -> Vec<(usize, i64)> {
     videos
         .iter()
         .enumerate()
@@ -118,7 +118,7 @@ fn clip_starts(videos: &[Tensor], frames: usize, stride: usize) -> Vec<(usize, i
         .collect()
 }
 
-fn stack_clips(videos: &[Tensor], picks: &[(usize, i64)], frames: usize, device: Device) -> Tensor {
+pub(crate) fn stack_clips(videos: &[Tensor], picks: &[(usize, i64)], frames: usize, device: Device) -> Tensor {
     Tensor::stack(&picks.iter().map(|&(v, s)| videos[v].narrow(1, s, frames as i64)).collect::<Vec<_>>(), 0).to_device(device)
 }
 
@@ -425,13 +425,7 @@ pub fn save_trained_vae(trained: &TrainedVae, path: &Path) -> Result<()> {
         ("bwm.candidates_step".to_string(), report.candidates_step.to_string()),
         (TRAINED_CLIP_FRAMES_KEY.to_string(), report.clip_frames.to_string()),
     ]);
-    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    }
-    let tmp = path.with_extension("safetensors.tmp");
-    bwm_checkpoints::write_tensors(&tmp, &tensors, &meta)?;
-    std::fs::rename(&tmp, path).with_context(|| format!("renaming {} to {}", tmp.display(), path.display()))?;
-    Ok(())
+    bwm_checkpoints::write_tensors_replacing(path, &tensors, &meta)
 }
 
 #[cfg(test)]

@@ -515,3 +515,55 @@ fn validation_reports_how_much_the_held_out_loss_depends_on_the_actions() {
     let unused = gap("zeroed", true);
     assert!(unused.relative_gap().abs() < 1e-9 && unused.loss_zero_actions == unused.loss_own_actions, "{unused:?}");
 }
+
+/// Step distillation on the tiny config: a teacher trained briefly, a student started from its
+/// weights and trained to take in one Euler step what the teacher takes in four. Its loss on fixed
+/// draws falls; the teacher stays as it was; a teacher of another shape is refused.
+#[test]
+fn a_student_learns_the_teachers_four_steps_in_one() {
+    let dir = tmp_dir("distill");
+    let cache = write_cache(&dir.join("cache"), 1, 0);
+    let teacher = trained(&cache, &dir.join("teacher"), "[train]\nsteps = 40\n[optim]\nlr = 3e-3\n[checkpoint]\nevery = 40");
+    let ckpt = teacher.checkpoints.step_path(40);
+    let teacher_weights = weights(&teacher);
+    drop(teacher);
+    let distill = |steps: u64| {
+        format!(
+            "[model]\ninit = {{ from = \"bwm-checkpoint\", path = \"{0}\" }}\n[distill]\nteacher = \"{0}\"\nstudent_steps = 1\nteacher_substeps = 4\n[train]\nsteps = {steps}\n[optim]\nlr = 2e-4",
+            ckpt.display()
+        )
+    };
+    let mut student = trainer(config(&cache, &dir.join("student"), &distill(80)), Resume::No).unwrap();
+    assert_same(&weights(&student), &teacher_weights, 0.0, "the student starts as the teacher");
+    let loss = |t: &Trainer| {
+        let clip = t.cache.load(0, tch::Device::Cpu).unwrap();
+        let d = t.distill.as_ref().unwrap();
+        let mut sum = 0.0;
+        for g in 10_000..10_004u64 {
+            let draw = t.objective.draw(g, &t.cache.index.latent_shape);
+            let (latents, actions) = (clip.latents.unsqueeze(0), clip.actions.unsqueeze(0));
+            let p = d.prepare(&t.objective, &latents, &draw.noise.unsqueeze(0), &draw.history_noise.unsqueeze(0), &actions, &[0]).unwrap();
+            let pred = tch::no_grad(|| t.model.forward(&p.input, &p.frame_timesteps, &actions)).unwrap();
+            sum += t.objective.loss(&pred, &p).double_value(&[]);
+        }
+        sum / 4.0
+    };
+    let before = loss(&student);
+    assert!(before > 0.0, "four teacher steps differ from the teacher's one");
+    student.run().unwrap();
+    let after = loss(&student);
+    assert!(after < 0.5 * before, "the distillation loss went from {before} to {after}");
+    assert!(student.history.iter().all(|m| m.loss.is_finite() && !m.skipped));
+
+    // The teacher must be the run's model; action dropout would train the student without the
+    // actions the teacher's steps had.
+    let other = format!(
+        "[model]\ndit = {{ dim = 24, in_dim = 48, out_dim = 48, ffn_dim = 48, freq_dim = 32, text_dim = 16, num_heads = 2, num_layers = 2, eps = 1e-6, patch_size = [1, 2, 2] }}\n[distill]\nteacher = \"{}\"\nstudent_steps = 1",
+        ckpt.display()
+    );
+    let e = trainer(config(&cache, &dir.join("other"), &other), Resume::No).err().expect("another model as teacher");
+    assert!(format!("{e:#}").contains("distill.teacher"), "{e:#}");
+    let dropout = format!("{}\n[objective]\naction_dropout = 0.1", distill(1));
+    let e = try_config(&cache, &dir.join("dropout"), &dropout).unwrap_err();
+    assert!(format!("{e:#}").contains("distill with objective.action_dropout"), "{e:#}");
+}

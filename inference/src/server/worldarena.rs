@@ -148,7 +148,7 @@ impl<'m> Envs<'m> {
             .map(|e| {
                 // Each environment draws its own noise: the seed, offset by its position.
                 let spec = bwm_model::rollout::RolloutSpec { seed: seed.wrapping_add(e as u64), ..wm.spec.clone() };
-                Ok(Rollout::new(&wm.model, &wm.vae, spec, &x0.get(e as i64), &a0.get(e as i64))?.with_denoiser(watched.clone()))
+                Ok(wm.rollout_with(spec, &x0.get(e as i64), &a0.get(e as i64))?.with_denoiser(watched.clone()))
             })
             .collect::<anyhow::Result<Vec<_>>>()?;
         let envs = Self {

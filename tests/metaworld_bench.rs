@@ -589,6 +589,11 @@ fn the_sampler_sweep_picks_the_fewest_steps_within_bounds() {
 }
 
 #[test]
+fn cheaper_settings_are_scored_against_a_reference_rollout() {
+    python_tests("test_agreement.py");
+}
+
+#[test]
 fn the_policy_server_speaks_openpi() {
     python_tests("test_policy_server.py");
 }

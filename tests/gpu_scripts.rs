@@ -152,6 +152,7 @@ study=${STUDY_DIR:-$RUN/study} judge=${JUDGE_FRAMES:-reconstructed}
 echo "$* judge=$judge study=$study ema=${EMA_DECAY:-}" >> "$CALLS"
 [ -z "${STUDY_STREAMS:-}" ] || echo "streams $STUDY_STREAMS study=$study" >> "$CALLS"
 [ -z "${HISTORY_SIGMA:-}" ] || echo "history-sigma $HISTORY_SIGMA study=$study" >> "$CALLS"
+[ -z "${GUIDANCE:-}" ] || echo "guidance $GUIDANCE study=$study" >> "$CALLS"
 for s in "$@"; do
   if [ "$s" = study ]; then
     mkdir -p "$study"; echo "{\"judge\": \"$judge\"}" > "$study/study.json"
@@ -188,6 +189,8 @@ fn stages(dir: &Path, vars: &[(&str, &str)]) -> (Output, Vec<String>) {
         .env_remove("OTHER_SEEDS")
         .env_remove("COMPARE_HISTORY_SIGMA")
         .env_remove("HISTORY_SIGMA")
+        .env_remove("COMPARE_GUIDANCE")
+        .env_remove("GUIDANCE")
         .env("RUN", "runs/x")
         .env("OUT", dir.join("out"))
         .env("CALLS", &calls)
@@ -303,15 +306,17 @@ fn the_study_in_lanes_follows_the_study_when_asked() {
 }
 
 #[test]
-fn the_study_is_repeated_per_history_noise_level_from_its_truth_when_asked() {
+fn the_study_is_repeated_per_guidance_and_history_noise_level_from_its_truth_when_asked() {
     let dir = common::temp_dir("gpu-history-sigma");
     let d = dir.path();
-    let (calls, log) = stages_ran(d, &[("COMPARE_HISTORY_SIGMA", "0 0.1")]);
-    let studies: Vec<&String> = calls.iter().filter(|c| c.starts_with("study ") || c.starts_with("history-sigma ")).collect();
+    let (calls, log) = stages_ran(d, &[("COMPARE_GUIDANCE", "2"), ("COMPARE_HISTORY_SIGMA", "0 0.1")]);
+    let studies: Vec<&String> = calls.iter().filter(|c| c.starts_with("study ") || c.starts_with("history-sigma ") || c.starts_with("guidance ")).collect();
     assert_eq!(
         studies,
         [
             "study judge=reconstructed study=runs/x/study ema=",
+            "study judge=reconstructed study=runs/x/study-g2 ema=",
+            "guidance 2 study=runs/x/study-g2",
             "study judge=reconstructed study=runs/x/study-h0 ema=",
             "history-sigma 0 study=runs/x/study-h0",
             "study judge=reconstructed study=runs/x/study-h0.1 ema=",
@@ -320,7 +325,7 @@ fn the_study_is_repeated_per_history_noise_level_from_its_truth_when_asked() {
         "{log}"
     );
     // Each comparison starts from the study's own truth (copied, not measured again).
-    for s in ["study-h0", "study-h0.1"] {
+    for s in ["study-g2", "study-h0", "study-h0.1"] {
         assert_eq!(fs::read_to_string(d.join("runs/x").join(s).join("truth.json")).unwrap().trim(), "runs/x/study", "{log}");
     }
 }

@@ -39,6 +39,17 @@ seed_study() {
     [ -e "$1/$f" ] || [ ! -f "$OWN_STUDY/$f" ] || cp "$OWN_STUDY/$f" "$1/$f"
   done
 }
+# The study once more per value of a recipe variable ($1; the rest: its values), each in
+# $R/study-$2VALUE, while the stages before it succeeded.
+compare_per_value() {
+  local var=$1 tag=$2 value; shift 2
+  for value in "$@"; do
+    [ $status = 0 ] || break
+    seed_study "$R/study-$tag$value"
+    (export "$var=$value" STUDY_DIR="$R/study-$tag$value"; recipe study) 2>&1 | tee -a "$OUT/recipe.log"
+    [ "${PIPESTATUS[0]}" = 0 ] || status=1
+  done
+}
 train_stages() {
   status=0
   recipe data 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
@@ -116,18 +127,8 @@ else
       EMA_DECAY= STUDY_DIR=$R/study-last recipe study 2>&1 | tee -a "$OUT/recipe.log"
       [ "${PIPESTATUS[0]}" = 0 ] || status=1
     fi
-    for w in ${COMPARE_GUIDANCE:-}; do
-      [ $status = 0 ] || break
-      seed_study "$R/study-g$w"
-      GUIDANCE=$w STUDY_DIR=$R/study-g$w recipe study 2>&1 | tee -a "$OUT/recipe.log"
-      [ "${PIPESTATUS[0]}" = 0 ] || status=1
-    done
-    for s in ${COMPARE_HISTORY_SIGMA:-}; do
-      [ $status = 0 ] || break
-      seed_study "$R/study-h$s"
-      HISTORY_SIGMA=$s STUDY_DIR=$R/study-h$s recipe study 2>&1 | tee -a "$OUT/recipe.log"
-      [ "${PIPESTATUS[0]}" = 0 ] || status=1
-    done
+    compare_per_value GUIDANCE g ${COMPARE_GUIDANCE:-}
+    compare_per_value HISTORY_SIGMA h ${COMPARE_HISTORY_SIGMA:-}
     if [ $status = 0 ] && [ "${TEACHER:-0}" = 1 ]; then
       recipe teacher 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
     fi

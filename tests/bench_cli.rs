@@ -127,7 +127,7 @@ fn bench_rollout_runs_the_block_linears_in_fp8_when_asked() {
         ]
     };
     let out = run(&args("tensor"));
-    assert!(line(&out, "bench-rollout:").ends_with("block linears in FP8 (tensor scaling), sampler forward eager"), "{out}");
+    assert!(line(&out, "bench-rollout:").ends_with("block linears in FP8 (tensor scaling), sampler forward eager, decoded by the VAE's decoder"), "{out}");
     assert!(line(&out, "chunk 0:").contains("; 4 frames;"), "{out}");
     let failed = Command::new(bwm()).args(args("row")).output().unwrap();
     let err = String::from_utf8_lossy(&failed.stderr);

@@ -1,7 +1,8 @@
 //! `bwm train-light-decoder` end to end on CPU: a light decoder fitted to a small random VAE's
 //! decoder on the bundled demo episodes, written with its held-out agreement, then selected by
-//! `bwm rollout --light-decoder` in place of the VAE's decoder; widths it cannot build, and a file
-//! that is not a light decoder, refused with the flag named.
+//! `bwm rollout --light-decoder` in place of the VAE's decoder, and one of random weights timed by
+//! `bwm bench-rollout --random-light-decoder`; widths it cannot build, and a file that is not a
+//! light decoder, refused with the flag named.
 
 mod common;
 
@@ -47,6 +48,14 @@ fn a_light_decoder_is_trained_for_a_vae_and_decodes_a_rollout() {
     let o = rollout(&light, &generated);
     assert!(o.status.success(), "{}", text(&o));
     assert!(text(&o).contains("decoder: the light decoder"), "{}", text(&o));
+
+    // bench-rollout times a light decoder of random weights and says which decoder it timed.
+    let o = Command::new(bwm())
+        .args(["bench-rollout", "--random-weights", "tiny", "--vae", vae.to_str().unwrap(), "--random-light-decoder", "--device", "cpu"])
+        .args(["--height", "32", "--width", "32", "--history", "4", "--future", "4", "--sample-steps", "2", "--chunks", "1"])
+        .output()
+        .unwrap();
+    assert!(o.status.success() && text(&o).contains("decoded by the light decoder") && text(&o).contains("chunk 0:"), "{}", text(&o));
 
     // Widths it cannot build and a VAE given as the light decoder: refused, naming the flag.
     let bad = dir.join("bad.safetensors");

@@ -407,6 +407,11 @@ mod tests {
     /// A process that runs until dropped.
     struct Live(std::process::Child);
 
+    /// Held by the tests that start a process and by the lock's test: a child forked while the
+    /// lock file is open holds a copy of its descriptor, and with it the lock, until it execs, so
+    /// on a loaded machine a start beside the lock's test could hold the lock it just let go.
+    static SPAWNING: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
     impl Drop for Live {
         fn drop(&mut self) {
             let _ = self.0.kill();
@@ -417,6 +422,7 @@ mod tests {
     #[test]
     fn only_the_temporaries_of_writers_that_are_gone_are_removed() {
         let (_dir, root) = tmp("live");
+        let _spawning = SPAWNING.lock().unwrap_or_else(|e| e.into_inner());
         let mut live = Live(std::process::Command::new("sleep").arg("600").spawn().unwrap());
         let pid = live.0.id();
         fs::create_dir_all(&root.root).unwrap();
@@ -463,6 +469,7 @@ mod tests {
     #[test]
     fn a_run_folder_has_one_holder_and_a_killed_holders_record_is_taken_over() {
         let dir = bwm_testdir::TestDir::new("lock");
+        let _spawning = SPAWNING.lock().unwrap_or_else(|e| e.into_inner());
         let run = dir.join("run");
         let lock = RunLock::acquire(&run).unwrap();
         assert_eq!(lock.previous, None);

@@ -517,8 +517,8 @@ fn validation_reports_how_much_the_held_out_loss_depends_on_the_actions() {
 }
 
 /// Step distillation on the tiny config: a teacher trained briefly, a student started from its
-/// weights and trained to take in one Euler step what the teacher takes in four. Its loss on fixed
-/// draws falls; the teacher stays as it was; a teacher of another shape is refused.
+/// weights and trained to take in one Euler step what the teacher takes in four, in full and with
+/// LoRA adapters. Its loss on fixed draws falls; a teacher of another shape is refused.
 #[test]
 fn a_student_learns_the_teachers_four_steps_in_one() {
     let dir = tmp_dir("distill");
@@ -554,6 +554,15 @@ fn a_student_learns_the_teachers_four_steps_in_one() {
     let after = loss(&student);
     assert!(after < 0.5 * before, "the distillation loss went from {before} to {after}");
     assert!(student.history.iter().all(|m| m.loss.is_finite() && !m.skipped));
+
+    // A LoRA student: only its adapters train, on the teacher's weights, and its loss falls too.
+    let lora = format!("{}\n[model]\nlora = {{ rank = 4, alpha = 8.0, targets = [\"blocks.*.self_attn.*\", \"blocks.*.ffn.*\"] }}\n[optim]\nlr = 2e-3", distill(40));
+    let mut adapted = trainer(config(&cache, &dir.join("lora"), &lora), Resume::No).unwrap();
+    assert!(!adapted.opt.params.is_empty() && adapted.opt.params.iter().all(|p| p.name.contains("lora")), "only the adapters train");
+    let before = loss(&adapted);
+    adapted.run().unwrap();
+    let after = loss(&adapted);
+    assert!(after < 0.8 * before, "the LoRA student's distillation loss went from {before} to {after}");
 
     // The teacher must be the run's model; action dropout would train the student without the
     // actions the teacher's steps had.

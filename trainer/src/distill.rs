@@ -78,10 +78,7 @@ impl Distillation {
         ensure!(f > p, "clips have {f} latent frames; distillation needs more than the {p} condition latents");
         let device = clean.device();
         let kind = self.teacher.store.kind();
-        let clean = clean.to_kind(Kind::Float);
-        let sh = objective.history_sigma;
-        let history = clean.narrow(2, 1, p - 1) * (1.0 - sh) + history_noise.narrow(2, 1, p - 1).to_kind(Kind::Float) * sh;
-        let prefix = Tensor::cat(&[clean.narrow(2, 0, 1), history], 2);
+        let prefix = objective.condition_prefix(clean, history_noise);
         let last = *segments.iter().max().unwrap_or(&0);
         // The teacher's state at each of the student's points up to the last one needed.
         let mut states = vec![noise.narrow(2, p, f - p).to_kind(Kind::Float)];
@@ -106,14 +103,13 @@ impl Distillation {
         let span = upload(&Tensor::from_slice(&span), device).view([b, 1, 1, 1, 1]);
         let t: Vec<f32> = segments.iter().map(|&i| (self.student_sigma(i) * bwm_model::schedule::NUM_TRAIN_TIMESTEPS as f64) as f32).collect();
         let t = upload(&Tensor::from_slice(&t), device);
-        // For the step's loss curve: the training grid's point nearest each segment's sigma.
-        let nearest = |sigma: f64| (0..objective.schedule.len()).min_by(|&a, &c| (objective.schedule.sigmas[a] - sigma).abs().total_cmp(&(objective.schedule.sigmas[c] - sigma).abs())).unwrap_or(0);
         Ok(Prepared {
             input: Tensor::cat(&[prefix, start.shallow_clone()], 2),
             frame_timesteps: bwm_model::frame_timesteps(&t, f, p),
             target: (end - start) / span,
             weights: Tensor::ones([b], (Kind::Float, device)),
-            timestep_indices: segments.iter().map(|&i| nearest(self.student_sigma(i))).collect(),
+            // For the step's loss curve: the training grid's point nearest each segment's sigma.
+            timestep_indices: segments.iter().map(|&i| objective.nearest_index(self.student_sigma(i))).collect(),
         })
     }
 }

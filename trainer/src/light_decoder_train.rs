@@ -17,9 +17,8 @@ use tch::{Device, Kind, Tensor};
 
 use crate::config::OptimSection;
 use crate::dist::LocalCollective;
-use crate::keyed_rng::{self, Purpose};
 use crate::optim::{AdamW, Sharding};
-use crate::vae_train::{clip_starts, stack_clips, FrameSets};
+use crate::vae_train::{clip_starts, pick_clips, stack_clips, FrameSets};
 
 #[derive(Clone)]
 pub struct LightDecoderTrainSettings {
@@ -89,13 +88,7 @@ pub fn train_light_decoder(vae: &WanVae, data: &FrameSets, s: &LightDecoderTrain
     let mut opt = AdamW::new(&store.named_parameters(), &["*".into()], &[], &optim, s.steps, Sharding::SINGLE)?;
     let start = Instant::now();
     for step in 0..s.steps {
-        let picks: Vec<(usize, i64)> = (0..s.batch)
-            .map(|b| {
-                let u = keyed_rng::uniform(s.seed, step * s.batch as u64 + b as u64, Purpose::Shuffle);
-                starts[((u * starts.len() as f64) as usize).min(starts.len() - 1)]
-            })
-            .collect();
-        let x = stack_clips(&data.train, &picks, s.clip_frames, s.device);
+        let x = stack_clips(&data.train, &pick_clips(&starts, s.batch, s.seed, step), s.clip_frames, s.device);
         let (z, target) = tch::no_grad(|| -> Result<(Tensor, Tensor)> {
             let z = vae.encode(&x)?;
             let target = vae.decode(&z)?.to_kind(Kind::Float).clamp(-1.0, 1.0);

@@ -55,14 +55,24 @@ impl Objective {
             }
             TimestepSampling::LogitNormal { mean, std } => {
                 let z = mean + std * keyed_rng::standard_normal(self.seed, index, Purpose::Timestep);
-                let sigma = 1.0 / (1.0 + (-z).exp());
-                (0..n)
-                    .min_by(|&a, &b| {
-                        (self.schedule.sigmas[a] - sigma).abs().total_cmp(&(self.schedule.sigmas[b] - sigma).abs())
-                    })
-                    .unwrap_or(0)
+                self.nearest_index(1.0 / (1.0 + (-z).exp()))
             }
         }
+    }
+
+    /// The grid index whose sigma is nearest `sigma`.
+    pub fn nearest_index(&self, sigma: f64) -> usize {
+        let sigmas = &self.schedule.sigmas;
+        (0..sigmas.len()).min_by(|&a, &b| (sigmas[a] - sigma).abs().total_cmp(&(sigmas[b] - sigma).abs())).unwrap_or(0)
+    }
+
+    /// The condition latents [B, P, ...] of clean latents [B, C, F, H, W] (fp32): x0's clean, the
+    /// history's perturbed (1 - s_h) z + s_h e_h by `history_noise` of the latents' shape.
+    pub fn condition_prefix(&self, clean: &Tensor, history_noise: &Tensor) -> Tensor {
+        let (p, sh) = (self.condition_latents, self.history_sigma);
+        let clean = clean.to_kind(Kind::Float);
+        let history = clean.narrow(2, 1, p - 1) * (1.0 - sh) + history_noise.narrow(2, 1, p - 1).to_kind(Kind::Float) * sh;
+        Tensor::cat(&[clean.narrow(2, 0, 1), history], 2)
     }
 
     /// The draws of global sample `index` for a clip of latent shape [C, F, H, W].
@@ -87,13 +97,11 @@ impl Objective {
         let clean = clean.to_kind(Kind::Float);
         let sigmas: Vec<f32> = tids.iter().map(|&i| self.schedule.sigmas[i] as f32).collect();
         let sigma = upload(&Tensor::from_slice(&sigmas), clean.device()).view([b, 1, 1, 1, 1]);
-        let sh = self.history_sigma;
-        let x0 = clean.narrow(2, 0, 1);
-        let history = clean.narrow(2, 1, p - 1) * (1.0 - sh) + history_noise.narrow(2, 1, p - 1).to_kind(Kind::Float) * sh;
+        let prefix = self.condition_prefix(&clean, history_noise);
         let future = clean.narrow(2, p, f - p);
         let future_noise = noise.narrow(2, p, f - p).to_kind(Kind::Float);
         let noised = &future * (1.0 - &sigma) + &future_noise * &sigma;
-        let input = Tensor::cat(&[x0, history, noised], 2);
+        let input = Tensor::cat(&[prefix, noised], 2);
         let t: Vec<f32> = tids.iter().map(|&i| self.schedule.timesteps[i] as f32).collect();
         let t = upload(&Tensor::from_slice(&t), clean.device());
         let frame_timesteps = bwm_model::frame_timesteps(&t, f, p);

@@ -118,6 +118,16 @@ pub(crate) fn clip_starts(videos: &[Tensor], frames: usize, stride: usize) -> Ve
         .collect()
 }
 
+/// Step `step`'s `batch` clips of `starts`, drawn from (seed, step, position).
+pub(crate) fn pick_clips(starts: &[(usize, i64)], batch: usize, seed: u64, step: u64) -> Vec<(usize, i64)> {
+    (0..batch)
+        .map(|b| {
+            let u = keyed_rng::uniform(seed, step * batch as u64 + b as u64, Purpose::Shuffle);
+            starts[((u * starts.len() as f64) as usize).min(starts.len() - 1)]
+        })
+        .collect()
+}
+
 pub(crate) fn stack_clips(videos: &[Tensor], picks: &[(usize, i64)], frames: usize, device: Device) -> Tensor {
     Tensor::stack(&picks.iter().map(|&(v, s)| videos[v].narrow(1, s, frames as i64)).collect::<Vec<_>>(), 0).to_device(device)
 }
@@ -238,13 +248,7 @@ impl<'a> VaeRun<'a> {
         let start = Instant::now();
         let seconds_before = self.seconds;
         for step in self.step..until.min(s.steps) {
-            let picks: Vec<(usize, i64)> = (0..s.batch)
-                .map(|b| {
-                    let u = keyed_rng::uniform(s.seed, step * s.batch as u64 + b as u64, Purpose::Shuffle);
-                    self.starts[((u * self.starts.len() as f64) as usize).min(self.starts.len() - 1)]
-                })
-                .collect();
-            let mut x = stack_clips(&data.train, &picks, s.clip_frames, s.device);
+            let mut x = stack_clips(&data.train, &pick_clips(&self.starts, s.batch, s.seed, step), s.clip_frames, s.device);
             if let Some(size) = s.crop {
                 x = random_windows(&x, size, s.seed, step)?;
             }

@@ -43,7 +43,7 @@ Serving rule: p = max over t of min(p_t, ..., p_t+w-1), w = --window (default 3)
 sent; with "final" the windows that start in the last w - 1 frames hold the frames left, so a
 success reached at the episode's last frames counts as the simulator counts it (without it, the
 development families' slow policies lost 25 of their 37 missed successes there: docs/fidelity.md,
-"What the two trainings show"). bwm evaluate sends every frame generated so far after each chunk,
+"What the trainings show"). bwm evaluate sends every frame generated so far after each chunk,
 "final" once they reach the horizon, and stops at the first success, so "at any frame" matches the
 simulator's measure (success at any step). Success, once
 reached, holds for many frames (the drawer stays open, the expert keeps the button down), so asking

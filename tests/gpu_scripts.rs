@@ -153,6 +153,7 @@ echo "$* judge=$judge study=$study ema=${EMA_DECAY:-}" >> "$CALLS"
 [ -z "${STUDY_STREAMS:-}" ] || echo "streams $STUDY_STREAMS study=$study" >> "$CALLS"
 [ -z "${HISTORY_SIGMA:-}" ] || echo "history-sigma $HISTORY_SIGMA study=$study" >> "$CALLS"
 [ -z "${GUIDANCE:-}" ] || echo "guidance $GUIDANCE study=$study" >> "$CALLS"
+[ -z "${SAMPLE_SEED:-}" ] || echo "sample-seed $SAMPLE_SEED study=$study" >> "$CALLS"
 for s in "$@"; do
   if [ "$s" = study ]; then
     mkdir -p "$study"; echo "{\"judge\": \"$judge\"}" > "$study/study.json"
@@ -168,6 +169,11 @@ echo "other-seeds $* VAL_SEED_START=$VAL_SEED_START RUN=$RUN study=${STUDY_DIR:-
 
 /// metaworld-stages.sh copied into `dir` beside the stub recipe, run there for runs/x with `vars`.
 fn stages(dir: &Path, vars: &[(&str, &str)]) -> (Output, Vec<String>) {
+    stages_of(dir, &[], vars)
+}
+
+/// The same, given `args` (a mode such as `engine`, or stages).
+fn stages_of(dir: &Path, args: &[&str], vars: &[(&str, &str)]) -> (Output, Vec<String>) {
     fs::create_dir_all(dir.join("scripts/gpu")).unwrap();
     fs::create_dir_all(dir.join("bench/metaworld")).unwrap();
     fs::copy(Path::new(ROOT).join("scripts/gpu/metaworld-stages.sh"), dir.join("scripts/gpu/metaworld-stages.sh")).unwrap();
@@ -178,6 +184,7 @@ fn stages(dir: &Path, vars: &[(&str, &str)]) -> (Output, Vec<String>) {
     let _ = fs::remove_file(&calls);
     let out = Command::new("bash")
         .arg(dir.join("scripts/gpu/metaworld-stages.sh"))
+        .args(args)
         .current_dir(dir)
         .env_remove("JUDGE_FRAMES")
         .env_remove("STUDY_DIR")
@@ -191,6 +198,8 @@ fn stages(dir: &Path, vars: &[(&str, &str)]) -> (Output, Vec<String>) {
         .env_remove("HISTORY_SIGMA")
         .env_remove("COMPARE_GUIDANCE")
         .env_remove("GUIDANCE")
+        .env_remove("COMPARE_SAMPLE_SEED")
+        .env_remove("SAMPLE_SEED")
         .env("RUN", "runs/x")
         .env("OUT", dir.join("out"))
         .env("CALLS", &calls)
@@ -269,6 +278,23 @@ fn runs_after_when_asked(name: &str, base: &[(&str, &str)], asked: &str, stage: 
 }
 
 #[test]
+fn the_engine_and_realtime_modes_train_the_model_first_then_run_their_stage_alone() {
+    let dir = common::temp_dir("gpu-modes");
+    let d = dir.path();
+    for mode in ["engine", "realtime"] {
+        let (out, calls) = stages_of(d, &[mode], &[]);
+        let log = format!("{}\n{}\n{calls:#?}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+        assert!(out.status.success(), "{log}");
+        let at = |stage: &str| calls.iter().position(|c| c.starts_with(&format!("{stage} "))).unwrap_or_else(|| panic!("no {stage}: {log}"));
+        for before in ["data", "vae", "latents train", "truth", "judge"] {
+            assert!(at(before) < at(mode), "{before} before {mode}: {log}");
+        }
+        assert!(!calls.iter().any(|c| c.starts_with("study ")), "no study in the {mode} mode: {log}");
+        assert_eq!(calls.last().map(|c| c.starts_with(&format!("{mode} "))), Some(true), "{log}");
+    }
+}
+
+#[test]
 fn the_teacher_stage_follows_the_study_when_asked() {
     runs_after_when_asked("gpu-teacher", &[], "TEACHER", "teacher", "study");
 }
@@ -306,11 +332,14 @@ fn the_study_in_lanes_follows_the_study_when_asked() {
 }
 
 #[test]
-fn the_study_is_repeated_per_guidance_and_history_noise_level_from_its_truth_when_asked() {
+fn the_study_is_repeated_per_guidance_history_noise_level_and_sampler_seed_from_its_truth_when_asked() {
     let dir = common::temp_dir("gpu-history-sigma");
     let d = dir.path();
-    let (calls, log) = stages_ran(d, &[("COMPARE_GUIDANCE", "2"), ("COMPARE_HISTORY_SIGMA", "0 0.1")]);
-    let studies: Vec<&String> = calls.iter().filter(|c| c.starts_with("study ") || c.starts_with("history-sigma ") || c.starts_with("guidance ")).collect();
+    let (calls, log) = stages_ran(d, &[("COMPARE_GUIDANCE", "2"), ("COMPARE_HISTORY_SIGMA", "0 0.1"), ("COMPARE_SAMPLE_SEED", "1")]);
+    let studies: Vec<&String> = calls
+        .iter()
+        .filter(|c| c.starts_with("study ") || c.starts_with("history-sigma ") || c.starts_with("guidance ") || c.starts_with("sample-seed "))
+        .collect();
     assert_eq!(
         studies,
         [
@@ -321,11 +350,13 @@ fn the_study_is_repeated_per_guidance_and_history_noise_level_from_its_truth_whe
             "history-sigma 0 study=runs/x/study-h0",
             "study judge=reconstructed study=runs/x/study-h0.1 ema=",
             "history-sigma 0.1 study=runs/x/study-h0.1",
+            "study judge=reconstructed study=runs/x/study-seed1 ema=",
+            "sample-seed 1 study=runs/x/study-seed1",
         ],
         "{log}"
     );
     // Each comparison starts from the study's own truth (copied, not measured again).
-    for s in ["study-g2", "study-h0", "study-h0.1"] {
+    for s in ["study-g2", "study-h0", "study-h0.1", "study-seed1"] {
         assert_eq!(fs::read_to_string(d.join("runs/x").join(s).join("truth.json")).unwrap().trim(), "runs/x/study", "{log}");
     }
 }

@@ -398,6 +398,59 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
         assert!(timings.lines().any(|l| l.split('\t').next() == Some(stage)), "no {stage} in timings.tsv:\n{timings}");
     }
 
+    // Cheaper sampling against the full path: a light decoder and a one-step student trained from
+    // the recipe's model, the teacher at 2 and 1 steps and the student each decoded both ways, in
+    // the open loop over both held-out episodes and, for two settings, in closed loop.
+    let realtime = || {
+        let mut cmd = toy("recipe.sh", &runs);
+        cmd.arg("realtime").envs(TOY_STUDY).envs([
+            ("VAL_EPISODES", "1"),
+            ("VAE_EPISODES", "6"),
+            ("LIGHT_STEPS", "2"),
+            ("LIGHT_BATCH", "1"),
+            ("REALTIME_STUDENT_STEPS", "2"),
+            ("REALTIME_TEACHER_STEPS", "2 1"),
+            ("REALTIME_STUDENTS", "1"),
+            ("REALTIME_EPISODES", "2"),
+            ("REALTIME_STUDIES", "t2-full,s1-light"),
+            ("REALTIME_VARIANTS", "expert,wander-then-80"),
+        ]);
+        cmd
+    };
+    // Settings it cannot measure are refused before anything trains.
+    for (var, value, said) in [
+        ("REALTIME_STUDIES", "t3-full", "REALTIME_STUDIES names 't3-full'"),
+        ("REALTIME_STUDENTS", "3", "make SAMPLE_STEPS a multiple of 3"),
+        ("REALTIME_TEACHER_STEPS", "2 x", "not 'x'"),
+    ] {
+        let out = realtime().env(var, value).output().unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(out.status.code() == Some(2) && stderr.contains(said), "{var}={value}: {stderr}");
+        assert!(!runs.join("realtime").exists(), "{var}={value}: nothing made");
+    }
+    run(&mut realtime(), "recipe.sh realtime");
+    assert!(runs.join("realtime/light-decoder.safetensors").is_file() && runs.join("realtime/student-1/checkpoints/latest").is_file());
+    let table = json(&runs.join("realtime/realtime.json"));
+    let settings = table["settings"].as_object().unwrap();
+    let mut names: Vec<&String> = settings.keys().collect();
+    names.sort();
+    assert_eq!(names, ["s1-full", "s1-light", "t1-full", "t1-light", "t2-full", "t2-light"], "{table}");
+    assert_eq!(table["reference"], "t2-full");
+    assert_eq!(settings["t2-full"]["open_loop"]["reference_h"], 100.0, "the reference against itself: {table}");
+    for (name, row) in settings {
+        let open = &row["open_loop"];
+        assert!(open["episodes"] == 2 && open["recorded_h"].as_f64().is_some(), "{name}: {table}");
+        let studied = row.get("closed_loop").is_some();
+        assert_eq!(studied, name == "t2-full" || name == "s1-light", "{name}: {table}");
+        if studied {
+            assert_eq!(row["closed_loop"]["episodes"], 4, "2 variants x 2 tasks x 1 episode: {table}");
+        }
+    }
+    let timings = std::fs::read_to_string(runs.join("timings.tsv")).unwrap();
+    for stage in ["light-decoder", "student-1", "roll-t2-full", "roll-s1-light", "realtime-truth", "study-t2-full", "study-s1-light", "agreement"] {
+        assert!(timings.lines().any(|l| l.split('\t').next() == Some(stage)), "no {stage} in timings.tsv:\n{timings}");
+    }
+
     // The judge of real frames only, beside the recipe's (its own file, report and ceiling; the
     // recipe's judge left as it was).
     let before = std::fs::read(runs.join("judge-reconstructed.pt")).unwrap();
@@ -591,6 +644,11 @@ fn the_sampler_sweep_picks_the_fewest_steps_within_bounds() {
 #[test]
 fn cheaper_settings_are_scored_against_a_reference_rollout() {
     python_tests("test_agreement.py");
+}
+
+#[test]
+fn the_realtime_table_sets_each_setting_against_the_reference_and_its_bounds() {
+    python_tests("test_realtime.py");
 }
 
 #[test]

@@ -33,6 +33,15 @@
 #   probe    the same study over graded `wrong-<d>cm` variants (the expert with its targets moved d
 #            cm along the task's `wrong` offset): does the model's contact follow a shifted
 #            command as the simulator's does? $RUN/probe/ (same files as study/)
+#   realtime (only when named) cheaper sampling measured against the full path: a light decoder
+#            (bwm train-light-decoder) and students distilled from the trained model for 1 and 2
+#            steps ([distill], REALTIME_STUDENTS), then the teacher at REALTIME_TEACHER_STEPS (the
+#            first, default 50, with the VAE's decoder the reference) and each student, each decoded
+#            by the VAE's decoder (-full) and by the light one (-light): the open loop of the first
+#            REALTIME_EPISODES held-out episodes (agreement.py, PSNR at h = 32 against the reference
+#            and the recorded frames) and, for REALTIME_STUDIES in their order, the study on the test
+#            families; $REALTIME_DIR (default $RUN/realtime/: light-decoder.safetensors, student-K/,
+#            roll/SETTING/, study-SETTING/, agreement.json, realtime.json)
 #   engine   (only when named) the data engine measured, bench/metaworld/engine.py: the expert's
 #            commands planned from the first frame of new placements, drawn by `bwm rollout`, and
 #            behaviour-cloned policies trained on N real demonstrations with and without them
@@ -110,6 +119,7 @@ SAMPLER_GRAPH="${SAMPLER_GRAPH:-0}"       # 1: the sampler's forward pass replay
 case "$SAMPLER_GRAPH" in 0|1) ;; *) echo "recipe: SAMPLER_GRAPH must be 0 or 1, not '$SAMPLER_GRAPH'" >&2; exit 2 ;; esac
 HISTORY_SIGMA="${HISTORY_SIGMA:-}"        # bwm --history-sigma when sampling: the history latents' noise level (empty: the
                                           # level the DiT trained with; 0: clean history)
+SAMPLE_SEED="${SAMPLE_SEED:-0}"           # bwm --seed when sampling: the sampler's noise (another draw of the same episodes)
 GUIDANCE="${GUIDANCE:-1}"                 # bwm --guidance: classifier-free guidance by the actions (1 = off; other
                                           # values need TRAIN_SETS=objective.action_dropout=P with P > 0)
 JUDGE_STEPS="${JUDGE_STEPS:-600}"
@@ -138,6 +148,19 @@ PROBE_VARIANTS="${PROBE_VARIANTS:-wrong-0cm,wrong-1cm,wrong-2cm,wrong-3cm,wrong-
 TEACHER_VARIANTS="${TEACHER_VARIANTS:-$STUDY_VARIANTS}"  # the teacher stage's variants (default: the study's)
 OWN_BEHAVIOURS="${OWN_BEHAVIOURS-near}"   # the own stage's generator behaviours, comma-separated (empty: all)
 OWN_EPISODES="${OWN_EPISODES:-400}"       # the own stage's episodes per task and dataset (the first of those behaviours)
+REALTIME_DIR="${REALTIME_DIR:-$RUN/realtime}"  # where the realtime stage writes
+REALTIME_TEACHER_STEPS="${REALTIME_TEACHER_STEPS:-50 4 2 1}"  # the teacher's sampler steps measured; the first is the reference's
+REALTIME_STUDENTS="${REALTIME_STUDENTS-1 2}"  # students distilled, by their sampler steps (each from the teacher's SAMPLE_STEPS-step path)
+REALTIME_STUDENT_STEPS="${REALTIME_STUDENT_STEPS:-1000}"  # each student's training steps (of the recipe's batch)
+REALTIME_STUDENT_LR="${REALTIME_STUDENT_LR:-1e-4}"
+LIGHT_STEPS="${LIGHT_STEPS:-2000}"         # the light decoder's training steps (clips of VAE_CLIP_FRAMES frames)
+LIGHT_BATCH="${LIGHT_BATCH:-4}"
+LIGHT_LR="${LIGHT_LR:-2e-3}"
+REALTIME_EPISODES="${REALTIME_EPISODES:-20}"  # open loop: the first N held-out episodes (the tasks interleaved)
+REALTIME_VARIANTS="${REALTIME_VARIANTS:-}"   # the closed loop's variants, comma-separated (default: the test families')
+# Settings studied in closed loop on the test families, in this order (t<steps>-<full|light>, s<steps>-<full|light>);
+# all: every setting, the reference first; empty: none.
+REALTIME_STUDIES="${REALTIME_STUDIES-all}"
 ENGINE_DIR="${ENGINE_DIR:-$RUN/engine}"   # where the engine stage writes
 ENGINE_SEEDS="${ENGINE_SEEDS:-3}"         # data seeds: each its own real and generated placements and network seed
 ENGINE_GENERATED="${ENGINE_GENERATED:-16}"  # generated episodes per task and data seed (M)
@@ -148,8 +171,8 @@ ENGINE_IN_FLIGHT="${ENGINE_IN_FLIGHT:-16}"  # generated episodes rolled out at o
 STAGES=()
 for arg in "$@"; do
   case "$arg" in
-    data|vae|latents|train|fidelity|truth|judge|ceiling|study|teacher|own|probe|engine) STAGES+=("$arg") ;;
-    *) echo "recipe: unknown stage '$arg' (stages: data vae latents train fidelity truth judge ceiling study teacher own probe engine)" >&2; exit 2 ;;
+    data|vae|latents|train|fidelity|truth|judge|ceiling|study|teacher|own|probe|realtime|engine) STAGES+=("$arg") ;;
+    *) echo "recipe: unknown stage '$arg' (stages: data vae latents train fidelity truth judge ceiling study teacher own probe realtime engine)" >&2; exit 2 ;;
   esac
 done
 [ ${#STAGES[@]} -gt 0 ] || STAGES=(data vae latents train fidelity truth judge ceiling study teacher own probe)
@@ -279,22 +302,28 @@ if wants latents; then
   fi
 fi
 
-if wants train; then
+# bwm train's settings on this run's latents and VAE into `sets` (TRAIN_SETS last), writing to $1.
+train_sets() { # $1 = the run's output folder
+  local holdout kv
   # The validation episodes `bwm prepare` put last (the plan recorded in the cache's index names them).
   holdout=$("$PYTHON" - "$RUN/latents/index.json" <<'PY'
 import json, sys
 plan = json.load(open(sys.argv[1])).get("plan") or {}
 print(int(plan.get("holdout_episodes", 0)))
 PY
-)
-  sets=(--set "run.out_dir=\"$RUN\"" --set "run.device=\"$DEVICE\"" --set "data.latent_cache=\"$RUN/latents\""
+) || return 1
+  sets=(--set "run.out_dir=\"$1\"" --set "run.device=\"$DEVICE\"" --set "data.latent_cache=\"$RUN/latents\""
         --set "data.holdout_episodes=$holdout" --set "validation.vae=\"$RUN/vae.safetensors\""
         --set "model.dit.in_dim=$VAE_Z_DIM" --set "model.dit.out_dim=$VAE_Z_DIM")
-  [ -n "$TRAIN_STEPS" ] && sets+=(--set "train.steps=$TRAIN_STEPS")
-  [ -n "$EMA_DECAY" ] && sets+=(--set "optim.ema_decay=$EMA_DECAY")
+  [ -z "$TRAIN_STEPS" ] || sets+=(--set "train.steps=$TRAIN_STEPS")
+  [ -z "$EMA_DECAY" ] || sets+=(--set "optim.ema_decay=$EMA_DECAY")
   set -f  # the settings may hold glob characters (patch_size=[1,2,2])
   for kv in $TRAIN_SETS; do sets+=(--set "$kv"); done
   set +f
+}
+
+if wants train; then
+  train_sets "$RUN" || exit 1
   # Continued only on the latent cache and VAE it started from (settings are bwm train's to check).
   made_with=$(record_of train --latents "$RUN/latents/index.json" --vae "$RUN/vae.safetensors")
   if ! kept "$RUN/checkpoints/latest" "$made_with"; then
@@ -305,17 +334,20 @@ PY
   [ -z "$EMA_DECAY" ] || ema_export "$(cat "$RUN/checkpoints/latest")"
 fi
 # The world-model flags every later command shares: the newest checkpoint (its EMA weights with
-# EMA_DECAY, exported once), its VAE and statistics.
+# EMA_DECAY, exported once; MODEL), its VAE and statistics.
 world_model() {
-  local step ckpt
+  local step
   step=$(cat "$RUN/checkpoints/latest")
-  ckpt="$RUN/checkpoints/$step"
+  MODEL="$RUN/checkpoints/$step"
   if [ -n "$EMA_DECAY" ]; then
     ema_export "$step" || exit 1
-    ckpt="$RUN/ema/$step"
+    MODEL="$RUN/ema/$step"
   fi
-  WM=(--checkpoint "$ckpt" --vae "$RUN/vae.safetensors" --stats "$RUN/latents/stat.json" --stats-group observation.state
-      --history 8 --future 24 --sample-steps "$SAMPLE_STEPS" --solver "$SOLVER" --guidance "$GUIDANCE" ${HISTORY_SIGMA:+--history-sigma "$HISTORY_SIGMA"} ${FP8:+--fp8 "$FP8"} --device "$DEVICE")
+  wm_flags "$MODEL" "$SAMPLE_STEPS"
+}
+wm_flags() { # $1 = weights, $2 = sampler steps: the world-model flags into WM
+  WM=(--checkpoint "$1" --vae "$RUN/vae.safetensors" --stats "$RUN/latents/stat.json" --stats-group observation.state
+      --history 8 --future 24 --sample-steps "$2" --solver "$SOLVER" --seed "$SAMPLE_SEED" --guidance "$GUIDANCE" ${HISTORY_SIGMA:+--history-sigma "$HISTORY_SIGMA"} ${FP8:+--fp8 "$FP8"} --device "$DEVICE")
   if [ "$SAMPLER_GRAPH" = 1 ]; then WM+=(--cuda-graph); fi
 }
 
@@ -410,6 +442,118 @@ if wants probe; then
   world_model
   timed probe "$PYTHON" bench/metaworld/study.py "${COMMON_STUDY_ARGS[@]}" --variants "$PROBE_VARIANTS" --out "$RUN/probe" \
     --judge "$JUDGE" --bwm "$BWM" --jobs "$STUDY_JOBS" --episodes-in-flight "$STUDY_IN_FLIGHT" --streams "$STUDY_STREAMS" -- "${WM[@]}"
+fi
+if wants realtime; then
+  world_model
+  teacher=$MODEL
+  RT=$REALTIME_DIR
+  read -r -a teacher_steps <<< "$REALTIME_TEACHER_STEPS"
+  read -r -a students <<< "$REALTIME_STUDENTS"
+  [ ${#teacher_steps[@]} -gt 0 ] || { echo "recipe: REALTIME_TEACHER_STEPS names no step count" >&2; exit 2; }
+  for k in "${teacher_steps[@]}" "${students[@]}"; do
+    [[ $k =~ ^[1-9][0-9]*$ ]] || { echo "recipe: the realtime stage's step counts are positive integers, not '$k'" >&2; exit 2; }
+  done
+  for k in "${students[@]}"; do
+    [ $((SAMPLE_STEPS % k)) = 0 ] || { echo "recipe: a student of $k steps learns the teacher's $SAMPLE_STEPS-step path (SAMPLE_STEPS) in $k equal parts; make SAMPLE_STEPS a multiple of $k" >&2; exit 2; }
+  done
+  [[ $REALTIME_EPISODES =~ ^[1-9][0-9]*$ ]] || { echo "recipe: REALTIME_EPISODES is a positive number of episodes, not '$REALTIME_EPISODES'" >&2; exit 2; }
+  settings=()
+  for k in "${teacher_steps[@]}"; do settings+=("t$k-full" "t$k-light"); done
+  for k in "${students[@]}"; do settings+=("s$k-full" "s$k-light"); done
+  reference=${settings[0]}
+  if [ "$REALTIME_STUDIES" = all ]; then
+    studies=("${settings[@]}")
+  else
+    read -r -a studies <<< "${REALTIME_STUDIES//,/ }"
+    for name in "${studies[@]}"; do
+      [[ " ${settings[*]} " == *" $name "* ]] || { echo "recipe: REALTIME_STUDIES names '$name', not one of this stage's settings (${settings[*]})" >&2; exit 2; }
+    done
+  fi
+  mkdir -p "$RT"
+  weights_id() { # $1 = a checkpoint or export folder, or a weights file: the sha256 of its weights
+    if [ -f "$1/model.safetensors" ]; then sha256sum < "$1/model.safetensors"
+    elif [ -f "$1" ]; then sha256sum < "$1"
+    else find "$1" -name '*.safetensors' -print0 | sort -z | xargs -0 cat | sha256sum
+    fi | cut -d' ' -f1
+  }
+  # The light decoder and the students train side by side (background), while the teacher's
+  # settings with the VAE's decoder are rolled out and studied; then the others.
+  light="$RT/light-decoder.safetensors"
+  light_decoder=("$BWM" train-light-decoder --vae "$RUN/vae.safetensors" --data "$RUN/data/train" --max-episodes "$VAE_EPISODES"
+    --holdout-tail "$VAE_HOLDOUT_TAIL" --resolution "${RESOLUTION}x$RESOLUTION" --clip-frames "$VAE_CLIP_FRAMES" --steps "$LIGHT_STEPS"
+    --batch "$LIGHT_BATCH" --lr "$LIGHT_LR" --seed "$VAE_SEED" --device "$DEVICE" --out "$light")
+  made_with=$(record_of "${light_decoder[@]}")
+  training=()
+  if ! kept "$light" "$made_with"; then
+    (timed light-decoder "${light_decoder[@]}" && recorded "$light" "$made_with") & training+=($!)
+  fi
+  for k in "${students[@]}"; do
+    # The teacher's own run config (its objective: shift, history noise), action dropout off (a
+    # student learns the conditional path alone), started from the teacher's weights.
+    student=("$BWM" train --config "$RUN/config.toml" --set "run.out_dir=\"$RT/student-$k\"" --set "run.device=\"$DEVICE\""
+      --set "train.steps=$REALTIME_STUDENT_STEPS" --set "optim.lr=$REALTIME_STUDENT_LR"
+      --set "optim.warmup_steps=$(( (REALTIME_STUDENT_STEPS + 19) / 20 ))" --set "objective.action_dropout=0.0"
+      --set "model.init={ from = \"bwm-checkpoint\", path = \"$teacher\" }" --set "distill.teacher=\"$teacher\""
+      --set "distill.student_steps=$k" --set "distill.teacher_substeps=$((SAMPLE_STEPS / k))")
+    made_with=$(record_of "${student[@]}"; echo "teacher (sha256 $(weights_id "$teacher"))")
+    if ! kept "$RT/student-$k/checkpoints/latest" "$made_with"; then
+      mkdir -p "$RT/student-$k/checkpoints"
+      recorded "$RT/student-$k/checkpoints/latest" "$made_with"
+    fi
+    timed "student-$k" "${student[@]}" --resume auto > "$RT/student-$k.log" 2>&1 & training+=($!)
+  done
+  realtime_wm() { # $1 = a setting: its world-model flags into WM
+    local kind=${1%%-*} steps weights
+    steps=${kind:1}
+    if [ "${kind:0:1}" = t ]; then
+      weights=$teacher
+    else
+      weights="$RT/student-$steps/checkpoints/$(cat "$RT/student-$steps/checkpoints/latest")" || return 1
+    fi
+    wm_flags "$weights" "$steps"
+    [ "${1#*-}" = full ] || WM+=(--light-decoder "$light")
+  }
+  roll() { # $@ = settings, each rolled out over the first REALTIME_EPISODES held-out episodes (the same noise)
+    local name
+    for name in "$@"; do
+      realtime_wm "$name" || return 1
+      rm -rf "$RT/roll/$name"
+      timed "roll-$name" "$BWM" rollout "${WM[@]}" --data "$RUN/data/val" --episodes "$(seq -s, 0 $((REALTIME_EPISODES - 1)))" \
+        --actions observation.state:0-3 --resolution "${RESOLUTION}x$RESOLUTION" --frame-storage image \
+        --episodes-in-flight "$FIDELITY_IN_FLIGHT" --out "$RT/roll/$name" || return 1
+    done
+  }
+  variants=$REALTIME_VARIANTS
+  [ -n "$variants" ] || variants=$(cd bench/metaworld && "$PYTHON" -c 'import families; print(",".join(families.variants("test")))')
+  base=("$PYTHON" bench/metaworld/study.py "${COMMON_STUDY_ARGS[@]}" --variants "$variants" --out "$RT/study-base")
+  study_of() { # $@ = settings, each studied on the variants (from the truth and verdicts of study-base)
+    local name f
+    for name in "$@"; do
+      realtime_wm "$name" || return 1
+      mkdir -p "$RT/study-$name"
+      for f in truth.json judged.json; do [ -e "$RT/study-$name/$f" ] || cp "$RT/study-base/$f" "$RT/study-$name/$f" || return 1; done
+      timed "study-$name" "$PYTHON" bench/metaworld/study.py "${COMMON_STUDY_ARGS[@]}" --variants "$variants" --out "$RT/study-$name" \
+        --judge "$JUDGE" --bwm "$BWM" --jobs "$STUDY_JOBS" --episodes-in-flight "$STUDY_IN_FLIGHT" --streams "$STUDY_STREAMS" -- "${WM[@]}" || return 1
+    done
+  }
+  first=() later=() first_studies=() later_studies=()
+  for name in "${settings[@]}"; do [[ $name == t*-full ]] && first+=("$name") || later+=("$name"); done
+  for name in "${studies[@]}"; do [[ $name == t*-full ]] && first_studies+=("$name") || later_studies+=("$name"); done
+  status=0
+  roll "${first[@]}" || status=1
+  if [ $status = 0 ] && [ ${#studies[@]} -gt 0 ]; then
+    { timed realtime-truth "${base[@]}" --truth-only && timed realtime-judged "${base[@]}" --judge "$JUDGE" --judged-only; } || status=1
+  fi
+  [ $status != 0 ] || study_of "${first_studies[@]}" || status=1
+  for pid in "${training[@]}"; do wait "$pid" || { echo "recipe: the light decoder or a student failed (above; $RT/student-*.log)" >&2; status=1; }; done
+  [ $status != 0 ] || roll "${later[@]}" || status=1
+  if [ $status = 0 ]; then
+    timed agreement "$PYTHON" bench/metaworld/agreement.py --reference "$RT/roll/$reference" --recorded "$RUN/data/val" --horizon 32 \
+      --json "$RT/agreement.json" "${settings[@]/#/$RT/roll/}" || status=1
+  fi
+  [ $status != 0 ] || study_of "${later_studies[@]}" || status=1
+  [ $status != 0 ] || "$PYTHON" bench/metaworld/realtime.py "$RT" --reference "$reference" --json "$RT/realtime.json" || status=1
+  [ $status = 0 ] || exit 1
 fi
 if wants engine; then
   world_model

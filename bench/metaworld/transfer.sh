@@ -10,10 +10,16 @@
 #   full / lora / scratch   bwm train on the target cache for $POST_STEPS steps from the base's
 #             last checkpoint (all weights, or LoRA rank $LORA_RANK on every attention and FFN
 #             linear with the action encoder trained in full) or from random weights
-#   fidelity  recipe.sh fidelity of each arm; $RUN/transfer.json and a table on stdout
+#   fidelity  recipe.sh fidelity of each arm
+#   study     (CLOSED_LOOP=1, the default) each arm through the evaluator on the new task: one
+#             truth and one judge for all (recipe.sh truth judge in $RUN/target, the judge learning
+#             from $RUN/data/vae, the episodes no DiT sees, and their round trips through the VAE),
+#             then recipe.sh study of each arm on TRANSFER_VARIANTS (default: the test families'
+#             variants) from that truth and the judge's verdicts: Pearson r, MAE, invented / missed
+#   report    $RUN/transfer.json (each arm's open loop and closed loop) and a table on stdout
 # Usage (repository root): bash bench/metaworld/transfer.sh; the recipe's variables apply
-# (RESOLUTION, WORKERS, DEVICE, PYTHON, BWM, VAL_EPISODES, TRAIN_SETS of the base, ...). Every
-# step is skipped when its output exists.
+# (RESOLUTION, WORKERS, DEVICE, PYTHON, BWM, VAL_EPISODES, TRAIN_SETS of the base, STUDY_EPISODES,
+# JUDGE_STEPS, ...). Every step is skipped when its output exists.
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/../.."
 T="${RUN:-runs/transfer}"
@@ -24,6 +30,8 @@ VAE_TASK_EPISODES="${VAE_TASK_EPISODES:-100}"
 POST_STEPS="${POST_STEPS:-1500}"
 LORA_RANK="${LORA_RANK:-32}"
 ARMS="${ARMS:-full lora scratch}"
+CLOSED_LOOP="${CLOSED_LOOP:-1}"
+case "$CLOSED_LOOP" in 0|1) ;; *) echo "transfer: CLOSED_LOOP must be 0 or 1, not '$CLOSED_LOOP'" >&2; exit 2 ;; esac
 export PYTHON="${PYTHON:-python3}" BWM="${BWM:-${CARGO_TARGET_DIR:-target}/release/bwm}" DEVICE="${DEVICE:-cuda}"
 RESOLUTION="${RESOLUTION:-128}"
 WORKERS="${WORKERS:-$(nproc)}"
@@ -39,6 +47,12 @@ RUN="$T/base" TASKS="$BASE_TASK" VAE_DATA="$T/data/vae" VAE_EPISODES=$((2 * VAE_
 mkdir -p "$T/target"
 ln -sfn ../base/vae.safetensors "$T/target/vae.safetensors"
 RUN="$T/target" TASKS="$TARGET_TASK" TRAIN_EPISODES="$TARGET_EPISODES" recipe data latents
+
+if [ "$CLOSED_LOOP" = 1 ]; then
+  variants=${TRANSFER_VARIANTS:-$(cd bench/metaworld && "$PYTHON" -c 'import families; print(",".join(families.variants("test")))')}
+  # The truth of the new task's policies and a judge of its outcomes, made once for every arm.
+  RUN="$T/target" TASKS="$TARGET_TASK" JUDGE_DATA="$T/data/vae" STUDY_VARIANTS="$variants" recipe truth judge
+fi
 
 base_ckpt="$T/base/checkpoints/$(cat "$T/base/checkpoints/latest")"
 holdout=$("$PYTHON" -c 'import json, sys; print(int((json.load(open(sys.argv[1])).get("plan") or {}).get("holdout_episodes", 0)))' "$T/target/latents/index.json")
@@ -68,20 +82,40 @@ for arm in $ARMS; do
     awk -v n="train-$arm" -v a="$t0" -v b="$(date +%s.%N)" 'BEGIN { printf "%s\t%.1f\n", n, b - a }' | tee -a "$T/timings.tsv"
   fi
   RUN="$dir" recipe fidelity
+  if [ "$CLOSED_LOOP" = 1 ]; then
+    ln -sfn ../target/judge-reconstructed.pt "$dir/judge-reconstructed.pt"
+    mkdir -p "$dir/study"
+    for f in truth.json judged.json; do [ -e "$dir/study/$f" ] || cp "$T/target/study/$f" "$dir/study/$f"; done
+    RUN="$dir" TASKS="$TARGET_TASK" STUDY_VARIANTS="$variants" recipe study
+  fi
 done
 
 "$PYTHON" - "$T" $ARMS <<'PY'
 import json, os, sys
 root, arms = sys.argv[1], sys.argv[2:]
-out = {}
+out, closed = {}, {}
 for arm in arms:
     f = json.load(open(os.path.join(root, arm, "fidelity", "fidelity.json")))
     out[arm] = f["all"]["horizons"]
-json.dump(out, open(os.path.join(root, "transfer.json"), "w"), indent=1)
+    p = os.path.join(root, arm, "study", "study.json")
+    if os.path.isfile(p):
+        s = json.load(open(p))
+        closed[arm] = {"pearson_r": s["all"]["pearson_r"], "spearman_rho": s["all"]["spearman_rho"], "mae": s["all"]["mae"],
+                       "best_ranked_first": s["all"]["best_ranked_first"], "invented": s["per_episode"]["invented"],
+                       "missed": s["per_episode"]["missed"], "episodes": s["per_episode"]["n"],
+                       "families": {k: {"pearson_r": v["pearson_r"], "mae": v["mae"]} for k, v in s.get("per_family", {}).items()}}
+json.dump({**out, **({"closed_loop": closed} if closed else {})}, open(os.path.join(root, "transfer.json"), "w"), indent=1)
 print("| arm | h | model PSNR (SSIM) | copy last frame | other actions |")
 print("|---|---|---|---|---|")
 for arm, hs in out.items():
     for h, v in sorted(hs.items(), key=lambda kv: int(kv[0]) if kv[0].isdigit() else 1 << 30):
         print(f"| {arm} | {h} | {v['model']['psnr']:.2f} ({v['model']['ssim']:.3f}) | {v['copy_last_frame']['psnr']:.2f} | {v['other_actions']['psnr']:.2f} |")
+if closed:
+    num = lambda v: "n/a" if v is None else f"{v:.3f}"
+    print("| arm | closed loop: Pearson r | Spearman | MAE | best first | invented / missed | per family r |")
+    print("|---|---|---|---|---|---|---|")
+    for arm, c in closed.items():
+        fams = ", ".join(f"{k} {num(v['pearson_r'])}" for k, v in c["families"].items())
+        print(f"| {arm} | {num(c['pearson_r'])} | {num(c['spearman_rho'])} | {c['mae']:.3f} | {c['best_ranked_first']} | {c['invented']} / {c['missed']} of {c['episodes']} | {fams} |")
 print(f"transfer: {os.path.join(root, 'transfer.json')}")
 PY

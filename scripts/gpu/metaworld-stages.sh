@@ -83,11 +83,12 @@ elif [ "${1:-}" = sweep ]; then
     bash bench/metaworld/sweep.sh 2>&1 | tee -a "$OUT/sweep.log"
     status=${PIPESTATUS[0]}
   fi
-elif [ "${1:-}" = engine ]; then
-  # The data engine measured (recipe.sh's engine stage) on a model trained here first.
+elif [ "${1:-}" = engine ] || [ "${1:-}" = realtime ]; then
+  # The data engine or cheaper sampling measured (recipe.sh's engine or realtime stage) on a model
+  # trained here first.
   train_stages
   if [ $status = 0 ]; then
-    recipe engine 2>&1 | tee -a "$OUT/recipe.log"
+    recipe "$1" 2>&1 | tee -a "$OUT/recipe.log"
     status=${PIPESTATUS[0]}
   fi
 elif [ $# -gt 0 ]; then
@@ -129,6 +130,7 @@ else
     fi
     compare_per_value GUIDANCE g ${COMPARE_GUIDANCE:-}
     compare_per_value HISTORY_SIGMA h ${COMPARE_HISTORY_SIGMA:-}
+    compare_per_value SAMPLE_SEED seed ${COMPARE_SAMPLE_SEED:-}
     if [ $status = 0 ] && [ "${TEACHER:-0}" = 1 ]; then
       recipe teacher 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
     fi

@@ -26,7 +26,9 @@
 # second time with that sampler ($RUN/study-dpm++2m); COMPARE_GUIDANCE="2 3" once more per
 # action-guidance value ($RUN/study-g2, ...; the model trained with objective.action_dropout > 0);
 # COMPARE_HISTORY_SIGMA="0" once more per history-noise level when sampling ($RUN/study-h0, ...;
-# recipe.sh's HISTORY_SIGMA); each such study starts from the study's truth and judged episodes;
+# recipe.sh's HISTORY_SIGMA); COMPARE_SAMPLE_SEED="1 2" once more per sampler seed (the same
+# episodes drawn again: $RUN/study-seed1, ...; recipe.sh's SAMPLE_SEED); each such study starts
+# from the study's truth and judged episodes;
 # COMPARE_EMA=1 (with EMA_DECAY) once more with the newest checkpoint's last step's weights instead
 # of their average ($RUN/study-last);
 # OTHER_SEEDS=S once more on held-out seeds from S (bench/metaworld/other-seeds.sh, without
@@ -39,6 +41,10 @@
 # `bash scripts/gpu/metaworld.sh engine` trains the model (stages up to train, truth and judge)
 # where it has not, then runs the recipe's engine stage (the data engine measured; its ENGINE_*
 # variables apply): $RUN/engine/engine.json comes back in run.tar.gz. Run it detached as the recipe.
+# `bash scripts/gpu/metaworld.sh realtime` likewise trains the model where it has not, then runs the
+# recipe's realtime stage (a light decoder and distilled students against the teacher's steps, open
+# and closed loop; its REALTIME_*, LIGHT_* variables apply): $RUN/realtime/realtime.json,
+# agreement.json and each setting's study-SETTING/study.json come back in run.tar.gz.
 # `bash scripts/gpu/metaworld.sh sweep` runs bench/metaworld/sweep.sh (the real-time issue's sampler
 # sweep; its variables apply) over the run the recipe trained on this machine, training it first
 # (stages up to train, truth and judge) where it has not; run it detached as the recipe.

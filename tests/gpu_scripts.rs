@@ -157,6 +157,7 @@ echo "$* judge=$judge study=$study ema=${EMA_DECAY:-}" >> "$CALLS"
 for s in "$@"; do
   if [ "$s" = study ]; then
     mkdir -p "$study"; echo "{\"judge\": \"$judge\"}" > "$study/study.json"
+    [ -z "${STUDY_FROM:-}" ] || [ -f "$study/truth.json" ] || cp "$STUDY_FROM/truth.json" "$study/truth.json"
     [ -f "$study/truth.json" ] || echo "$study" > "$study/truth.json"
   fi
 done
@@ -200,6 +201,7 @@ fn stages_of(dir: &Path, args: &[&str], vars: &[(&str, &str)]) -> (Output, Vec<S
         .env_remove("GUIDANCE")
         .env_remove("COMPARE_SAMPLE_SEED")
         .env_remove("SAMPLE_SEED")
+        .env_remove("STUDY_FROM")
         .env("RUN", "runs/x")
         .env("OUT", dir.join("out"))
         .env("CALLS", &calls)

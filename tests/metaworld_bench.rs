@@ -657,7 +657,8 @@ fn the_policy_server_speaks_openpi() {
 }
 
 /// bench/metaworld/transfer.sh at toy sizes: a base on one task, post-trained onto the other in
-/// full, with LoRA and from scratch, each scored by `bwm fidelity`.
+/// full, with LoRA and from scratch, each scored by `bwm fidelity` and, against one truth and one
+/// judge of the new task, by the evaluator.
 #[test]
 fn the_transfer_study_runs_its_three_arms_on_cpu() {
     let _turn = ONE_PIPELINE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
@@ -668,6 +669,7 @@ fn the_transfer_study_runs_its_three_arms_on_cpu() {
         // arms' whole-episode rollouts are most of this test's time.
         toy("transfer.sh", &runs)
             .envs([("TARGET_EPISODES", "3"), ("VAL_EPISODES", "2"), ("VAE_TASK_EPISODES", "2"), ("POST_STEPS", "2"), ("LORA_RANK", "2")])
+            .envs([("JUDGE_STEPS", "5"), ("STUDY_EPISODES", "1"), ("STUDY_JOBS", "2"), ("STUDY_HORIZON", "48"), ("TRANSFER_VARIANTS", "bc-nn-1,wander-then-80")])
             .env("FRAMES", "72"),
         "transfer.sh",
     );
@@ -686,5 +688,16 @@ fn the_transfer_study_runs_its_three_arms_on_cpu() {
             let psnr = report[arm][h]["model"]["psnr"].as_f64();
             assert!(psnr.is_some_and(f64::is_finite), "{arm} h={h}: {report}");
         }
+        // The new task's two variants, one episode each, drawn by the arm and judged.
+        let closed = &report["closed_loop"][arm];
+        assert!(closed["episodes"] == 2 && closed["mae"].as_f64().is_some_and(|m| (0.0..=1.0).contains(&m)), "{arm}: {report}");
+        assert!(closed["families"].get("learned").is_some() && closed["families"].get("wander").is_some(), "{arm}: {report}");
+        let study = json(&runs.join(arm).join("study/study.json"));
+        assert!(study["rates"].as_array().unwrap().iter().all(|r| r["task"] == "drawer-open-v3"), "{arm}: {study}");
     }
+    // One truth and one judge for every arm: the truth (1 task x 2 variants) and the judge's
+    // verdicts on the simulator's frames measured once, in the target's folder.
+    assert_eq!(log.matches("study: truth: ").count(), 2, "{log}");
+    assert_eq!(log.matches("study: judge on simulator frames: ").count(), 2, "{log}");
+    assert!(runs.join("target/judge-reconstructed.pt").is_file());
 }

@@ -79,6 +79,13 @@ def agreement(reference: str, settings: list[str], recorded: str | None, horizon
     return {"reference": reference, "horizon": horizon, "settings": out}
 
 
+def write_json(path: str, value) -> None:
+    """`value` as JSON at `path`, whole or not at all (through a temporary file beside it)."""
+    with open(path + ".tmp", "w") as f:
+        json.dump(value, f, indent=1)
+    os.replace(path + ".tmp", path)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--reference", required=True, help="the reference setting's bwm rollout output")
@@ -97,9 +104,7 @@ def main(argv=None):
             line += f"; against the recorded frames h={h} {r['recorded_h']:.2f} dB, whole episodes {r['recorded_full']:.2f} dB"
         print(line + f" ({r['episodes']} episodes)")
     if a.json:
-        with open(a.json + ".tmp", "w") as f:
-            json.dump(result, f, indent=1)
-        os.replace(a.json + ".tmp", a.json)
+        write_json(a.json, result)
 
 
 if __name__ == "__main__":

@@ -17,6 +17,9 @@ import json
 import os
 import sys
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from agreement import write_json  # noqa: E402  (the table reads agreement.py's output)
+
 PSNR_BOUND_DB = 0.5
 R_BOUND = 0.02
 
@@ -108,9 +111,7 @@ def main(argv=None):
     result = report(a.rt, a.reference)
     print(table(result))
     if a.json:
-        with open(a.json + ".tmp", "w") as f:
-            json.dump(result, f, indent=1)
-        os.replace(a.json + ".tmp", a.json)
+        write_json(a.json, result)
 
 
 if __name__ == "__main__":

@@ -126,6 +126,7 @@ JUDGE_STEPS="${JUDGE_STEPS:-600}"
 JUDGE_FRAMES="${JUDGE_FRAMES:-reconstructed}"  # what the judge learns from: reconstructed (the simulator's frames and
                                           # training frames through this run's VAE) or real (the former alone; it misreads
                                           # some VAEs' open drawer as closed: docs/fidelity.md at abaed68, runs 25 and 26)
+JUDGE_DATA="${JUDGE_DATA:-$RUN/data/train}"  # the simulator's episodes the judge learns from (and their round trips)
 JUDGE_RECONSTRUCT_EPISODES="${JUDGE_RECONSTRUCT_EPISODES:-400}"  # training episodes reconstructed for it (the first: both tasks, seeds interleaved)
 case "$JUDGE_FRAMES" in
   real) JUDGE_NAME=judge ;;
@@ -140,6 +141,10 @@ STUDY_STREAMS="${STUDY_STREAMS:-1}"       # lanes each splits them into, on CUDA
 STUDY_HORIZON="${STUDY_HORIZON:-$FRAMES}" # frames after x0, in the simulator and the world model
 STUDY_VARIANTS="${STUDY_VARIANTS:-}"      # comma-separated (default: all)
 STUDY_DIR="${STUDY_DIR:-$RUN/study}"      # where the study writes (another, to compare sampler settings)
+# A study folder of the same episodes and variants whose truth and judged episodes the study starts
+# from (copied where STUDY_DIR has none): another setting of the same model, or another model on
+# the same task, costs no second truth or judging (study.py measures a copy again if its key differs).
+STUDY_FROM="${STUDY_FROM:-}"
 FIDELITY_DIR="${FIDELITY_DIR:-$RUN/fidelity}"  # where the fidelity report goes
 FIDELITY_EPISODES="${FIDELITY_EPISODES:-}" # comma-separated positions in data/val (default: all)
 FIDELITY_IN_FLIGHT="${FIDELITY_IN_FLIGHT:-8}" # episodes rolled out at once (one batch per chunk)
@@ -358,7 +363,14 @@ if wants fidelity; then
     --streams "$FIDELITY_STREAMS" --out "$FIDELITY_DIR"
 fi
 
-COMMON_STUDY_ARGS=(--data "$RUN/data/val" --episodes "$STUDY_EPISODES" --horizon "$STUDY_HORIZON" --resolution "$RESOLUTION" --workers "$WORKERS")
+seed_study() { # $1 = a study folder, $2 = another: $2 starts from $1's truth and judged episodes
+  local f
+  mkdir -p "$2" || return 1
+  for f in truth.json judged.json; do
+    [ -e "$2/$f" ] || [ ! -f "$1/$f" ] || cp "$1/$f" "$2/$f" || return 1
+  done
+}
+COMMON_STUDY_ARGS=(--data "$RUN/data/val" --tasks "$TASKS" --episodes "$STUDY_EPISODES" --horizon "$STUDY_HORIZON" --resolution "$RESOLUTION" --workers "$WORKERS")
 STUDY_ARGS=("${COMMON_STUDY_ARGS[@]}" ${STUDY_VARIANTS:+--variants "$STUDY_VARIANTS"} --out "$STUDY_DIR")
 if wants truth; then
   timed truth "$PYTHON" bench/metaworld/study.py "${STUDY_ARGS[@]}" --truth-only
@@ -367,11 +379,11 @@ fi
 if wants judge; then
   reconstruct=() reconstructed=()
   if [ "$JUDGE_FRAMES" = reconstructed ]; then
-    reconstruct=("$BWM" reconstruct --data "$RUN/data/train" --vae "$RUN/vae.safetensors" --resolution "${RESOLUTION}x$RESOLUTION"
+    reconstruct=("$BWM" reconstruct --data "$JUDGE_DATA" --vae "$RUN/vae.safetensors" --resolution "${RESOLUTION}x$RESOLUTION"
       --max-episodes "$JUDGE_RECONSTRUCT_EPISODES" --device "$DEVICE" --out "$RUN/judge-reconstructed/train.safetensors")
     reconstructed=(--reconstructed "$RUN/judge-reconstructed/train.safetensors")
   fi
-  train_judge=("$PYTHON" bench/metaworld/judge.py train --data "$RUN/data/train" "${reconstructed[@]}" --val "$RUN/data/val"
+  train_judge=("$PYTHON" bench/metaworld/judge.py train --data "$JUDGE_DATA" "${reconstructed[@]}" --val "$RUN/data/val"
     --steps "$JUDGE_STEPS" --device "$DEVICE" --out "$JUDGE")
   judge() {
     if [ ${#reconstruct[@]} -gt 0 ]; then
@@ -409,6 +421,7 @@ fi
 
 if wants study; then
   world_model
+  [ -z "$STUDY_FROM" ] || seed_study "$STUDY_FROM" "$STUDY_DIR"
   timed study "$PYTHON" bench/metaworld/study.py "${STUDY_ARGS[@]}" --judge "$JUDGE" --bwm "$BWM" \
     --jobs "$STUDY_JOBS" --episodes-in-flight "$STUDY_IN_FLIGHT" --streams "$STUDY_STREAMS" -- "${WM[@]}"
 fi
@@ -527,11 +540,9 @@ if wants realtime; then
   [ -n "$variants" ] || variants=$(cd bench/metaworld && "$PYTHON" -c 'import families; print(",".join(families.variants("test")))')
   base=("$PYTHON" bench/metaworld/study.py "${COMMON_STUDY_ARGS[@]}" --variants "$variants" --out "$RT/study-base")
   study_of() { # $@ = settings, each studied on the variants (from the truth and verdicts of study-base)
-    local name f
+    local name
     for name in "$@"; do
-      realtime_wm "$name" || return 1
-      mkdir -p "$RT/study-$name"
-      for f in truth.json judged.json; do [ -e "$RT/study-$name/$f" ] || cp "$RT/study-base/$f" "$RT/study-$name/$f" || return 1; done
+      realtime_wm "$name" && seed_study "$RT/study-base" "$RT/study-$name" || return 1
       timed "study-$name" "$PYTHON" bench/metaworld/study.py "${COMMON_STUDY_ARGS[@]}" --variants "$variants" --out "$RT/study-$name" \
         --judge "$JUDGE" --bwm "$BWM" --jobs "$STUDY_JOBS" --episodes-in-flight "$STUDY_IN_FLIGHT" --streams "$STUDY_STREAMS" -- "${WM[@]}" || return 1
     done

@@ -84,9 +84,7 @@ for arm in $ARMS; do
   RUN="$dir" recipe fidelity
   if [ "$CLOSED_LOOP" = 1 ]; then
     ln -sfn ../target/judge-reconstructed.pt "$dir/judge-reconstructed.pt"
-    mkdir -p "$dir/study"
-    for f in truth.json judged.json; do [ -e "$dir/study/$f" ] || cp "$T/target/study/$f" "$dir/study/$f"; done
-    RUN="$dir" TASKS="$TARGET_TASK" STUDY_VARIANTS="$variants" recipe study
+    RUN="$dir" TASKS="$TARGET_TASK" STUDY_VARIANTS="$variants" STUDY_FROM="$T/target/study" recipe study
   fi
 done
 

@@ -31,22 +31,14 @@ judge_log() { if [ "$1" = real ]; then echo "$OUT/judge.log"; else echo "$OUT/ju
 # The study each judge is for (its judge stage leaves the judge on the simulator's frames there).
 study_dir() { if [ "$1" = "$OWN_JUDGE" ]; then echo "$OWN_STUDY"; else echo "$R/study-judge-$1"; fi; }
 # A study of the same model and episodes under other sampler settings starts from the study's
-# truth and its judge's verdicts on the simulator's frames (study.py re-measures a cached file
-# whose key differs, so a copy made for other episodes or variants costs nothing but the copy).
-seed_study() {
-  mkdir -p "$1"
-  for f in truth.json judged.json; do
-    [ -e "$1/$f" ] || [ ! -f "$OWN_STUDY/$f" ] || cp "$OWN_STUDY/$f" "$1/$f"
-  done
-}
+# truth and its judge's verdicts on the simulator's frames (recipe.sh's STUDY_FROM).
 # The study once more per value of a recipe variable ($1; the rest: its values), each in
 # $R/study-$2VALUE, while the stages before it succeeded.
 compare_per_value() {
   local var=$1 tag=$2 value; shift 2
   for value in "$@"; do
     [ $status = 0 ] || break
-    seed_study "$R/study-$tag$value"
-    (export "$var=$value" STUDY_DIR="$R/study-$tag$value"; recipe study) 2>&1 | tee -a "$OUT/recipe.log"
+    (export "$var=$value" STUDY_DIR="$R/study-$tag$value" STUDY_FROM="$OWN_STUDY"; recipe study) 2>&1 | tee -a "$OUT/recipe.log"
     [ "${PIPESTATUS[0]}" = 0 ] || status=1
   done
 }
@@ -113,19 +105,16 @@ else
     if [ $status = 0 ] && [ -n "${COMPARE_STREAMS:-}" ]; then
       # The same study with the episodes in flight in lanes on CUDA streams of their own (the same
       # estimates; what changes is the time).
-      seed_study "$R/study-streams$COMPARE_STREAMS"
-      STUDY_STREAMS=$COMPARE_STREAMS STUDY_DIR=$R/study-streams$COMPARE_STREAMS recipe study 2>&1 | tee -a "$OUT/recipe.log"
+      STUDY_STREAMS=$COMPARE_STREAMS STUDY_DIR=$R/study-streams$COMPARE_STREAMS STUDY_FROM=$OWN_STUDY recipe study 2>&1 | tee -a "$OUT/recipe.log"
       [ "${PIPESTATUS[0]}" = 0 ] || status=1
     fi
     if [ $status = 0 ] && [ -n "${COMPARE_SOLVER:-}" ]; then
-      seed_study "$R/study-$COMPARE_SOLVER"
-      SOLVER=$COMPARE_SOLVER STUDY_DIR=$R/study-$COMPARE_SOLVER recipe study 2>&1 | tee -a "$OUT/recipe.log"
+      SOLVER=$COMPARE_SOLVER STUDY_DIR=$R/study-$COMPARE_SOLVER STUDY_FROM=$OWN_STUDY recipe study 2>&1 | tee -a "$OUT/recipe.log"
       [ "${PIPESTATUS[0]}" = 0 ] || status=1
     fi
     if [ $status = 0 ] && [ "${COMPARE_EMA:-0}" = 1 ]; then
       # The same training's last step's weights, beside the average the study rolled out.
-      seed_study "$R/study-last"
-      EMA_DECAY= STUDY_DIR=$R/study-last recipe study 2>&1 | tee -a "$OUT/recipe.log"
+      EMA_DECAY= STUDY_DIR=$R/study-last STUDY_FROM=$OWN_STUDY recipe study 2>&1 | tee -a "$OUT/recipe.log"
       [ "${PIPESTATUS[0]}" = 0 ] || status=1
     fi
     compare_per_value GUIDANCE g ${COMPARE_GUIDANCE:-}

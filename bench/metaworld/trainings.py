@@ -4,7 +4,8 @@ much of their error they share.
     python trainings.py docs/fidelity/study-run34-d0.json docs/fidelity/study-run35-n2.json ... [--json OUT]
 
 Each argument is a study.json written by study.py over the same episodes (every rate's truth must
-agree). Printed: per rate the truth, each training's estimate, their mean and range; per training
+agree; --families degraded,scripted keeps those families' rates alone, as where one family was
+graded otherwise in some of the studies). Printed: per rate the truth, each training's estimate, their mean and range; per training
 Pearson r over the rates; for each pair of trainings the mean absolute difference of their
 estimates and the r of their averaged estimates (what an evaluator would report that rolls out half
 of each rate's episodes in either world model); and the r of all trainings' averaged estimates. When
@@ -22,7 +23,10 @@ import sys
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from study import fmt, pearson  # noqa: E402
+from agreement import write_json  # noqa: E402
+import families as policy_families  # noqa: E402
+import policies  # noqa: E402
+from study import family_of, fmt, pearson  # noqa: E402
 
 
 def label(path: str) -> str:
@@ -42,11 +46,24 @@ def _rates(name: str, study: dict) -> dict[tuple[str, str], tuple[float, float]]
         raise ValueError(f"{name}: not a study.json of study.py (its rates lack {e})") from None
 
 
-def compare(studies: dict[str, dict]) -> dict:
-    """`studies`: name -> study.json, at least two, over the same rates and truth."""
+def family(variant: str) -> str | None:
+    """study.py's family name of a variant the code knows today; None for one it no longer knows
+    (a variant since renamed or regraded, kept in an older study)."""
+    if variant not in policy_families.variants() and not any(variant in v for v in policies.VARIANTS.values()):
+        return None
+    return family_of(variant)[0]
+
+
+def compare(studies: dict[str, dict], families: list[str] | None = None) -> dict:
+    """`studies`: name -> study.json, at least two, over the same rates and truth (those of the
+    policy `families` alone, study.py's family names, when given)."""
     if len(studies) < 2:
         raise ValueError(f"compare needs at least two studies, got {len(studies)}")
     rates = {name: _rates(name, s) for name, s in studies.items()}
+    if families is not None:
+        rates = {name: {k: v for k, v in r.items() if family(k[1]) in families} for name, r in rates.items()}
+        if not any(rates.values()):
+            raise ValueError(f"the studies hold no rate of the families {', '.join(families)}")
     first, *rest = rates
     keys = list(rates[first])
     for name in rest:
@@ -99,7 +116,10 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("studies", nargs="+", help="study.json files of study.py, over the same episodes")
     ap.add_argument("--json", help="also write the comparison here")
+    ap.add_argument("--families", help="only the rates of these policy families, comma-separated (study.py's names: "
+                                       "degraded, scripted, partial, learned, wander)")
     a = ap.parse_args(argv)
+    families = a.families.split(",") if a.families else None
     studies = {}
     for path in a.studies:
         name = label(path)
@@ -111,15 +131,12 @@ def main(argv=None) -> None:
         except (OSError, json.JSONDecodeError) as e:
             ap.error(f"cannot read {path}: {e}")
     try:
-        c = compare(studies)
+        c = compare(studies, families)
     except ValueError as e:
         ap.error(str(e))
     print(report(c))
     if a.json:
-        tmp = a.json + ".tmp"
-        with open(tmp, "w") as f:
-            json.dump(c, f, indent=1)
-        os.replace(tmp, a.json)
+        write_json(a.json, c)
 
 
 if __name__ == "__main__":

@@ -59,6 +59,30 @@ def test_studies_of_other_episodes_are_refused():
         raise AssertionError("compared one study")
 
 
+def test_only_the_families_asked_for_are_compared():
+    # policies.py's `expert` is of the degraded family, `lag-6` of scripted, `quit-50` of partial:
+    # the partial rate's truth differs between the studies, as after a regrading.
+    a = {"rates": [{"task": "t", "variant": v, "true": t, "estimated": e}
+                   for v, t, e in (("expert", 1.0, 0.9), ("lag-6", 0.5, 0.7), ("quit-50", 0.5, 0.5))]}
+    b = {"rates": [{"task": "t", "variant": v, "true": t, "estimated": e}
+                   for v, t, e in (("expert", 1.0, 1.0), ("lag-6", 0.5, 0.3), ("quit-50", 0.2, 0.2))]}
+    try:
+        trainings.compare({"a": a, "b": b})
+    except ValueError as e:
+        assert "another truth for t/quit-50" in str(e), e
+    else:
+        raise AssertionError("compared studies of another truth")
+    c = trainings.compare({"a": a, "b": b}, ["degraded", "scripted"])
+    assert [r["variant"] for r in c["rates"]] == ["expert", "lag-6"], c["rates"]
+    assert abs(c["rates"][1]["mean"] - 0.5) < 1e-9
+    try:
+        trainings.compare({"a": a, "b": b}, ["wander"])
+    except ValueError as e:
+        assert "no rate of the families wander" in str(e), e
+    else:
+        raise AssertionError("compared no rates")
+
+
 def test_the_command_reads_files_and_writes_its_json():
     d = tempfile.mkdtemp()
     try:

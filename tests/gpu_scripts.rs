@@ -645,6 +645,62 @@ fn the_fp8_timing_sets_each_step_against_the_reference_of_the_same_call() {
     assert!(!d.join("out/reference-args").exists());
 }
 
+#[test]
+fn the_5b_chunk_of_each_setting_is_set_against_the_reference_of_the_same_run() {
+    let dir = common::temp_dir("gpu-realtime-5b");
+    let d = dir.path();
+    fs::create_dir_all(d.join("scripts/gpu")).unwrap();
+    for f in ["common.sh", "rollout.sh", "realtime_5b.sh"] {
+        fs::copy(Path::new(ROOT).join("scripts/gpu").join(f), d.join("scripts/gpu").join(f)).unwrap();
+    }
+    // A stub bwm whose chunk takes 0.1 s per step, plus 1.3 s to decode with the VAE's decoder or
+    // 0.1 s with the light one; a stub reference and nvidia-smi.
+    fs::create_dir_all(d.join("stub")).unwrap();
+    let bwm = d.join("stub/bwm");
+    write_executable(
+        &bwm,
+        "#!/bin/sh\nsteps=$(echo \"$*\" | sed 's/.*--sample-steps \\([0-9]*\\).*/\\1/')\n\
+         case \"$*\" in *--random-light-decoder*) dec=0.1 ;; *) dec=1.3 ;; esac\n\
+         for i in 0 1 2; do awk -v s=\"$steps\" -v c=\"$dec\" -v i=$i 'BEGIN { t = 0.1 + s * 0.1 + c; printf \"chunk %d: %.2f s = encode 0.10 s + DiT %.2f s (0.100 s/step) + decode %.2f s; 72 frames; %.1f generated frames/s; device memory 1 MiB used\\n\", i, t, s * 0.1, c, 72 / t }'; done\n",
+    );
+    fs::create_dir_all(d.join(".pack")).unwrap();
+    let packed = Command::new("sh").arg("-c").arg(format!("xz -c {} > {}", bwm.display(), d.join(".pack/bwm.xz").display())).status().unwrap();
+    assert!(packed.success());
+    write_executable(&d.join("stub/nvidia-smi"), "#!/bin/sh\necho 100\n");
+    fs::create_dir_all(d.join("tests/reference")).unwrap();
+    fs::write(d.join("tests/reference/run_gpu.sh"), "echo 'reference rollout: 10.30 s per chunk = encode 0.06 s + DiT 8.74 s (0.175 s/step) + decode 1.50 s' > \"$OUT/reference-rollout.log\"\n").unwrap();
+    let run = |settings: &str, reference: &str| -> Output {
+        let path = format!("{}:{}", d.join("stub").display(), std::env::var("PATH").unwrap_or_default());
+        let _ = fs::remove_dir_all(d.join("out"));
+        Command::new("bash")
+            .arg("scripts/gpu/realtime_5b.sh")
+            .current_dir(d)
+            .env("OUT", d.join("out"))
+            .env("PATH", path)
+            .env("SETTINGS", settings)
+            .env("REFERENCE", reference)
+            .output()
+            .unwrap()
+    };
+    let out = run("light:1 full:50", "1");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{stdout}{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        stdout.contains("realtime_5b: light decoder, 1 steps: 0.30 s per chunk (encode 0.10 s + DiT 0.10 s + decode 0.10 s; 240.0 generated frames/s), the reference's 50-step chunk 10.30 s: 34.33x"),
+        "{stdout}"
+    );
+    assert!(stdout.contains("realtime_5b: full decoder, 50 steps: 6.40 s per chunk") && stdout.contains("1.61x"), "{stdout}");
+    assert_eq!(fs::read_to_string(d.join("out/realtime_5b.txt")).unwrap().lines().count(), 2);
+    // Without the reference: the chunks alone.
+    let out = run("light:4", "0");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success() && stdout.contains("light decoder, 4 steps: 0.60 s per chunk") && !stdout.contains("reference"), "{stdout}");
+    // A setting it cannot run is refused before anything runs.
+    let out = run("light:1 medium:4", "1");
+    assert!(out.status.code() == Some(2) && String::from_utf8_lossy(&out.stderr).contains("'medium:4': the decoder is light or full"), "{out:?}");
+    assert!(!d.join("out/roll-light-s1.log").exists());
+}
+
 /// The stand-in of scripts/gpu/unit.sh's test binaries in `unit_sh_fails_where_cuda_is_missing`:
 /// a test that needs CUDA and asks `bwm_testdir::need`, ignored by a plain `cargo test`, as
 /// theirs are. Run with `--ignored` on a GPU machine it checks a sum on the device.

@@ -1,0 +1,48 @@
+#!/usr/bin/env bash
+# On one GPU of a CUDA host, from the repo root, with the bwm binary copied there as
+# scripts/gpu/pack.sh packs it (.pack/bwm.xz) and, for the reference, tests/reference/wheels: the
+# real-time issue's 5B chunk, every setting and the reference in one run. One rollout chunk of the
+# 5B world model at random weights (640x480, x0 + 8 history frames, 72 generated frames, bf16, the
+# residual stream in bf16; CHUNKS chunks, default 3, the first with start-up costs) per word of
+# SETTINGS, DECODER:STEPS (default "light:1 light:2 light:4 full:4 full:50": the light decoder of
+# random weights, `--random-light-decoder`, or the VAE's decoder; Euler steps), through
+# scripts/gpu/rollout.sh; then the DiffSynth reference's 50-step chunk (tests/reference/run_gpu.sh
+# rollout; REFERENCE=0 leaves it out) and each setting's last chunk against it, with its generated
+# frames per second: $OUT/realtime_5b.txt. Logs: $OUT/roll-DECODER-sSTEPS.log, reference-rollout.log.
+set -uo pipefail
+source "$(dirname "${BASH_SOURCE[0]}")/common.sh"
+settings=${SETTINGS:-light:1 light:2 light:4 full:4 full:50}
+for s in $settings; do
+  case "${s%%:*}" in light | full) ;; *) echo "realtime_5b: '$s': the decoder is light or full" >&2; exit 2 ;; esac
+  [[ ${s#*:} =~ ^[1-9][0-9]*$ ]] || { echo "realtime_5b: '$s': the steps are a positive whole number" >&2; exit 2; }
+done
+unpack .pack/bwm.xz dist/bwm || exit 1
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee "$OUT/gpu.txt"
+status=0
+for s in $settings; do
+  decoder=${s%%:*} steps=${s#*:}
+  CHUNKS=${CHUNKS:-3} RESIDUAL=model SAMPLE_STEPS=$steps LIGHT=$([ "$decoder" = light ] && echo 1 || echo 0) \
+    LOG="roll-$decoder-s$steps" bash "$(dirname "${BASH_SOURCE[0]}")/rollout.sh" || status=1
+done
+ref=
+if [ "${REFERENCE:-1}" = 1 ]; then
+  bash tests/reference/run_gpu.sh rollout || status=1
+  ref=$(sed -n 's/^reference rollout: \([0-9.]*\) s per chunk.*/\1/p' "$OUT/reference-rollout.log" 2>/dev/null | head -1)
+fi
+for s in $settings; do
+  decoder=${s%%:*} steps=${s#*:}
+  # The last timed chunk: "chunk N: T s = encode E s + DiT D s (X s/step) + decode C s; F frames; G generated frames/s; ..."
+  line=$(grep '^chunk [0-9]*: [0-9.]* s = ' "$OUT/roll-$decoder-s$steps.log" 2>/dev/null | tail -1)
+  chunk=$(sed -n 's/^chunk [0-9]*: \([0-9.]*\) s = .*/\1/p' <<< "$line")
+  if [ -z "$chunk" ]; then
+    echo "realtime_5b: $decoder decoder, $steps steps: no chunk timed ($OUT/roll-$decoder-s$steps.log)"
+    status=1
+    continue
+  fi
+  parts=$(sed -n 's/^chunk [0-9]*: [0-9.]* s = \(encode [0-9.]* s + DiT [0-9.]* s\) ([0-9.]* s\/step) + \(decode [0-9.]* s\); [0-9]* frames; \([0-9.]*\) generated frames\/s.*/\1 + \2; \3 generated frames\/s/p' <<< "$line")
+  against=
+  [ -z "$ref" ] || against=", the reference's 50-step chunk $ref s: $(awk -v a="$ref" -v b="$chunk" 'BEGIN { printf "%.2f", a / b }')x"
+  echo "realtime_5b: $decoder decoder, $steps steps: $chunk s per chunk ($parts)$against"
+done | tee "$OUT/realtime_5b.txt"
+grep -q "no chunk timed" "$OUT/realtime_5b.txt" && status=1
+exit $status

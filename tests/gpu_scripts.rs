@@ -695,6 +695,11 @@ fn the_5b_chunk_of_each_setting_is_set_against_the_reference_of_the_same_run() {
     let out = run("light:4", "0");
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(out.status.success() && stdout.contains("light decoder, 4 steps: 0.60 s per chunk") && !stdout.contains("reference"), "{stdout}");
+    // A reference that timed nothing fails the run, saying so.
+    fs::write(d.join("tests/reference/run_gpu.sh"), "echo 'Traceback: out of memory' > \"$OUT/reference-rollout.log\"\n").unwrap();
+    let out = run("light:1", "1");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(!out.status.success() && stdout.contains("no reference chunk timed") && stdout.contains("light decoder, 1 steps: 0.30 s"), "{stdout}");
     // A setting it cannot run is refused before anything runs.
     let out = run("light:1 medium:4", "1");
     assert!(out.status.code() == Some(2) && String::from_utf8_lossy(&out.stderr).contains("'medium:4': the decoder is light or full"), "{out:?}");

@@ -420,6 +420,7 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
     // Settings it cannot measure are refused before anything trains.
     for (var, value, said) in [
         ("REALTIME_STUDIES", "t3-full", "REALTIME_STUDIES names 't3-full'"),
+        ("REALTIME_STUDIES", "s1-light", "must include the reference, t2-full"),
         ("REALTIME_STUDENTS", "3", "make SAMPLE_STEPS a multiple of 3"),
         ("REALTIME_TEACHER_STEPS", "2 x", "not 'x'"),
     ] {

@@ -3,7 +3,8 @@
 # defaults'): every variable the generated datasets depend on, named in DATA_VARS. Returns 2 on a
 # contradictory pair.
 DATA_VARS="TASKS TRAIN_EPISODES VAL_EPISODES VAL_SEED_START MIX OBSERVE_EVERY FRAMES RESOLUTION"
-TASKS="${TASKS:-drawer-open-v3,button-press-topdown-v3}"
+DEFAULT_TASKS=drawer-open-v3,button-press-topdown-v3
+TASKS="${TASKS:-$DEFAULT_TASKS}"
 TRAIN_EPISODES="${TRAIN_EPISODES:-400}"   # per task, seeds 0..
 VAL_EPISODES="${VAL_EPISODES:-50}"        # per task, seeds VAL_SEED_START.. (never trained on)
 VAL_SEED_START="${VAL_SEED_START:-100000}"  # the held-out episodes' first seed (the training episodes' are 0..TRAIN_EPISODES-1)

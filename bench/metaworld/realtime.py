@@ -9,8 +9,9 @@ the settings studied, study-SETTING/study.json (study.py on the same episodes, t
 Per setting: PSNR over the first h generated frames against the reference's frames and against the
 recorded ones, the latter's change against the reference's; closed loop, Pearson r over every rate
 and per family, MAE, invented / missed successes, r's change against the reference's. Within: the
-recorded-frame PSNR at most 0.5 dB under the reference's and, where studied, r at most 0.02 under
-it (the issue's bounds)."""
+recorded-frame PSNR at most 0.5 dB under the reference's and r at most 0.02 under it (the issue's
+bounds): yes, no (either fails), or unchecked (a bound that could not be checked, as for a setting
+not studied in closed loop)."""
 
 import argparse
 import json
@@ -63,17 +64,22 @@ def report(rt: str, reference: str) -> dict:
     rows = {}
     for name, o in opened.items():
         row = {"open_loop": dict(o)}
-        within = True
+        # Each bound True, False, or None where it cannot be checked (no recorded frames; a setting
+        # or the reference not studied): within only when both hold, out when either fails.
+        open_ok = closed_ok = None
         if ref_recorded is not None and "recorded_h" in o:
             row["open_loop"]["recorded_h_change"] = o["recorded_h"] - ref_recorded
-            within = row["open_loop"]["recorded_h_change"] >= -PSNR_BOUND_DB
+            open_ok = row["open_loop"]["recorded_h_change"] >= -PSNR_BOUND_DB
         if name in studies:
             row["closed_loop"] = dict(studies[name])
             r = studies[name]["pearson_r"]
-            # r is undefined (None) where every rate is alike: no change to compare then.
             if ref_r is not None and r is not None:
                 row["closed_loop"]["pearson_r_change"] = r - ref_r
-                within = within and row["closed_loop"]["pearson_r_change"] >= -R_BOUND
+                closed_ok = row["closed_loop"]["pearson_r_change"] >= -R_BOUND
+            elif ref_r is not None:
+                # Every rate drawn alike (r undefined) where the reference's vary: no ranking left.
+                closed_ok = False
+        within = False if False in (open_ok, closed_ok) else True if open_ok and closed_ok else None
         row["within"] = within
         rows[name] = row
     return {"reference": reference, "horizon": agreement["horizon"], "psnr_bound_db": PSNR_BOUND_DB,
@@ -98,7 +104,8 @@ def table(result: dict) -> str:
                       f"        {' '.join(f'{k} {number(v)}' for k, v in c['families'].items())}")
         else:
             closed = "not studied"
-        lines.append(f"{name:12s} {o['reference_h']:8.2f}                {recorded}   {closed}   {'yes' if row['within'] else 'no'}")
+        verdict = {True: "yes", False: "no", None: "unchecked"}[row["within"]]
+        lines.append(f"{name:12s} {o['reference_h']:8.2f}                {recorded}   {closed}   {verdict}")
     return "\n".join(lines)
 
 

@@ -39,8 +39,9 @@
 #            first, default 50, with the VAE's decoder the reference) and each student, each decoded
 #            by the VAE's decoder (-full) and by the light one (-light): the open loop of the first
 #            REALTIME_EPISODES held-out episodes (agreement.py, PSNR at h = 32 against the reference
-#            and the recorded frames) and, for REALTIME_STUDIES in their order, the study on the test
-#            families; $REALTIME_DIR (default $RUN/realtime/: light-decoder.safetensors, student-K/,
+#            and the recorded frames) and, for REALTIME_STUDIES (the teacher's with the VAE's
+#            decoder while the others train, then the rest, each group in its order), the study on
+#            the test families; $REALTIME_DIR (default $RUN/realtime/: light-decoder.safetensors, student-K/,
 #            roll/SETTING/, study-SETTING/, agreement.json, realtime.json)
 #   engine   (only when named) the data engine measured, bench/metaworld/engine.py: the expert's
 #            commands planned from the first frame of new placements, drawn by `bwm rollout`, and
@@ -163,8 +164,9 @@ LIGHT_BATCH="${LIGHT_BATCH:-4}"
 LIGHT_LR="${LIGHT_LR:-2e-3}"
 REALTIME_EPISODES="${REALTIME_EPISODES:-20}"  # open loop: the first N held-out episodes (the tasks interleaved)
 REALTIME_VARIANTS="${REALTIME_VARIANTS:-}"   # the closed loop's variants, comma-separated (default: the test families')
-# Settings studied in closed loop on the test families, in this order (t<steps>-<full|light>, s<steps>-<full|light>);
-# all: every setting, the reference first; empty: none.
+# Settings studied in closed loop on the test families (t<steps>-<full|light>, s<steps>-<full|light>), the
+# reference among them; the teacher's with the VAE's decoder first (while the others train), each group
+# in this order; all: every setting; empty: none.
 REALTIME_STUDIES="${REALTIME_STUDIES-all}"
 ENGINE_DIR="${ENGINE_DIR:-$RUN/engine}"   # where the engine stage writes
 ENGINE_SEEDS="${ENGINE_SEEDS:-3}"         # data seeds: each its own real and generated placements and network seed
@@ -352,8 +354,9 @@ world_model() {
 }
 wm_flags() { # $1 = weights, $2 = sampler steps: the world-model flags into WM
   WM=(--checkpoint "$1" --vae "$RUN/vae.safetensors" --stats "$RUN/latents/stat.json" --stats-group observation.state
-      --history 8 --future 24 --sample-steps "$2" --solver "$SOLVER" --seed "$SAMPLE_SEED" --guidance "$GUIDANCE" ${HISTORY_SIGMA:+--history-sigma "$HISTORY_SIGMA"} ${FP8:+--fp8 "$FP8"} --device "$DEVICE")
+      --history 8 --future 24 --sample-steps "$2" --solver "$SOLVER" --guidance "$GUIDANCE" ${HISTORY_SIGMA:+--history-sigma "$HISTORY_SIGMA"} ${FP8:+--fp8 "$FP8"} --device "$DEVICE")
   if [ "$SAMPLER_GRAPH" = 1 ]; then WM+=(--cuda-graph); fi
+  if [ "$SAMPLE_SEED" != 0 ]; then WM+=(--seed "$SAMPLE_SEED"); fi
 }
 
 if wants fidelity; then
@@ -363,6 +366,8 @@ if wants fidelity; then
     --streams "$FIDELITY_STREAMS" --out "$FIDELITY_DIR"
 fi
 
+# The study's tasks: the data's, named where they are not the default (study.py's default is both).
+STUDY_TASKS=; [ "$TASKS" = "$DEFAULT_TASKS" ] || STUDY_TASKS=$TASKS
 seed_study() { # $1 = a study folder, $2 = another: $2 starts from $1's truth and judged episodes
   local f
   mkdir -p "$2" || return 1
@@ -370,7 +375,7 @@ seed_study() { # $1 = a study folder, $2 = another: $2 starts from $1's truth an
     [ -e "$2/$f" ] || [ ! -f "$1/$f" ] || cp "$1/$f" "$2/$f" || return 1
   done
 }
-COMMON_STUDY_ARGS=(--data "$RUN/data/val" --tasks "$TASKS" --episodes "$STUDY_EPISODES" --horizon "$STUDY_HORIZON" --resolution "$RESOLUTION" --workers "$WORKERS")
+COMMON_STUDY_ARGS=(--data "$RUN/data/val" ${STUDY_TASKS:+--tasks "$STUDY_TASKS"} --episodes "$STUDY_EPISODES" --horizon "$STUDY_HORIZON" --resolution "$RESOLUTION" --workers "$WORKERS")
 STUDY_ARGS=("${COMMON_STUDY_ARGS[@]}" ${STUDY_VARIANTS:+--variants "$STUDY_VARIANTS"} --out "$STUDY_DIR")
 if wants truth; then
   timed truth "$PYTHON" bench/metaworld/study.py "${STUDY_ARGS[@]}" --truth-only
@@ -481,8 +486,15 @@ if wants realtime; then
     for name in "${studies[@]}"; do
       [[ " ${settings[*]} " == *" $name "* ]] || { echo "recipe: REALTIME_STUDIES names '$name', not one of this stage's settings (${settings[*]})" >&2; exit 2; }
     done
+    # A setting's closed loop is measured against the reference's, so the reference is studied too.
+    [ ${#studies[@]} = 0 ] || [[ " ${studies[*]} " == *" $reference "* ]] ||
+      { echo "recipe: REALTIME_STUDIES must include the reference, $reference (the others' r is set against its r)" >&2; exit 2; }
   fi
   mkdir -p "$RT"
+  # The rollouts, their scores and the settings' studies are made afresh each time (a study left
+  # from other settings must not enter this table); the light decoder, the students and the
+  # truth and verdicts of study-base are kept when made the same way.
+  rm -rf "$RT/roll" "$RT"/study-[ts]* "$RT/agreement.json" "$RT/realtime.json"
   weights_id() { # $1 = a checkpoint or export folder, or a weights file: the sha256 of its weights
     if [ -f "$1/model.safetensors" ]; then sha256sum < "$1/model.safetensors"
     elif [ -f "$1" ]; then sha256sum < "$1"
@@ -495,26 +507,41 @@ if wants realtime; then
   light_decoder=("$BWM" train-light-decoder --vae "$RUN/vae.safetensors" --data "$RUN/data/train" --max-episodes "$VAE_EPISODES"
     --holdout-tail "$VAE_HOLDOUT_TAIL" --resolution "${RESOLUTION}x$RESOLUTION" --clip-frames "$VAE_CLIP_FRAMES" --steps "$LIGHT_STEPS"
     --batch "$LIGHT_BATCH" --lr "$LIGHT_LR" --seed "$VAE_SEED" --device "$DEVICE" --out "$light")
-  made_with=$(record_of "${light_decoder[@]}")
-  training=()
-  if ! kept "$light" "$made_with"; then
-    (timed light-decoder "${light_decoder[@]}" && recorded "$light" "$made_with") & training+=($!)
-  fi
-  for k in "${students[@]}"; do
+  # Whether each is to be made is settled before any starts: a refused output stops the stage
+  # with nothing left running.
+  light_made_with=$(record_of "${light_decoder[@]}")
+  train_light=0
+  kept "$light" "$light_made_with" || train_light=1
+  student_of() { # $1 = the student's steps: its training command into `student` (the device apart: not recorded)
     # The teacher's own run config (its objective: shift, history noise), action dropout off (a
     # student learns the conditional path alone), started from the teacher's weights.
-    student=("$BWM" train --config "$RUN/config.toml" --set "run.out_dir=\"$RT/student-$k\"" --set "run.device=\"$DEVICE\""
+    student=("$BWM" train --config "$RUN/config.toml" --set "run.out_dir=\"$RT/student-$1\""
       --set "train.steps=$REALTIME_STUDENT_STEPS" --set "optim.lr=$REALTIME_STUDENT_LR"
       --set "optim.warmup_steps=$(( (REALTIME_STUDENT_STEPS + 19) / 20 ))" --set "objective.action_dropout=0.0"
       --set "model.init={ from = \"bwm-checkpoint\", path = \"$teacher\" }" --set "distill.teacher=\"$teacher\""
-      --set "distill.student_steps=$k" --set "distill.teacher_substeps=$((SAMPLE_STEPS / k))")
-    made_with=$(record_of "${student[@]}"; echo "teacher (sha256 $(weights_id "$teacher"))")
+      --set "distill.student_steps=$1" --set "distill.teacher_substeps=$((SAMPLE_STEPS / $1))")
+  }
+  teacher_id=$(weights_id "$teacher")
+  for k in "${students[@]}"; do
+    student_of "$k"
+    made_with=$(record_of "${student[@]}"; echo "teacher (sha256 $teacher_id)")
     if ! kept "$RT/student-$k/checkpoints/latest" "$made_with"; then
       mkdir -p "$RT/student-$k/checkpoints"
       recorded "$RT/student-$k/checkpoints/latest" "$made_with"
     fi
-    timed "student-$k" "${student[@]}" --resume auto > "$RT/student-$k.log" 2>&1 & training+=($!)
   done
+  # Side by side on the device: their stage times (and those of the rollouts and studies beside
+  # them) are not the settings' speed.
+  training=()
+  if [ $train_light = 1 ]; then
+    (timed light-decoder "${light_decoder[@]}" && recorded "$light" "$light_made_with") & training+=($!)
+  fi
+  for k in "${students[@]}"; do
+    student_of "$k"
+    timed "student-$k" "${student[@]}" --set "run.device=\"$DEVICE\"" --resume auto > "$RT/student-$k.log" 2>&1 & training+=($!)
+  done
+  # Should the stage stop before it waits for them, they stop with it.
+  trap '[ ${#training[@]} = 0 ] || kill "${training[@]}" 2>/dev/null' EXIT
   realtime_wm() { # $1 = a setting: its world-model flags into WM
     local kind=${1%%-*} steps weights
     steps=${kind:1}
@@ -557,6 +584,8 @@ if wants realtime; then
   fi
   [ $status != 0 ] || study_of "${first_studies[@]}" || status=1
   for pid in "${training[@]}"; do wait "$pid" || { echo "recipe: the light decoder or a student failed (above; $RT/student-*.log)" >&2; status=1; }; done
+  training=()
+  trap - EXIT
   [ $status != 0 ] || roll "${later[@]}" || status=1
   if [ $status = 0 ]; then
     timed agreement "$PYTHON" bench/metaworld/agreement.py --reference "$RT/roll/$reference" --recorded "$RUN/data/val" --horizon 32 \

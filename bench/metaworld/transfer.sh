@@ -83,7 +83,8 @@ for arm in $ARMS; do
   fi
   RUN="$dir" recipe fidelity
   if [ "$CLOSED_LOOP" = 1 ]; then
-    ln -sfn ../target/judge-reconstructed.pt "$dir/judge-reconstructed.pt"
+    judge_file=$([ "${JUDGE_FRAMES:-reconstructed}" = real ] && echo judge.pt || echo judge-reconstructed.pt)
+    ln -sfn "../target/$judge_file" "$dir/$judge_file"
     RUN="$dir" TASKS="$TARGET_TASK" STUDY_VARIANTS="$variants" STUDY_FROM="$T/target/study" recipe study
   fi
 done

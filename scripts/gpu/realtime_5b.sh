@@ -28,6 +28,7 @@ ref=
 if [ "${REFERENCE:-1}" = 1 ]; then
   bash tests/reference/run_gpu.sh rollout || status=1
   ref=$(sed -n 's/^reference rollout: \([0-9.]*\) s per chunk.*/\1/p' "$OUT/reference-rollout.log" 2>/dev/null | head -1)
+  [ -n "$ref" ] || { echo "realtime_5b: no reference chunk timed ($OUT/reference-rollout.log)"; status=1; }
 fi
 for s in $settings; do
   decoder=${s%%:*} steps=${s#*:}

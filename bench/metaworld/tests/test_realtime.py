@@ -48,20 +48,39 @@ def test_each_setting_against_the_reference_within_the_bounds_or_not():
         assert abs(rows["s1-light"]["open_loop"]["recorded_h_change"] + 0.3) < 1e-9
         assert abs(rows["s1-light"]["closed_loop"]["pearson_r_change"] + 0.01) < 1e-9 and rows["s1-light"]["within"]
         # 0.7 dB under (open loop alone, not studied): out.
-        assert "closed_loop" not in rows["t1-full"] and not rows["t1-full"]["within"]
+        assert "closed_loop" not in rows["t1-full"] and rows["t1-full"]["within"] is False
         # Better frames, r 0.03 under: out.
-        assert not rows["s2-light"]["within"]
+        assert rows["s2-light"]["within"] is False
         assert rows["s2-light"]["closed_loop"]["families"] == {"learned": 0.80, "wander": 0.97}
         assert (rows["s2-light"]["closed_loop"]["invented"], rows["s2-light"]["closed_loop"]["missed"]) == (20, 5)
         text = realtime.table(r)
         assert "not studied" in text and text.count("\n") == 4
 
-        # Where every rate is alike r is undefined: shown as such, with no change against the reference.
+        # Where every rate is drawn alike r is undefined: shown as such, and out where the
+        # reference's rates vary.
         with open(os.path.join(rt, "study-s1-light", "study.json"), "w") as f:
             json.dump(study(None, 0, 0, {"learned": None}), f)
         rows = realtime.report(rt, "t50-full")["settings"]
-        assert "pearson_r_change" not in rows["s1-light"]["closed_loop"] and rows["s1-light"]["within"]
+        assert "pearson_r_change" not in rows["s1-light"]["closed_loop"] and rows["s1-light"]["within"] is False
         assert "n/a" in realtime.table(realtime.report(rt, "t50-full"))
+        # Within the open loop's bound but not studied: unchecked, not within.
+        with open(os.path.join(rt, "agreement.json")) as f:
+            a = json.load(f)
+        a["settings"][os.path.join(rt, "roll", "t2-full")] = dict(a["settings"][os.path.join(rt, "roll", "s1-light")])
+        with open(os.path.join(rt, "agreement.json"), "w") as f:
+            json.dump(a, f)
+        report = realtime.report(rt, "t50-full")
+        assert report["settings"]["t2-full"]["within"] is None and "unchecked" in realtime.table(report)
+        # The reference not studied: no setting's closed loop can be checked.
+        shutil.rmtree(os.path.join(rt, "study-t50-full"))
+        rows = realtime.report(rt, "t50-full")["settings"]
+        assert rows["s2-light"]["within"] is None and "pearson_r_change" not in rows["s2-light"]["closed_loop"]
+        # Restored for the command below.
+        os.makedirs(os.path.join(rt, "study-t50-full"))
+        with open(os.path.join(rt, "study-t50-full", "study.json"), "w") as f:
+            json.dump(study(0.95, 10, 12, {"learned": 0.85, "wander": 0.99}), f)
+        with open(os.path.join(rt, "study-s1-light", "study.json"), "w") as f:
+            json.dump(study(0.94, 11, 12, {"learned": 0.84, "wander": 0.98}), f)
 
         out = os.path.join(rt, "realtime.json")
         run = subprocess.run([sys.executable, os.path.join(HERE, "..", "realtime.py"), rt, "--json", out],

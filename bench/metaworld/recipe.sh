@@ -163,6 +163,7 @@ LIGHT_STEPS="${LIGHT_STEPS:-2000}"         # the light decoder's training steps 
 LIGHT_BATCH="${LIGHT_BATCH:-4}"
 LIGHT_LR="${LIGHT_LR:-2e-3}"
 REALTIME_EPISODES="${REALTIME_EPISODES:-20}"  # open loop: the first N held-out episodes (the tasks interleaved)
+REALTIME_IN_FLIGHT="${REALTIME_IN_FLIGHT:-$REALTIME_EPISODES}"  # open loop: episodes rolled out at once (default: all, one batch per chunk)
 REALTIME_VARIANTS="${REALTIME_VARIANTS:-}"   # the closed loop's variants, comma-separated (default: the test families')
 # Settings studied in closed loop on the test families (t<steps>-<full|light>, s<steps>-<full|light>), the
 # reference among them; the teacher's with the VAE's decoder first (while the others train), each group
@@ -560,7 +561,7 @@ if wants realtime; then
       rm -rf "$RT/roll/$name"
       timed "roll-$name" "$BWM" rollout "${WM[@]}" --data "$RUN/data/val" --episodes "$(seq -s, 0 $((REALTIME_EPISODES - 1)))" \
         --actions observation.state:0-3 --resolution "${RESOLUTION}x$RESOLUTION" --frame-storage image \
-        --episodes-in-flight "$FIDELITY_IN_FLIGHT" --out "$RT/roll/$name" || return 1
+        --episodes-in-flight "$REALTIME_IN_FLIGHT" --out "$RT/roll/$name" || return 1
     done
   }
   variants=$REALTIME_VARIANTS

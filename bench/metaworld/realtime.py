@@ -31,10 +31,12 @@ def setting_name(path: str) -> str:
 
 
 def closed_loop(study: dict) -> dict:
-    """What the table takes of a study.json."""
+    """A study.json's closed-loop summary: over every rate, per episode and per family (this
+    table's, and transfer.sh's for each of its arms)."""
     episode = study["per_episode"]
     return {
         "pearson_r": study["all"]["pearson_r"],
+        "spearman_rho": study["all"]["spearman_rho"],
         "mae": study["all"]["mae"],
         "best_ranked_first": study["all"]["best_ranked_first"],
         "invented": episode["invented"],

@@ -91,6 +91,8 @@ done
 
 "$PYTHON" - "$T" $ARMS <<'PY'
 import json, os, sys
+sys.path.insert(0, "bench/metaworld")
+from realtime import closed_loop, number
 root, arms = sys.argv[1], sys.argv[2:]
 out, closed = {}, {}
 for arm in arms:
@@ -98,11 +100,7 @@ for arm in arms:
     out[arm] = f["all"]["horizons"]
     p = os.path.join(root, arm, "study", "study.json")
     if os.path.isfile(p):
-        s = json.load(open(p))
-        closed[arm] = {"pearson_r": s["all"]["pearson_r"], "spearman_rho": s["all"]["spearman_rho"], "mae": s["all"]["mae"],
-                       "best_ranked_first": s["all"]["best_ranked_first"], "invented": s["per_episode"]["invented"],
-                       "missed": s["per_episode"]["missed"], "episodes": s["per_episode"]["n"],
-                       "families": {k: {"pearson_r": v["pearson_r"], "mae": v["mae"]} for k, v in s.get("per_family", {}).items()}}
+        closed[arm] = closed_loop(json.load(open(p)))
 json.dump({**out, **({"closed_loop": closed} if closed else {})}, open(os.path.join(root, "transfer.json"), "w"), indent=1)
 print("| arm | h | model PSNR (SSIM) | copy last frame | other actions |")
 print("|---|---|---|---|---|")
@@ -110,11 +108,10 @@ for arm, hs in out.items():
     for h, v in sorted(hs.items(), key=lambda kv: int(kv[0]) if kv[0].isdigit() else 1 << 30):
         print(f"| {arm} | {h} | {v['model']['psnr']:.2f} ({v['model']['ssim']:.3f}) | {v['copy_last_frame']['psnr']:.2f} | {v['other_actions']['psnr']:.2f} |")
 if closed:
-    num = lambda v: "n/a" if v is None else f"{v:.3f}"
     print("| arm | closed loop: Pearson r | Spearman | MAE | best first | invented / missed | per family r |")
     print("|---|---|---|---|---|---|---|")
     for arm, c in closed.items():
-        fams = ", ".join(f"{k} {num(v['pearson_r'])}" for k, v in c["families"].items())
-        print(f"| {arm} | {num(c['pearson_r'])} | {num(c['spearman_rho'])} | {c['mae']:.3f} | {c['best_ranked_first']} | {c['invented']} / {c['missed']} of {c['episodes']} | {fams} |")
+        fams = ", ".join(f"{k} {number(v).strip()}" for k, v in c["families"].items())
+        print(f"| {arm} | {number(c['pearson_r']).strip()} | {number(c['spearman_rho']).strip()} | {c['mae']:.3f} | {c['best_ranked_first']} | {c['invented']} / {c['missed']} of {c['episodes']} | {fams} |")
 print(f"transfer: {os.path.join(root, 'transfer.json')}")
 PY

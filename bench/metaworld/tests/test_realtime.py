@@ -14,7 +14,7 @@ import realtime  # noqa: E402
 
 
 def study(r, invented, missed, families):
-    return {"all": {"pearson_r": r, "mae": 0.05, "best_ranked_first": True},
+    return {"all": {"pearson_r": r, "spearman_rho": r, "mae": 0.05, "best_ranked_first": True},
             "per_episode": {"n": 100, "invented": invented, "missed": missed},
             "per_family": {name: {"pearson_r": v} for name, v in families.items()}}
 

@@ -604,24 +604,36 @@ exit $rc"#
     assert_eq!(out.status.code(), Some(0), "{}", String::from_utf8_lossy(&out.stderr));
 }
 
+/// A GPU host in `d` for `script` (copied with common.sh): a stub bwm packed as pack.sh packs it
+/// (`bwm` its shell text), a stub nvidia-smi in d/stub, and a stub reference (`reference` the text
+/// of tests/reference/run_gpu.sh).
+fn stub_gpu_host(d: &Path, script: &str, bwm: &str, reference: &str) {
+    fs::create_dir_all(d.join("scripts/gpu")).unwrap();
+    for f in ["common.sh", script] {
+        fs::copy(Path::new(ROOT).join("scripts/gpu").join(f), d.join("scripts/gpu").join(f)).unwrap();
+    }
+    fs::create_dir_all(d.join("stub")).unwrap();
+    let stub = d.join("stub/bwm");
+    write_executable(&stub, bwm);
+    fs::create_dir_all(d.join(".pack")).unwrap();
+    let packed = Command::new("sh").arg("-c").arg(format!("xz -c {} > {}", stub.display(), d.join(".pack/bwm.xz").display())).status().unwrap();
+    assert!(packed.success());
+    write_executable(&d.join("stub/nvidia-smi"), "#!/bin/sh\necho 100\n");
+    fs::create_dir_all(d.join("tests/reference")).unwrap();
+    fs::write(d.join("tests/reference/run_gpu.sh"), reference).unwrap();
+}
+
 #[test]
 fn the_fp8_timing_sets_each_step_against_the_reference_of_the_same_call() {
     let dir = common::temp_dir("gpu-fp8-train");
     let d = dir.path();
-    for f in ["common.sh", "fp8_train.sh"] {
-        fs::create_dir_all(d.join("scripts/gpu")).unwrap();
-        fs::copy(Path::new(ROOT).join("scripts/gpu").join(f), d.join("scripts/gpu").join(f)).unwrap();
-    }
-    // A stub bwm (as pack.sh packs it) whose FP8 step is the faster, a stub reference and nvidia-smi.
-    fs::create_dir_all(d.join("stub")).unwrap();
-    let bwm = d.join("stub/bwm");
-    write_executable(&bwm, "#!/bin/sh\ncase \"$*\" in *train.fp8=true*) s=0.410 ;; *) s=0.448 ;; esac\necho \"breakdown of a $s s step (1 micro-batches of 1)\"\n");
-    fs::create_dir_all(d.join(".pack")).unwrap();
-    let packed = Command::new("sh").arg("-c").arg(format!("xz -c {} > {}", bwm.display(), d.join(".pack/bwm.xz").display())).status().unwrap();
-    assert!(packed.success());
-    write_executable(&d.join("stub/nvidia-smi"), "#!/bin/sh\necho 100\n");
-    fs::create_dir_all(d.join("tests/reference")).unwrap();
-    fs::write(d.join("tests/reference/run_gpu.sh"), "echo \"$TRAIN_ARGS\" > \"$OUT/reference-args\"\necho 'reference train: 0.634 s/step (min 0.613), 1.576 samples/s' > \"$OUT/reference-train.log\"\n").unwrap();
+    // A stub bwm whose FP8 step is the faster, and a stub reference.
+    stub_gpu_host(
+        d,
+        "fp8_train.sh",
+        "#!/bin/sh\ncase \"$*\" in *train.fp8=true*) s=0.410 ;; *) s=0.448 ;; esac\necho \"breakdown of a $s s step (1 micro-batches of 1)\"\n",
+        "echo \"$TRAIN_ARGS\" > \"$OUT/reference-args\"\necho 'reference train: 0.634 s/step (min 0.613), 1.576 samples/s' > \"$OUT/reference-train.log\"\n",
+    );
     let run = |reference: &str| -> String {
         let path = format!("{}:{}", d.join("stub").display(), std::env::var("PATH").unwrap_or_default());
         let out = Command::new("bash")
@@ -650,25 +662,17 @@ fn the_5b_chunk_of_each_setting_is_set_against_the_reference_of_the_same_run() {
     let dir = common::temp_dir("gpu-realtime-5b");
     let d = dir.path();
     fs::create_dir_all(d.join("scripts/gpu")).unwrap();
-    for f in ["common.sh", "rollout.sh", "realtime_5b.sh"] {
-        fs::copy(Path::new(ROOT).join("scripts/gpu").join(f), d.join("scripts/gpu").join(f)).unwrap();
-    }
+    fs::copy(Path::new(ROOT).join("scripts/gpu/rollout.sh"), d.join("scripts/gpu/rollout.sh")).unwrap();
     // A stub bwm whose chunk takes 0.1 s per step, plus 1.3 s to decode with the VAE's decoder or
-    // 0.1 s with the light one; a stub reference and nvidia-smi.
-    fs::create_dir_all(d.join("stub")).unwrap();
-    let bwm = d.join("stub/bwm");
-    write_executable(
-        &bwm,
+    // 0.1 s with the light one; a stub reference.
+    stub_gpu_host(
+        d,
+        "realtime_5b.sh",
         "#!/bin/sh\nsteps=$(echo \"$*\" | sed 's/.*--sample-steps \\([0-9]*\\).*/\\1/')\n\
          case \"$*\" in *--random-light-decoder*) dec=0.1 ;; *) dec=1.3 ;; esac\n\
          for i in 0 1 2; do awk -v s=\"$steps\" -v c=\"$dec\" -v i=$i 'BEGIN { t = 0.1 + s * 0.1 + c; printf \"chunk %d: %.2f s = encode 0.10 s + DiT %.2f s (0.100 s/step) + decode %.2f s; 72 frames; %.1f generated frames/s; device memory 1 MiB used\\n\", i, t, s * 0.1, c, 72 / t }'; done\n",
+        "echo 'reference rollout: 10.30 s per chunk = encode 0.06 s + DiT 8.74 s (0.175 s/step) + decode 1.50 s' > \"$OUT/reference-rollout.log\"\n",
     );
-    fs::create_dir_all(d.join(".pack")).unwrap();
-    let packed = Command::new("sh").arg("-c").arg(format!("xz -c {} > {}", bwm.display(), d.join(".pack/bwm.xz").display())).status().unwrap();
-    assert!(packed.success());
-    write_executable(&d.join("stub/nvidia-smi"), "#!/bin/sh\necho 100\n");
-    fs::create_dir_all(d.join("tests/reference")).unwrap();
-    fs::write(d.join("tests/reference/run_gpu.sh"), "echo 'reference rollout: 10.30 s per chunk = encode 0.06 s + DiT 8.74 s (0.175 s/step) + decode 1.50 s' > \"$OUT/reference-rollout.log\"\n").unwrap();
     let run = |settings: &str, reference: &str| -> Output {
         let path = format!("{}:{}", d.join("stub").display(), std::env::var("PATH").unwrap_or_default());
         let _ = fs::remove_dir_all(d.join("out"));

@@ -602,7 +602,12 @@ if __name__ == "__main__":
     parser.add_argument("--resolution", type=int, default=64, help="of the simulator's frames")
     parser.add_argument("--workers", type=int, default=1)
     parser.add_argument("--json", help="also write the rates here")
+    parser.add_argument("--list", choices=("development", "test"),
+                        help="print that split's variants, comma-separated, and measure nothing")
     args = parser.parse_args()
+    if args.list:
+        print(",".join(variants(args.list)))
+        raise SystemExit(0)
     known = variants()
     if unknown := [v for v in args.variants or [] if v not in known]:
         parser.error(f"unknown variant(s) {', '.join(unknown)} (known: {', '.join(known)})")

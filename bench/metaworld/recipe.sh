@@ -565,7 +565,7 @@ if wants realtime; then
     done
   }
   variants=$REALTIME_VARIANTS
-  [ -n "$variants" ] || variants=$(cd bench/metaworld && "$PYTHON" -c 'import families; print(",".join(families.variants("test")))')
+  [ -n "$variants" ] || variants=$("$PYTHON" bench/metaworld/families.py --list test)
   base=("$PYTHON" bench/metaworld/study.py "${COMMON_STUDY_ARGS[@]}" --variants "$variants" --out "$RT/study-base")
   study_of() { # $@ = settings, each studied on the variants (from the truth and verdicts of study-base)
     local name
@@ -601,7 +601,7 @@ if wants engine; then
   # Made afresh each time: the plan, the rollout and the policies take minutes, and a half-made
   # set from other settings must not be mixed into the next.
   rm -rf "$ENGINE_DIR/plan" "$ENGINE_DIR/generated"
-  fps=$(cd bench/metaworld && "$PYTHON" -c 'from mw import FPS; print(FPS)')
+  fps=$(PYTHONPATH="bench/metaworld${PYTHONPATH:+:$PYTHONPATH}" "$PYTHON" -c 'from mw import FPS; print(FPS)')
   timed engine-plan "$PYTHON" bench/metaworld/engine.py plan --out "$ENGINE_DIR/plan" --tasks "$TASKS" --seeds "$ENGINE_SEEDS" \
     --generated "$ENGINE_GENERATED" --frames "$FRAMES" --resolution "$RESOLUTION" --workers "$WORKERS" || exit 1
   timed engine-rollout "$BWM" rollout "${WM[@]}" --inputs "$ENGINE_DIR/plan/inputs.jsonl" --drive file --fps "$fps" \

@@ -49,7 +49,7 @@ ln -sfn ../base/vae.safetensors "$T/target/vae.safetensors"
 RUN="$T/target" TASKS="$TARGET_TASK" TRAIN_EPISODES="$TARGET_EPISODES" recipe data latents
 
 if [ "$CLOSED_LOOP" = 1 ]; then
-  variants=${TRANSFER_VARIANTS:-$(cd bench/metaworld && "$PYTHON" -c 'import families; print(",".join(families.variants("test")))')}
+  variants=${TRANSFER_VARIANTS:-$("$PYTHON" bench/metaworld/families.py --list test)}
   # The truth of the new task's policies and a judge of its outcomes, made once for every arm.
   RUN="$T/target" TASKS="$TARGET_TASK" JUDGE_DATA="$T/data/vae" STUDY_VARIANTS="$variants" recipe truth judge
 fi

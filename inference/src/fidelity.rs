@@ -13,7 +13,7 @@ use std::time::Instant;
 use anyhow::{ensure, Context, Result};
 use bwm_data::frames::{fit, frame_strip, frames_to_tensor};
 use bwm_data::open_dataset;
-use bwm_metrics::image::{psnr, ssim};
+use bwm_metrics::image::{psnr_frames, ssim_frames};
 use image::RgbImage;
 use serde_json::{json, Value};
 use tch::Tensor;
@@ -176,7 +176,7 @@ pub fn run(options: &WorldModelOptions, a: &FidelityOptions) -> Result<()> {
             let mut next = || generated.next().context("a rollout is missing");
             let (model, driven_by_other, zero_actions) = (next()?, next()?, next()?);
             let copy_last = vec![truth[0].clone(); length];
-            let record = score(&info.task, &truth, [&model, &driven_by_other, &zero_actions, &copy_last])?;
+            let record = score(&info.task, &truth, [&model, &driven_by_other, &zero_actions, &copy_last], wm.device)?;
             let mean = |m: &BTreeMap<&str, Vec<f64>>, k: &str| m[k].iter().sum::<f64>() / m[k].len() as f64;
             println!(
                 "\r  episode {} ({}; other actions from episode {}): {} frames, PSNR model {:.2} / other actions {:.2} / zero actions {:.2} / copy-last {:.2} dB ({:.1} s{})",
@@ -312,20 +312,18 @@ fn other_episode<'a>(episodes: &[usize], i: usize, task: impl Fn(usize) -> &'a s
     after.clone().find(|&p| task(p) == task(episodes[i])).unwrap_or_else(|| episodes[(i + 1) % n])
 }
 
-fn score(task: &str, truth: &[RgbImage], predicted: [&Vec<RgbImage>; 4]) -> Result<Scored> {
-    let real = frames_to_tensor(truth)?;
+/// Each predictor's PSNR and SSIM per frame after x0, computed on `device` (the model's: on a CPU
+/// an episode's SSIM takes seconds, spent while the accelerator waits).
+fn score(task: &str, truth: &[RgbImage], predicted: [&Vec<RgbImage>; 4], device: tch::Device) -> Result<Scored> {
+    let after_x0 = |frames: &[RgbImage]| -> Result<Tensor> { Ok(frames_to_tensor(&frames[1..])?.to_device(device)) };
+    ensure!(truth.len() >= 2, "{} frames: none after x0 to score", truth.len());
+    let real = after_x0(truth)?;
     let mut out = Scored { task: task.to_string(), psnr: BTreeMap::new(), ssim: BTreeMap::new() };
     for (name, frames) in PREDICTORS.iter().zip(predicted) {
         ensure!(frames.len() == truth.len(), "{name}: {} frames for {} real ones", frames.len(), truth.len());
-        let pred = frames_to_tensor(frames)?;
-        let (mut p, mut s) = (Vec::new(), Vec::new());
-        for k in 1..truth.len() as i64 {
-            let (x, y) = (pred.narrow(1, k, 1), real.narrow(1, k, 1));
-            p.push(psnr(&x, &y));
-            s.push(ssim(&x, &y));
-        }
-        out.psnr.insert(name, p);
-        out.ssim.insert(name, s);
+        let pred = after_x0(frames)?;
+        out.psnr.insert(name, psnr_frames(&pred, &real));
+        out.ssim.insert(name, ssim_frames(&pred, &real));
     }
     Ok(out)
 }

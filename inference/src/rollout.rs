@@ -175,7 +175,7 @@ pub fn run(options: &WorldModelOptions, a: &RolloutOptions) -> Result<()> {
             let episode = writer.add_episode(&frames, &raw, &raw, &job.task)?;
             if let Some(truth) = &job.truth {
                 std::fs::create_dir_all(&compare_dir)?;
-                let (p, s) = compare(&frames, truth)?;
+                let (p, s) = compare(&frames, truth, wm.device)?;
                 let side: Vec<RgbImage> = truth.iter().zip(&frames).map(|(t, g)| side_by_side(t, g)).collect();
                 bwm_data::video::write_mp4_or_sheet(&compare_dir.join(format!("episode_{episode:06}.mp4")), &side, job.fps, 16)?;
                 metrics.push(serde_json::json!({ "episode_index": episode, "source": job.name, "frames": frames.len(), "psnr": p, "ssim": s }));
@@ -330,14 +330,16 @@ fn read_csv(path: &Path) -> Result<Vec<Vec<f32>>> {
     Ok(rows)
 }
 
-/// Mean PSNR and SSIM of the generated frames after x0 against the real ones.
-fn compare(generated: &[RgbImage], truth: &[RgbImage]) -> Result<(f64, f64)> {
+/// Mean PSNR and SSIM of the generated frames after x0 against the real ones, computed on `device`
+/// (the model's: on a CPU the SSIM of a 120-frame episode at 128x128 takes about a second, which
+/// a batch of episodes in flight would spend one after the other).
+fn compare(generated: &[RgbImage], truth: &[RgbImage], device: tch::Device) -> Result<(f64, f64)> {
     ensure!(generated.len() == truth.len(), "{} generated frames, {} real", generated.len(), truth.len());
     if generated.len() < 2 {
         return Ok((f64::NAN, f64::NAN));
     }
-    let g = frames_to_tensor(&generated[1..])?;
-    let t = frames_to_tensor(&truth[1..])?;
+    let g = frames_to_tensor(&generated[1..])?.to_device(device);
+    let t = frames_to_tensor(&truth[1..])?.to_device(device);
     Ok((psnr(&g, &t), ssim(&g, &t)))
 }
 

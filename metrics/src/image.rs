@@ -5,6 +5,17 @@ use tch::{Kind, Tensor};
 /// PSNR in dB over all pixels of `a` and `b` ([.., H, W] in [-1, 1], data range 2).
 pub fn psnr(a: &Tensor, b: &Tensor) -> f64 {
     let mse = (a.to_kind(Kind::Float) - b.to_kind(Kind::Float)).square().mean(Kind::Double).double_value(&[]);
+    db(mse)
+}
+
+/// PSNR in dB of each frame of videos [3, F, H, W] in [-1, 1] (data range 2), in one pass.
+pub fn psnr_frames(a: &Tensor, b: &Tensor) -> Vec<f64> {
+    let frames = a.size()[1];
+    let mse = (a.to_kind(Kind::Float) - b.to_kind(Kind::Float)).square().transpose(0, 1).reshape([frames, -1]).mean_dim(1, false, Kind::Double);
+    Vec::<f64>::try_from(mse.to_device(tch::Device::Cpu)).unwrap_or_default().into_iter().map(db).collect()
+}
+
+fn db(mse: f64) -> f64 {
     // `f64::max` would turn a NaN error into the 120 dB of a perfect match.
     if mse.is_nan() {
         return f64::NAN;
@@ -18,6 +29,19 @@ pub fn psnr(a: &Tensor, b: &Tensor) -> f64 {
 /// lies inside the frame. Scikit-image's `structural_similarity(gaussian_weights=True,
 /// sigma=1.5, use_sample_covariance=False, data_range=1)` on those frames gives the same (tested).
 pub fn ssim(a: &Tensor, b: &Tensor) -> f64 {
+    ssim_map(a, b).mean(Kind::Double).double_value(&[])
+}
+
+/// `ssim` of each frame of videos [3, F, H, W] (the mean over its channels), in one pass; their
+/// mean is `ssim`.
+pub fn ssim_frames(a: &Tensor, b: &Tensor) -> Vec<f64> {
+    let frames = a.size()[1];
+    let per_frame = ssim_map(a, b).reshape([frames, -1]).mean_dim(1, false, Kind::Double);
+    Vec::<f64>::try_from(per_frame.to_device(tch::Device::Cpu)).unwrap_or_default()
+}
+
+/// The SSIM map of every frame and channel, frame-major ([F * 3, 1, H', W']).
+fn ssim_map(a: &Tensor, b: &Tensor) -> Tensor {
     let to_images = |t: &Tensor| {
         let s = t.size();
         ((t.to_kind(Kind::Float) + 1.0) / 2.0).permute([1, 0, 2, 3]).reshape([s[1] * s[0], 1, s[2], s[3]])
@@ -34,8 +58,7 @@ pub fn ssim(a: &Tensor, b: &Tensor) -> f64 {
     let syy = blur(&(&y * &y)) - &my * &my;
     let sxy = blur(&(&x * &y)) - &mx * &my;
     let (c1, c2) = (0.01f64.powi(2), 0.03f64.powi(2));
-    let map = ((&mx * &my * 2.0 + c1) * (sxy * 2.0 + c2)) / ((mx.square() + my.square() + c1) * (sxx + syy + c2));
-    map.mean(Kind::Double).double_value(&[])
+    ((&mx * &my * 2.0 + c1) * (sxy * 2.0 + c2)) / ((mx.square() + my.square() + c1) * (sxx + syy + c2))
 }
 
 #[cfg(test)]
@@ -61,6 +84,10 @@ mod tests {
         let broken = a.copy();
         let _ = broken.get(0).fill_(f64::NAN);
         assert!(psnr(&broken, &a).is_nan(), "a NaN frame is no match");
+        // Per frame: each frame's own PSNR, in order.
+        let half = Tensor::cat(&[a.narrow(1, 0, 1), noisy.narrow(1, 1, 1)], 1);
+        let frames = psnr_frames(&half, &a);
+        assert!(frames[0] > 100.0 && (frames[1] - psnr(&noisy.narrow(1, 1, 1), &a.narrow(1, 1, 1))).abs() < 1e-9, "{frames:?}");
         let noisier = &a + draw(0.6, Tensor::randn);
         let (s1, s2) = (ssim(&a, &noisy), ssim(&a, &noisier));
         assert!(s1 < 0.97 && s2 < s1 - 0.1, "{s1} {s2}");
@@ -111,11 +138,22 @@ for name, changed in variants.items():
         b = (t[f"b{i}"].astype(np.float64) + 1) / 2
         frames = [structural_similarity(a[:, f], b[:, f], channel_axis=0, **{**settings, **changed}) for f in range(a.shape[1])]
         out[name].append(float(np.mean(frames)))
+        if not changed:
+            out.setdefault("match per frame", []).append(frames)
 print(json.dumps(out))
 "#;
         let out = std::process::Command::new(py).args(["-c", script]).arg(&file).arg(pairs.len().to_string()).output().unwrap();
         assert!(out.status.success(), "scikit-image failed: {}", String::from_utf8_lossy(&out.stderr));
-        let theirs: std::collections::BTreeMap<String, Vec<f64>> = serde_json::from_slice(&out.stdout).unwrap();
+        let mut theirs: std::collections::BTreeMap<String, serde_json::Value> = serde_json::from_slice(&out.stdout).unwrap();
+        let per_frame: Vec<Vec<f64>> = serde_json::from_value(theirs.remove("match per frame").unwrap()).unwrap();
+        let theirs: std::collections::BTreeMap<String, Vec<f64>> = theirs.into_iter().map(|(k, v)| (k, serde_json::from_value(v).unwrap())).collect();
+        for ((what, b), want) in pairs.iter().zip(&per_frame) {
+            let got = ssim_frames(&a, b);
+            assert_eq!(got.len(), want.len());
+            for (g, w) in got.iter().zip(want) {
+                assert!((g - w).abs() <= SKIMAGE_BOUND, "{what}: a frame's ssim {g}, scikit-image {w}");
+            }
+        }
         let ours: Vec<f64> = pairs.iter().map(|(_, b)| ssim(&a, b)).collect();
         for (((what, _), got), want) in pairs.iter().zip(&ours).zip(&theirs["match"]) {
             println!("{what}: ssim {got:.7}, scikit-image {want:.7}, difference {:.2e}", (got - want).abs());

@@ -280,7 +280,7 @@ fn runs_after_when_asked(name: &str, base: &[(&str, &str)], asked: &str, stage: 
 }
 
 #[test]
-fn the_engine_and_realtime_modes_train_the_model_first_then_run_their_stage_alone() {
+fn the_engine_and_realtime_modes_train_the_model_first_then_run_their_stage_alone_the_light_decoder_beside() {
     let dir = common::temp_dir("gpu-modes");
     let d = dir.path();
     for mode in ["engine", "realtime"] {
@@ -293,6 +293,12 @@ fn the_engine_and_realtime_modes_train_the_model_first_then_run_their_stage_alon
         }
         assert!(!calls.iter().any(|c| c.starts_with("study ")), "no study in the {mode} mode: {log}");
         assert_eq!(calls.last().map(|c| c.starts_with(&format!("{mode} "))), Some(true), "{log}");
+        // The realtime stage's light decoder trains beside the world model, once the VAE is there.
+        if mode == "realtime" {
+            assert!(at("vae") < at("light") && at("light") < at(mode), "{log}");
+        } else {
+            assert!(!calls.iter().any(|c| c.starts_with("light ")), "no light decoder in the {mode} mode: {log}");
+        }
     }
 }
 

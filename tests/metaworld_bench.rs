@@ -401,9 +401,9 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
     // Cheaper sampling against the full path: a light decoder and a one-step student trained from
     // the recipe's model, the teacher at 2 and 1 steps and the student each decoded both ways, in
     // the open loop over both held-out episodes and, for two settings, in closed loop.
-    let realtime = || {
+    let stage = |name: &str| {
         let mut cmd = toy("recipe.sh", &runs);
-        cmd.arg("realtime").envs(TOY_STUDY).envs([
+        cmd.arg(name).envs(TOY_STUDY).envs([
             ("VAL_EPISODES", "1"),
             ("VAE_EPISODES", "6"),
             ("LIGHT_STEPS", "2"),
@@ -417,6 +417,7 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
         ]);
         cmd
     };
+    let realtime = || stage("realtime");
     // Settings it cannot measure are refused before anything trains.
     for (var, value, said) in [
         ("REALTIME_STUDIES", "t3-full", "REALTIME_STUDIES names 't3-full'"),
@@ -429,8 +430,15 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
         assert!(out.status.code() == Some(2) && stderr.contains(said), "{var}={value}: {stderr}");
         assert!(!runs.join("realtime").exists(), "{var}={value}: nothing made");
     }
+    // The light decoder made first by the light stage (as beside the world model's training) is
+    // the one the realtime stage keeps: it trains once.
+    run(&mut stage("light"), "recipe.sh light");
+    let light = std::fs::read(runs.join("realtime/light-decoder.safetensors")).unwrap();
     run(&mut realtime(), "recipe.sh realtime");
-    assert!(runs.join("realtime/light-decoder.safetensors").is_file() && runs.join("realtime/student-1/checkpoints/latest").is_file());
+    assert!(runs.join("realtime/student-1/checkpoints/latest").is_file());
+    assert_eq!(std::fs::read(runs.join("realtime/light-decoder.safetensors")).unwrap(), light, "the light stage's decoder kept");
+    let light_trainings = std::fs::read_to_string(runs.join("timings.tsv")).unwrap().lines().filter(|l| l.starts_with("light-decoder\t")).count();
+    assert_eq!(light_trainings, 1, "the light decoder trained once");
     let table = json(&runs.join("realtime/realtime.json"));
     let settings = table["settings"].as_object().unwrap();
     let mut names: Vec<&String> = settings.keys().collect();

@@ -33,6 +33,9 @@
 #   probe    the same study over graded `wrong-<d>cm` variants (the expert with its targets moved d
 #            cm along the task's `wrong` offset): does the model's contact follow a shifted
 #            command as the simulator's does? $RUN/probe/ (same files as study/)
+#   light    (only when named) the realtime stage's light decoder alone (bwm train-light-decoder,
+#            from the VAE and the training data: it can train beside the world model), kept by the
+#            realtime stage when made the same way: $REALTIME_DIR/light-decoder.safetensors
 #   realtime (only when named) cheaper sampling measured against the full path: a light decoder
 #            (bwm train-light-decoder) and students distilled from the trained model for 1 and 2
 #            steps ([distill], REALTIME_STUDENTS), then the teacher at REALTIME_TEACHER_STEPS (the
@@ -179,8 +182,8 @@ ENGINE_IN_FLIGHT="${ENGINE_IN_FLIGHT:-16}"  # generated episodes rolled out at o
 STAGES=()
 for arg in "$@"; do
   case "$arg" in
-    data|vae|latents|train|fidelity|truth|judge|ceiling|study|teacher|own|probe|realtime|engine) STAGES+=("$arg") ;;
-    *) echo "recipe: unknown stage '$arg' (stages: data vae latents train fidelity truth judge ceiling study teacher own probe realtime engine)" >&2; exit 2 ;;
+    data|vae|latents|train|fidelity|truth|judge|ceiling|study|teacher|own|probe|light|realtime|engine) STAGES+=("$arg") ;;
+    *) echo "recipe: unknown stage '$arg' (stages: data vae latents train fidelity truth judge ceiling study teacher own probe light realtime engine)" >&2; exit 2 ;;
   esac
 done
 [ ${#STAGES[@]} -gt 0 ] || STAGES=(data vae latents train fidelity truth judge ceiling study teacher own probe)
@@ -462,6 +465,23 @@ if wants probe; then
   timed probe "$PYTHON" bench/metaworld/study.py "${COMMON_STUDY_ARGS[@]}" --variants "$PROBE_VARIANTS" --out "$RUN/probe" \
     --judge "$JUDGE" --bwm "$BWM" --jobs "$STUDY_JOBS" --episodes-in-flight "$STUDY_IN_FLIGHT" --streams "$STUDY_STREAMS" -- "${WM[@]}"
 fi
+# The light decoder of the realtime stage: its command into `light_decoder`, its output `light`
+# and its record `light_made_with`. It needs the VAE and the data alone.
+light_decoder_command() {
+  light="$REALTIME_DIR/light-decoder.safetensors"
+  light_decoder=("$BWM" train-light-decoder --vae "$RUN/vae.safetensors" --data "$RUN/data/train" --max-episodes "$VAE_EPISODES"
+    --holdout-tail "$VAE_HOLDOUT_TAIL" --resolution "${RESOLUTION}x$RESOLUTION" --clip-frames "$VAE_CLIP_FRAMES" --steps "$LIGHT_STEPS"
+    --batch "$LIGHT_BATCH" --lr "$LIGHT_LR" --seed "$VAE_SEED" --device "$DEVICE" --out "$light")
+  light_made_with=$(record_of "${light_decoder[@]}")
+}
+train_light_decoder() { timed light-decoder "${light_decoder[@]}" && recorded "$light" "$light_made_with"; }
+if wants light; then
+  light_decoder_command
+  if ! kept "$light" "$light_made_with"; then
+    mkdir -p "$REALTIME_DIR"
+    train_light_decoder || exit 1
+  fi
+fi
 if wants realtime; then
   world_model
   teacher=$MODEL
@@ -504,13 +524,9 @@ if wants realtime; then
   }
   # The light decoder and the students train side by side (background), while the teacher's
   # settings with the VAE's decoder are rolled out and studied; then the others.
-  light="$RT/light-decoder.safetensors"
-  light_decoder=("$BWM" train-light-decoder --vae "$RUN/vae.safetensors" --data "$RUN/data/train" --max-episodes "$VAE_EPISODES"
-    --holdout-tail "$VAE_HOLDOUT_TAIL" --resolution "${RESOLUTION}x$RESOLUTION" --clip-frames "$VAE_CLIP_FRAMES" --steps "$LIGHT_STEPS"
-    --batch "$LIGHT_BATCH" --lr "$LIGHT_LR" --seed "$VAE_SEED" --device "$DEVICE" --out "$light")
   # Whether each is to be made is settled before any starts: a refused output stops the stage
-  # with nothing left running.
-  light_made_with=$(record_of "${light_decoder[@]}")
+  # with nothing left running. (The light stage may have made the light decoder already.)
+  light_decoder_command
   train_light=0
   kept "$light" "$light_made_with" || train_light=1
   student_of() { # $1 = the student's steps: its training command into `student` (the device apart: not recorded)
@@ -535,7 +551,7 @@ if wants realtime; then
   # them) are not the settings' speed.
   training=()
   if [ $train_light = 1 ]; then
-    (timed light-decoder "${light_decoder[@]}" && recorded "$light" "$light_made_with") & training+=($!)
+    train_light_decoder & training+=($!)
   fi
   for k in "${students[@]}"; do
     student_of "$k"

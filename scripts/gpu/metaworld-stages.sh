@@ -42,7 +42,7 @@ compare_per_value() {
     [ "${PIPESTATUS[0]}" = 0 ] || status=1
   done
 }
-train_stages() {
+train_stages() { # $1 = light: the realtime stage's light decoder trains beside the world model (it needs the VAE alone)
   status=0
   recipe data 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
   if [ $status = 0 ]; then
@@ -58,10 +58,11 @@ train_stages() {
         [ "$frames" = real ] && continue
         JUDGE_FRAMES=$frames STUDY_DIR=$(study_dir "$frames") recipe judge > "$(judge_log "$frames")" 2>&1 & judges+=($!)
       done
+      [ "${1:-}" = light ] && { recipe light > "$OUT/light.log" 2>&1 & judges+=($!); }
       recipe latents train 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
     fi
     wait $truth || { echo "metaworld: truth failed ($OUT/truth.log)"; status=1; }
-    for pid in "${judges[@]}"; do wait "$pid" || { echo "metaworld: a judge failed ($OUT/judge*.log)"; status=1; }; done
+    for pid in "${judges[@]}"; do wait "$pid" || { echo "metaworld: a judge or the light decoder failed ($OUT/judge*.log, $OUT/light.log)"; status=1; }; done
   fi
 }
 if [ "${1:-}" = transfer ]; then
@@ -77,8 +78,8 @@ elif [ "${1:-}" = sweep ]; then
   fi
 elif [ "${1:-}" = engine ] || [ "${1:-}" = realtime ]; then
   # The data engine or cheaper sampling measured (recipe.sh's engine or realtime stage) on a model
-  # trained here first.
-  train_stages
+  # trained here first; for the realtime stage its light decoder trains beside the world model.
+  if [ "$1" = realtime ]; then train_stages light; else train_stages; fi
   if [ $status = 0 ]; then
     recipe "$1" 2>&1 | tee -a "$OUT/recipe.log"
     status=${PIPESTATUS[0]}

@@ -41,7 +41,8 @@
 # `bash scripts/gpu/metaworld.sh engine` trains the model (stages up to train, truth and judge)
 # where it has not, then runs the recipe's engine stage (the data engine measured; its ENGINE_*
 # variables apply): $RUN/engine/engine.json comes back in run.tar.gz. Run it detached as the recipe.
-# `bash scripts/gpu/metaworld.sh realtime` likewise trains the model where it has not, then runs the
+# `bash scripts/gpu/metaworld.sh realtime` likewise trains the model where it has not (the recipe's
+# light stage, the light decoder, beside it once the VAE is trained), then runs the
 # recipe's realtime stage (a light decoder and distilled students against the teacher's steps, open
 # and closed loop; its REALTIME_*, LIGHT_* variables apply): $RUN/realtime/realtime.json,
 # agreement.json and each setting's study-SETTING/study.json come back in run.tar.gz.

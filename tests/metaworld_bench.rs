@@ -434,8 +434,12 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
     // the one the realtime stage keeps: it trains once.
     run(&mut stage("light"), "recipe.sh light");
     let light = std::fs::read(runs.join("realtime/light-decoder.safetensors")).unwrap();
-    run(&mut realtime(), "recipe.sh realtime");
+    let log = run(&mut realtime(), "recipe.sh realtime");
     assert!(runs.join("realtime/student-1/checkpoints/latest").is_file());
+    // Its truth and verdicts are the recipe's study's (over more variants, the same episodes and judge).
+    for what in ["truth", "judged"] {
+        assert!(log.contains(&format!("study: {what} of 2 variants taken from")), "{what} measured again:\n{log}");
+    }
     assert_eq!(std::fs::read(runs.join("realtime/light-decoder.safetensors")).unwrap(), light, "the light stage's decoder kept");
     let light_trainings = std::fs::read_to_string(runs.join("timings.tsv")).unwrap().lines().filter(|l| l.starts_with("light-decoder\t")).count();
     assert_eq!(light_trainings, 1, "the light decoder trained once");

@@ -597,7 +597,10 @@ if wants realtime; then
   status=0
   roll "${first[@]}" || status=1
   if [ $status = 0 ] && [ ${#studies[@]} -gt 0 ]; then
-    { timed realtime-truth "${base[@]}" --truth-only && timed realtime-judged "${base[@]}" --judge "$JUDGE" --judged-only; } || status=1
+    # From the recipe's study's truth and verdicts where the truth and judge stages made them (over
+    # every variant: study.py takes these variants' rates from them when made the same way).
+    { seed_study "$STUDY_DIR" "$RT/study-base" && timed realtime-truth "${base[@]}" --truth-only &&
+      timed realtime-judged "${base[@]}" --judge "$JUDGE" --judged-only; } || status=1
   fi
   [ $status != 0 ] || study_of "${first_studies[@]}" || status=1
   for pid in "${training[@]}"; do wait "$pid" || { echo "recipe: the light decoder or a student failed (above; $RT/student-*.log)" >&2; status=1; }; done

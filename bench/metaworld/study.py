@@ -13,7 +13,8 @@ Truth: variants.measure_truth over the same seeds (cached in DIR/truth.json: per
 of its first success, null for a failure, and the closest the hand came to the object before it,
 in cm; measured again when the seeds, the variants, the cloned policies or the bytes of
 policies.py, families.py, variants.py, calibration.json or mw.py differ from the cached one's, so a
-variant changed under its name is not scored against its old truth). The variants are
+variant changed under its name is not scored against its old truth; a cached truth of more variants,
+otherwise the same, gives these variants' rates, as does DIR/judged.json below). The variants are
 split over --jobs `bwm evaluate` processes that share the servers (a variant's episodes stay in
 one process, in order, so that the policy server hands out seeds in the dataset's order).
 
@@ -189,18 +190,46 @@ def replay_world_model(estimates: dict, episodes: dict, resolution: int, workers
 
 def cached(path: str, name: str, key: dict, measure):
     """`measure()`, or what the JSON file at `path` holds under `name` when it was measured for
-    the same `key`; written atomically with the seconds it took."""
+    the same `key`, or for the same key over more variants (`covering`: those rates of it kept);
+    written atomically with the seconds it took."""
+    value = None
     if os.path.exists(path):
         with open(path) as f:
             found = json.load(f)
         if found.get("key") == key:
             return found[name]
-    t0 = time.time()
-    value = measure()
+        value = covering(found, name, key)
+        if value is not None:
+            print(f"study: {name} of {len(key['variants'])} variants taken from {path}, measured over {len(found['key']['variants'])}")
+            seconds = 0.0
+    if value is None:
+        t0 = time.time()
+        value = measure()
+        seconds = time.time() - t0
     with open(path + ".tmp", "w") as f:
-        json.dump({"key": key, name: value, "seconds": time.time() - t0}, f)
+        json.dump({"key": key, name: value, "seconds": seconds}, f)
     os.replace(path + ".tmp", path)
     return value
+
+
+def covering(found: dict, name: str, key: dict) -> dict | None:
+    """What `found` (a cached file's contents: {task: {variant: ...}} under `name`) holds of
+    `key`'s variants when it was measured for the same key over more variants, with the same
+    cloned policies among them (their digest taken again now); else None."""
+    theirs = found.get("key")
+    if not isinstance(theirs, dict) or set(theirs) != set(key) or not isinstance(found.get(name), dict):
+        return None
+    if any(theirs[k] != key[k] for k in key if k not in ("variants", "clones")):
+        return None
+    if not set(key["variants"]) <= set(theirs["variants"]):
+        return None
+    tasks = list(key["episodes"])
+    if theirs["clones"] != families.clones_digest(tasks, theirs["variants"]):
+        return None
+    value = found[name]
+    if any(v not in value.get(t, {}) for t in tasks for v in key["variants"]):
+        return None
+    return {t: {v: value[t][v] for v in key["variants"]} for t in tasks}
 
 
 def truth_key(episodes: dict, horizon: int, chunk: int, resolution: int, variants: list[str], clones: str | None = None) -> dict:

@@ -1,6 +1,7 @@
 """study.py's scoring on hand-made outcomes: success rates, their agreement, and the per-episode
 agreement that tells whether the world model gets *which* episodes succeed."""
 
+import json
 import os
 import sys
 
@@ -286,6 +287,47 @@ def test_the_truth_is_measured_again_when_the_policies_code_changes():
             assert key()["episodes"] == {"drawer-open-v3": [100000, 100001]}
         finally:
             study.TRUTH_SOURCES = kept
+
+
+def test_a_study_of_fewer_variants_takes_their_rates_from_a_truth_over_more():
+    import tempfile
+
+    episodes = {"drawer-open-v3": [(0, 100000)], "button-press-topdown-v3": [(0, 100000)]}
+    every = ["expert", "blind", "bc-nn-1"]
+    measured_over = []
+
+    def measure(variants):
+        measured_over.append(list(variants))
+        return {t: {v: [[None, float(i)]] for i, v in enumerate(variants)} for t in episodes}
+
+    digest = {"now": "clones-a"}
+    kept_digest = study.families.clones_digest
+    study.families.clones_digest = lambda tasks, variants: digest["now"] if "bc-nn-1" in variants else None
+    try:
+        with tempfile.TemporaryDirectory() as d:
+            path = os.path.join(d, "truth.json")
+            key = lambda variants, horizon=120: study.truth_key(episodes, horizon, 24, 128, variants,
+                                                                study.families.clones_digest(list(episodes), variants))
+            full = study.cached(path, "truth", key(every), lambda: measure(every))
+            # A subset: its rates from the file, nothing measured, and the file now of the subset's key.
+            sub = study.cached(path, "truth", key(["blind"]), lambda: measure(["blind"]))
+            assert sub == {t: {"blind": full[t]["blind"]} for t in episodes} and measured_over == [every]
+            with open(path) as f:
+                assert json.load(f)["key"] == key(["blind"])
+            # A variant the file does not hold, or other settings: measured.
+            study.cached(path, "truth", key(every), lambda: measure(every))
+            study.cached(path, "truth", key(["blind", "slow"]), lambda: measure(["blind", "slow"]))
+            assert measured_over[-1] == ["blind", "slow"]
+            study.cached(path, "truth", key(every), lambda: measure(every))
+            study.cached(path, "truth", key(["blind"], horizon=100), lambda: measure(["blind"]))
+            assert measured_over[-1] == ["blind"] and len(measured_over) == 5
+            # Cloned policies trained again since the file was measured: its rates are not theirs.
+            study.cached(path, "truth", key(every), lambda: measure(every))
+            digest["now"] = "clones-b"
+            study.cached(path, "truth", key(["blind", "bc-nn-1"]), lambda: measure(["blind", "bc-nn-1"]))
+            assert measured_over[-1] == ["blind", "bc-nn-1"] and len(measured_over) == 7
+    finally:
+        study.families.clones_digest = kept_digest
 
 
 if __name__ == "__main__":

@@ -322,8 +322,8 @@ fn score(task: &str, truth: &[RgbImage], predicted: [&Vec<RgbImage>; 4], device:
     for (name, frames) in PREDICTORS.iter().zip(predicted) {
         ensure!(frames.len() == truth.len(), "{name}: {} frames for {} real ones", frames.len(), truth.len());
         let pred = after_x0(frames)?;
-        out.psnr.insert(name, psnr_frames(&pred, &real));
-        out.ssim.insert(name, ssim_frames(&pred, &real));
+        out.psnr.insert(name, psnr_frames(&pred, &real)?);
+        out.ssim.insert(name, ssim_frames(&pred, &real)?);
     }
     Ok(out)
 }

@@ -9,10 +9,10 @@ pub fn psnr(a: &Tensor, b: &Tensor) -> f64 {
 }
 
 /// PSNR in dB of each frame of videos [3, F, H, W] in [-1, 1] (data range 2), in one pass.
-pub fn psnr_frames(a: &Tensor, b: &Tensor) -> Vec<f64> {
+pub fn psnr_frames(a: &Tensor, b: &Tensor) -> Result<Vec<f64>, tch::TchError> {
     let frames = a.size()[1];
     let mse = (a.to_kind(Kind::Float) - b.to_kind(Kind::Float)).square().transpose(0, 1).reshape([frames, -1]).mean_dim(1, false, Kind::Double);
-    Vec::<f64>::try_from(mse.to_device(tch::Device::Cpu)).unwrap_or_default().into_iter().map(db).collect()
+    Ok(Vec::<f64>::try_from(mse.to_device(tch::Device::Cpu))?.into_iter().map(db).collect())
 }
 
 fn db(mse: f64) -> f64 {
@@ -34,10 +34,10 @@ pub fn ssim(a: &Tensor, b: &Tensor) -> f64 {
 
 /// `ssim` of each frame of videos [3, F, H, W] (the mean over its channels), in one pass; their
 /// mean is `ssim`.
-pub fn ssim_frames(a: &Tensor, b: &Tensor) -> Vec<f64> {
+pub fn ssim_frames(a: &Tensor, b: &Tensor) -> Result<Vec<f64>, tch::TchError> {
     let frames = a.size()[1];
     let per_frame = ssim_map(a, b).reshape([frames, -1]).mean_dim(1, false, Kind::Double);
-    Vec::<f64>::try_from(per_frame.to_device(tch::Device::Cpu)).unwrap_or_default()
+    Vec::<f64>::try_from(per_frame.to_device(tch::Device::Cpu))
 }
 
 /// The SSIM map of every frame and channel, frame-major ([F * 3, 1, H', W']).
@@ -86,7 +86,7 @@ mod tests {
         assert!(psnr(&broken, &a).is_nan(), "a NaN frame is no match");
         // Per frame: each frame's own PSNR, in order.
         let half = Tensor::cat(&[a.narrow(1, 0, 1), noisy.narrow(1, 1, 1)], 1);
-        let frames = psnr_frames(&half, &a);
+        let frames = psnr_frames(&half, &a).unwrap();
         assert!(frames[0] > 100.0 && (frames[1] - psnr(&noisy.narrow(1, 1, 1), &a.narrow(1, 1, 1))).abs() < 1e-9, "{frames:?}");
         let noisier = &a + draw(0.6, Tensor::randn);
         let (s1, s2) = (ssim(&a, &noisy), ssim(&a, &noisier));
@@ -148,7 +148,7 @@ print(json.dumps(out))
         let per_frame: Vec<Vec<f64>> = serde_json::from_value(theirs.remove("match per frame").unwrap()).unwrap();
         let theirs: std::collections::BTreeMap<String, Vec<f64>> = theirs.into_iter().map(|(k, v)| (k, serde_json::from_value(v).unwrap())).collect();
         for ((what, b), want) in pairs.iter().zip(&per_frame) {
-            let got = ssim_frames(&a, b);
+            let got = ssim_frames(&a, b).unwrap();
             assert_eq!(got.len(), want.len());
             for (g, w) in got.iter().zip(want) {
                 assert!((g - w).abs() <= SKIMAGE_BOUND, "{what}: a frame's ssim {g}, scikit-image {w}");

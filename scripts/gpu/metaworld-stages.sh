@@ -47,22 +47,22 @@ train_stages() { # $1 = light: the realtime stage's light decoder trains beside 
   recipe data 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
   if [ $status = 0 ]; then
     recipe truth > "$OUT/truth.log" 2>&1 & truth=$!
-    judges=()
+    beside=()  # the judges (and the light decoder) training beside the world model
     for frames in $JUDGES; do
       [ "$frames" = real ] || continue
-      JUDGE_FRAMES=$frames STUDY_DIR=$(study_dir "$frames") recipe judge > "$(judge_log "$frames")" 2>&1 & judges+=($!)
+      JUDGE_FRAMES=$frames STUDY_DIR=$(study_dir "$frames") recipe judge > "$(judge_log "$frames")" 2>&1 & beside+=($!)
     done
     recipe vae 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
     if [ $status = 0 ]; then
       for frames in $JUDGES; do
         [ "$frames" = real ] && continue
-        JUDGE_FRAMES=$frames STUDY_DIR=$(study_dir "$frames") recipe judge > "$(judge_log "$frames")" 2>&1 & judges+=($!)
+        JUDGE_FRAMES=$frames STUDY_DIR=$(study_dir "$frames") recipe judge > "$(judge_log "$frames")" 2>&1 & beside+=($!)
       done
-      [ "${1:-}" = light ] && { recipe light > "$OUT/light.log" 2>&1 & judges+=($!); }
+      [ "${1:-}" = light ] && { recipe light > "$OUT/light.log" 2>&1 & beside+=($!); }
       recipe latents train 2>&1 | tee -a "$OUT/recipe.log"; [ "${PIPESTATUS[0]}" = 0 ] || status=1
     fi
     wait $truth || { echo "metaworld: truth failed ($OUT/truth.log)"; status=1; }
-    for pid in "${judges[@]}"; do wait "$pid" || { echo "metaworld: a judge or the light decoder failed ($OUT/judge*.log, $OUT/light.log)"; status=1; }; done
+    for pid in "${beside[@]}"; do wait "$pid" || { echo "metaworld: a judge or the light decoder failed ($OUT/judge*.log, $OUT/light.log)"; status=1; }; done
   fi
 }
 if [ "${1:-}" = transfer ]; then

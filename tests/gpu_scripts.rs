@@ -670,28 +670,53 @@ fn the_5b_chunk_of_each_setting_is_set_against_the_reference_of_the_same_run() {
     fs::create_dir_all(d.join("scripts/gpu")).unwrap();
     fs::copy(Path::new(ROOT).join("scripts/gpu/rollout.sh"), d.join("scripts/gpu/rollout.sh")).unwrap();
     // A stub bwm whose chunk takes 0.1 s per step, plus 1.3 s to decode with the VAE's decoder or
-    // 0.1 s with the light one; a stub reference.
+    // 0.1 s with the light one, and whose distillation step (bench-train) takes 9 s at first,
+    // then 1 s + 0.1 s per teacher step per student step; a stub reference.
     stub_gpu_host(
         d,
         "realtime_5b.sh",
-        "#!/bin/sh\nsteps=$(echo \"$*\" | sed 's/.*--sample-steps \\([0-9]*\\).*/\\1/')\n\
-         case \"$*\" in *--random-light-decoder*) dec=0.1 ;; *) dec=1.3 ;; esac\n\
-         for i in 0 1 2; do awk -v s=\"$steps\" -v c=\"$dec\" -v i=$i 'BEGIN { t = 0.1 + s * 0.1 + c; printf \"chunk %d: %.2f s = encode 0.10 s + DiT %.2f s (0.100 s/step) + decode %.2f s; 72 frames; %.1f generated frames/s; device memory 1 MiB used\\n\", i, t, s * 0.1, c, 72 / t }'; done\n",
+        r#"#!/bin/sh
+case "$*" in *bench-train*)
+  sub=$(echo "$*" | sed 's/.*--teacher-substeps \([0-9]*\).*/\1/')
+  for i in 1 2 3 4 5; do awk -v s="$sub" -v i=$i 'BEGIN { printf "step %6d/5  loss 0.50000  lr 1.00e-4  grad_norm 1.000  %.2f s/step  1.0 samples/s\n", i, (i == 1 ? 9 : 1 + s * 0.1) }'; done
+  exit 0 ;;
+esac
+steps=$(echo "$*" | sed 's/.*--sample-steps \([0-9]*\).*/\1/')
+case "$*" in *--random-light-decoder*) dec=0.1 ;; *) dec=1.3 ;; esac
+for i in 0 1 2; do awk -v s="$steps" -v c="$dec" -v i=$i 'BEGIN { t = 0.1 + s * 0.1 + c; printf "chunk %d: %.2f s = encode 0.10 s + DiT %.2f s (0.100 s/step) + decode %.2f s; 72 frames; %.1f generated frames/s; device memory 1 MiB used\n", i, t, s * 0.1, c, 72 / t }'; done
+"#,
         "echo 'reference rollout: 10.30 s per chunk = encode 0.06 s + DiT 8.74 s (0.175 s/step) + decode 1.50 s' > \"$OUT/reference-rollout.log\"\n",
     );
-    let run = |settings: &str, reference: &str| -> Output {
+    let run_distilling = |settings: &str, reference: &str, distill: Option<&str>| -> Output {
         let path = format!("{}:{}", d.join("stub").display(), std::env::var("PATH").unwrap_or_default());
         let _ = fs::remove_dir_all(d.join("out"));
-        Command::new("bash")
-            .arg("scripts/gpu/realtime_5b.sh")
-            .current_dir(d)
-            .env("OUT", d.join("out"))
-            .env("PATH", path)
-            .env("SETTINGS", settings)
-            .env("REFERENCE", reference)
-            .output()
-            .unwrap()
+        let mut cmd = Command::new("bash");
+        cmd.arg("scripts/gpu/realtime_5b.sh").current_dir(d).env("OUT", d.join("out")).env("PATH", path).env("SETTINGS", settings).env("REFERENCE", reference);
+        match distill {
+            Some(v) => cmd.env("DISTILL", v),
+            None => cmd.env_remove("DISTILL"),
+        };
+        cmd.output().unwrap()
     };
+    let run = |settings: &str, reference: &str| run_distilling(settings, reference, Some(""));
+    // The default: the chunks, then the distillation's step for students of 1 and 2 steps from
+    // the teacher's 4, with LoRA (full weights not on this 100 MiB GPU).
+    let out = run_distilling("light:1 full:50", "1", None);
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{stdout}{}", String::from_utf8_lossy(&out.stderr));
+    for line in [
+        "realtime_5b: distillation, LoRA rank 64, a student of 1 step(s) from the teacher's 4: 1.40 s per step (median of the last 3 of 5), peak GPU memory 100 MiB",
+        "realtime_5b: distillation, LoRA rank 64, a student of 2 step(s) from the teacher's 4: 1.20 s per step (median of the last 3 of 5)",
+        "realtime_5b: distillation, full weights, a student of 2 step(s): not run, the GPU holds 100 MiB",
+    ] {
+        assert!(stdout.contains(line), "no '{line}' in {stdout}");
+    }
+    assert_eq!(fs::read_to_string(d.join("out/realtime_5b.txt")).unwrap().lines().count(), 6);
+    assert!(d.join("out/distill-lora-s1.log").is_file() && !d.join("out/distill-full-s1.log").exists());
+    // A student whose steps do not divide the teacher's is refused before anything runs.
+    let out = run_distilling("light:1", "1", Some("3"));
+    assert!(out.status.code() == Some(2) && String::from_utf8_lossy(&out.stderr).contains("DISTILL '3'"), "{out:?}");
+    assert!(!d.join("out/roll-light-s1.log").exists());
     let out = run("light:1 full:50", "1");
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(out.status.success(), "{stdout}{}", String::from_utf8_lossy(&out.stderr));

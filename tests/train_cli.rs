@@ -300,6 +300,25 @@ fn bench_train_breakdown_accounts_for_the_step() {
     assert!((parts.iter().sum::<f64>() - step).abs() <= 0.0025 + 1e-9, "{parts:?} vs {step}: {stdout}");
 }
 
+/// `--distill K`: the step timed is the distillation's (a random teacher's Euler steps, then the
+/// student's velocity against them), not the flow-matching step of the same weights and data.
+#[test]
+fn bench_train_times_the_distillation_step() {
+    let dir = temp_dir("bench-distill");
+    let losses = |stdout: &str| -> Vec<String> {
+        stdout.lines().filter(|l| l.starts_with("step ")).map(|l| l.split_whitespace().nth(3).unwrap().to_string()).collect()
+    };
+    let plain = bench_train_tiny(&dir.join("plain"), &[]);
+    let distill = bench_train_tiny(&dir.join("distill"), &["--distill".as_ref(), "1".as_ref(), "--teacher-substeps".as_ref(), "2".as_ref()]);
+    assert!(distill.contains("step distillation, a student of 1 step(s) from a frozen teacher of random weights taking 2 Euler steps"), "{distill}");
+    let (a, b) = (losses(&plain), losses(&distill));
+    assert_eq!((a.len(), b.len()), (3, 3), "{plain}\n{distill}");
+    assert_ne!(a, b, "the same losses: the distillation's objective was not used\n{plain}\n{distill}");
+    // The teacher's steps are given with a student's only.
+    let out = Command::new(bwm()).args(["bench-train", "--teacher-substeps", "2"]).output().unwrap();
+    assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("--distill"), "{}", String::from_utf8_lossy(&out.stderr));
+}
+
 /// `--profile`: the steps after the first go into a Chrome trace of the host's operators (no GPU
 /// here, so nothing is busy on one), and the step's summary says so.
 #[test]

@@ -58,24 +58,31 @@ def score(generated: np.ndarray, other: np.ndarray, horizon: int) -> tuple[float
 def agreement(reference: str, settings: list[str], recorded: str | None, horizon: int) -> dict:
     refs = episodes(reference)
     truth = episodes(recorded) if recorded else {}
-    out = {}
-    for root in [reference, *settings]:
-        found = episodes(root)
-        if set(found) != set(refs):
+    roots = list(dict.fromkeys([reference, *settings]))  # the reference may be named among them
+    found = {}
+    for root in roots:
+        found[root] = episodes(root)
+        if set(found[root]) != set(refs):
             raise SystemExit(f"agreement: {root} holds other episodes than the reference {reference}")
-        rows = {"reference_h": [], "reference_full": [], "recorded_h": [], "recorded_full": []}
-        for name, path in found.items():
-            g = frames(path, GENERATED)
-            h, full = score(g, frames(refs[name], GENERATED), horizon)
-            rows["reference_h"].append(h)
-            rows["reference_full"].append(full)
-            if truth:
-                if name not in truth:
-                    raise SystemExit(f"agreement: {recorded} has no {name}")
-                h, full = score(g, frames(truth[name], RECORDED), horizon)
-                rows["recorded_h"].append(h)
-                rows["recorded_full"].append(full)
-        out[root] = {"episodes": len(found), **{k: float(np.mean(v)) for k, v in rows.items() if v}}
+    missing = sorted(set(refs) - set(truth)) if truth else []
+    if missing:
+        raise SystemExit(f"agreement: {recorded} has no {missing[0]}")
+    rows = {root: {"reference_h": [], "reference_full": [], "recorded_h": [], "recorded_full": []} for root in roots}
+    # Episode by episode, so that the reference's and the recorded frames are decoded once each and
+    # only one episode's frames are held at a time.
+    for name in refs:
+        ref = frames(refs[name], GENERATED)
+        real = frames(truth[name], RECORDED) if truth else None
+        for root in roots:
+            g = ref if root == reference else frames(found[root][name], GENERATED)
+            h, full = score(g, ref, horizon)
+            rows[root]["reference_h"].append(h)
+            rows[root]["reference_full"].append(full)
+            if real is not None:
+                h, full = score(g, real, horizon)
+                rows[root]["recorded_h"].append(h)
+                rows[root]["recorded_full"].append(full)
+    out = {root: {"episodes": len(refs), **{k: float(np.mean(v)) for k, v in rows[root].items() if v}} for root in roots}
     return {"reference": reference, "horizon": horizon, "settings": out}
 
 

@@ -43,9 +43,10 @@
 #            by the VAE's decoder (-full) and by the light one (-light): the open loop of the first
 #            REALTIME_EPISODES held-out episodes (agreement.py, PSNR at h = 32 against the reference
 #            and the recorded frames) and, for REALTIME_STUDIES (the teacher's with the VAE's
-#            decoder while the others train, then the rest, each group in its order), the study on
-#            the test families; $REALTIME_DIR (default $RUN/realtime/: light-decoder.safetensors, student-K/,
-#            roll/SETTING/, study-SETTING/, agreement.json, realtime.json)
+#            decoder while the others train, then the rest beside the others' rollouts, each group
+#            in its order), the study on the test families; $REALTIME_DIR (default $RUN/realtime/:
+#            light-decoder.safetensors, student-K/, roll/SETTING/, study-SETTING/, agreement.json,
+#            realtime.json)
 #   engine   (only when named) the data engine measured, bench/metaworld/engine.py: the expert's
 #            commands planned from the first frame of new placements, drawn by `bwm rollout`, and
 #            behaviour-cloned policies trained on N real demonstrations with and without them
@@ -606,12 +607,16 @@ if wants realtime; then
   for pid in "${training[@]}"; do wait "$pid" || { echo "recipe: the light decoder or a student failed (above; $RT/student-*.log)" >&2; status=1; }; done
   training=()
   trap - EXIT
-  [ $status != 0 ] || roll "${later[@]}" || status=1
+  # The other settings' rollouts and the open-loop scores (on the CPU) beside their studies.
   if [ $status = 0 ]; then
-    timed agreement "$PYTHON" bench/metaworld/agreement.py --reference "$RT/roll/$reference" --recorded "$RUN/data/val" --horizon 32 \
-      --json "$RT/agreement.json" "${settings[@]/#/$RT/roll/}" || status=1
+    { roll "${later[@]}" &&
+        timed agreement "$PYTHON" bench/metaworld/agreement.py --reference "$RT/roll/$reference" --recorded "$RUN/data/val" --horizon 32 \
+          --json "$RT/agreement.json" "${settings[@]/#/$RT/roll/}"; } & open_loop=$!
+    trap 'kill "$open_loop" 2>/dev/null' EXIT
+    study_of "${later_studies[@]}" || status=1
+    wait "$open_loop" || { echo "recipe: a rollout or agreement.py failed (above)" >&2; status=1; }
+    trap - EXIT
   fi
-  [ $status != 0 ] || study_of "${later_studies[@]}" || status=1
   [ $status != 0 ] || "$PYTHON" bench/metaworld/realtime.py "$RT" --reference "$reference" --json "$RT/realtime.json" || status=1
   [ $status = 0 ] || exit 1
 fi

@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 
 use anyhow::Result;
-use bwm_trainer::bench::BenchTrainOptions;
+use bwm_trainer::bench::{BenchTrainOptions, DistillBench};
 use clap::Args;
 
 #[derive(Args)]
@@ -34,6 +34,13 @@ pub struct BenchTrainArgs {
     /// Scratch folder for the synthetic cache and the run's logs.
     #[arg(long, default_value = "runs/bench-train")]
     out: PathBuf,
+    /// Time the step of step distillation ([distill]) instead, for a student of this many sampler
+    /// steps, from a frozen teacher of random weights of the same model (actions never dropped).
+    #[arg(long, value_name = "STUDENT_STEPS")]
+    distill: Option<usize>,
+    /// With --distill: the teacher's Euler steps per student step ([distill] teacher_substeps).
+    #[arg(long, default_value_t = 8, requires = "distill")]
+    teacher_substeps: usize,
 }
 
 pub fn run(a: BenchTrainArgs) -> Result<()> {
@@ -48,5 +55,6 @@ pub fn run(a: BenchTrainArgs) -> Result<()> {
         breakdown: a.breakdown,
         profile: a.profile,
         out: a.out,
+        distill: a.distill.map(|student_steps| DistillBench { student_steps, teacher_substeps: a.teacher_substeps }),
     })
 }

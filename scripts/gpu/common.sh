@@ -1,5 +1,5 @@
 # Sourced by the GPU scripts: $OUT, libtorch on LD_LIBRARY_PATH, NVLink multicast off, every
-# optional dependency of a test required, and `mem`.
+# optional dependency of a test required, `mem`, and the 5B's LoRA of the LoRA guide (LORA64).
 OUT="${OUT:-/tmp/out}"; mkdir -p "$OUT"
 # A test run here that asks bwm_testdir for CUDA, NCCL or anything else fails where it is missing
 # instead of being skipped (testdir/src/optional.rs): a GPU machine is where those are checked.
@@ -32,3 +32,7 @@ unpack() { # $1 = an xz-packed executable (.pack/bwm.xz), $2 = where it goes (di
   mkdir -p "$(dirname "$2")" && xz -dc "$1" > "$2.$$" && chmod +x "$2.$$" && mv -f "$2.$$" "$2" ||
     { rm -f "$2.$$"; echo "cannot unpack $1 into $2" >&2; return 1; }
 }
+# bench-train's overrides for the 5B with LoRA rank 64 on every attention and FFN linear (the README's
+# LoRA guide: adapters and the action encoder trained, the base frozen in bf16).
+LORA64=(--set 'model.lora={rank=64, targets=["blocks.*.self_attn.*", "blocks.*.cross_attn.*", "blocks.*.ffn.*"]}'
+        --set 'train.trainable=["*.lora_A.weight", "*.lora_B.weight", "action_encoder.*"]')

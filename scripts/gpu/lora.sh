@@ -14,12 +14,10 @@ set -uo pipefail
 source "$(dirname "${BASH_SOURCE[0]}")/common.sh"
 unpack .pack/bwm.xz dist/bwm || exit 1
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee "$OUT/gpu.txt"
-LORA=(--set 'model.lora={rank=64, targets=["blocks.*.self_attn.*", "blocks.*.cross_attn.*", "blocks.*.ffn.*"]}'
-      --set 'train.trainable=["*.lora_A.weight", "*.lora_B.weight", "action_encoder.*"]')
 common=(--config configs/bwm-wan22-ti2v-5b.toml --set run.device=\"cuda\" --set train.grad_accum=1 --steps "${STEPS:-5}")
-mem lora64_recompute dist/bwm bench-train "${common[@]}" "${LORA[@]}" --out /tmp/bench-lora
+mem lora64_recompute dist/bwm bench-train "${common[@]}" "${LORA64[@]}" --out /tmp/bench-lora
 if [ "${RECOMPUTE:-true}" = false ]; then
-  mem lora64 dist/bwm bench-train "${common[@]}" "${LORA[@]}" --set train.recompute=false --out /tmp/bench-lora2
+  mem lora64 dist/bwm bench-train "${common[@]}" "${LORA64[@]}" --set train.recompute=false --out /tmp/bench-lora2
 fi
 # Full fine-tuning needs about 98 GB with every block recomputed (docs/performance.md, "LoRA
 # post-training of the 5B on one H100 80 GB"): FULL=1 on an

@@ -8,13 +8,25 @@
 # random weights, `--random-light-decoder`, or the VAE's decoder; Euler steps), through
 # scripts/gpu/rollout.sh; then the DiffSynth reference's 50-step chunk (tests/reference/run_gpu.sh
 # rollout; REFERENCE=0 leaves it out) and each setting's last chunk against it, with its generated
-# frames per second: $OUT/realtime_5b.txt. Logs: $OUT/roll-DECODER-sSTEPS.log, reference-rollout.log.
+# frames per second: $OUT/realtime_5b.txt. Then the step of step distillation for each student
+# step count of DISTILL (default "1 2"; empty leaves it out) from the TEACHER_STEPS-step path
+# (default 4): `bwm bench-train --distill K` (a frozen teacher of random weights, 1+8+72 frames at
+# 640x480, batch 1, every block recomputed, STEPS steps, default 5, the median of those after the
+# first) with the LoRA guide's rank-64 adapters, and with full weights where the GPU holds 120 GB or
+# more (full fine-tuning alone needs about 98 GB): its time and peak memory, also in
+# realtime_5b.txt. Logs: $OUT/roll-DECODER-sSTEPS.log, reference-rollout.log,
+# distill-{lora,full}-sK.log.
 set -uo pipefail
 source "$(dirname "${BASH_SOURCE[0]}")/common.sh"
 settings=${SETTINGS:-light:1 light:2 light:4 full:4 full:50}
 for s in $settings; do
   case "${s%%:*}" in light | full) ;; *) echo "realtime_5b: '$s': the decoder is light or full" >&2; exit 2 ;; esac
   [[ ${s#*:} =~ ^[1-9][0-9]*$ ]] || { echo "realtime_5b: '$s': the steps are a positive whole number" >&2; exit 2; }
+done
+students=${DISTILL-1 2} teacher_steps=${TEACHER_STEPS:-4}
+for k in $students; do
+  [[ $k =~ ^[1-9][0-9]*$ ]] && [ $((teacher_steps % k)) = 0 ] ||
+    { echo "realtime_5b: DISTILL '$k': a student's steps divide the teacher's $teacher_steps (TEACHER_STEPS)" >&2; exit 2; }
 done
 unpack .pack/bwm.xz dist/bwm || exit 1
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee "$OUT/gpu.txt"
@@ -46,4 +58,26 @@ for s in $settings; do
   echo "realtime_5b: $decoder decoder, $steps steps: $chunk s per chunk ($parts)$against"
 done | tee "$OUT/realtime_5b.txt"
 grep -q "no chunk timed" "$OUT/realtime_5b.txt" && status=1
+gpu_mib=$(nvidia-smi --query-gpu=memory.total --format=csv,noheader,nounits | head -1)
+for k in $students; do
+  for weights in lora full; do
+    if [ $weights = full ] && [ "${gpu_mib:-0}" -lt 120000 ]; then
+      echo "realtime_5b: distillation, full weights, a student of $k step(s): not run, the GPU holds ${gpu_mib:-no} MiB (full fine-tuning alone needs about 98 GB)"
+      continue
+    fi
+    log=distill-$weights-s$k
+    sets=(--set 'run.device="cuda"' --set train.grad_accum=1 --set train.recompute=true)
+    [ $weights = lora ] && sets+=("${LORA64[@]}")
+    mem "$log" dist/bwm bench-train --config configs/bwm-wan22-ti2v-5b.toml "${sets[@]}" --steps "${STEPS:-5}" \
+      --distill "$k" --teacher-substeps $((teacher_steps / k)) --out "/tmp/bench-$log" > /dev/null
+    read -r median half n <<< "$(second_half_median s/step "$OUT/$log.log")"
+    peak=$(sed -n 's/^.*: peak GPU memory used \([0-9]*\) MiB.*/\1/p' "$OUT/$log.log" | tail -1)
+    if [ "$median" = none ] || [ "$n" -lt 2 ]; then
+      echo "realtime_5b: distillation, $weights weights, a student of $k step(s): no step timed ($OUT/$log.log)"
+      continue
+    fi
+    echo "realtime_5b: distillation, $([ $weights = lora ] && echo "LoRA rank 64" || echo "full weights"), a student of $k step(s) from the teacher's $teacher_steps: $median s per step (median of the last $half of $n), peak GPU memory ${peak:-unknown} MiB"
+  done
+done | tee -a "$OUT/realtime_5b.txt"
+grep -q "no step timed" "$OUT/realtime_5b.txt" && status=1
 exit $status

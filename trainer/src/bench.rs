@@ -1,17 +1,31 @@
 //! `bwm bench-train`: time the real training step (objective, recomputation, AdamW with fp32
 //! masters) of a run config on random weights and a synthetic one-clip latent cache of the
 //! config's clip size; prints step time, throughput, MFU and device memory, and with a breakdown
-//! where the step's time goes ([`breakdown`]).
+//! where the step's time goes ([`breakdown`]). With [`DistillBench`], the step of step
+//! distillation instead, against a frozen teacher of random weights.
 
 pub mod breakdown;
 
 use std::path::PathBuf;
 
-use anyhow::Result;
+use anyhow::{ensure, Context, Result};
 use bwm_data::latent_cache::{CacheIndex, CacheWriter, ClipEntry};
+use bwm_model::{BwmModel, ParamStore};
 use tch::{Device, Kind, Tensor};
 
+use crate::distill::Distillation;
 use crate::{Resume, RunConfig, Trainer};
+
+/// The step of step distillation (`[distill]`, [`crate::distill`]) timed instead of flow
+/// matching: a student of `student_steps` learning from a frozen teacher of the same model that
+/// takes `teacher_substeps` Euler steps per student step. The teacher has random weights of its
+/// own (the time and memory are those of any teacher; the weights file is not needed), and the
+/// actions are never dropped, as distillation requires.
+#[derive(Clone, Copy, Debug)]
+pub struct DistillBench {
+    pub student_steps: usize,
+    pub teacher_substeps: usize,
+}
 
 /// What [`run`] times: a run config (with `--set` overrides) at a clip size.
 #[derive(Clone, Debug)]
@@ -33,6 +47,8 @@ pub struct BenchTrainOptions {
     /// Scratch folder for the synthetic cache and the run's logs (a rank's own `rank-N` below it
     /// when `RANK` is set).
     pub out: PathBuf,
+    /// Time the step of step distillation instead of the flow-matching step.
+    pub distill: Option<DistillBench>,
 }
 
 /// Writes the synthetic cache under `out`, trains `steps` steps on it from random weights and
@@ -55,6 +71,10 @@ pub fn run(a: &BenchTrainOptions) -> Result<()> {
         "log.tensorboard=false".into(),
     ];
     overrides.extend(a.overrides.iter().cloned());
+    if let Some(d) = a.distill {
+        ensure!(d.student_steps >= 1 && d.teacher_substeps >= 1, "the distillation's student steps and teacher steps per student step must be at least 1");
+        overrides.push("objective.action_dropout=0.0".into());
+    }
     let cfg = RunConfig::load(&a.config, &overrides)?;
     // The synthetic actions have the config's action width, so any run config can be timed.
     let action_dim = cfg.model.action.action_dim;
@@ -71,6 +91,21 @@ pub fn run(a: &BenchTrainOptions) -> Result<()> {
         std::fs::remove_dir_all(&out)?;
     }
     let mut t = Trainer::new(cfg, Resume::No)?;
+    if let Some(d) = a.distill {
+        let (kind, device) = (t.model.store.kind(), t.device);
+        let teacher = bwm_model::vb::with_seed(t.cfg.run.seed as i64 + 1, || {
+            let store = ParamStore::random(kind, device);
+            BwmModel::build_converted(&store, &t.model.cfg, |_: &mut BwmModel| Ok(()))
+        })
+        .context("building the distillation's teacher (random weights)")?;
+        t.distill = Some(Distillation::with_teacher(teacher, d.student_steps, d.teacher_substeps, t.cfg.objective.shift, t.cfg.run.seed));
+        println!(
+            "bench-train: step distillation, a student of {} step(s) from a frozen teacher of random weights taking {} Euler steps ({} per student step); FLOP/s and MFU count the student's forward and backward only",
+            d.student_steps,
+            d.student_steps * d.teacher_substeps,
+            d.teacher_substeps
+        );
+    }
     let dit = &t.model.cfg.dit;
     let kernel = bwm_sdp::kernel_for_shape(dit.num_heads, dit.head_dim(), 1024, t.model.store.kind(), t.device)?;
     println!(

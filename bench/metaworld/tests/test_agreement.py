@@ -65,6 +65,10 @@ def test_a_setting_is_scored_against_the_reference_and_the_recorded_frames():
         write_rollout(os.path.join(d, "short"), [noisy(real[0], 4, 0)])
         p = subprocess.run([sys.executable, script, "--reference", os.path.join(d, "ref"), os.path.join(d, "short")], capture_output=True, text=True)
         assert p.returncode != 0 and "other episodes than the reference" in p.stderr, p.stderr
+        write_dataset(os.path.join(d, "real-short"), eps[:1])
+        p = subprocess.run([sys.executable, script, "--reference", os.path.join(d, "ref"), "--recorded", os.path.join(d, "real-short"),
+                            os.path.join(d, "cheap")], capture_output=True, text=True)
+        assert p.returncode != 0 and "real-short has no episode_000001.parquet" in p.stderr, p.stderr
         write_rollout(os.path.join(d, "video"), [noisy(v, 4, 0) for v in real], column="observation.images.other")
         p = subprocess.run([sys.executable, script, "--reference", os.path.join(d, "ref"), os.path.join(d, "video")], capture_output=True, text=True)
         assert p.returncode != 0 and "--frame-storage image" in p.stderr, p.stderr

@@ -10,7 +10,7 @@ use std::path::PathBuf;
 
 use anyhow::{ensure, Context, Result};
 use bwm_data::latent_cache::{CacheIndex, CacheWriter, ClipEntry};
-use bwm_model::{BwmModel, ParamStore};
+use bwm_model::BwmModel;
 use tch::{Device, Kind, Tensor};
 
 use crate::distill::Distillation;
@@ -92,12 +92,8 @@ pub fn run(a: &BenchTrainOptions) -> Result<()> {
     }
     let mut t = Trainer::new(cfg, Resume::No)?;
     if let Some(d) = a.distill {
-        let (kind, device) = (t.model.store.kind(), t.device);
-        let teacher = bwm_model::vb::with_seed(t.cfg.run.seed as i64 + 1, || {
-            let store = ParamStore::random(kind, device);
-            BwmModel::build_converted(&store, &t.model.cfg, |_: &mut BwmModel| Ok(()))
-        })
-        .context("building the distillation's teacher (random weights)")?;
+        let teacher = BwmModel::random(&t.model.cfg, t.model.store.kind(), t.device, t.cfg.run.seed as i64 + 1)
+            .context("building the distillation's teacher (random weights)")?;
         t.distill = Some(Distillation::with_teacher(teacher, d.student_steps, d.teacher_substeps, t.cfg.objective.shift, t.cfg.run.seed));
         println!(
             "bench-train: step distillation, a student of {} step(s) from a frozen teacher of random weights taking {} Euler steps ({} per student step); FLOP/s and MFU count the student's forward and backward only",

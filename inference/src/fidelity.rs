@@ -312,16 +312,20 @@ fn other_episode<'a>(episodes: &[usize], i: usize, task: impl Fn(usize) -> &'a s
     after.clone().find(|&p| task(p) == task(episodes[i])).unwrap_or_else(|| episodes[(i + 1) % n])
 }
 
-/// Each predictor's PSNR and SSIM per frame after x0, computed on `device` (the model's: on a CPU
-/// an episode's SSIM takes seconds, spent while the accelerator waits).
+/// An episode's frames after x0 as one video tensor on `device`, where its scores are computed
+/// (the model's: on a CPU an episode's SSIM takes about a second, spent while the accelerator waits).
+pub(crate) fn after_x0(frames: &[RgbImage], device: tch::Device) -> Result<Tensor> {
+    Ok(frames_to_tensor(&frames[1..])?.to_device(device))
+}
+
+/// Each predictor's PSNR and SSIM per frame after x0, computed on `device`.
 fn score(task: &str, truth: &[RgbImage], predicted: [&Vec<RgbImage>; 4], device: tch::Device) -> Result<Scored> {
-    let after_x0 = |frames: &[RgbImage]| -> Result<Tensor> { Ok(frames_to_tensor(&frames[1..])?.to_device(device)) };
     ensure!(truth.len() >= 2, "{} frames: none after x0 to score", truth.len());
-    let real = after_x0(truth)?;
+    let real = after_x0(truth, device)?;
     let mut out = Scored { task: task.to_string(), psnr: BTreeMap::new(), ssim: BTreeMap::new() };
     for (name, frames) in PREDICTORS.iter().zip(predicted) {
         ensure!(frames.len() == truth.len(), "{name}: {} frames for {} real ones", frames.len(), truth.len());
-        let pred = after_x0(frames)?;
+        let pred = after_x0(frames, device)?;
         out.psnr.insert(name, psnr_frames(&pred, &real)?);
         out.ssim.insert(name, ssim_frames(&pred, &real)?);
     }

@@ -17,6 +17,7 @@ use image::RgbImage;
 use serde::Deserialize;
 use tch::Tensor;
 
+use crate::fidelity::after_x0;
 use crate::lanes::Lanes;
 use crate::world_model::{EpisodeFlags, EpisodeReading, WorldModel, WorldModelOptions};
 
@@ -331,15 +332,13 @@ fn read_csv(path: &Path) -> Result<Vec<Vec<f32>>> {
 }
 
 /// Mean PSNR and SSIM of the generated frames after x0 against the real ones, computed on `device`
-/// (the model's: on a CPU the SSIM of a 120-frame episode at 128x128 takes about a second, which
-/// a batch of episodes in flight would spend one after the other).
+/// (a batch of episodes in flight would otherwise spend their CPU scoring one after the other).
 fn compare(generated: &[RgbImage], truth: &[RgbImage], device: tch::Device) -> Result<(f64, f64)> {
     ensure!(generated.len() == truth.len(), "{} generated frames, {} real", generated.len(), truth.len());
     if generated.len() < 2 {
         return Ok((f64::NAN, f64::NAN));
     }
-    let g = frames_to_tensor(&generated[1..])?.to_device(device);
-    let t = frames_to_tensor(&truth[1..])?.to_device(device);
+    let (g, t) = (after_x0(generated, device)?, after_x0(truth, device)?);
     Ok((psnr(&g, &t), ssim(&g, &t)))
 }
 

@@ -193,6 +193,15 @@ mkdir -p "$RUN"
 wants() { [[ " ${STAGES[*]} " == *" $1 "* ]]; }
 # A stage's commands run in a `||` context, where `set -e` does not stop them: a stage function
 # must return its first failure itself (`|| return 1`).
+stop_tree() { # $@ = pids: each stopped with every process it started (a stage's background
+  local p       # subshells run `bwm` and python as children, which outlive a subshell killed alone)
+  for p in "$@"; do
+    stop_tree $(pgrep -P "$p" 2>/dev/null)
+    kill "$p" 2>/dev/null
+  done
+  return 0
+}
+
 timed() { # $1 = stage name; the rest runs, its wall time appended to $TIMINGS (as NAME-failed when it fails)
   local name=$1 t0 status=0; shift
   t0=$(date +%s.%N)
@@ -559,7 +568,7 @@ if wants realtime; then
     timed "student-$k" "${student[@]}" --set "run.device=\"$DEVICE\"" --resume auto > "$RT/student-$k.log" 2>&1 & training+=($!)
   done
   # Should the stage stop before it waits for them, they stop with it.
-  trap '[ ${#training[@]} = 0 ] || kill "${training[@]}" 2>/dev/null' EXIT
+  trap 'stop_tree "${training[@]}"' EXIT
   realtime_wm() { # $1 = a setting: its world-model flags into WM
     local kind=${1%%-*} steps weights
     steps=${kind:1}
@@ -612,7 +621,7 @@ if wants realtime; then
     { roll "${later[@]}" &&
         timed agreement "$PYTHON" bench/metaworld/agreement.py --reference "$RT/roll/$reference" --recorded "$RUN/data/val" --horizon 32 \
           --json "$RT/agreement.json" "${settings[@]/#/$RT/roll/}"; } & open_loop=$!
-    trap 'kill "$open_loop" 2>/dev/null' EXIT
+    trap 'stop_tree "$open_loop"' EXIT
     study_of "${later_studies[@]}" || status=1
     wait "$open_loop" || { echo "recipe: a rollout or agreement.py failed (above)" >&2; status=1; }
     trap - EXIT

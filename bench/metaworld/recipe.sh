@@ -191,8 +191,6 @@ done
 [ -x "$BWM" ] || { echo "recipe: no bwm binary at $BWM (make build, or set BWM)" >&2; exit 1; }
 mkdir -p "$RUN"
 wants() { [[ " ${STAGES[*]} " == *" $1 "* ]]; }
-# A stage's commands run in a `||` context, where `set -e` does not stop them: a stage function
-# must return its first failure itself (`|| return 1`).
 stop_tree() { # $@ = pids: each stopped with every process it started (a stage's background
   local p       # subshells run `bwm` and python as children, which outlive a subshell killed alone)
   for p in "$@"; do
@@ -202,6 +200,8 @@ stop_tree() { # $@ = pids: each stopped with every process it started (a stage's
   return 0
 }
 
+# A stage's commands run in a `||` context, where `set -e` does not stop them: a stage function
+# must return its first failure itself (`|| return 1`).
 timed() { # $1 = stage name; the rest runs, its wall time appended to $TIMINGS (as NAME-failed when it fails)
   local name=$1 t0 status=0; shift
   t0=$(date +%s.%N)

@@ -4,6 +4,7 @@ use std::path::PathBuf;
 
 use anyhow::Result;
 use bwm_trainer::bench::{BenchTrainOptions, DistillBench};
+use bwm_trainer::config::DEFAULT_TEACHER_SUBSTEPS;
 use clap::Args;
 
 #[derive(Args)]
@@ -39,7 +40,7 @@ pub struct BenchTrainArgs {
     #[arg(long, value_name = "STUDENT_STEPS")]
     distill: Option<usize>,
     /// With --distill: the teacher's Euler steps per student step ([distill] teacher_substeps).
-    #[arg(long, default_value_t = 8, requires = "distill")]
+    #[arg(long, default_value_t = DEFAULT_TEACHER_SUBSTEPS, requires = "distill")]
     teacher_substeps: usize,
 }
 

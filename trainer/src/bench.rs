@@ -8,11 +8,12 @@ pub mod breakdown;
 
 use std::path::PathBuf;
 
-use anyhow::{ensure, Context, Result};
+use anyhow::{Context, Result};
 use bwm_data::latent_cache::{CacheIndex, CacheWriter, ClipEntry};
 use bwm_model::BwmModel;
 use tch::{Device, Kind, Tensor};
 
+use crate::config::DistillSection;
 use crate::distill::Distillation;
 use crate::{Resume, RunConfig, Trainer};
 
@@ -72,7 +73,7 @@ pub fn run(a: &BenchTrainOptions) -> Result<()> {
     ];
     overrides.extend(a.overrides.iter().cloned());
     if let Some(d) = a.distill {
-        ensure!(d.student_steps >= 1 && d.teacher_substeps >= 1, "the distillation's student steps and teacher steps per student step must be at least 1");
+        DistillSection::check_steps(d.student_steps, d.teacher_substeps)?;
         overrides.push("objective.action_dropout=0.0".into());
     }
     let cfg = RunConfig::load(&a.config, &overrides)?;

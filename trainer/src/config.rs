@@ -46,8 +46,19 @@ pub struct DistillSection {
     pub teacher_substeps: usize,
 }
 
+/// `[distill] teacher_substeps` where it is not given.
+pub const DEFAULT_TEACHER_SUBSTEPS: usize = 8;
+
 fn default_teacher_substeps() -> usize {
-    8
+    DEFAULT_TEACHER_SUBSTEPS
+}
+
+impl DistillSection {
+    /// Refuses a student of no steps or a teacher of no steps per student step.
+    pub fn check_steps(student_steps: usize, teacher_substeps: usize) -> Result<()> {
+        ensure!(student_steps >= 1 && teacher_substeps >= 1, "distill.student_steps and distill.teacher_substeps must be at least 1");
+        Ok(())
+    }
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
@@ -351,7 +362,7 @@ impl RunConfig {
         self.objective.validate()?;
         bwm_model::sampler::validate_guidance(self.validation.guidance).context("validation.guidance")?;
         if let Some(d) = &self.distill {
-            ensure!(d.student_steps >= 1 && d.teacher_substeps >= 1, "distill.student_steps and distill.teacher_substeps must be at least 1");
+            DistillSection::check_steps(d.student_steps, d.teacher_substeps)?;
             ensure!(
                 self.objective.action_dropout == 0.0,
                 "distill with objective.action_dropout = {}: the teacher's steps are conditioned on the actions, so a student without them would learn another target; set it to 0",

@@ -86,8 +86,12 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
             // The DiT trained with action dropout, its own history noise and grid shift and an
             // average of its weights, every world-model stage guided by the actions and rolling
             // out that average; the data's behaviours in a mix of its own (the learned pool among
-            // them), and its expert looking at the object only every 8-40 frames.
-            .env("TRAIN_SETS", format!("{TOY_DIT} objective.action_dropout=0.5 objective.history_sigma=0.1 objective.shift=3.0"))
+            // them), and its expert looking at the object only every 8-40 frames. The DiT draws the
+            // commanded hand into its token grid (the hand map).
+            .env(
+                "TRAIN_SETS",
+                format!("{TOY_DIT} objective.action_dropout=0.5 objective.history_sigma=0.1 objective.shift=3.0 model.action.hand_map={{hands=[[0,1,2]]}}"),
+            )
             .env("EMA_DECAY", "0.5")
             .env("GUIDANCE", "1.5")
             .env("MIX", TOY_MIX)
@@ -163,6 +167,7 @@ fn the_metaworld_recipe_runs_every_stage_on_cpu() {
     assert_eq!(fidelity["shift"], 3.0, "sampling follows the trained grid shift: {fidelity}");
     let config = std::fs::read_to_string(runs.join("config.toml")).unwrap();
     assert!(config.contains("action_dropout = 0.5"), "{config}");
+    assert!(config.contains("[model.action.hand_map]") && config.contains("periods = 6"), "{config}");
 
     // The recipe's judge learns from the simulator's frames and from the VAE's round trips of
     // training frames; it is scored on real held-out frames.

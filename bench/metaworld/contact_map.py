@@ -1,6 +1,7 @@
 """Where a world model's contact reaches: its episodes counted by where the hand was.
 
-    python contact_map.py runs/X/study/study.json [sbs-wrong/side_by_side.json ...] [--band-cm 2] [--json OUT]
+    python contact_map.py runs/X/study/study.json [sbs-wrong/side_by_side.json ...] [--band-cm 2] [--families F,G]
+        [--beyond-cm 6] [--json OUT]
 
 Each argument is a study.json (study.py; every rate's world-model episodes, their actions replayed
 in the simulator), a side_by_side.json (side_by_side.py; one task and variant) or a teacher.json
@@ -11,7 +12,11 @@ axis it lies along in the table plane (`axis`: in front of the object, -y; behin
 beside it, x) and its horizontal distance, in bands of --band-cm. Per task, axis and band: the
 episodes, the simulator's successes and the world model's. Where the simulator's successes stop
 and the world model's go on, the world model draws contact the simulator does not make (and the
-other way round). Printed as a table; --json writes it.
+other way round). Printed as a table; --json writes it. --families keeps those policy families'
+variants alone (study.py's names, as trainings.py). Last, over every task and axis, the episodes
+whose hand stayed --beyond-cm or more from the object (default 6, past where the simulator's
+contact ends): those the world model draws succeeding that the simulator does not (invented
+contact), and within it those the simulator succeeds with that the world model does not (missed).
 """
 
 from __future__ import annotations
@@ -20,7 +25,12 @@ import argparse
 import json
 import os
 
+import sys
+
 import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from trainings import family  # noqa: E402
 
 
 def axis(offset) -> str:
@@ -115,25 +125,54 @@ def contact_map(reports: list[tuple[str, str, list[dict]]], band_cm: float) -> d
     return tasks
 
 
+def contact_outside(reports: list[tuple[str, str, list[dict]]], beyond_cm: float) -> dict:
+    """Over every episode of `reports`: those whose hand came no closer than `beyond_cm` to the
+    object, and how many of them the world model drew succeeding where the simulator did not
+    (`invented`); those closer, and how many the simulator succeeded with and the world model did
+    not (`missed`)."""
+    far = near = invented = missed = 0
+    for _, _, episodes in reports:
+        for e in episodes:
+            simulator, world_model = e["simulator_first_success"] is not None, bool(e["world_model_success"])
+            if float(np.hypot(*np.asarray(e["offset_at_closest_cm"][:2], float))) >= beyond_cm:
+                far += 1
+                invented += world_model and not simulator
+            else:
+                near += 1
+                missed += simulator and not world_model
+    return {"beyond_cm": beyond_cm, "beyond": {"episodes": far, "invented": invented}, "within": {"episodes": near, "missed": missed}}
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("reports", nargs="+", help="study.json or side_by_side.json files")
     ap.add_argument("--band-cm", type=float, default=2.0, help="width of the distance bands (cm)")
+    ap.add_argument("--families", help="only the variants of these policy families, comma-separated (study.py's names: "
+                                       "degraded, scripted, partial, learned, wander)")
+    ap.add_argument("--beyond-cm", type=float, default=6.0, help="where the summary's far episodes start (cm)")
     ap.add_argument("--json", help="also write the map here")
     a = ap.parse_args(argv)
+    families = a.families.split(",") if a.families else None
     try:
-        m = contact_map([r for p in a.reports for r in load(p)], a.band_cm)
+        reports = [r for p in a.reports for r in load(p) if families is None or family(r[1]) in families]
+        if not reports:
+            raise ValueError(f"no variant of the families {a.families} in the reports")
+        m = contact_map(reports, a.band_cm)
     except ValueError as e:
         ap.error(str(e))
+    outside = contact_outside(reports, a.beyond_cm)
     for task, t in m.items():
         print(f"{task} ({', '.join(t['variants'])}): episodes, simulator successes, world-model successes by where the hand came closest")
         for axis in AXES:
             for band, c in t["by_axis"][axis].items():
                 print(f"  {axis:>2} {band:>7} cm: {c['episodes']:4d} episodes, simulator {c['simulator']:4d}, world model {c['world_model']:4d}")
+    b, w = outside["beyond"], outside["within"]
+    print(f"hand {a.beyond_cm:g} cm or more from the object: {b['invented']} of {b['episodes']} episodes drawn succeeding "
+          f"where the simulator does not; closer: {w['missed']} of {w['episodes']} succeeding in the simulator, not drawn")
     if a.json:
         tmp = a.json + ".tmp"
         with open(tmp, "w") as f:
-            json.dump({"band_cm": a.band_cm, "tasks": m}, f, indent=1)
+            json.dump({"band_cm": a.band_cm, "families": families, "tasks": m, "outside": outside}, f, indent=1)
         os.replace(tmp, a.json)
 
 

@@ -3,7 +3,7 @@
 use std::path::Path;
 use std::rc::Rc;
 
-use anyhow::{ensure, Result};
+use anyhow::Result;
 use tch::{Device, Kind, Tensor};
 
 use crate::action::{ActionEmbedding, ActionEncoder};
@@ -85,14 +85,7 @@ impl BwmModel {
     /// The action embedding of `actions` for `latents`, checked to cover its latent frames, with
     /// the null condition where `keep` is 0.
     pub fn embed_actions(&self, latents: &Tensor, actions: &Tensor, keep: Option<&Tensor>) -> Result<ActionEmbedding> {
-        let emb = self.action_encoder.forward(actions)?;
-        let action_frames = emb.frame.size()[1];
-        let (latent_frames, _, _) = self.dit.token_grid(latents)?;
-        ensure!(
-            action_frames == latent_frames,
-            "actions for {} pixel frames cover {action_frames} latent frames, but the latents have {latent_frames}",
-            actions.size()[1]
-        );
+        let emb = self.action_encoder.forward(actions, self.dit.token_grid(latents)?)?;
         match keep {
             Some(k) => emb.keep(k),
             None => Ok(emb),
@@ -122,7 +115,10 @@ impl BwmModel {
         let emb = self.embed_actions(latents, actions, keep)?;
         trace("action_context", &emb.context);
         trace("action_mod", &emb.frame);
-        self.dit.forward_traced(latents, frame_timesteps, Some(&emb.frame), &emb.context, trace)
+        if let Some(tokens) = &emb.tokens {
+            trace("action_tokens", tokens);
+        }
+        self.dit.forward_traced(latents, frame_timesteps, &emb.dit_inputs(), trace)
     }
 }
 

@@ -142,6 +142,10 @@ pub struct ActionConfig {
     pub prepend: i64,
     /// G: actions per latent frame (the VAE's temporal stride).
     pub group: i64,
+    /// The commanded hands drawn into the DiT's token grid (docs/training.md, "The hand map"); none
+    /// in the BWM release.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub hand_map: Option<HandMapConfig>,
     /// Removed: Fourier features of the actions (`removed::FOURIER_BANDS`).
     #[serde(skip_serializing, deserialize_with = "removed::fourier_bands")]
     #[schemars(skip)]
@@ -228,7 +232,37 @@ pub mod removed {
 
 impl Default for ActionConfig {
     fn default() -> Self {
-        Self { action_dim: 14, prepend: 3, group: 4, fourier_bands: Removed, temporal_rope: Removed }
+        Self { action_dim: 14, prepend: 3, group: 4, hand_map: None, fourier_bands: Removed, temporal_rope: Removed }
+    }
+}
+
+/// Where the hands are in the action vector, for the hand map (`crate::hand_map`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct HandMapConfig {
+    /// Per hand, the indices of its commanded x, y and z in the action vector (`[[0, 1, 2]]` for
+    /// one arm whose actions start with its end effector's position).
+    pub hands: Vec<[i64; 3]>,
+    /// How many periods the offsets from each token are written at: 1/2, 1, 2, ... tokens.
+    #[serde(default = "HandMapConfig::default_periods")]
+    pub periods: i64,
+}
+
+impl HandMapConfig {
+    fn default_periods() -> i64 {
+        6
+    }
+
+    pub fn validate(&self, action_dim: i64) -> Result<()> {
+        ensure!(!self.hands.is_empty(), "action.hand_map.hands names no hand (give each hand's x, y, z indices, e.g. [[0, 1, 2]])");
+        for hand in &self.hands {
+            ensure!(
+                hand.iter().all(|&i| (0..action_dim).contains(&i)),
+                "action.hand_map.hands: {hand:?} is not three indices of the {action_dim}-entry action vector"
+            );
+        }
+        ensure!((1..=16).contains(&self.periods), "action.hand_map.periods must be in 1..=16, got {}", self.periods);
+        Ok(())
     }
 }
 
@@ -241,6 +275,9 @@ impl ActionConfig {
             "action.prepend must be in 0..group, got {}",
             self.prepend
         );
+        if let Some(map) = &self.hand_map {
+            map.validate(self.action_dim)?;
+        }
         Ok(())
     }
 

@@ -103,6 +103,10 @@ impl Linears for ActionEncoder {
     fn linears_mut(&mut self) -> Vec<&mut Linear> {
         let mut out = self.action_mlp1.linears_mut();
         out.extend(self.action_mlp2.linears_mut());
+        if let Some(map) = &mut self.hand_map {
+            out.extend(map.project.iter_mut());
+            out.extend(map.mlp.linears_mut());
+        }
         out
     }
 }

@@ -151,6 +151,16 @@ impl Head {
     }
 }
 
+/// What conditions the DiT besides the latents and their timesteps.
+pub struct DitInputs<'a> {
+    /// [B, F, D], added to each latent frame's time embedding (BWM's actions).
+    pub frame: Option<&'a Tensor>,
+    /// [B, L, D], added to each token after the patch embedding (BWM's hand map).
+    pub tokens: Option<&'a Tensor>,
+    /// [B, Lc, D]: the cross-attention context.
+    pub context: &'a Tensor,
+}
+
 /// Everything the blocks need besides the token stream.
 pub struct Conditioning {
     /// Time embedding per latent frame [B, F, D] (fp32), after any per-frame additions.
@@ -284,15 +294,9 @@ impl WanDit {
     }
 
     /// Builds the token stream and conditioning. `frame_timesteps` [B, F] (one per token frame,
-    /// 0..1000 scale); `frame_embedding` [B, F, D] is added to the time embedding (BWM actions);
-    /// `context` [B, Lc, D] is the cross-attention context.
-    pub fn prepare(
-        &self,
-        latents: &Tensor,
-        frame_timesteps: &Tensor,
-        frame_embedding: Option<&Tensor>,
-        context: &Tensor,
-    ) -> Result<(Tensor, Conditioning)> {
+    /// 0..1000 scale); `inputs` the per-frame and per-token additions and the context.
+    pub fn prepare(&self, latents: &Tensor, frame_timesteps: &Tensor, inputs: &DitInputs) -> Result<(Tensor, Conditioning)> {
+        let DitInputs { frame: frame_embedding, tokens, context } = *inputs;
         let grid = self.token_grid(latents)?;
         let b = latents.size()[0];
         ensure!(
@@ -308,7 +312,12 @@ impl WanDit {
             self.cfg.dim,
             cs
         );
-        let x = self.patchify(latents)?;
+        let mut x = self.patchify(latents)?;
+        if let Some(add) = tokens {
+            let l = grid.0 * grid.1 * grid.2;
+            ensure!(add.size() == [b, l, self.cfg.dim], "per-token embedding must be [{b}, {l}, {}], got {:?}", self.cfg.dim, add.size());
+            x = x + add.to_kind(self.residual);
+        }
         let mut e = self.time_embedding.l2.forward_f32(&self.time_embedding.l0.forward_f32(&self.sinusoid(frame_timesteps)).silu());
         if let Some(add) = frame_embedding {
             ensure!(
@@ -337,11 +346,10 @@ impl WanDit {
         &self,
         latents: &Tensor,
         frame_timesteps: &Tensor,
-        frame_embedding: Option<&Tensor>,
-        context: &Tensor,
+        inputs: &DitInputs,
         trace: &mut dyn FnMut(&str, &Tensor),
     ) -> Result<Tensor> {
-        let (mut x, cond) = self.prepare(latents, frame_timesteps, frame_embedding, context)?;
+        let (mut x, cond) = self.prepare(latents, frame_timesteps, inputs)?;
         trace("t_emb", &cond.e);
         trace("t_mod", &cond.e0);
         trace("tokens_in", &x);

@@ -8,6 +8,7 @@ pub mod convert;
 pub mod device;
 pub mod dit;
 pub mod fp8;
+pub mod hand_map;
 pub mod keyed_rng;
 pub mod light_decoder;
 pub mod lora;

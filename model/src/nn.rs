@@ -42,6 +42,14 @@ impl Linear {
         Ok(Self { weight, bias, vb: vb.clone(), replaced: None })
     }
 
+    /// As `new`, the weight and bias zero where they are drawn rather than read: a layer whose
+    /// output starts at nothing (the last layer of a module added to a model).
+    pub fn zeros(vb: &Vb, in_dim: i64, out_dim: i64) -> Result<Self, WeightsError> {
+        let weight = vb.get(&[out_dim, in_dim], "weight", Init::Zeros)?;
+        let bias = vb.get(&[out_dim], "bias", Init::Zeros)?;
+        Ok(Self { weight, bias, vb: vb.clone(), replaced: None })
+    }
+
     /// In the parameters' dtype; `x` is cast to it.
     pub fn forward(&self, x: &Tensor) -> Tensor {
         let x = x.to_kind(self.weight.kind());

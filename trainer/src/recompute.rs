@@ -123,7 +123,7 @@ pub fn forward_backward(
     };
 
     let emb = model.embed_actions(latents, actions, action_keep)?;
-    let (tokens, cond) = model.dit.prepare(latents, frame_timesteps, Some(&emb.frame), &emb.context)?;
+    let (tokens, cond) = model.dit.prepare(latents, frame_timesteps, &emb.dit_inputs())?;
     let Conditioning { e, e0, context, rope, grid } = cond;
     let leaf = |t: &Tensor| t.detach().set_requires_grad(true);
     let cut = Conditioning { e: leaf(&e), e0: leaf(&e0), context: leaf(&context), rope, grid };

@@ -35,6 +35,36 @@ def test_episodes_are_counted_by_axis_and_distance():
     assert wide == {"5-10": {"episodes": 3, "simulator": 0, "world_model": 2}}, wide
 
 
+def test_contact_outside_counts_far_inventions_and_near_misses():
+    drawer = ("drawer", "blind", [episode(6.0, 0.0, True, False), episode(8.0, -3.0, True, True), episode(0.0, -9.0, False, False),
+                                  episode(3.0, 4.0, False, True), episode(1.0, 1.0, True, True), episode(5.9, 0.0, True, False)])
+    button = ("button", "noisy", [episode(0.0, 0.5, False, True), episode(0.0, 12.0, True, False)])
+    out = contact_map.contact_outside([drawer, button], 6.0)
+    # 6 cm on the line counts as far; 5.9 cm and the 5 cm of (3, 4) as near.
+    assert out == {"beyond_cm": 6.0, "beyond": {"episodes": 4, "invented": 2}, "within": {"episodes": 4, "missed": 2}}, out
+    assert contact_map.contact_outside([drawer], 5.0)["beyond"] == {"episodes": 5, "invented": 2}
+
+
+def test_the_command_line_keeps_the_families_asked_for():
+    with tempfile.TemporaryDirectory() as d:
+        study = os.path.join(d, "study.json")
+        with open(study, "w") as f:
+            json.dump({"rates": [{"task": "drawer-open-v3", "variant": "blind", "replayed_episodes": [[0, True, None, 8.6, [8.5, 1.0, 0.2]]]},
+                                 {"task": "drawer-open-v3", "variant": "bc-nn-1", "replayed_episodes": [[0, True, None, 9.0, [9.0, 0.0, 0.2]],
+                                                                                                       [1, True, None, 7.0, [7.0, 0.0, 0.2]]]}]}, f)
+        out = os.path.join(d, "map.json")
+        p = subprocess.run([sys.executable, os.path.join(HERE, "..", "contact_map.py"), study, "--families", "degraded,scripted", "--json", out],
+                           capture_output=True, text=True)
+        assert p.returncode == 0, p.stderr
+        assert "hand 6 cm or more from the object: 1 of 1 episodes drawn succeeding where the simulator does not" in p.stdout, p.stdout
+        with open(out) as f:
+            m = json.load(f)
+        assert m["tasks"]["drawer-open-v3"]["variants"] == ["blind"] and m["families"] == ["degraded", "scripted"], m
+        assert m["outside"]["beyond"] == {"episodes": 1, "invented": 1}, m
+        p = subprocess.run([sys.executable, os.path.join(HERE, "..", "contact_map.py"), study, "--families", "wander"], capture_output=True, text=True)
+        assert p.returncode == 2 and "no variant of the families wander" in p.stderr, p.stderr
+
+
 def test_the_command_line_reads_reports_and_refuses_bad_ones():
     with tempfile.TemporaryDirectory() as d:
         good = os.path.join(d, "good.json")

@@ -76,8 +76,9 @@ pub fn breakdown(t: &Trainer, step_seconds: f64, collective_seconds: f64) -> Res
     let prepared =
         t.objective.prepare(&repeat(&clip.latents), &repeat(&draw.noise), &repeat(&draw.history_noise), &vec![draw.timestep_index; batch as usize])?;
     let (x, cond) = tch::no_grad(|| -> Result<_> {
-        let emb = t.model.action_encoder.forward(&repeat(&clip.actions))?;
-        t.model.dit.prepare(&prepared.input.to_kind(kind), &prepared.frame_timesteps, Some(&emb.frame), &emb.context)
+        let input = prepared.input.to_kind(kind);
+        let emb = t.model.embed_actions(&input, &repeat(&clip.actions), None)?;
+        t.model.dit.prepare(&input, &prepared.frame_timesteps, &emb.dit_inputs())
     })?;
     let block = t.model.dit.blocks.first().context("the model has no DiT block")?;
     let rows = x.size()[1];

@@ -107,14 +107,25 @@ fn batch_two_equals_batch_one_with_accumulation_two() {
 /// (`BlockGradSink::block_grads`) and the rest through `.grad`. With accumulation the first
 /// micro-step's hand-off replaces what the accumulator held from the step before and the second
 /// adds to it, so a step that summed a stale gradient, or lost one, would move the weights apart.
+/// Also with the hand map, whose term enters the blocks through the token stream.
 #[test]
 fn training_with_and_without_recomputation_updates_alike() {
     let dir = tmp_dir("routes");
     let cache = write_cache(&dir.join("cache"), 4, 5);
-    for accum in [1, 2] {
-        let run = |recompute: bool| trained(&cache, &dir.join(format!("recompute-{recompute}-{accum}")), &format!("[train]\nsteps = 3\ngrad_accum = {accum}\nrecompute = {recompute}"));
+    for (accum, map) in [(1, false), (2, false), (2, true)] {
+        let extra = |recompute: bool| {
+            let hands = if map { "\n[model]\naction = { hand_map = { hands = [[0, 1, 2]] } }" } else { "" };
+            format!("[train]\nsteps = 3\ngrad_accum = {accum}\nrecompute = {recompute}{hands}")
+        };
+        let run = |recompute: bool| trained(&cache, &dir.join(format!("recompute-{recompute}-{accum}-{map}")), &extra(recompute));
         let (plain, recomputed) = (run(false), run(true));
-        assert_same(&weights(&plain), &weights(&recomputed), 1e-5, &format!("accumulation {accum}: without against with recomputation"));
+        let (plain_weights, recomputed_weights) = (weights(&plain), weights(&recomputed));
+        assert_same(&plain_weights, &recomputed_weights, 1e-5, &format!("accumulation {accum}, hand map {map}: without against with recomputation"));
+        let trained_map = plain_weights.iter().find(|(n, _)| n == "action_encoder.hand_map.mlp.2.weight");
+        assert_eq!(trained_map.is_some(), map);
+        if let Some((_, w)) = trained_map {
+            assert!(w.abs().max().double_value(&[]) > 0.0, "the map's output layer left zero: no gradient reached it");
+        }
         for (a, b) in plain.history.iter().zip(&recomputed.history) {
             let (a, b) = (a.grad_norm.unwrap(), b.grad_norm.unwrap());
             assert!((a - b).abs() <= 1e-5 * b, "accumulation {accum}: gradient norms {a} and {b}");

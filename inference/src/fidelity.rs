@@ -11,14 +11,14 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{ensure, Context, Result};
-use bwm_data::frames::{fit, frame_strip, frames_to_tensor};
+use bwm_data::frames::{fit, frame_strip};
 use bwm_data::open_dataset;
 use bwm_metrics::image::{psnr_frames, ssim_frames};
 use image::RgbImage;
 use serde_json::{json, Value};
 use tch::Tensor;
 
-use crate::rollout::generate_frames_together;
+use crate::rollout::{after_x0, generate_frames_together};
 use crate::world_model::{EpisodeFlags, WorldModelOptions};
 
 /// What `run` scores and where it writes the report (the flags of `bwm fidelity`).
@@ -310,12 +310,6 @@ fn other_episode<'a>(episodes: &[usize], i: usize, task: impl Fn(usize) -> &'a s
     let n = episodes.len();
     let after = (1..n).map(|d| episodes[(i + d) % n]);
     after.clone().find(|&p| task(p) == task(episodes[i])).unwrap_or_else(|| episodes[(i + 1) % n])
-}
-
-/// An episode's frames after x0 as one video tensor on `device`, where its scores are computed
-/// (the model's: on a CPU an episode's SSIM takes about a second, spent while the accelerator waits).
-pub(crate) fn after_x0(frames: &[RgbImage], device: tch::Device) -> Result<Tensor> {
-    Ok(frames_to_tensor(&frames[1..])?.to_device(device))
 }
 
 /// Each predictor's PSNR and SSIM per frame after x0, computed on `device`.

@@ -17,7 +17,6 @@ use image::RgbImage;
 use serde::Deserialize;
 use tch::Tensor;
 
-use crate::fidelity::after_x0;
 use crate::lanes::Lanes;
 use crate::world_model::{EpisodeFlags, EpisodeReading, WorldModel, WorldModelOptions};
 
@@ -348,4 +347,10 @@ pub fn side_by_side(left: &RgbImage, right: &RgbImage) -> RgbImage {
     image::imageops::replace(&mut out, left, 0, 0);
     image::imageops::replace(&mut out, right, i64::from(w), 0);
     out
+}
+
+/// An episode's frames after x0 as one video tensor on `device`, where its scores are computed
+/// (the model's: on a CPU an episode's SSIM takes about a second, spent while the accelerator waits).
+pub(crate) fn after_x0(frames: &[RgbImage], device: tch::Device) -> Result<Tensor> {
+    Ok(frames_to_tensor(&frames[1..])?.to_device(device))
 }

@@ -71,18 +71,20 @@ impl HandMap {
         let b = s[0];
         let device = grouped.device();
         let actions = grouped.to_kind(Kind::Float);
-        // Token centres, -1..1 across the grid: [h, w, 2] as (x, y).
+        // Token centres, -1..1 across the grid, as [1, 1, 1, h, w] (x) and (y). Made on the device
+        // (no copy from the host, which a recorded CUDA graph could not hold).
         let centre = |n: i64| (Tensor::arange(n, (Kind::Float, device)) * 2.0 + 1.0) / n as f64 - 1.0;
-        let (cx, cy) = (centre(w).view([1, w]).expand([h, w], false), centre(h).view([h, 1]).expand([h, w], false));
-        let half = Tensor::from_slice(&[w as f32 / 2.0, h as f32 / 2.0]).to_device(device);
+        let (cx, cy) = (centre(w).view([1, 1, 1, 1, w]), centre(h).view([1, 1, 1, h, 1]));
         let periods: Vec<f64> = (0..self.cfg.periods).map(|k| 0.5 * 2f64.powi(k as i32)).collect();
-        let mut parts = Vec::with_capacity(self.project.len() * 2 + 1);
+        let mut parts = Vec::with_capacity(self.project.len() + 1);
         for (hand, project) in self.cfg.hands.iter().zip(&self.project) {
-            let index = Tensor::from_slice(hand).to_device(device);
+            let position = Tensor::stack(&hand.map(|i| actions.select(3, i)), -1);
             // [B, f, G, 2]: where the hand is commanded, on the image plane.
-            let at = project.forward_f32(&actions.index_select(3, &index));
+            let at = project.forward_f32(&position).view([b, f, self.group, 1, 1, 2]);
             // Offsets in tokens, [B, f, G, h, w, 2].
-            let offset = (at.view([b, f, self.group, 1, 1, 2]) - Tensor::stack(&[&cx, &cy], 2).view([1, 1, 1, h, w, 2])) * &half;
+            let size = [b, f, self.group, h, w];
+            let (ox, oy) = ((at.select(5, 0) - &cx) * (w as f64 / 2.0), (at.select(5, 1) - &cy) * (h as f64 / 2.0));
+            let offset = Tensor::stack(&[ox.expand(size, false), oy.expand(size, false)], -1);
             let gauss = (offset.square().sum_dim_intlist(-1, true, Kind::Float) * -0.5).exp();
             let mut waves = Vec::with_capacity(2 * periods.len());
             for p in &periods {

@@ -4,7 +4,7 @@
 # real-time issue's 5B chunk, every setting and the reference in one run. One rollout chunk of the
 # 5B world model at random weights (640x480, x0 + 8 history frames, 72 generated frames, bf16, the
 # residual stream in bf16; CHUNKS chunks, default 3, the first with start-up costs) per word of
-# SETTINGS, DECODER:STEPS (default "light:1 light:2 light:4 full:4 full:50": the light decoder of
+# SETTINGS, DECODER:STEPS (default "light:1 light:2 light:4 full:4 full:50"; empty: none; the light decoder of
 # random weights, `--random-light-decoder`, or the VAE's decoder; Euler steps), through
 # scripts/gpu/rollout.sh; then the DiffSynth reference's 50-step chunk (tests/reference/run_gpu.sh
 # rollout; REFERENCE=0 leaves it out) and each setting's last chunk against it, with its generated
@@ -12,13 +12,14 @@
 # step count of DISTILL (default "1 2"; empty leaves it out) from the TEACHER_STEPS-step path
 # (default 4): `bwm bench-train --distill K` (a frozen teacher of random weights, 1+8+72 frames at
 # 640x480, batch 1, every block recomputed, STEPS steps, default 5, the median of those after the
-# first) with the LoRA guide's rank-64 adapters, and with full weights where the GPU holds 120 GB or
-# more (full fine-tuning alone needs about 98 GB): its time and peak memory, also in
+# first) for each word of WEIGHTS (default "lora full"): with the LoRA guide's rank-64 adapters, and
+# with full weights where the GPU holds 120 GB or more (full fine-tuning alone needs about 98 GB):
+# its time and peak memory, also in
 # realtime_5b.txt. Logs: $OUT/roll-DECODER-sSTEPS.log, reference-rollout.log,
 # distill-{lora,full}-sK.log.
 set -uo pipefail
 source "$(dirname "${BASH_SOURCE[0]}")/common.sh"
-settings=${SETTINGS:-light:1 light:2 light:4 full:4 full:50}
+settings=${SETTINGS-light:1 light:2 light:4 full:4 full:50}
 for s in $settings; do
   case "${s%%:*}" in light | full) ;; *) echo "realtime_5b: '$s': the decoder is light or full" >&2; exit 2 ;; esac
   [[ ${s#*:} =~ ^[1-9][0-9]*$ ]] || { echo "realtime_5b: '$s': the steps are a positive whole number" >&2; exit 2; }
@@ -27,6 +28,9 @@ students=${DISTILL-1 2} teacher_steps=${TEACHER_STEPS:-4}
 for k in $students; do
   [[ $k =~ ^[1-9][0-9]*$ ]] && [ $((teacher_steps % k)) = 0 ] ||
     { echo "realtime_5b: DISTILL '$k': a student's steps divide the teacher's $teacher_steps (TEACHER_STEPS)" >&2; exit 2; }
+done
+for w in ${WEIGHTS:-lora full}; do
+  case "$w" in lora | full) ;; *) echo "realtime_5b: WEIGHTS '$w': lora or full" >&2; exit 2 ;; esac
 done
 unpack .pack/bwm.xz dist/bwm || exit 1
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee "$OUT/gpu.txt"
@@ -60,7 +64,7 @@ done | tee "$OUT/realtime_5b.txt"
 grep -q "no chunk timed" "$OUT/realtime_5b.txt" && status=1
 gpu_mib=$(nvidia-smi --query-gpu=memory.total --format=csv,noheader,nounits | head -1)
 for k in $students; do
-  for weights in lora full; do
+  for weights in ${WEIGHTS:-lora full}; do
     if [ $weights = full ] && [ "${gpu_mib:-0}" -lt 120000 ]; then
       echo "realtime_5b: distillation, full weights, a student of $k step(s): not run, the GPU holds ${gpu_mib:-no} MiB (full fine-tuning alone needs about 98 GB)"
       continue

@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-
 import sys
 
 import numpy as np

@@ -36,17 +36,19 @@ pub trait LinearForward: Any {
 
 impl Linear {
     pub fn new(vb: &Vb, in_dim: i64, out_dim: i64) -> Result<Self, WeightsError> {
-        let bound = 1.0 / (in_dim as f64).sqrt();
-        let weight = vb.get(&[out_dim, in_dim], "weight", Init::Uniform { bound })?;
-        let bias = vb.get(&[out_dim], "bias", Init::Uniform { bound })?;
-        Ok(Self { weight, bias, vb: vb.clone(), replaced: None })
+        Self::drawn(vb, in_dim, out_dim, Init::Uniform { bound: 1.0 / (in_dim as f64).sqrt() })
     }
 
     /// As `new`, the weight and bias zero where they are drawn rather than read: a layer whose
     /// output starts at nothing (the last layer of a module added to a model).
     pub fn zeros(vb: &Vb, in_dim: i64, out_dim: i64) -> Result<Self, WeightsError> {
-        let weight = vb.get(&[out_dim, in_dim], "weight", Init::Zeros)?;
-        let bias = vb.get(&[out_dim], "bias", Init::Zeros)?;
+        Self::drawn(vb, in_dim, out_dim, Init::Zeros)
+    }
+
+    /// Weight and bias read from `vb`, or drawn from `init` where it draws.
+    fn drawn(vb: &Vb, in_dim: i64, out_dim: i64, init: Init) -> Result<Self, WeightsError> {
+        let weight = vb.get(&[out_dim, in_dim], "weight", init)?;
+        let bias = vb.get(&[out_dim], "bias", init)?;
         Ok(Self { weight, bias, vb: vb.clone(), replaced: None })
     }
 

@@ -195,7 +195,7 @@ impl std::str::FromStr for VaeNaming {
 fn stored_kinds(path: &Path) -> Result<BTreeMap<String, Kind>> {
     Ok(match path.extension().and_then(|e| e.to_str()) {
         Some("pth") | Some("pt") | Some("bin") => {
-            bwm_model::pth::PthSource::open(path)?.tensors().iter().map(|(k, t)| (k.clone(), t.kind())).collect()
+            bwm_model::pth::open(path)?.tensors().iter().map(|(k, t)| (k.clone(), t.kind())).collect()
         }
         _ => {
             let st = bwm_model::weights::SafetensorsSource::open(path)?;

@@ -17,7 +17,7 @@ use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, ensure, Context, Result};
-use bwm_model::weights::{SafetensorsSource, WeightSource};
+use bwm_model::weights::{SafetensorsSource, TensorSource, WeightSource};
 use bwm_model::ModelConfig;
 use tch::Kind;
 
@@ -540,7 +540,7 @@ pub fn export(input: &str, out: &Path, opts: &ExportOptions, progress: &mut dyn 
 
 /// The EMA weights of a training checkpoint, shaped like its `model.safetensors`: the `ema` slices
 /// of the optimizer shard files (or `ema.<name>` of an unsharded `optimizer.safetensors`).
-fn ema_weights(dir: &Path, model_file: &Path) -> Result<crate::sources::TensorSource> {
+fn ema_weights(dir: &Path, model_file: &Path) -> Result<TensorSource> {
     use crate::optimizer_shards::{stored_layout, OptimizerState, LEGACY_FILE};
     let model = SafetensorsSource::open(model_file)?;
     let layout = if dir.join(LEGACY_FILE).is_file() {
@@ -556,5 +556,5 @@ fn ema_weights(dir: &Path, model_file: &Path) -> Result<crate::sources::TensorSo
         let shape = model.shape(&name).with_context(|| format!("{}: no '{name}' for the EMA tensor", model_file.display()))?;
         tensors.push((name, flat.view(shape.as_slice())));
     }
-    Ok(crate::sources::TensorSource::new(tensors, format!("EMA weights of {}", dir.display())))
+    Ok(TensorSource::new(tensors, format!("EMA weights of {}", dir.display())))
 }

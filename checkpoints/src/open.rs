@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use std::rc::Rc;
 
 use anyhow::{bail, ensure, Context, Result};
-use bwm_model::weights::{SafetensorsSource, WeightSource};
+use bwm_model::weights::{SafetensorsSource, TensorSource, WeightSource};
 use bwm_model::{BwmModel, ModelConfig, ParamStore};
 use tch::{Device, Kind};
 
@@ -16,7 +16,7 @@ use crate::keymap::{self, DitLayout, ACTION_PREFIX, TEXT_EMBEDDING_PREFIX};
 use crate::repo::{self, RepoConfig, ACTION_ENCODER_DIR, CONFIG_FILE, TRANSFORMER_DIR};
 use crate::run_info::RunInfo;
 use bwm_run_config::{Dtype, InitSource};
-use crate::sources::{LoraMergedSource, MappedSource, TensorSource, UnionSource};
+use crate::sources::{LoraMergedSource, MappedSource, UnionSource};
 
 /// Weights opened by [`open_any`].
 pub struct OpenedWeights {
@@ -89,7 +89,7 @@ pub fn open_local(path: &Path) -> Result<OpenedWeights> {
 fn open_file(path: &Path) -> Result<(Box<dyn WeightSource>, BTreeMap<String, Kind>)> {
     match path.extension().and_then(|e| e.to_str()) {
         Some("pth") | Some("pt") | Some("bin") => {
-            let pth = bwm_model::pth::PthSource::open(path)?;
+            let pth = bwm_model::pth::open(path)?;
             let kinds = pth.tensors().iter().map(|(k, t)| (k.clone(), t.kind())).collect();
             Ok((Box::new(pth), kinds))
         }
@@ -348,7 +348,7 @@ fn attach_action_encoder(opened: &mut OpenedWeights, enc_dir: &Path) -> Result<(
     for name in enc.names() {
         ensure!(name.starts_with(ACTION_PREFIX), "{}: '{name}' is not an action-encoder key", file.display());
     }
-    let dit = std::mem::replace(&mut opened.source, Box::new(crate::sources::TensorSource::new([], "")));
+    let dit = std::mem::replace(&mut opened.source, Box::new(TensorSource::new([], "")));
     opened.source = Box::new(UnionSource::new(vec![dit, enc])?);
     opened.kinds.extend(enc_kinds);
     Ok(())

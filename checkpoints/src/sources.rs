@@ -98,33 +98,6 @@ impl WeightSource for MappedSource {
     }
 }
 
-/// Tensors held in memory (a model's parameters, test data).
-pub struct TensorSource {
-    tensors: BTreeMap<String, Tensor>,
-    description: String,
-}
-
-impl TensorSource {
-    pub fn new(tensors: impl IntoIterator<Item = (String, Tensor)>, description: impl Into<String>) -> Self {
-        Self { tensors: tensors.into_iter().collect(), description: description.into() }
-    }
-}
-
-impl WeightSource for TensorSource {
-    fn describe(&self) -> String {
-        self.description.clone()
-    }
-    fn names(&self) -> Vec<String> {
-        self.tensors.keys().cloned().collect()
-    }
-    fn shape(&self, name: &str) -> Option<Vec<i64>> {
-        self.tensors.get(name).map(|t| t.size())
-    }
-    fn load(&self, name: &str, kind: Kind, device: Device) -> Result<Tensor, WeightsError> {
-        let t = self.tensors.get(name).ok_or_else(|| WeightsError::missing(self.describe(), name))?;
-        Ok(t.to_device(device).to_kind(kind))
-    }
-}
 
 /// Weights with LoRA adapters merged in: each `<m>.weight` that has `<m>.lora_A.weight` and
 /// `<m>.lora_B.weight` beside it is presented as `W + scale B A` (computed in fp32, then cast to

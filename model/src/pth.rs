@@ -7,11 +7,11 @@
 use std::collections::BTreeMap;
 use std::fs::File;
 use std::io::Read;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
-use tch::{Device, Kind, Tensor};
+use tch::{Kind, Tensor};
 
-use crate::weights::{WeightSource, WeightsError};
+use crate::weights::{TensorSource, WeightsError};
 
 // Every value the pickle holds is kept whole, though only dicts, tensors and storages are used.
 #[allow(dead_code)]
@@ -304,90 +304,63 @@ fn strided_view(storage: &Tensor, size: &[i64], stride: &[i64], offset: i64) -> 
     storage.f_as_strided(size, stride, offset).and_then(|t| t.f_contiguous()).map_err(|e| format!("is not a view of its storage: {e}"))
 }
 
-/// All tensors of a `torch.save`d state dict, loaded into memory.
-pub struct PthSource {
-    path: PathBuf,
-    tensors: BTreeMap<String, Tensor>,
-}
-
-impl PthSource {
-    pub fn open(path: impl AsRef<Path>) -> Result<Self, WeightsError> {
-        let path = path.as_ref();
-        let file = File::open(path).map_err(|e| err(path, e))?;
-        let mut zip = zip::ZipArchive::new(file)
-            .map_err(|e| err(path, format!("not a PyTorch zip archive ({e}); legacy pre-1.6 .pth files are not supported")))?;
-        let pkl_name = (0..zip.len())
-            .filter_map(|i| zip.name_for_index(i).and_then(|n| n.ok()).map(|n| n.to_string()))
-            .find(|n| n.ends_with("/data.pkl") || n == "data.pkl")
-            .ok_or_else(|| err(path, "no data.pkl in the archive"))?;
-        let prefix = pkl_name.trim_end_matches("data.pkl").to_string();
-        let mut pkl = Vec::new();
-        zip.by_name(&pkl_name).map_err(|e| err(path, e))?.read_to_end(&mut pkl).map_err(|e| err(path, e))?;
-        if let Ok(mut order) = zip.by_name(&format!("{prefix}byteorder")) {
-            let mut s = String::new();
-            order.read_to_string(&mut s).map_err(|e| err(path, e))?;
-            if s.trim() != "little" {
-                return Err(err(path, format!("byte order '{}' is not supported", s.trim())));
-            }
+/// All tensors of a `torch.save`d state dict, loaded into memory (described by the file's path).
+pub fn open(path: impl AsRef<Path>) -> Result<TensorSource, WeightsError> {
+    let path = path.as_ref();
+    let file = File::open(path).map_err(|e| err(path, e))?;
+    let mut zip = zip::ZipArchive::new(file)
+        .map_err(|e| err(path, format!("not a PyTorch zip archive ({e}); legacy pre-1.6 .pth files are not supported")))?;
+    let pkl_name = (0..zip.len())
+        .filter_map(|i| zip.name_for_index(i).and_then(|n| n.ok()).map(|n| n.to_string()))
+        .find(|n| n.ends_with("/data.pkl") || n == "data.pkl")
+        .ok_or_else(|| err(path, "no data.pkl in the archive"))?;
+    let prefix = pkl_name.trim_end_matches("data.pkl").to_string();
+    let mut pkl = Vec::new();
+    zip.by_name(&pkl_name).map_err(|e| err(path, e))?.read_to_end(&mut pkl).map_err(|e| err(path, e))?;
+    if let Ok(mut order) = zip.by_name(&format!("{prefix}byteorder")) {
+        let mut s = String::new();
+        order.read_to_string(&mut s).map_err(|e| err(path, e))?;
+        if s.trim() != "little" {
+            return Err(err(path, format!("byte order '{}' is not supported", s.trim())));
         }
-        let root = Unpickler { data: &pkl, pos: 0, stack: Vec::new(), memo: BTreeMap::new(), path }.run()?;
-        let mut dict = match root {
-            Value::Dict(d) => d,
-            _ => return Err(err(path, "the pickled object is not a dict (expected a state dict)")),
+    }
+    let root = Unpickler { data: &pkl, pos: 0, stack: Vec::new(), memo: BTreeMap::new(), path }.run()?;
+    let mut dict = match root {
+        Value::Dict(d) => d,
+        _ => return Err(err(path, "the pickled object is not a dict (expected a state dict)")),
+    };
+    // Checkpoints that wrap the state dict: {"state_dict": {...}} or {"model_state": {...}}.
+    if let Some((_, Value::Dict(inner))) = dict
+        .iter()
+        .find(|(k, v)| matches!(k, Value::Str(s) if s == "state_dict" || s == "model_state") && matches!(v, Value::Dict(_)))
+    {
+        dict = inner.clone();
+    }
+    let mut storages: BTreeMap<String, Tensor> = BTreeMap::new();
+    let mut tensors = BTreeMap::new();
+    for (k, v) in dict {
+        let (Value::Str(name), Value::Tensor { storage, offset, size, stride }) = (k, v) else { continue };
+        let Value::Storage { key, kind } = *storage else {
+            return Err(err(path, format!("tensor '{name}' has no storage reference")));
         };
-        // Checkpoints that wrap the state dict: {"state_dict": {...}} or {"model_state": {...}}.
-        if let Some((_, Value::Dict(inner))) = dict
-            .iter()
-            .find(|(k, v)| matches!(k, Value::Str(s) if s == "state_dict" || s == "model_state") && matches!(v, Value::Dict(_)))
-        {
-            dict = inner.clone();
+        if !storages.contains_key(&key) {
+            let entry = format!("{prefix}data/{key}");
+            let mut bytes = Vec::new();
+            zip.by_name(&entry)
+                .map_err(|e| err(path, format!("storage {entry} of '{name}': {e}")))?
+                .read_to_end(&mut bytes)
+                .map_err(|e| err(path, format!("storage {entry} of '{name}': {e}")))?;
+            let numel = (bytes.len() / kind.elt_size_in_bytes()) as i64;
+            let t = Tensor::f_from_data_size(&bytes, &[numel], kind).map_err(|e| err(path, e))?;
+            storages.insert(key.clone(), t);
         }
-        let mut storages: BTreeMap<String, Tensor> = BTreeMap::new();
-        let mut tensors = BTreeMap::new();
-        for (k, v) in dict {
-            let (Value::Str(name), Value::Tensor { storage, offset, size, stride }) = (k, v) else { continue };
-            let Value::Storage { key, kind } = *storage else {
-                return Err(err(path, format!("tensor '{name}' has no storage reference")));
-            };
-            if !storages.contains_key(&key) {
-                let entry = format!("{prefix}data/{key}");
-                let mut bytes = Vec::new();
-                zip.by_name(&entry)
-                    .map_err(|e| err(path, format!("storage {entry} of '{name}': {e}")))?
-                    .read_to_end(&mut bytes)
-                    .map_err(|e| err(path, format!("storage {entry} of '{name}': {e}")))?;
-                let numel = (bytes.len() / kind.elt_size_in_bytes()) as i64;
-                let t = Tensor::f_from_data_size(&bytes, &[numel], kind).map_err(|e| err(path, e))?;
-                storages.insert(key.clone(), t);
-            }
-            let t = strided_view(&storages[&key], &size, &stride, offset).map_err(|m| err(path, format!("tensor '{name}' {m}")))?;
-            tensors.insert(name, t);
-        }
-        if tensors.is_empty() {
-            return Err(err(path, "the state dict holds no tensors"));
-        }
-        Ok(Self { path: path.to_path_buf(), tensors })
+        let t = strided_view(&storages[&key], &size, &stride, offset).map_err(|m| err(path, format!("tensor '{name}' {m}")))?;
+        tensors.insert(name, t);
     }
-
-    pub fn tensors(&self) -> &BTreeMap<String, Tensor> {
-        &self.tensors
+    if tensors.is_empty() {
+        return Err(err(path, "the state dict holds no tensors"));
     }
-}
-
-impl WeightSource for PthSource {
-    fn describe(&self) -> String {
-        self.path.display().to_string()
-    }
-    fn names(&self) -> Vec<String> {
-        self.tensors.keys().cloned().collect()
-    }
-    fn shape(&self, name: &str) -> Option<Vec<i64>> {
-        self.tensors.get(name).map(|t| t.size())
-    }
-    fn load(&self, name: &str, kind: Kind, device: Device) -> Result<Tensor, WeightsError> {
-        let t = self.tensors.get(name).ok_or_else(|| WeightsError::missing(self.describe(), name))?;
-        Ok(t.to_device(device).to_kind(kind))
-    }
+    Ok(TensorSource::new(tensors, path.display().to_string()))
 }
 
 #[cfg(test)]
@@ -442,7 +415,7 @@ mod tests {
         let dir = bwm_testdir::TestDir::new("pth-views");
         let path = dir.join("w.pth");
         one_view_pth(&path, 1, &[2], &[2]);
-        let source = PthSource::open(&path).unwrap();
+        let source = open(&path).unwrap();
         assert_eq!(Vec::<f32>::try_from(&source.tensors()["w"]).unwrap(), [1.0, 3.0]);
         for (offset, size, stride, says) in [
             (-1, &[2u8][..], &[1][..], "offset"),
@@ -452,7 +425,7 @@ mod tests {
             (0, &[2], &[i32::MAX], "past the end"),
         ] {
             one_view_pth(&path, offset, size, stride);
-            let e = PthSource::open(&path).err().unwrap_or_else(|| panic!("offset {offset}, size {size:?}, stride {stride:?}: accepted")).to_string();
+            let e = open(&path).err().unwrap_or_else(|| panic!("offset {offset}, size {size:?}, stride {stride:?}: accepted")).to_string();
             assert!(e.contains("'w'") && e.contains(says), "offset {offset}, size {size:?}, stride {stride:?}: {e}");
         }
     }

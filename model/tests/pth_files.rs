@@ -6,7 +6,7 @@ mod common;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use bwm_model::pth::PthSource;
+use bwm_model::pth;
 use bwm_model::vae::{VaeConfig, WanVae};
 use common::{rel_err, tmp_dir};
 use tch::{Device, Kind, Tensor};
@@ -52,7 +52,7 @@ fn torch_saved_state_dicts_load() {
     let pth = dir.join("Wan2.2_VAE.pth");
     torch_save(&py, &st, &pth, None);
 
-    let source = PthSource::open(&pth).unwrap();
+    let source = pth::open(&pth).unwrap();
     let t = source.tensors();
     for (name, original) in store.named_parameters() {
         assert_eq!(rel_err(&t[&name], &original), 0.0, "{name}");
@@ -78,7 +78,7 @@ fn torch_saved_state_dicts_load() {
     // A state dict wrapped as {"state_dict": ...} is found.
     let wrapped = dir.join("wrapped.pth");
     torch_save(&py, &st, &wrapped, Some("state_dict"));
-    assert!(PthSource::open(&wrapped).unwrap().tensors().contains_key("encoder.conv1.weight"));
+    assert!(pth::open(&wrapped).unwrap().tensors().contains_key("encoder.conv1.weight"));
 }
 
 #[test]
@@ -94,10 +94,10 @@ fn broken_pth_files_are_clear_errors() {
     let bytes = std::fs::read(&pth).unwrap();
     let cut = dir.join("cut.pth");
     std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
-    let e = format!("{}", PthSource::open(&cut).err().unwrap());
+    let e = format!("{}", pth::open(&cut).err().unwrap());
     assert!(e.contains("cut.pth"), "{e}");
     let text = dir.join("text.pth");
     std::fs::write(&text, b"not a zip").unwrap();
-    let e = format!("{}", PthSource::open(&text).err().unwrap());
+    let e = format!("{}", pth::open(&text).err().unwrap());
     assert!(e.contains("text.pth") && e.contains("not a PyTorch zip archive"), "{e}");
 }

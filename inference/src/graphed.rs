@@ -76,16 +76,31 @@ mod tests {
     /// device, it fails when BWM_REQUIRE names cuda and is logged as skipped otherwise): batched
     /// rollouts of the tiny model whose sampler replays recorded graphs generate what the eager
     /// sampler generates, over chunks whose batch shrinks (a new shape, a new graph) and with
-    /// guidance (the doubled batch and its keep mask as one more input).
+    /// guidance (the doubled batch and its keep mask as one more input); also with the hand map
+    /// (its output layer drawn, so that its term counts), whose forward must read nothing from
+    /// the host while a graph records.
     #[test]
     #[ignore = "needs a CUDA device (scripts/gpu/unit.sh)"]
     fn graphed_rollouts_generate_what_eager_ones_do() {
         if !bwm_testdir::need(bwm_testdir::Dep::Cuda, (!tch::Cuda::is_available()).then(|| "libtorch sees no CUDA device".to_string())) {
             return;
         }
+        for hand_map in [None, Some(bwm_model::config::HandMapConfig { hands: vec![[0, 1, 2]], periods: 3 })] {
+            graphed_rollouts_match_eager(hand_map);
+        }
+    }
+
+    fn graphed_rollouts_match_eager(hand_map: Option<bwm_model::config::HandMapConfig>) {
         let device = Device::Cuda(0);
-        let cfg = ModelConfig::preset("tiny").unwrap();
+        let mut cfg = ModelConfig::preset("tiny").unwrap();
+        let mapped = hand_map.is_some();
+        cfg.action.hand_map = hand_map;
         let model = BwmModel::random(&cfg, Kind::Float, device, 3).unwrap();
+        if let Some(map) = &model.action_encoder.hand_map {
+            tch::no_grad(|| {
+                let _ = map.mlp.l2.weight.shallow_clone().normal_(0.0, 0.1);
+            });
+        }
         let vae = WanVae::random(&VaeConfig::with_width(16, 16), Kind::Float, device, 4).unwrap().0;
         let d = cfg.action.action_dim;
         let (x0s, actions) = with_seed(5, || {
@@ -123,7 +138,7 @@ mod tests {
             assert_eq!(graphed.borrow().shapes(), 2, "a batch of three, then of two");
             for (i, (e, g)) in eager.iter().zip(&replayed).enumerate() {
                 let diff = (e - g).abs().max().double_value(&[]);
-                assert!(diff < 1e-4, "guidance {guidance}, rollout {i}: graphed frames differ from eager ones by {diff}");
+                assert!(diff < 1e-4, "hand map {mapped}, guidance {guidance}, rollout {i}: graphed frames differ from eager ones by {diff}");
             }
         }
     }

@@ -5,25 +5,15 @@
 
 mod common;
 
-use std::process::Command;
-
 use bwm_data::frames::{fit, frames_to_tensor};
 use bwm_data::{open_dataset, CameraSelection};
 use bwm_data::ResizeMode;
 use bwm_metrics::image::psnr;
-use common::{bwm, demo_data, temp_dir, write_random_vae};
+use common::{demo_data, temp_dir, tiny_world_model, write_random_vae};
 use serde_json::Value;
 
 fn fidelity(args: &[&str]) -> std::process::Output {
-    let out = Command::new(bwm())
-        .arg("fidelity")
-        .args(["--random-weights", "tiny", "--history", "4", "--future", "4", "--sample-steps", "2", "--resolution", "64x32"])
-        .args(["--device", "cpu", "--max-frames", "9", "--horizons", "4,8", "--videos", "1"])
-        .args(args)
-        .output()
-        .unwrap();
-    println!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
-    out
+    tiny_world_model("fidelity", &[&["--max-frames", "9", "--horizons", "4,8", "--videos", "1"], args].concat())
 }
 
 #[test]

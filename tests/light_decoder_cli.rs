@@ -8,7 +8,7 @@ mod common;
 
 use std::process::{Command, Output};
 
-use common::{bwm, demo_data, temp_dir, write_random_vae};
+use common::{bwm, demo_data, temp_dir, tiny_world_model, write_random_vae};
 
 fn text(o: &Output) -> String {
     format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr))
@@ -36,14 +36,11 @@ fn a_light_decoder_is_trained_for_a_vae_and_decodes_a_rollout() {
 
     let generated = dir.join("generated");
     let rollout = |decoder: &std::path::Path, out: &std::path::Path| {
-        Command::new(bwm())
-            .arg("rollout")
-            .args(["--random-weights", "tiny", "--history", "4", "--future", "4", "--sample-steps", "2", "--resolution", "64x32"])
-            .args(["--device", "cpu", "--max-frames", "9", "--episodes", "0", "--frame-storage", "image"])
-            .args(["--vae", vae.to_str().unwrap(), "--light-decoder", decoder.to_str().unwrap()])
-            .args(["--data", data.to_str().unwrap(), "--out", out.to_str().unwrap()])
-            .output()
-            .unwrap()
+        tiny_world_model(
+            "rollout",
+            &["--max-frames", "9", "--episodes", "0", "--frame-storage", "image", "--vae", vae.to_str().unwrap(), "--light-decoder",
+              decoder.to_str().unwrap(), "--data", data.to_str().unwrap(), "--out", out.to_str().unwrap()],
+        )
     };
     let o = rollout(&light, &generated);
     assert!(o.status.success(), "{}", text(&o));

@@ -10,22 +10,14 @@ use std::process::Command;
 
 use bwm_data::{open_dataset, CameraSelection};
 use bwm_data::ActionSpec;
-use common::{bwm, demo_data, python, temp_dir, write_random_vae};
+use common::{bwm, demo_data, python, temp_dir, tiny_world_model, write_random_vae};
 
 
 
 
 
 fn rollout(args: &[&str]) -> std::process::Output {
-    let out = Command::new(bwm())
-        .arg("rollout")
-        .args(["--random-weights", "tiny", "--history", "4", "--future", "4", "--sample-steps", "2", "--resolution", "64x32"])
-        .args(["--device", "cpu", "--max-frames", "11"])
-        .args(args)
-        .output()
-        .unwrap();
-    println!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
-    out
+    tiny_world_model("rollout", &[&["--max-frames", "11"], args].concat())
 }
 
 #[test]

@@ -33,6 +33,21 @@ pub fn python() -> String {
 
 /// The bundled RoboTwin episodes in the BWM layout: the repository's `data/bwm-demo`, or
 /// `$BWM_SHARED/data/bwm-demo` when BWM_SHARED is set (`bwm_testdir::demo_data`).
+/// `bwm SUBCOMMAND` of the tiny model with random weights on CPU (4 history and 4 future frames,
+/// 2 sampler steps, 64x32), then `args`; its output printed, which the test harness shows when the
+/// test fails.
+pub fn tiny_world_model(subcommand: &str, args: &[&str]) -> std::process::Output {
+    let out = std::process::Command::new(bwm())
+        .arg(subcommand)
+        .args(["--random-weights", "tiny", "--history", "4", "--future", "4", "--sample-steps", "2", "--resolution", "64x32"])
+        .args(["--device", "cpu"])
+        .args(args)
+        .output()
+        .unwrap();
+    println!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    out
+}
+
 pub fn demo_data() -> PathBuf {
     bwm_testdir::demo_data()
 }

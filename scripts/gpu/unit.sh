@@ -4,7 +4,7 @@
 # one, a capture that fails, and work queued on two CUDA streams in turn, as `--streams` does), and
 # the VAE's and the DiT's training with the step replayed from a graph against the eager training
 # (trainer/: `vae_train` and tests/training.rs), and rollouts whose sampler replays a recorded
-# forward pass against eager ones (inference/: `graphed`), and the fused AdamW kernels against the
+# forward pass against eager ones, with and without the hand map (inference/: `graphed`), and the fused AdamW kernels against the
 # tensor path and the accumulator (trainer/: `optim`), and the rotary embedding's kernels and the
 # DiT's fused element-wise kernels (rotary embedding, per-frame multiply-add) against the CPU
 # arithmetic and libtorch's, and the FP8 quantization kernel against libtorch's cast (native/fused-ops/:

@@ -717,6 +717,28 @@ for i in 0 1 2; do awk -v s="$steps" -v c="$dec" -v i=$i 'BEGIN { t = 0.1 + s * 
     let out = run_distilling("light:1", "1", Some("3"));
     assert!(out.status.code() == Some(2) && String::from_utf8_lossy(&out.stderr).contains("DISTILL '3'"), "{out:?}");
     assert!(!d.join("out/roll-light-s1.log").exists());
+    // WEIGHTS picks the distillation's weights; an empty SETTINGS runs no chunk; other weights
+    // are refused before anything runs.
+    let run_weights = |weights: &str| -> Output {
+        let path = format!("{}:{}", d.join("stub").display(), std::env::var("PATH").unwrap_or_default());
+        let _ = fs::remove_dir_all(d.join("out"));
+        Command::new("bash")
+            .arg("scripts/gpu/realtime_5b.sh")
+            .current_dir(d)
+            .env("OUT", d.join("out"))
+            .env("PATH", path)
+            .envs([("SETTINGS", ""), ("REFERENCE", "0"), ("DISTILL", "1"), ("WEIGHTS", weights)])
+            .output()
+            .unwrap()
+    };
+    let out = run_weights("lora");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success() && stdout.contains("LoRA rank 64, a student of 1 step(s)") && !stdout.contains("full weights"), "{stdout}");
+    assert_eq!(fs::read_to_string(d.join("out/realtime_5b.txt")).unwrap().lines().count(), 1, "{stdout}");
+    assert!(!d.join("out/roll-light-s1.log").exists() && !d.join("out/distill-full-s1.log").exists());
+    let out = run_weights("lora fp8");
+    assert!(out.status.code() == Some(2) && String::from_utf8_lossy(&out.stderr).contains("WEIGHTS 'fp8': lora or full"), "{out:?}");
+    assert!(!d.join("out/distill-lora-s1.log").exists());
     let out = run("light:1 full:50", "1");
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(out.status.success(), "{stdout}{}", String::from_utf8_lossy(&out.stderr));

@@ -140,7 +140,10 @@ mod tests {
         assert_eq!(tokens.size(), [2, 3 * 2 * 3, mapped.cfg.dit.dim]);
         assert_eq!(tokens.abs().max().double_value(&[]), 0.0, "its output layer starts at zero");
         let (p, m) = (plain.forward(&x, &t, &a).unwrap(), mapped.forward(&x, &t, &a).unwrap());
-        assert!(p.allclose(&m, 0.0, 0.0, false), "the same weights and a zero term: the same prediction");
+        // Within float rounding rather than bit for bit: libtorch's CPU kernels may split a sum
+        // otherwise when other tests keep its threads busy.
+        let diff = (&p - &m).abs().max().double_value(&[]);
+        assert!(diff < 1e-5, "the same weights and a zero term: the same prediction, not one {diff} away");
     }
 
     #[test]

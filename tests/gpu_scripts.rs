@@ -5,7 +5,8 @@
 //! scripts/gpu/metaworld.sh (which GPU each chain of settings gets, and that the later chains start
 //! once the model is trained, with its truth and verdicts), and scripts/gpu/detached.sh's
 //! start/wait protocol (exit codes, the logs' progress, the archive), common.sh's `unpack` (a
-//! binary unpacked over the copy another script on the host is running), fp8_train.sh's steps
+//! binary unpacked over the copy another script on the host is running) and `mem` (a measured
+//! command that fails fails the script), fp8_train.sh's steps
 //! against the reference's (stub binaries), and unit.sh, which fails where CUDA is missing.
 
 mod common;
@@ -395,16 +396,21 @@ impl Drop for Detached {
     }
 }
 
-/// A stub of scripts/gpu/metaworld.sh's `sweep`: the chain that finds no model trains it (the
-/// truth and the verdicts appear after a second), then each setting says where it ran and whether
-/// the truth was in its study folder when it began; fails at once with FAIL=1.
+/// A stub of scripts/gpu/metaworld.sh's `sweep`: its training stage holds the run folder's lock
+/// for half a second (as `bwm train --resume auto` does with nothing left to train) and fails
+/// where another chain holds it; the chain that finds no model trains it (the truth and the
+/// verdicts appear after a second), then each setting says where it ran and whether the truth was
+/// in its study folder when it began; fails at once with FAIL=1.
 const STUB_SWEEP: &str = r#"
 [ "${FAIL:-0}" = 1 ] && { echo "stub: failing"; exit 1; }
-mkdir -p "$OUT"
+mkdir -p "$OUT" "$RUN"
+mkdir "$RUN/lock" 2>/dev/null || { echo "stub: the run folder $RUN is in use"; exit 1; }
+sleep 0.5
 if [ ! -f "$RUN/study/judged.json" ]; then
   sleep 1; mkdir -p "$RUN/study"; echo t > "$RUN/study/truth.json"; echo j > "$RUN/study/judged.json"
   echo "trained by $SETTINGS" >> "$MADE"
 fi
+rmdir "$RUN/lock"
 for s in $SETTINGS; do
   echo "sweep: $s" >> "$OUT/sweep.log"
   found=no; [ -f "$RUN/sweep/$s/study/truth.json" ] && [ -f "$RUN/sweep/$s/study/judged.json" ] && found=yes
@@ -452,7 +458,7 @@ fn the_sweeps_chains_start_on_their_gpus_once_the_first_has_trained_the_model() 
 
     let failed = sweep_split(&d.join("f"), &[("FAIL", "1")]);
     assert_eq!(failed.status.code(), Some(1));
-    assert!(String::from_utf8_lossy(&failed.stdout).contains("the first chain ended before its sweep began"));
+    assert!(String::from_utf8_lossy(&failed.stdout).contains("chain 0 ended before its sweep began"));
 }
 
 /// A stub of bench/metaworld/recipe.sh's fidelity and study stages for bench/metaworld/sweep.sh:
@@ -607,6 +613,33 @@ dist/bwm 0 || rc=5
 exit $rc"#
     );
     let out = Command::new("bash").arg("-c").arg(&script).current_dir(dir.path()).env("OUT", dir.path().join("out")).output().unwrap();
+    assert_eq!(out.status.code(), Some(0), "{}", String::from_utf8_lossy(&out.stderr));
+}
+
+#[test]
+fn a_measured_command_that_fails_is_named_and_fails_the_script() {
+    let dir = common::temp_dir("gpu-mem");
+    let d = dir.path();
+    fs::create_dir_all(d.join("stub")).unwrap();
+    write_executable(&d.join("stub/nvidia-smi"), "#!/bin/sh\necho 100\n");
+    // Two measured commands, the first failing: the second still runs, each has its memory line,
+    // the failing one named, and the script exits 1 although its last command succeeded.
+    let script = format!(
+        r#"source {ROOT}/scripts/gpu/common.sh 2>/dev/null
+mem first sh -c 'echo crashed; exit 3'; echo "first returned $?"
+mem second sh -c 'echo fine'; echo "second returned $?""#
+    );
+    let path = format!("{}:{}", d.join("stub").display(), std::env::var("PATH").unwrap_or_default());
+    let out = Command::new("bash").arg("-c").arg(&script).current_dir(d).env("OUT", d.join("out")).env("PATH", &path).output().unwrap();
+    let (stdout, stderr) = (String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert_eq!(out.status.code(), Some(1), "{stdout}\n{stderr}");
+    assert!(stdout.contains("first: FAILED (exit status 3); peak GPU memory used 100 MiB") && stdout.contains("first returned 3"), "{stdout}");
+    assert!(stdout.contains("second: peak GPU memory used 100 MiB") && stdout.contains("second returned 0"), "{stdout}");
+    assert!(stderr.contains("failed: first"), "{stderr}");
+    assert!(fs::read_to_string(d.join("out/first.log")).unwrap().contains("crashed"));
+    // Nothing failing: the script's own status stands.
+    let script = format!("source {ROOT}/scripts/gpu/common.sh 2>/dev/null\nmem ok true\nexit 0");
+    let out = Command::new("bash").arg("-c").arg(&script).current_dir(d).env("OUT", d.join("out")).env("PATH", &path).output().unwrap();
     assert_eq!(out.status.code(), Some(0), "{}", String::from_utf8_lossy(&out.stderr));
 }
 

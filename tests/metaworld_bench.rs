@@ -674,6 +674,11 @@ fn the_policy_server_speaks_openpi() {
     python_tests("test_policy_server.py");
 }
 
+#[test]
+fn results_are_written_whole_or_not_at_all() {
+    python_tests("test_files.py");
+}
+
 /// bench/metaworld/transfer.sh at toy sizes: a base on one task, post-trained onto the other in
 /// full, with LoRA and from scratch, each scored by `bwm fidelity` and, against one truth and one
 /// judge of the new task, by the evaluator.

@@ -15,13 +15,14 @@ only by what they change."""
 import argparse
 import glob
 import io
-import json
 import os
 import sys
 
 import numpy as np
 import pyarrow.parquet as pq
 from PIL import Image
+
+from files import write_json
 
 GENERATED = "observation.images.generated"
 RECORDED = "observation.image"
@@ -86,11 +87,6 @@ def agreement(reference: str, settings: list[str], recorded: str | None, horizon
     return {"reference": reference, "horizon": horizon, "settings": out}
 
 
-def write_json(path: str, value) -> None:
-    """`value` as JSON at `path`, whole or not at all (through a temporary file beside it)."""
-    with open(path + ".tmp", "w") as f:
-        json.dump(value, f, indent=1)
-    os.replace(path + ".tmp", path)
 
 
 def main(argv=None):

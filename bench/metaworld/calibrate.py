@@ -11,11 +11,11 @@ occludes the object and the drawer opens as it will when a policy looks.
 from __future__ import annotations
 
 import argparse
-import json
 
 import numpy as np
 
 import policies
+from files import write_json
 from mw import ACTION_SCALE, TASKS, Sim
 
 
@@ -84,9 +84,7 @@ def main() -> None:
             "held_out": {"seeds": f"{args.test_seeds.start}:{args.test_seeds.stop}", "all_frames": summary(e), "first_frames": summary(e[first])},
         }
         print(f"{task}: xy error on held-out seeds, all frames {out[task]['held_out']['all_frames']}, first frames {out[task]['held_out']['first_frames']}")
-    with open(args.out, "w") as f:
-        json.dump(out, f, indent=1)
-        f.write("\n")
+    write_json(args.out, out)
 
 
 if __name__ == "__main__":

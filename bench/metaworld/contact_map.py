@@ -29,6 +29,7 @@ import sys
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from files import write_json  # noqa: E402
 from trainings import family  # noqa: E402
 
 
@@ -169,10 +170,7 @@ def main(argv=None) -> None:
     print(f"hand {a.beyond_cm:g} cm or more from the object: {b['invented']} of {b['episodes']} episodes drawn succeeding "
           f"where the simulator does not; closer: {w['missed']} of {w['episodes']} succeeding in the simulator, not drawn")
     if a.json:
-        tmp = a.json + ".tmp"
-        with open(tmp, "w") as f:
-            json.dump({"band_cm": a.band_cm, "families": families, "tasks": m, "outside": outside}, f, indent=1)
-        os.replace(tmp, a.json)
+        write_json(a.json, {"band_cm": a.band_cm, "families": families, "tasks": m, "outside": outside})
 
 
 if __name__ == "__main__":

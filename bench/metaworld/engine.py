@@ -46,6 +46,7 @@ import numpy as np
 
 import families
 import policies
+from files import write_json, write_text
 from mw import TASKS, next_state
 
 REAL_SEED_START = 700000
@@ -108,14 +109,10 @@ def plan(a) -> None:
             lines.append(json.dumps({"x0": f"x0/{name}.png", "actions": f"actions/{name}.csv", "task": task}))
             episodes.append({"task": task, "seed": seed, "data_seed": (seed - GENERATED_SEED_START) // SEED_STRIDE,
                              "commands": p["commands"].round(7).tolist(), "replayed_success_step": p["success_step"]})
-    with open(os.path.join(a.out, "inputs.jsonl"), "w") as f:
-        f.writelines(line + "\n" for line in lines)
+    write_text(os.path.join(a.out, "inputs.jsonl"), "".join(line + "\n" for line in lines))
     record = {"tasks": tasks, "seeds": a.seeds, "generated": a.generated, "frames": a.frames, "resolution": a.resolution,
               "episodes": episodes}
-    tmp = os.path.join(a.out, "plan.json.tmp")
-    with open(tmp, "w") as f:
-        json.dump(record, f)
-    os.replace(tmp, os.path.join(a.out, "plan.json"))
+    write_json(os.path.join(a.out, "plan.json"), record, indent=None)
     ok = sum(e["replayed_success_step"] is not None for e in episodes)
     print(f"engine: planned {len(episodes)} episodes in {a.out} (inputs.jsonl); their commands succeed in the simulator in {ok}")
 
@@ -227,10 +224,7 @@ def measure(a) -> None:
               "eval_episodes": a.episodes, "eval_seeds": [EVAL_SEED_START, EVAL_SEED_START + a.episodes - 1],
               "resolution": resolution, "net_steps": a.net_steps, "arms": list(ARMS), "summary": summary,
               "judged": judged, "verdicts": verdicts, "rows": rows, "command": " ".join(sys.argv)}
-    tmp = a.out + ".tmp"
-    with open(tmp, "w") as f:
-        json.dump(report, f, indent=1)
-    os.replace(tmp, a.out)
+    write_json(a.out, report)
     print(table(report))
 
 

@@ -81,7 +81,8 @@ from typing import Callable
 import numpy as np
 
 import policies
-from mw import ACTION_SCALE, MOCAP_HIGH, MOCAP_LOW, TASKS, initial_state, next_state
+from files import replacing, write_json
+from mw import ACTION_SCALE, MOCAP_HIGH, MOCAP_LOW, TASKS, initial_state, next_state, simulator_versions
 from policies import GRIP, OBJECT_RANGE, expert_target, perceive
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -277,13 +278,14 @@ def cache_dir() -> str:
 
 
 def source_digest() -> str:
-    """The sha256 of SOURCES' bytes: what every cloned policy (and so generate.py's `learned`
-    episodes) depends on beside its key."""
+    """The sha256 of SOURCES' bytes and the simulator's versions: what every cloned policy (and so
+    generate.py's `learned` episodes) depends on beside its key."""
     if not _digest:
         h = hashlib.sha256()
         for path in SOURCES:
             with open(path, "rb") as f:
                 h.update(f.read())
+        h.update(repr(sorted(simulator_versions().items())).encode())
         _digest.append(h.hexdigest())
     return _digest[0]
 
@@ -302,10 +304,8 @@ def _cached(name: str, key: tuple, build: Callable[[], dict]) -> dict:
         pass
     arrays = build()
     os.makedirs(cache_dir(), exist_ok=True)
-    tmp = f"{path}.{os.getpid()}.tmp"
-    with open(tmp, "wb") as f:
+    with replacing(path, "wb") as f:
         np.savez(f, **arrays)
-    os.replace(tmp, path)
     TRAINED.append(path)
     _models[path] = arrays
     return arrays
@@ -588,7 +588,6 @@ def measure_truth(task: str, variant: str, seeds, horizon: int = 120, chunk: int
 
 if __name__ == "__main__":
     import argparse
-    import json
     from multiprocessing import get_context
 
     parser = argparse.ArgumentParser(description="True success rate of every family variant in the simulator")
@@ -626,5 +625,4 @@ if __name__ == "__main__":
             rate = rates.setdefault(task, {})[v] = sum(e.first is not None for e in episodes) / len(episodes)
             print(f"{task:26s} {family_of(v):9s} {v:15s} {100 * rate:5.1f}%", flush=True)
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump(rates, f, indent=1)
+        write_json(args.json, rates)

@@ -14,7 +14,6 @@ that `--reuse` keeps an existing dataset only when it was made with the same one
 from __future__ import annotations
 
 import argparse
-import hashlib
 import io
 import json
 import multiprocessing

@@ -69,6 +69,8 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import numpy as np
 
+from files import replacing, write_json
+
 FORMAT = "bwm-metaworld-judge/2"
 # Judges this file no longer reads, and what they were.
 FORMERLY = {"bwm-metaworld-judge/1": "a classifier of the success flag"}
@@ -538,10 +540,10 @@ def train(a) -> None:
         models[task] = model.to_checkpoint()
         report["tasks"][task] = entry
     report["seconds"] = time.time() - t0
-    torch.save({"format": FORMAT, "window": a.window, "models": models}, a.out)
+    with replacing(a.out, "wb") as f:
+        torch.save({"format": FORMAT, "window": a.window, "models": models}, f)
     out_json = os.path.splitext(a.out)[0] + ".json"
-    with open(out_json, "w") as f:
-        json.dump(report, f, indent=2)
+    write_json(out_json, report, indent=2)
     print(f"judge: {a.out} and {out_json} written in {report['seconds']:.0f} s", flush=True)
 
 
@@ -621,9 +623,7 @@ def score(a) -> None:
                       f"{o['mean_cm']:.2f} cm from where the real first frame shows it (p90 {o['p90_cm']:.2f}, max {o['max_cm']:.2f}; "
                       f"{o['unseen']} of {o['episodes']} unseen)", flush=True)
         report["tasks"][task] = entry
-    with open(a.out + ".tmp", "w") as f:
-        json.dump(report, f, indent=2)
-    os.replace(a.out + ".tmp", a.out)
+    write_json(a.out, report, indent=2)
     print(f"judge: wrote {a.out}", flush=True)
 
 
@@ -734,9 +734,7 @@ def serve(a) -> None:
     port = server.server_address[1]
     print(f"judge: {', '.join(judge.models)} on http://{a.host}:{port}/judge (window {judge.window}, {device})", flush=True)
     if a.ready:
-        with open(a.ready + ".tmp", "w") as f:
-            json.dump({"url": f"http://{a.host}:{port}/judge", "port": port, "pid": os.getpid(), "tasks": list(judge.models)}, f)
-        os.replace(a.ready + ".tmp", a.ready)
+        write_json(a.ready, {"url": f"http://{a.host}:{port}/judge", "port": port, "pid": os.getpid(), "tasks": list(judge.models)}, indent=None)
     if a.lifetime:
         threading.Timer(a.lifetime, server.shutdown).start()
     try:

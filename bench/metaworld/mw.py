@@ -39,6 +39,21 @@ GRIPPER_INIT = np.float32(-1.0)
 SUCCESS_DISTANCE = {"drawer-open-v3": 0.03, "button-press-topdown-v3": 0.024}
 
 
+def simulator_versions() -> dict:
+    """The installed versions of the simulator's packages (None where one is missing): part of
+    every cache key of what the simulator measured, so that another Meta-World or MuJoCo measures
+    afresh."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    def of(name: str) -> str | None:
+        try:
+            return version(name)
+        except PackageNotFoundError:
+            return None
+
+    return {name: of(name) for name in ("metaworld", "mujoco")}
+
+
 def initial_state(task: str) -> np.ndarray:
     return np.append(HAND_INIT[task], GRIPPER_INIT).astype(np.float32)
 

@@ -34,6 +34,7 @@ import traceback
 
 import numpy as np
 
+from files import write_json
 from msgpack_numpy import packb, unpackb
 
 STATE_DIM = 4
@@ -160,9 +161,7 @@ async def serve(servers: list[VariantServer], host: str, base_port: int, ready: 
         print(f"policy_server: {variant} on ws://{host}:{port}", flush=True)
     if ready:
         info = {"host": host, "ports": ports, "pid": os.getpid(), "tasks": servers[0].tasks, "chunk": servers[0].chunk}
-        with open(ready + ".tmp", "w") as f:
-            json.dump(info, f)
-        os.replace(ready + ".tmp", ready)
+        write_json(ready, info, indent=None)
     loop = asyncio.get_running_loop()
     stop = loop.create_future()
     if threading.current_thread() is threading.main_thread():

@@ -263,13 +263,18 @@ recorded() { # $1 = output, $2 = its record
   printf '%s\nmade %s %s\n' "$2" "$(date -u +%FT%T.%NZ)" "$RANDOM$RANDOM" > "$1.recipe.tmp" && mv -f "$1.recipe.tmp" "$1.recipe"
 }
 
-# The EMA weights of a checkpoint (EMA_DECAY), exported once: under a lock, since stages that roll
-# out may start side by side (scripts/gpu/metaworld-stages.sh).
+# The EMA weights of a checkpoint (EMA_DECAY), exported once per checkpoint (its weights' sha256 in
+# the export's record: a checkpoint trained again at the same step is exported again): under a
+# lock, since stages that roll out may start side by side (scripts/gpu/metaworld-stages.sh).
 ema_export() { # $1 = the checkpoint's folder name (step-NNNNNNNN)
+  local export=("$BWM" export --checkpoint "$RUN/checkpoints/$1" --ema --dtype fp32 --out "$RUN/ema/$1") made_with
+  made_with=$(record_of "${export[@]}")
   mkdir -p "$RUN/ema"
   (
     flock 9
-    [ -f "$RUN/ema/$1/config.json" ] || timed ema "$BWM" export --checkpoint "$RUN/checkpoints/$1" --ema --dtype fp32 --out "$RUN/ema/$1"
+    if [ -f "$RUN/ema/$1/config.json" ] && [ "$(grep -v '^made ' "$RUN/ema/$1.recipe" 2>/dev/null)" = "$made_with" ]; then exit 0; fi
+    rm -rf "$RUN/ema/$1"
+    timed ema "${export[@]}" && recorded "$RUN/ema/$1" "$made_with"
   ) 9> "$RUN/ema/.lock"
 }
 

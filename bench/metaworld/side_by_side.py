@@ -29,6 +29,7 @@ import sys
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from files import replacing, write_json  # noqa: E402
 
 PER_ROW = 24  # frames per row of bwm's contact sheets (`write_mp4_or_sheet`'s in `bwm evaluate`)
 
@@ -165,9 +166,8 @@ def main(argv=None) -> None:
         else:
             image = np.concatenate(rows)
         name = f"{a.variant}-{a.task}-episode_{e:03d}.png"
-        tmp = os.path.join(a.out, name + ".tmp")
-        Image.fromarray(image).save(tmp, format="PNG")
-        os.replace(tmp, os.path.join(a.out, name))
+        with replacing(os.path.join(a.out, name), "wb") as f:
+            Image.fromarray(image).save(f, format="PNG")
         row = {"episode": e, "seed": seeds[e], "world_model_success": bool(r["success"]), "simulator_first_success": replayed.first,
                "closest_approach_cm": round(replayed.approach_cm, 2), "offset_at_closest_cm": [round(float(v), 2) for v in replayed.nearest_cm],
                "world_model_sheet": drawn, "psnr_db_by_chunk": psnr, "image": name}
@@ -178,10 +178,8 @@ def main(argv=None) -> None:
               f"{'; world model against simulator, PSNR by chunk ' + ', '.join('exact' if p is None else f'{p} dB' for p in psnr) if drawn else ''}"
               f"; {name}{'' if drawn else f' (the simulator alone: {why})'}",
               flush=True)
-    tmp = os.path.join(a.out, "side_by_side.json.tmp")
-    with open(tmp, "w") as f:
-        json.dump({"study": os.path.abspath(a.study), "task": a.task, "variant": a.variant, "resolution": resolution, "episodes": report}, f, indent=1)
-    os.replace(tmp, os.path.join(a.out, "side_by_side.json"))
+    write_json(os.path.join(a.out, "side_by_side.json"),
+               {"study": os.path.abspath(a.study), "task": a.task, "variant": a.variant, "resolution": resolution, "episodes": report})
 
 
 if __name__ == "__main__":

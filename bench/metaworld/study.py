@@ -60,6 +60,8 @@ import numpy as np
 
 import families
 import policies
+from files import read_json, replacing, write_json, write_text
+from mw import simulator_versions
 import variants as known_variants
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -193,9 +195,8 @@ def cached(path: str, name: str, key: dict, measure):
     the same `key`, or for the same key over more variants (`covering`: those rates of it kept);
     written atomically with the seconds it took."""
     value = None
-    if os.path.exists(path):
-        with open(path) as f:
-            found = json.load(f)
+    found = read_json(path)
+    if found is not None:
         if found.get("key") == key:
             return found[name]
         value = covering(found, name, key)
@@ -206,9 +207,7 @@ def cached(path: str, name: str, key: dict, measure):
         t0 = time.time()
         value = measure()
         seconds = time.time() - t0
-    with open(path + ".tmp", "w") as f:
-        json.dump({"key": key, name: value, "seconds": seconds}, f)
-    os.replace(path + ".tmp", path)
+    write_json(path, {"key": key, name: value, "seconds": seconds}, indent=None)
     return value
 
 
@@ -235,11 +234,11 @@ def covering(found: dict, name: str, key: dict) -> dict | None:
 def truth_key(episodes: dict, horizon: int, chunk: int, resolution: int, variants: list[str], clones: str | None = None) -> dict:
     """What a study's cached truth (and, without "outcome", its judged simulator frames) was
     measured for: the episodes' seeds, the loop's settings, the variants, the bytes of
-    TRUTH_SOURCES and those of the cloned policies among the variants (families.clones_digest:
-    a network trained on another machine is another policy)."""
+    TRUTH_SOURCES, the simulator's versions and those of the cloned policies among the variants
+    (families.clones_digest: a network trained on another machine is another policy)."""
     return {"episodes": {t: [s for _, s in e] for t, e in episodes.items()}, "horizon": horizon, "chunk": chunk,
             "resolution": resolution, "variants": variants,
-            "sources": {os.path.basename(p): file_digest(p) for p in TRUTH_SOURCES}, "clones": clones,
+            "sources": {os.path.basename(p): file_digest(p) for p in TRUTH_SOURCES}, "simulator": simulator_versions(), "clones": clones,
             "outcome": "first success step, closest approach (cm)"}
 
 
@@ -578,8 +577,7 @@ def write_config(path: str, variants: list[str], ports: dict, judge_url: str, da
     for t, eps in episodes.items():
         lines += ["[[tasks]]", f"name = {toml_str(t)}", f"prompt = {toml_str(t)}", f"dataset = {toml_str(os.path.abspath(data))}",
                   f"episodes = [{', '.join(str(p) for p, _ in eps)}]", 'pose_actions = "observation.state:0-3"', ""]
-    with open(path, "w") as f:
-        f.write("\n".join(lines))
+    write_text(path, "\n".join(lines))
 
 
 def evaluate_env(wm: list[str], jobs: int, environ) -> dict:
@@ -837,9 +835,13 @@ def main(argv=None) -> None:
         return
     judged = judge_the_simulator()
 
+    # A study of these episodes starts: an earlier one's results in this folder go, so that a study
+    # cut short is never read as complete (--rescore then sees it as cut).
+    for name in ("study.json", "study.csv", "study.svg"):
+        if os.path.exists(os.path.join(a.out, name)):
+            os.remove(os.path.join(a.out, name))
     seeds_path = os.path.join(a.out, "episode_seeds.json")
-    with open(seeds_path, "w") as f:
-        json.dump(key["episodes"], f)
+    write_json(seeds_path, key["episodes"], indent=None)
     servers = []
     try:
         python = sys.executable
@@ -883,17 +885,16 @@ def main(argv=None) -> None:
 
 def write_summary(out: str, summary: dict, tasks: list[str], chunk: int) -> None:
     """DIR/study.json, study.csv and study.svg, and the tables on stdout."""
-    with open(os.path.join(out, "study.json"), "w") as f:
-        json.dump(summary, f, indent=1)
-    with open(os.path.join(out, "study.csv"), "w") as f:
+    # The table and the figure first, study.json last: its presence says the study is complete.
+    with replacing(os.path.join(out, "study.csv")) as f:
         f.write("task,variant,episodes,true_success_rate,estimated_success_rate,errors,judge_on_simulator_rate,replayed_rate\n")
         for r in summary["rates"]:
             replayed = f"{r['replayed']:.4f}" if "replayed" in r else ""
             f.write(f"{r['task']},{r['variant']},{r['episodes']},{r['true']:.4f},{r['estimated']:.4f},{r['errors']},{r['judged_simulator']:.4f},{replayed}\n")
     a_ = summary["all"]
     title = f"r = {fmt(a_['pearson_r'])}, rho = {fmt(a_['spearman_rho'])}, MAE = {fmt(a_['mae'])}"
-    with open(os.path.join(out, "study.svg"), "w") as f:
-        f.write(svg_scatter(summary["rates"], tasks, title))
+    write_text(os.path.join(out, "study.svg"), svg_scatter(summary["rates"], tasks, title))
+    write_json(os.path.join(out, "study.json"), summary)
     print(f"{'task':26s} {'variant':10s} {'true':>6s} {'world model':>11s} {'judge on simulator':>18s} {'same outcome':>12s} {'kappa':>6s}"
           f" {'replayed':>8s}")
     for r in summary["rates"]:

@@ -24,6 +24,8 @@ import json
 import os
 import re
 
+from files import write_json
+
 
 def load_setting(folder: str) -> dict | None:
     """The measurements of one setting folder; None when either is missing."""
@@ -104,8 +106,7 @@ def main(argv=None) -> None:
         if s is not None:
             settings[name] = s
     report = compare(settings, a.baseline, a.horizon, a.max_psnr_drop, a.max_rate_change, a.rate_statistic)
-    with open(os.path.join(a.root, "sweep.json"), "w") as f:
-        json.dump(report, f, indent=1)
+    write_json(os.path.join(a.root, "sweep.json"), report)
     print(f"| setting | PSNR h={a.horizon} (all) | drop vs {a.baseline} (worst task) | success change, mean / largest | Pearson r | best first | within | fidelity / study seconds |")
     print("|---|---|---|---|---|---|---|---|")
     seconds = lambda r, k: format(r["seconds"][k], ".1f") if k in r["seconds"] else "-"

@@ -9,7 +9,7 @@
 # or "euler-4-streams2" (the episodes in flight of `bwm fidelity` and of each `bwm evaluate` in 2
 # lanes on CUDA streams of their own: the same sampler, timed), measured after the rest. Each
 # setting's stages are timed (by the recipe) into its folder's timings.tsv (the table's last column). Settings
-# already measured are skipped, so the sweep can run over several commands or sessions. SETTINGS (e.g. "euler-8 euler-12") measures those settings alone and
+# already measured on the same weights (their sha256 in the setting's folder, `model`) are skipped, so the sweep can run over several commands or sessions. SETTINGS (e.g. "euler-8 euler-12") measures those settings alone and
 # leaves the table out: a share of the sweep for one GPU of several, e.g.
 #   CUDA_VISIBLE_DEVICES=1 SETTINGS="euler-8 euler-12" bash bench/metaworld/sweep.sh &
 # with the baseline among the shares; a last plain `bash bench/metaworld/sweep.sh` (STEPS and
@@ -29,6 +29,9 @@ n_tasks=$("$PYTHON" -c 'import json, sys; print(json.load(open(sys.argv[1]))["to
 episodes="${FIDELITY_EPISODES:-$(seq -s, 0 $((n_tasks * SWEEP_EPISODES - 1)))}"
 baseline="${SWEEP_BASELINE:-euler-50}"
 mkdir -p "$RUN/sweep"
+# The weights measured: a setting measured on other weights (a model trained again into $RUN) is
+# measured again.
+model="$(cat "$RUN/checkpoints/latest") $(sha256sum < "$RUN/checkpoints/$(cat "$RUN/checkpoints/latest")/model.safetensors" | cut -c1-64)"
 # The baseline first (every other setting is judged against it), then by step count, each
 # solver in turn: a sweep cut short by the device's time still yields comparisons.
 settings=("$baseline")
@@ -45,9 +48,10 @@ for setting in "${settings[@]}"; do
   case "$base" in *-fp8*) fp8=${base##*-fp8} base=${base%-fp8*} ;; esac
   solver=${base%-*} steps=${base##*-}
   dir="$RUN/sweep/$setting"
-  if [ -f "$dir/fidelity/fidelity.json" ] && [ -f "$dir/study/study.json" ]; then
+  if [ -f "$dir/fidelity/fidelity.json" ] && [ -f "$dir/study/study.json" ] && [ "$(cat "$dir/model" 2>/dev/null)" = "$model" ]; then
     echo "sweep: $setting measured"; continue
   fi
+  rm -f "$dir/model"
   echo "sweep: $solver, $steps steps${fp8:+, FP8 ($fp8 scaling)}$([ "$streams" = 1 ] || echo ", $streams streams") ($(date +%H:%M:%S))"
   # The simulator's outcomes and the judge's verdicts on its frames do not depend on the sampler:
   # the baseline's are reused (study.py keys them by seeds, variants, the policies' code and judge, and measures
@@ -59,6 +63,7 @@ for setting in "${settings[@]}"; do
   RUN="$RUN" SOLVER="$solver" SAMPLE_STEPS="$steps" FP8="$fp8" FIDELITY_DIR="$dir/fidelity" FIDELITY_EPISODES="$episodes" \
     FIDELITY_STREAMS="$streams" STUDY_STREAMS="$streams" STUDY_DIR="$dir/study" TIMINGS="$dir/timings.tsv" \
     bash bench/metaworld/recipe.sh fidelity study
+  echo "$model" > "$dir/model"
 done
 [ -n "${SETTINGS:-}" ] && { echo "sweep: $SETTINGS measured; the table comes from a plain sweep.sh"; exit 0; }
 "$PYTHON" bench/metaworld/sweep.py "$RUN/sweep" --baseline "$baseline"

@@ -55,6 +55,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 
 import msgpack_numpy  # noqa: E402
+from files import write_json  # noqa: E402
 import study  # noqa: E402
 
 
@@ -334,9 +335,7 @@ def main(argv=None) -> None:
                            "own_episodes": a.own_episodes, "behaviours": a.behaviours},
               **summary, "episodes": results}
     path = os.path.join(a.out, "teacher.json")
-    with open(path + ".tmp", "w") as f:
-        json.dump(report, f, indent=1)
-    os.replace(path + ".tmp", path)
+    write_json(path, report)
     for r in summary["rates"]:
         print(f"teacher: {r['task']:26s} {r['variant']:10s} true {r['true']:.2f}  judged simulator {r['judged_simulator']:.2f}  "
               f"teacher-forced {r['teacher_forced']:.2f}  chunks invented {r['chunks_invented']} missed {r['chunks_missed']}")

@@ -27,6 +27,7 @@ from typing import Callable
 import numpy as np
 
 import study
+from files import write_json
 
 # The commanded hand is low enough to hook the drawer handle (at z 0.07 over its placements; the
 # expert pulls at 0.05) below this height (m).
@@ -192,8 +193,7 @@ def main(argv=None) -> None:
                   a.horizon, a.chunk, a.workers)
     print(report(out))
     if a.json:
-        with open(a.json, "w") as f:
-            json.dump(out, f, indent=1)
+        write_json(a.json, out)
 
 
 if __name__ == "__main__":

@@ -76,11 +76,12 @@ for arm in $ARMS; do
   set -f  # the settings may hold glob characters
   for kv in ${TRAIN_SETS:-}; do sets+=(--set "$kv"); done
   set +f
-  if [ ! -f "$dir/checkpoints/latest" ] || [ "$(cat "$dir/checkpoints/latest")" != "$(printf 'step-%08d' "$POST_STEPS")" ]; then
-    t0=$(date +%s.%N)
-    "$BWM" train --config configs/metaworld.toml "${sets[@]}" --resume auto
-    awk -v n="train-$arm" -v a="$t0" -v b="$(date +%s.%N)" 'BEGIN { printf "%s\t%.1f\n", n, b - a }' | tee -a "$T/timings.tsv"
-  fi
+  trained=0; [ "$(cat "$dir/checkpoints/latest" 2>/dev/null)" = "$(printf 'step-%08d' "$POST_STEPS")" ] && trained=1
+  # Run also where the arm is trained: `--resume auto` refuses a run of another model section or
+  # trainable set (another base, rank or arm), and does nothing where the run is complete.
+  t0=$(date +%s.%N)
+  "$BWM" train --config configs/metaworld.toml "${sets[@]}" --resume auto
+  [ "$trained" = 1 ] || awk -v n="train-$arm" -v a="$t0" -v b="$(date +%s.%N)" 'BEGIN { printf "%s\t%.1f\n", n, b - a }' | tee -a "$T/timings.tsv"
   RUN="$dir" recipe fidelity
   if [ "$CLOSED_LOOP" = 1 ]; then
     judge_file=$([ "${JUDGE_FRAMES:-reconstructed}" = real ] && echo judge.pt || echo judge-reconstructed.pt)
@@ -92,6 +93,7 @@ done
 "$PYTHON" - "$T" $ARMS <<'PY'
 import json, os, sys
 sys.path.insert(0, "bench/metaworld")
+from files import write_json
 from realtime import closed_loop, number
 root, arms = sys.argv[1], sys.argv[2:]
 out, closed = {}, {}
@@ -101,7 +103,7 @@ for arm in arms:
     p = os.path.join(root, arm, "study", "study.json")
     if os.path.isfile(p):
         closed[arm] = closed_loop(json.load(open(p)))
-json.dump({**out, **({"closed_loop": closed} if closed else {})}, open(os.path.join(root, "transfer.json"), "w"), indent=1)
+write_json(os.path.join(root, "transfer.json"), {**out, **({"closed_loop": closed} if closed else {})})
 print("| arm | h | model PSNR (SSIM) | copy last frame | other actions |")
 print("|---|---|---|---|---|")
 for arm, hs in out.items():

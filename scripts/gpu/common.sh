@@ -6,18 +6,26 @@ OUT="${OUT:-/tmp/out}"; mkdir -p "$OUT"
 export BWM_REQUIRE=all
 TL=$(python3 -c 'import torch,os;print(os.path.dirname(torch.__file__))')/lib
 export LD_LIBRARY_PATH=$TL:${LD_LIBRARY_PATH:-} NCCL_NVLS_ENABLE=0
-mem() { # $1 = log name; samples used memory every 50 ms while the rest of the arguments run
+mem() { # $1 = log name; samples used memory every 50 ms while the rest of the arguments run, and
+  # returns their exit status. A command that fails is named on its memory line and in $mem_failed,
+  # and the script that sourced this file then exits 1 (the trap below) even where it measures on.
   local log=$1; shift
   # nvidia-smi sees every GPU of the host whatever CUDA_VISIBLE_DEVICES says: sample the first visible one.
   local gpu=(); [[ "${CUDA_VISIBLE_DEVICES:-}" =~ ^[0-9]+ ]] && gpu=(-i "${BASH_REMATCH[0]}")
   nvidia-smi "${gpu[@]}" --query-gpu=memory.used --format=csv,noheader,nounits -lms 50 > "$OUT/$log.mem" &
   local pid=$!
   "$@" 2>&1 | tee "$OUT/$log.log"
-  kill $pid
+  local rc=${PIPESTATUS[0]}
+  kill $pid 2>/dev/null
   local base; base=$(head -1 "$OUT/$log.mem")
   local peak; peak=$(sort -n "$OUT/$log.mem" | tail -1)
-  echo "$log: peak GPU memory used ${peak} MiB (baseline ${base} MiB before the process)" | tee -a "$OUT/$log.log"
+  local failed=
+  if [ "$rc" != 0 ]; then failed="FAILED (exit status $rc); "; mem_failed="${mem_failed:-}${mem_failed:+ }$log"; fi
+  echo "$log: ${failed}peak GPU memory used ${peak} MiB (baseline ${base} MiB before the process)" | tee -a "$OUT/$log.log"
+  return "$rc"
 }
+mem_failed=
+trap 'rc=$?; if [ "$rc" = 0 ] && [ -n "$mem_failed" ]; then echo "failed: $mem_failed (their logs in $OUT)" >&2; exit 1; fi' EXIT
 second_half_median() { # $1 = a figure's unit in a log (s/step, samples/s), $2 = the log: "MEDIAN HALF N", the
   # median of the figure over the last HALF of its N values (the steps after warm-up; "none" without any)
   local n half

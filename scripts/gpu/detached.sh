@@ -22,6 +22,8 @@ set -uo pipefail
 usage() { echo "usage: detached.sh start NAME CMD [ARG ...] | wait NAME SECONDS [DIR ...]" >&2; exit 2; }
 [ $# -ge 2 ] || usage
 mode=$1 name=$2; shift 2
+# The name becomes a folder that `start` empties: a plain name only.
+[[ "$name" =~ ^[A-Za-z0-9_][A-Za-z0-9._-]*$ ]] || { echo "detached: NAME must be letters, digits, '.', '_' or '-' (not starting with '.' or '-'), got '$name'" >&2; exit 2; }
 dir=/tmp/detached/$name
 case "$mode" in
   start)

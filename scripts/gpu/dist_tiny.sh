@@ -12,8 +12,12 @@ source "$(dirname "$0")/common.sh"
 # The tiny config without its [validation] section (no VAE here, and no FFmpeg for rollout.mp4).
 sed '/^\[validation\]/,$d' configs/tiny.toml > /tmp/tiny-gpu.toml
 TINY=(--config /tmp/tiny-gpu.toml --set 'run.device="cuda"' --set 'model.dtype="f32"' --set log.tensorboard=false)
+# A run folder of an earlier call would hold its checkpoint: this run starts from none.
+rm -rf /tmp/nccl-tiny /tmp/kill-tiny
 dist/bwm launch --nproc-per-node 2 --master-port 29611 -- train "${TINY[@]}" --set train.steps=3 --set 'run.out_dir="/tmp/nccl-tiny"' 2>&1 | tee "$OUT/nccl-tiny.log"
-cp "/tmp/nccl-tiny/checkpoints/$(cat /tmp/nccl-tiny/checkpoints/latest)/model.safetensors" "$OUT/nccl-model.safetensors"
+rc=${PIPESTATUS[0]}
+[ "$rc" = 0 ] || { echo "dist_tiny: the NCCL run failed (exit status $rc), no weights to compare" >&2; exit 1; }
+cp "/tmp/nccl-tiny/checkpoints/$(cat /tmp/nccl-tiny/checkpoints/latest)/model.safetensors" "$OUT/nccl-model.safetensors" || exit 1
 
 [ "${KILL:-1}" = 0 ] && exit 0
 # Started by hand, the ranks need what `bwm launch` sets up: a libnccl.so link to the torch wheel's

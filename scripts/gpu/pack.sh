@@ -11,7 +11,8 @@
 #   bash scripts/gpu/metaworld.sh data   (needs .whl, .gl and .pack)
 #   bash scripts/gpu/unit.sh             (needs .pack-tests)
 # The unit tests are packed apart, so that a copy holds only what its scripts read. The four
-# folders are git-ignored (.gitignore), so that they stay out of commits. Respects BWM_VENV and CARGO_TARGET_DIR (default ~/.cache/bwm-gpu-target, kept apart
+# folders are git-ignored (.gitignore), so that they stay out of commits. The binaries are rebuilt
+# when the source changed since they were packed (.pack/source). Respects BWM_VENV and CARGO_TARGET_DIR (default ~/.cache/bwm-gpu-target, kept apart
 # from the CPU build's target: the feature sets differ).
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/../.."
@@ -33,6 +34,13 @@ pack() { # $1 = executable, $2 = path without .xz (under .pack or .pack-tests): 
   strip -o "$2.tmp" "$1"
   xz -T0 -6 -c "$2.tmp" > "$2.xz.tmp" && rm "$2.tmp" && mv "$2.xz.tmp" "$2.xz"
 }
+# The binaries' source: the commit and a hash of the uncommitted changes to tracked files and of the
+# untracked files' names, kept beside them (.pack/source): binaries of other source are rebuilt.
+source_now="$(git rev-parse HEAD) $( (git diff HEAD; git ls-files --others --exclude-standard) | sha256sum | cut -c1-16)"
+if [ -f .pack/bwm.xz ] && [ "$(cat .pack/source 2>/dev/null)" != "$source_now" ]; then
+  echo "pack: .pack was built from other source ($(cat .pack/source 2>/dev/null || echo unrecorded)); rebuilding"
+  rebuild=1
+fi
 if [ $rebuild = 1 ] || [ ! -f .pack/bwm.xz ] || [ "$(ls .pack-tests/test-*.xz 2>/dev/null | wc -l)" -lt 7 ]; then
   echo "pack: building bwm without FFmpeg/HDF5 into $CARGO_TARGET_DIR (several minutes cold)"
   cargo build --release -p bwm-cli --no-default-features
@@ -45,6 +53,7 @@ if [ $rebuild = 1 ] || [ ! -f .pack/bwm.xz ] || [ "$(ls .pack-tests/test-*.xz 2>
       "$BWM_VENV/bin/python" -c 'import json,sys; print([m["executable"] for m in map(json.loads, sys.stdin) if m.get("executable")][-1])')
     pack "$exe" ".pack-tests/test-${test%%:*}"
   done
+  echo "$source_now" > .pack/source
 fi
 
 # Pinned as bench/metaworld/requirements.txt and the virtualenv's safetensors; websockets as the

@@ -24,14 +24,18 @@ chain() { # $1 = index, $2 = GPU:SETTING,...
   mkdir -p "$base/c$1"
   CUDA_VISIBLE_DEVICES=${2%%:*} OUT=$base/c$1 SETTINGS="$(tr , ' ' <<< "${2#*:}")" bash scripts/gpu/metaworld.sh sweep > "$base/c$1.log" 2>&1
 }
+started() { # $1 = index, $2 = its pid: waits until chain $1's sweep began (its training stage done)
+  until grep -q "^sweep: " "$base/c$1/sweep.log" 2>/dev/null; do
+    kill -0 "$2" 2>/dev/null || { echo "sweep_split: chain $1 ended before its sweep began ($base/c$1.log)"; return 1; }
+    sleep 2
+  done
+}
 chain 0 "${chains[0]}" &
 first=$!
-until grep -q "^sweep: " "$base/c0/sweep.log" 2>/dev/null; do
-  kill -0 $first 2>/dev/null || { echo "sweep_split: the first chain ended before its sweep began ($base/c0.log)"; exit 1; }
-  sleep 2
-done
+started 0 $first || exit 1
 echo "sweep_split: trained at $(date +%H:%M:%S)"
 pids=($first)
+status=0
 for i in $(seq 1 $((${#chains[@]} - 1))); do
   for s in $(tr , ' ' <<< "${chains[$i]#*:}"); do
     mkdir -p "$R/sweep/$s/study"
@@ -39,8 +43,10 @@ for i in $(seq 1 $((${#chains[@]} - 1))); do
   done
   chain "$i" "${chains[$i]}" &
   pids+=($!)
+  # One at a time through the training stage: each chain's `bwm train --resume auto` (nothing
+  # left to train) takes the run folder's lock, which a second one at the same moment is refused.
+  started "$i" $! || status=1
 done
-status=0
 for p in "${pids[@]}"; do wait "$p" || status=1; done
 echo "sweep_split: done at $(date +%H:%M:%S) (status $status)"
 exit $status

@@ -19,7 +19,7 @@ mem lora64_recompute dist/bwm bench-train "${common[@]}" "${LORA64[@]}" --out /t
 if [ "${RECOMPUTE:-true}" = false ]; then
   mem lora64 dist/bwm bench-train "${common[@]}" "${LORA64[@]}" --set train.recompute=false --out /tmp/bench-lora2
 fi
-# Full fine-tuning needs about 98 GB with every block recomputed (docs/performance.md, "LoRA
+# Full fine-tuning needs about 95.5 GiB (97,777 MiB) with every block recomputed (docs/performance.md, "LoRA
 # post-training of the 5B on one H100 80 GB"): FULL=1 on an
 # H200 call.
 if [ "${FULL:-0}" = 1 ]; then

@@ -13,7 +13,7 @@
 # (default 4): `bwm bench-train --distill K` (a frozen teacher of random weights, 1+8+72 frames at
 # 640x480, batch 1, every block recomputed, STEPS steps, default 5, the median of those after the
 # first) for each word of WEIGHTS (default "lora full"): with the LoRA guide's rank-64 adapters, and
-# with full weights where the GPU holds 120 GB or more (full fine-tuning alone needs about 98 GB):
+# with full weights where the GPU holds 120 GB or more (full fine-tuning alone needs 97,777 MiB):
 # its time and peak memory, also in
 # realtime_5b.txt. Logs: $OUT/roll-DECODER-sSTEPS.log, reference-rollout.log,
 # distill-{lora,full}-sK.log.
@@ -66,7 +66,7 @@ gpu_mib=$(nvidia-smi --query-gpu=memory.total --format=csv,noheader,nounits | he
 for k in $students; do
   for weights in ${WEIGHTS:-lora full}; do
     if [ $weights = full ] && [ "${gpu_mib:-0}" -lt 120000 ]; then
-      echo "realtime_5b: distillation, full weights, a student of $k step(s): not run, the GPU holds ${gpu_mib:-no} MiB (full fine-tuning alone needs about 98 GB)"
+      echo "realtime_5b: distillation, full weights, a student of $k step(s): not run, the GPU holds ${gpu_mib:-no} MiB (full fine-tuning alone needs 97,777 MiB)"
       continue
     fi
     log=distill-$weights-s$k

@@ -111,6 +111,13 @@ fn fidelity_report_scores_rollouts_and_baselines_per_frame_and_horizon() {
     assert!(other.status.success());
     let said = String::from_utf8_lossy(&other.stdout).into_owned();
     assert!(said.contains("scored with other settings; starting over") && said.matches("PSNR model").count() == 3, "{said}");
+    // The same settings with the VAE written again at its path (weights trained again): their
+    // episodes are scored again, not taken from the earlier file's run.
+    write_random_vae(&vae, 6);
+    let rewritten = fidelity(&["--vae", vae.to_str().unwrap(), "--data", data.to_str().unwrap(), "--out", out.to_str().unwrap(), "--seed", "7"]);
+    assert!(rewritten.status.success());
+    let said = String::from_utf8_lossy(&rewritten.stdout).into_owned();
+    assert!(said.contains("scored with other settings; starting over") && said.matches("PSNR model").count() == 3, "{said}");
 
     // One episode cannot be driven by another's actions: a clear error.
     let one = fidelity(&["--vae", vae.to_str().unwrap(), "--data", data.to_str().unwrap(), "--out", dir.join("one").to_str().unwrap(), "--episodes", "0"]);

@@ -78,6 +78,13 @@ print(json.dumps(t["action"]))
     let again = rollout(&[&common[..], &["--episodes", "0,1"]].concat());
     assert!(!again.status.success());
     assert!(String::from_utf8_lossy(&again.stderr).contains("already holds a dataset"));
+    // --resume with a list that does not begin with the episode written, or with other sampler
+    // settings, is refused: it would relabel episode 0 as another's.
+    for other in [&["--episodes", "1,0", "--resume"][..], &["--episodes", "0,1", "--seed", "3", "--resume"][..]] {
+        let refused = rollout(&[&common[..], other].concat());
+        let said = String::from_utf8_lossy(&refused.stderr);
+        assert!(!refused.status.success() && said.contains("its 1 episodes were rolled out from other weights or settings"), "{other:?}: {said}");
+    }
     let resumed = rollout(&[&common[..], &["--episodes", "0,1", "--resume"]].concat());
     assert!(resumed.status.success());
     assert_eq!(open_dataset(&out).unwrap().episodes().len(), 2);

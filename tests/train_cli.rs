@@ -363,6 +363,9 @@ fn a_lora_run_exports_and_rolls_out_through_the_cli() {
     assert_eq!((config["r"].as_i64(), config["peft_type"].as_str()), (Some(2), Some("LORA")), "{config}");
     // The action encoder trained beside the adapters cannot go into an adapter file: said so.
     assert!(!text.contains("left out") || text.contains("--merge-lora"), "{text}");
+    // Flags an adapter file cannot honour are refused, not dropped.
+    let (ok, text) = export(&["--ema", "--out", dir.join("ema-adapters").to_str().unwrap()]);
+    assert!(!ok && text.contains("--ema: a LoRA checkpoint's adapters are exported alone"), "{text}");
 
     let merged = dir.join("merged");
     let (ok, text) = export(&["--merge-lora", "--layout", "diffusers", "--out", merged.to_str().unwrap()]);

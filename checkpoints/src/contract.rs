@@ -180,7 +180,11 @@ impl InputContract {
             ensure!(a.dim > 0, "actions.dim is 0");
             ensure!(a.components.is_empty() || a.components.len() == a.dim, "{} action components named for {} values", a.components.len(), a.dim);
             if let Some(n) = &a.normalization {
+                n.stats.check().context("actions.normalization.stats")?;
                 ensure!(n.stats.dim() == a.dim, "the normalization statistics have {} values, the actions {}", n.stats.dim(), a.dim);
+            }
+            if let Some(definition) = &a.definition {
+                definition.validate().context("actions.definition")?;
             }
         }
         if let Some(f) = &self.frames {
@@ -391,6 +395,17 @@ mod tests {
         assert!(e.contains(CONTRACT_FILE) && e.contains("extra"), "{e}");
         let lines = c.describe().join("\n");
         assert!(lines.contains("actions: 4 values per frame") && lines.contains("128x96") && lines.contains("x0 + 8 history frames, 24 generated"), "{lines}");
+
+        // Statistics with a field short of the width, or a definition that cannot be applied,
+        // are refused when the contract is read, not when an action is normalized.
+        let mut short = c.clone();
+        short.actions.as_mut().unwrap().normalization.as_mut().unwrap().stats.max.pop();
+        let e = format!("{:#}", short.validate().unwrap_err());
+        assert!(e.contains("actions.normalization.stats: 'max' has 3 values, 'p01' 4"), "{e}");
+        let mut bad = c.clone();
+        bad.actions.as_mut().unwrap().definition.as_mut().unwrap().absolute_to_delta = vec![9];
+        let e = format!("{:#}", bad.validate().unwrap_err());
+        assert!(e.contains("actions.definition: absolute_to_delta position 9"), "{e}");
     }
 
     /// Each mismatch is one line naming the given value and the contract's; absent sections

@@ -98,7 +98,17 @@ pub fn convert_dit(input: &str, output: &Path, opts: &ConvertOptions, progress: 
     let names: Vec<(String, Vec<i64>)> = match &cfg {
         Some(c) => {
             check_fits(source.as_ref(), c, input)?;
-            model_keys(c)?.into_iter().filter(|(n, _)| present.contains(n)).collect()
+            let keys = model_keys(c)?;
+            // Only the text embedding may be absent (unused when actions replace the text): a
+            // checkpoint of a partly trained set lacks frozen tensors no loader could do without.
+            let lacking: Vec<&str> = keys.iter().map(|(n, _)| n.as_str()).filter(|n| !present.contains(*n) && !n.starts_with(TEXT_EMBEDDING_PREFIX)).collect();
+            ensure!(
+                lacking.is_empty(),
+                "{input} lacks {} tensors of the model (e.g. '{}'): a training checkpoint of a partly trained set; `bwm export --checkpoint {input} --base BASE` fills them from the base weights",
+                lacking.len(),
+                lacking[0]
+            );
+            keys.into_iter().filter(|(n, _)| present.contains(n)).collect()
         }
         None => present.iter().map(|n| (n.clone(), source.shape(n).unwrap_or_default())).collect(),
     };

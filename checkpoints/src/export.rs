@@ -334,7 +334,7 @@ fn read_action_stats(path: &Path, group: Option<&str>, action_dim: i64) -> Resul
 
 /// The input contract an export carries: the checkpoint's (its `contract.json`), else one made
 /// from the run's latent cache where it is still reachable, else the action width alone; the
-/// normalization of `--action-stats` replaces the recorded one.
+/// normalization of `--action-stats` is added where none is recorded, and must equal a recorded one.
 fn export_contract(input: &Path, run: Option<&RunInfo>, action_dim: usize, stats: Option<&(serde_json::Value, String)>) -> Result<crate::contract::InputContract> {
     use crate::contract::{read, InputContract, Normalization, NORMALIZATION_FORMULA};
     let mut contract = match read(input)? {
@@ -346,7 +346,20 @@ fn export_contract(input: &Path, run: Option<&RunInfo>, action_dim: usize, stats
     };
     if let Some((value, group)) = stats {
         let parsed: bwm_data::ActionStats = serde_json::from_value(value[group].clone()).with_context(|| format!("--action-stats group '{group}'"))?;
+        parsed.check().with_context(|| format!("--action-stats group '{group}'"))?;
         let actions = contract.actions.get_or_insert_with(|| InputContract::of_model(action_dim).actions.unwrap());
+        // Weights trained with recorded statistics take their actions normalized by those: others
+        // would have every caller normalize otherwise than training did.
+        if let Some(recorded) = &actions.normalization {
+            let same = |a: &[f64], b: &[f64]| a.len() == b.len() && a.iter().zip(b).all(|(x, y)| (x - y).abs() <= 1e-9 * x.abs().max(y.abs()).max(1.0));
+            let (r, p) = (&recorded.stats, &parsed);
+            ensure!(
+                recorded.group == *group && same(&r.p01, &p.p01) && same(&r.p99, &p.p99) && same(&r.min, &p.min) && same(&r.max, &p.max),
+                "--action-stats (group '{group}') differs from the statistics these weights were trained with (group '{}', recorded in {}); leave --action-stats out to export those",
+                recorded.group,
+                crate::contract::CONTRACT_FILE
+            );
+        }
         actions.normalization = Some(Normalization { formula: NORMALIZATION_FORMULA.into(), group: group.clone(), stats: parsed });
     }
     contract.check_action_dim(action_dim, "the weights")?;
@@ -403,7 +416,7 @@ pub fn export(input: &str, out: &Path, opts: &ExportOptions, progress: &mut dyn 
         p.state.as_ref().and_then(|_| p.input.canonicalize().ok()).and_then(|c| c.parent()?.parent().map(|r| r.join("metrics.jsonl")))
     });
     let metrics = match &metrics_path {
-        Some(m) => summarize_metrics(m)?,
+        Some(m) => summarize_metrics(m, p.state.as_ref().map(|s| s.step))?,
         None => None,
     };
     if opts.metrics.is_some() && metrics.is_none() {
@@ -557,4 +570,27 @@ fn ema_weights(dir: &Path, model_file: &Path) -> Result<TensorSource> {
         tensors.push((name, flat.view(shape.as_slice())));
     }
     Ok(TensorSource::new(tensors, format!("EMA weights of {}", dir.display())))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::contract::{write, InputContract, Normalization, NORMALIZATION_FORMULA};
+
+    #[test]
+    fn action_statistics_other_than_the_recorded_ones_are_refused() {
+        let dir = bwm_testdir::tmp_dir("export-stats");
+        let stats = |p99: f64| bwm_data::ActionStats { shape: vec![2], min: vec![-2.0; 2], max: vec![2.0; 2], p01: vec![-1.0; 2], p99: vec![p99; 2], mean: vec![0.0; 2], std: vec![0.5; 2] };
+        let given = |p99: f64| (serde_json::json!({ "state_pose": stats(p99) }), "state_pose".to_string());
+        // No statistics recorded: the given ones are taken.
+        let c = export_contract(dir.path(), None, 2, Some(&given(1.0))).unwrap();
+        assert_eq!(c.actions.as_ref().unwrap().normalization.as_ref().unwrap().stats, stats(1.0));
+        // Recorded: the same ones pass, others are refused.
+        let mut recorded = InputContract::of_model(2);
+        recorded.actions.as_mut().unwrap().normalization = Some(Normalization { formula: NORMALIZATION_FORMULA.into(), group: "state_pose".into(), stats: stats(1.0) });
+        write(dir.path(), &recorded).unwrap();
+        export_contract(dir.path(), None, 2, Some(&given(1.0))).unwrap();
+        let e = export_contract(dir.path(), None, 2, Some(&given(1.5))).unwrap_err().to_string();
+        assert!(e.contains("differs from the statistics these weights were trained with"), "{e}");
+    }
 }

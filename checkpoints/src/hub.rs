@@ -219,6 +219,8 @@ pub enum PushEvent {
     /// Bytes of one LFS file sent so far.
     Uploading { path: String, sent: u64, total: u64 },
     AlreadyOnHub { path: String },
+    /// Files the repo holds and the folder does not, deleted by the commit.
+    Deleting { paths: Vec<String> },
     Committing { files: usize },
 }
 
@@ -231,6 +233,9 @@ pub struct PushReport {
     pub regular_files: usize,
     /// LFS files the Hub already had (no upload).
     pub lfs_skipped: usize,
+    /// Files of an earlier push that the folder does not hold, deleted (a stale shard or index
+    /// of another layout would otherwise sit beside the new weights).
+    pub deleted: Vec<String>,
 }
 
 struct LocalFile {
@@ -335,14 +340,27 @@ impl Hub<'_> {
         serde_json::from_str(&text).with_context(|| format!("{what}: the answer is not JSON: {}", text.chars().take(200).collect::<String>()))
     }
 
-    /// Creates the repo; an existing one is fine.
+    /// Creates the repo; an existing one is fine, unless the push asks for a private repo and it
+    /// is public (the weights would be published).
     fn create_repo(&self) -> Result<bool> {
         let (owner, name) = self.opts.repo_id.split_once('/').context("repo id must be owner/name")?;
         let body = serde_json::json!({"name": name, "organization": owner, "private": self.opts.private, "type": "model"});
         let url = format!("{}/api/repos/create", self.opts.endpoint);
         match self.auth(self.agent.post(&url)).set("Content-Type", "application/json").send_string(&body.to_string()) {
             Ok(_) => Ok(true),
-            Err(ureq::Error::Status(409, _)) => Ok(false),
+            Err(ureq::Error::Status(409, _)) => {
+                if self.opts.private {
+                    let what = format!("reading repo {}'s visibility", self.opts.repo_id);
+                    let url = format!("{}/api/models/{}", self.opts.endpoint, self.opts.repo_id);
+                    let info = Self::json(self.auth(self.agent.get(&url)).call().map_err(|e| call_error(&what, e))?, &what)?;
+                    ensure!(
+                        info.get("private").and_then(serde_json::Value::as_bool) == Some(true),
+                        "repo {} exists and is public: --private would publish these weights in it; make it private on the Hub first, or push to a new repo",
+                        self.opts.repo_id
+                    );
+                }
+                Ok(false)
+            }
             Err(e) => Err(call_error(&format!("creating repo {}", self.opts.repo_id), e)),
         }
     }
@@ -487,7 +505,16 @@ impl Hub<'_> {
         Ok(())
     }
 
-    fn commit(&self, files: &[LocalFile], lfs: &std::collections::BTreeSet<String>) -> Result<serde_json::Value> {
+    /// The paths of the files at the pushed revision.
+    fn remote_files(&self) -> Result<Vec<String>> {
+        let what = format!("listing the files of {}", self.opts.repo_id);
+        let url = format!("{}/api/models/{}/revision/{}", self.opts.endpoint, self.opts.repo_id, self.opts.revision);
+        let info = Self::json(self.auth(self.agent.get(&url)).call().map_err(|e| call_error(&what, e))?, &what)?;
+        let siblings = info.get("siblings").and_then(serde_json::Value::as_array).with_context(|| format!("{what}: no 'siblings' in the answer"))?;
+        Ok(siblings.iter().filter_map(|s| s.get("rfilename").and_then(serde_json::Value::as_str).map(String::from)).collect())
+    }
+
+    fn commit(&self, files: &[LocalFile], lfs: &std::collections::BTreeSet<String>, deleted: &[String]) -> Result<serde_json::Value> {
         let mut body = String::new();
         let header = serde_json::json!({"key": "header", "value": {"summary": self.opts.commit_message, "description": ""}});
         body.push_str(&header.to_string());
@@ -500,6 +527,10 @@ impl Hub<'_> {
                 serde_json::json!({"key": "file", "value": {"content": base64::engine::general_purpose::STANDARD.encode(bytes), "path": f.rel, "encoding": "base64"}})
             };
             body.push_str(&line.to_string());
+            body.push('\n');
+        }
+        for path in deleted {
+            body.push_str(&serde_json::json!({"key": "deletedFile", "value": {"path": path}}).to_string());
             body.push('\n');
         }
         let url = format!("{}/api/models/{}/commit/{}", self.opts.endpoint, self.opts.repo_id, self.opts.revision);
@@ -567,8 +598,19 @@ pub fn push_folder(folder: &Path, opts: &PushOptions, progress: &mut dyn FnMut(&
         .collect();
     let lfs_files: Vec<&LocalFile> = files.iter().filter(|f| lfs.contains(&f.rel)).collect();
     let lfs_skipped = hub.lfs_upload(&lfs_files, progress)?;
+    // The repo's files become the folder's: what an existing repo holds beyond them goes in the
+    // same commit (the Hub's own .gitattributes stays).
+    let deleted: Vec<String> = if created {
+        Vec::new()
+    } else {
+        let local: std::collections::BTreeSet<&str> = files.iter().map(|f| f.rel.as_str()).collect();
+        hub.remote_files()?.into_iter().filter(|r| r != ".gitattributes" && !local.contains(r.as_str())).collect()
+    };
+    if !deleted.is_empty() {
+        progress(&PushEvent::Deleting { paths: deleted.clone() });
+    }
     progress(&PushEvent::Committing { files: files.len() });
-    let answer = hub.commit(&files, &lfs)?;
+    let answer = hub.commit(&files, &lfs, &deleted)?;
     let s = |k: &str| answer.get(k).and_then(|v| v.as_str()).map(String::from);
     Ok(PushReport {
         repo_url,
@@ -577,6 +619,7 @@ pub fn push_folder(folder: &Path, opts: &PushOptions, progress: &mut dyn FnMut(&
         lfs_files: lfs.len(),
         regular_files: files.len() - lfs.len(),
         lfs_skipped,
+        deleted,
     })
 }
 

@@ -21,18 +21,21 @@ pub struct MetricsSummary {
     pub mean_samples_per_s: Option<f64>,
 }
 
-pub fn summarize_metrics(path: &Path) -> Result<Option<MetricsSummary>> {
+/// The summary of the run's metrics up to step `up_to` (the exported checkpoint's; None: all). A
+/// step logged twice (a run resumed from a checkpoint before it) counts once, as last logged.
+pub fn summarize_metrics(path: &Path, up_to: Option<u64>) -> Result<Option<MetricsSummary>> {
     let Ok(text) = std::fs::read_to_string(path) else { return Ok(None) };
-    let rows: Vec<(u64, f64, Option<f64>)> = text
+    let by_step: std::collections::BTreeMap<u64, (f64, Option<f64>)> = text
         .lines()
         .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
         .filter_map(|v| {
             let step = v.get("step")?.as_u64()?;
             let loss = v.get("loss")?.as_f64()?;
-            Some((step, loss, v.get("samples_per_s").and_then(|s| s.as_f64())))
+            Some((step, (loss, v.get("samples_per_s").and_then(|s| s.as_f64()))))
         })
-        .filter(|(_, l, _)| l.is_finite())
+        .filter(|(step, (l, _))| l.is_finite() && up_to.is_none_or(|last| *step <= last))
         .collect();
+    let rows: Vec<(u64, f64, Option<f64>)> = by_step.into_iter().map(|(step, (loss, sps))| (step, loss, sps)).collect();
     if rows.is_empty() {
         return Ok(None);
     }
@@ -208,4 +211,22 @@ or `bwm convert dit {repo} OUT --to wan|diffusers|bwm-release`.\n\n"
     }
     s += "## License\n\nApache-2.0, as the Wan2.2 base model.\n";
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_summary_stops_at_the_exported_step_and_counts_a_relogged_step_once() {
+        let dir = bwm_testdir::tmp_dir("model-card-metrics");
+        let path = dir.path().join("metrics.jsonl");
+        // Steps 1-3, then a resume from step 2's checkpoint logs 3 again, then 4 and 5.
+        let lines = [(1, 4.0), (2, 3.0), (3, 9.0), (3, 2.0), (4, 1.5), (5, 1.0)];
+        std::fs::write(&path, lines.iter().map(|(s, l)| format!("{{\"step\": {s}, \"loss\": {l}}}\n")).collect::<String>()).unwrap();
+        let at3 = summarize_metrics(&path, Some(3)).unwrap().unwrap();
+        assert_eq!((at3.records, at3.last_step, at3.last_loss, at3.min_loss), (3, 3, 2.0, 2.0));
+        let all = summarize_metrics(&path, None).unwrap().unwrap();
+        assert_eq!((all.records, all.last_step, all.last_loss), (5, 5, 1.0));
+    }
 }

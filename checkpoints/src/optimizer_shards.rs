@@ -106,7 +106,12 @@ impl OptimizerState {
                 layout.len(),
                 layout.iter().map(|(_, n)| n).sum::<usize>()
             );
-            let range = field(START)?.parse::<usize>()?..field(END)?.parse::<usize>()?;
+            let bound = |k: &str| -> Result<usize> {
+                let v = field(k)?;
+                v.parse().with_context(|| format!("{}: '{k}' is {v:?}, not an element index", path.display()))
+            };
+            let range = bound(START)?..bound(END)?;
+            ensure!(range.start <= range.end, "{}: its elements {}..{} run backwards", path.display(), range.start, range.end);
             shards.push(ShardFile { path, range, mmap });
         }
         let legacy = if shards.is_empty() && dir.join(LEGACY_FILE).is_file() {
@@ -130,7 +135,14 @@ impl OptimizerState {
                     dir.display(),
                     s.range.start
                 );
-                covered = covered.max(s.range.end);
+                ensure!(
+                    s.range.start == covered,
+                    "{}: optimizer shards overlap at elements {}..{covered} ({})",
+                    dir.display(),
+                    s.range.start,
+                    s.path.display()
+                );
+                covered = s.range.end;
             }
             ensure!(
                 covered >= total,
@@ -167,10 +179,11 @@ impl OptimizerState {
     /// layout's end (padding) are zero.
     pub fn read_range(&self, key: &str, range: Range<usize>, device: Device) -> Result<Tensor> {
         let out = Tensor::zeros([range.len() as i64], (Kind::Float, Device::Cpu));
-        let copy = |bytes: &[u8], src_start: usize, what: &dyn Fn() -> String| -> Result<()> {
+        let copy = |bytes: &[u8], src_start: usize, expected: usize, what: &dyn Fn() -> String| -> Result<()> {
             // Elements [src_start, src_start + n) of the flat state, f32 little-endian.
             ensure!(bytes.len() % 4 == 0, "{}: not f32 data", what());
             let n = bytes.len() / 4;
+            ensure!(n == expected, "{}: {n} elements where its place in the state holds {expected}", what());
             let (lo, hi) = (range.start.max(src_start), range.end.min(src_start + n));
             if lo < hi {
                 let piece = Tensor::from_data_size(
@@ -197,7 +210,7 @@ impl OptimizerState {
                             view.dtype() == safetensors::Dtype::F32,
                             "'{key_name}' is not f32"
                         );
-                        copy(view.data(), offset, &|| key_name.clone())?;
+                        copy(view.data(), offset, *n, &|| key_name.clone())?;
                     }
                     offset += n;
                 }
@@ -217,7 +230,7 @@ impl OptimizerState {
                         "{}: '{key}' is not f32",
                         s.path.display()
                     );
-                    copy(view.data(), s.range.start, &|| s.path.display().to_string())?;
+                    copy(view.data(), s.range.start, s.range.len(), &|| format!("{}: '{key}'", s.path.display()))?;
                 }
             }
         }
@@ -311,6 +324,22 @@ mod tests {
             .expect("a gap is an error")
             .to_string()
             .contains("uncovered"));
+        // A shard whose data is shorter than its range, or whose range overlaps another's, is
+        // refused rather than read as zeros or overwritten.
+        let shard = |range: Range<usize>, n: i64| {
+            let meta = BTreeMap::from([
+                (START.to_string(), range.start.to_string()),
+                (END.to_string(), range.end.to_string()),
+                (LAYOUT.to_string(), serde_json::to_string(&layout).unwrap()),
+            ]);
+            write_tensors(&dir.join(shard_file_name(1, 3)), &[("master".into(), flat.narrow(0, 4, n))], &meta).unwrap();
+        };
+        shard(4..8, 3);
+        let e = OptimizerState::open(&dir, &layout).unwrap().read_range("master", 0..12, Device::Cpu).unwrap_err().to_string();
+        assert!(e.contains("3 elements where its place in the state holds 4"), "{e}");
+        shard(3..8, 5);
+        let e = OptimizerState::open(&dir, &layout).err().expect("an overlap is an error").to_string();
+        assert!(e.contains("optimizer shards overlap at elements 3..4"), "{e}");
 
         let legacy = dir.join("legacy");
         std::fs::create_dir_all(&legacy).unwrap();

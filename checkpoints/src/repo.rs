@@ -340,7 +340,8 @@ pub fn human_bytes(b: u64) -> String {
 /// GB = 10^9; binary ones with `iB`).
 pub fn parse_size(s: &str) -> Result<u64> {
     let t = s.trim();
-    let split = t.find(|c: char| c.is_ascii_alphabetic()).unwrap_or(t.len());
+    // A bare number (`1e9` too: its `e` is an exponent, not a unit) is bytes.
+    let split = if t.parse::<f64>().is_ok() { t.len() } else { t.find(|c: char| c.is_ascii_alphabetic()).unwrap_or(t.len()) };
     let (num, unit) = t.split_at(split);
     let value: f64 = num.trim().parse().with_context(|| format!("'{s}' is not a size (e.g. 5GB, 500MB, 10MiB)"))?;
     let mult: f64 = match unit.trim().to_ascii_lowercase().as_str() {
@@ -369,6 +370,7 @@ mod tests {
         assert_eq!(parse_size("5GB").unwrap(), 5_000_000_000);
         assert_eq!(parse_size("10MiB").unwrap(), 10 * 1024 * 1024);
         assert_eq!(parse_size("1234").unwrap(), 1234);
+        assert_eq!(parse_size("1e9").unwrap(), 1_000_000_000);
         assert!(parse_size("5 parsecs").is_err());
         assert!(parse_size("0").is_err());
         let p = |n: i64| Planned { wan: String::new(), file_key: String::new(), shape: vec![n], kind: Kind::Float };

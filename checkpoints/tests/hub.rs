@@ -197,6 +197,9 @@ fn serve() -> Loopback {
                                 _ => ok = false,
                             }
                         }
+                        "deletedFile" => {
+                            s.files.remove(&p);
+                        }
                         other => panic!("unexpected commit line {other}"),
                     }
                 }
@@ -205,6 +208,12 @@ fn serve() -> Loopback {
                     json(serde_json::json!({"commitUrl": format!("{base}/{REPO}/commit/{COMMIT}"), "commitOid": COMMIT}))
                 } else {
                     json(serde_json::json!({"error": "an lfsFile was not uploaded, or a regular file is over 10 MiB"})).with_status_code(422)
+                }
+            } else if method == "GET" && path == api && authed {
+                let private = s.created.iter().find(|(n, _)| n == REPO).map(|(_, p)| *p);
+                match private {
+                    Some(p) => json(serde_json::json!({"id": REPO, "private": p})),
+                    None => json(serde_json::json!({"error": "Repository not found"})).with_status_code(404),
                 }
             } else if method == "GET" && path == format!("{api}/revision/main") {
                 let siblings: Vec<serde_json::Value> = s.files.keys().map(|k| serde_json::json!({"rfilename": k})).collect();
@@ -290,9 +299,27 @@ fn push_uploads_lfs_and_regular_files_then_the_repo_loads_from_the_cache() {
     assert!(events.iter().any(|e| matches!(e, PushEvent::Uploading { sent, total, .. } if sent == total)), "progress reported");
     assert_eq!(report.commit_oid.as_deref(), Some(COMMIT));
 
-    // Pushing again: the repo exists (409 is fine) and the LFS objects are already stored.
+    // Pushing again: the repo exists (409 is fine) and the LFS objects are already stored; a
+    // file of an earlier push that this folder lacks (a shard of another layout) is deleted, the
+    // Hub's .gitattributes kept.
+    for stale in ["old-layout-00001-of-00002.safetensors", ".gitattributes"] {
+        server.state.lock().unwrap().files.insert(stale.into(), b"x".to_vec());
+    }
     let again = push_folder(&out, &push, &mut |_| {}).unwrap();
     assert_eq!(again.lfs_skipped, big.len());
+    assert_eq!(again.deleted, ["old-layout-00001-of-00002.safetensors"]);
+    {
+        let s = server.state.lock().unwrap();
+        assert!(!s.files.contains_key("old-layout-00001-of-00002.safetensors") && s.files.contains_key(".gitattributes"));
+    }
+    server.state.lock().unwrap().files.remove(".gitattributes");
+    // A private push into a repo that exists and is public is refused before anything is sent.
+    server.state.lock().unwrap().created[0].1 = false;
+    let commits = server.state.lock().unwrap().commits;
+    let e = push_folder(&out, &push, &mut |_| {}).unwrap_err().to_string();
+    assert!(e.contains("exists and is public: --private would publish"), "{e}");
+    assert_eq!(server.state.lock().unwrap().commits, commits);
+    server.state.lock().unwrap().created[0].1 = true;
 
     // A refused token is a clear error.
     let bad = PushOptions { token: Some("hf_wrong".into()), ..push.clone() };

@@ -390,4 +390,9 @@ fn frozen_tensors_come_from_the_base_weights() {
     write_tensors(&model_file, &t.into_iter().collect::<Vec<_>>(), &BTreeMap::new()).unwrap();
     let e = export(ckpt2.to_str().unwrap(), &root.join("o2"), &ExportOptions::default(), &mut |_| {}).unwrap_err().to_string();
     assert!(e.contains("--base") && e.contains("cannot be recovered"), "{e}");
+    // `convert`, which takes no base, refuses the checkpoint that lacks them and names `export --base`.
+    let opts = ConvertOptions { to: DitLayout::Diffusers, model: Some(cfg.clone()), ..Default::default() };
+    let e = convert_dit(model_file.to_str().unwrap(), &root.join("c"), &opts, &mut |_| {}).unwrap_err().to_string();
+    assert!(e.contains("lacks 3 tensors of the model") && e.contains("--base BASE"), "{e}");
+    assert!(!root.join("c").exists());
 }

@@ -61,19 +61,22 @@ pub struct ExportArgs {
     /// Replace a non-empty output folder.
     #[arg(long)]
     overwrite: bool,
-    /// Upload the folder to this Hub model repo (OWNER/NAME); token from HF_TOKEN, endpoint from HF_ENDPOINT.
+    /// Upload the folder to this Hub model repo (OWNER/NAME); token from HF_TOKEN, endpoint from
+    /// HF_ENDPOINT. The repo's files become the folder's: files of an earlier push that the folder
+    /// does not hold are deleted (the Hub's .gitattributes stays).
     #[arg(long, value_name = "OWNER/NAME")]
     push: Option<String>,
-    /// Create the pushed repo private.
+    /// Create the pushed repo private (an existing public repo is refused).
     #[arg(long, requires = "push")]
     private: bool,
 }
 
 pub fn run(args: ExportArgs) -> Result<()> {
     let env = HubEnv::from_env();
-    if args.push.is_some() && env.token.is_none() {
+    if let Some(repo) = &args.push {
         // Fail before the (long) export when the push cannot happen.
-        anyhow::bail!("--push needs a Hugging Face token with write access: set HF_TOKEN (or log in with `hf auth login`)");
+        anyhow::ensure!(bwm_checkpoints::hub::is_repo_id(repo) && !repo.contains('@'), "--push expects OWNER/NAME, got '{repo}'");
+        anyhow::ensure!(env.token.is_some(), "--push needs a Hugging Face token with write access: set HF_TOKEN (or log in with `hf auth login`)");
     }
     let opts = ExportOptions {
         layout: args.layout,
@@ -94,6 +97,22 @@ pub fn run(args: ExportArgs) -> Result<()> {
     };
     if !args.merge_lora && bwm_checkpoints::lora_export::is_lora_checkpoint(&args.checkpoint)? {
         anyhow::ensure!(args.push.is_none(), "--push of a LoRA checkpoint's adapters is not supported; push the --merge-lora export, or upload the adapter folder");
+        let unheld: Vec<&str> = [
+            ("--ema", opts.ema),
+            ("--action-stats", opts.action_stats.is_some()),
+            ("--base", opts.base.is_some()),
+            ("--config", opts.config.is_some()),
+            ("--metrics", opts.metrics.is_some()),
+            ("--base-model", opts.base_model_id.is_some()),
+        ]
+        .into_iter()
+        .filter_map(|(flag, given)| given.then_some(flag))
+        .collect();
+        anyhow::ensure!(
+            unheld.is_empty(),
+            "{}: a LoRA checkpoint's adapters are exported alone, in the diffusers/PEFT layout, which holds none of that; pass --merge-lora to export merged weights with it",
+            unheld.join(", ")
+        );
         let a = bwm_checkpoints::lora_export::export_lora_adapters(&args.checkpoint, &args.out, args.dtype, args.overwrite)?;
         println!(
             "exported the LoRA adapters of {} layers ({} parameters, diffusers/PEFT layout) to {}",
@@ -140,6 +159,7 @@ pub fn run(args: ExportArgs) -> Result<()> {
                 }
             }
             PushEvent::AlreadyOnHub { path } => eprintln!("{path}: already on the Hub"),
+            PushEvent::Deleting { paths } => eprintln!("deleting {} files of an earlier push that this export does not hold: {}", paths.len(), paths.join(", ")),
             PushEvent::Committing { files } => eprintln!("committing {files} files"),
         })?;
         println!(

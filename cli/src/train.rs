@@ -33,6 +33,7 @@ pub fn run(args: TrainArgs) -> Result<()> {
     }
     let cfg = RunConfig::load(&args.config, &args.overrides)?;
     let mut trainer = Trainer::new(cfg, args.resume)?;
+    trainer.check_validation_vae()?;
     let c = &trainer.cfg;
     println!(
         "run {}: {} on {:?}, {} of {} parameters trained, {} training clips ({} held-out clips for validation), {} steps of {} samples (micro-batch {} x accumulation {}), recompute {}",

@@ -3,7 +3,7 @@
 
 use std::path::PathBuf;
 
-use anyhow::{bail, Context, Result};
+use anyhow::{bail, ensure, Context, Result};
 use bwm_data::frames::{parse_resize, parse_resolution};
 use bwm_data::{open_dataset, CameraSelection, ResizeMode};
 use bwm_model::vae::VaeConfig;
@@ -120,7 +120,7 @@ pub struct FrameArgs {
     #[arg(long, default_value_t = 0.2)]
     pub holdout_tail: f64,
     /// Train from frames written by `bwm train-vae --dump-frames` instead of decoding the dataset's
-    /// videos.
+    /// videos (their size must be --resolution).
     #[arg(long = "frames", id = "frames_file", value_name = "FILE")]
     pub file: Option<PathBuf>,
 }
@@ -132,6 +132,15 @@ impl FrameArgs {
         match &self.file {
             Some(path) => {
                 let data = FrameSets::read(path)?;
+                ensure!(
+                    data.size() == size,
+                    "{}: its frames are {}x{}, --resolution asks for {}x{}",
+                    path.display(),
+                    data.size().0,
+                    data.size().1,
+                    size.0,
+                    size.1
+                );
                 println!("{who}: {} training and {} held-out videos from {}", data.train.len(), data.holdout.len(), path.display());
                 Ok(data)
             }

@@ -159,9 +159,8 @@ impl ActionSpec {
         quats.sort_unstable();
         for (i, &s) in quats.iter().enumerate() {
             ensure!(
-                s + 4 <= self.indices.len(),
-                "quat_to_euler start {s}: positions {s}..{} lie outside the {} selected indices",
-                s + 4,
+                s.checked_add(4).is_some_and(|end| end <= self.indices.len()),
+                "quat_to_euler start {s}: positions {s}..{s}+4 lie outside the {} selected indices",
                 self.indices.len()
             );
             if let Some(&next) = quats.get(i + 1) {
@@ -284,6 +283,15 @@ pub fn quat_to_rpy(q: [f32; 4], order: QuatOrder) -> Option<[f32; 3]> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_conversion_outside_the_selection_is_refused_however_far() {
+        for start in [2, usize::MAX - 1] {
+            let spec = ActionSpec { quat_to_euler: vec![QuatToEuler { start, order: QuatOrder::Xyzw }], ..ActionSpec::parse("pose:0-4").unwrap() };
+            let err = spec.validate().unwrap_err().to_string();
+            assert!(err.contains(&format!("quat_to_euler start {start}: positions")), "{err}");
+        }
+    }
 
     #[test]
     fn parse_reads_presets_column_indices_and_refuses_bad_lists() {

@@ -165,7 +165,8 @@ pub fn parse_resize(s: &str) -> Result<ResizeMode, String> {
 /// `WIDTHxHEIGHT` with both multiples of `multiple`.
 pub fn parse_resolution(s: &str, multiple: u32) -> Result<(u32, u32)> {
     let (w, h) = s.split_once('x').with_context(|| format!("resolution '{s}': expected WIDTHxHEIGHT"))?;
-    let (w, h): (u32, u32) = (w.trim().parse()?, h.trim().parse()?);
+    let number = |v: &str| v.trim().parse::<u32>().with_context(|| format!("resolution '{s}': '{v}' is not a whole number"));
+    let (w, h) = (number(w)?, number(h)?);
     ensure!(w > 0 && h > 0 && w % multiple == 0 && h % multiple == 0, "resolution {w}x{h}: width and height must be positive multiples of {multiple}");
     Ok((w, h))
 }

@@ -209,7 +209,21 @@ impl LatentCache {
             index.version
         );
         ensure!(!index.clips.is_empty(), "{}: the cache holds no clips", path.display());
-        ensure!(index.latent_shape.len() == 4, "{}: latent_shape must be [C, F, h, w]", path.display());
+        ensure!(
+            index.latent_shape.len() == 4 && index.latent_shape.iter().all(|&n| n > 0),
+            "{}: latent_shape {:?} must be [C, F, h, w] of positive sizes",
+            path.display(),
+            index.latent_shape
+        );
+        ensure!(
+            index.pixel_frames == 1 + index.history_frames + index.future_frames && index.future_frames > 0,
+            "{}: pixel_frames {} must be 1 (x0) + history_frames {} + future_frames {} (at least 1)",
+            path.display(),
+            index.pixel_frames,
+            index.history_frames,
+            index.future_frames
+        );
+        ensure!(index.action_dim > 0, "{}: action_dim {} must be positive", path.display(), index.action_dim);
         ensure!(index.has_latents || index.has_frames, "{}: the cache holds neither latents nor pixel frames", path.display());
         let mut seen: HashMap<&str, usize> = HashMap::new();
         let mut rows = Vec::with_capacity(index.clips.len());
@@ -666,6 +680,21 @@ mod tests {
         assert_eq!(get("latents").kind(), Kind::BFloat16);
         assert!(cache.load(5, Device::Cpu).is_err());
         assert!(!dir.read_dir().unwrap().any(|e| e.unwrap().file_name().to_string_lossy().ends_with(".tmp")));
+    }
+
+    #[test]
+    fn an_index_whose_frame_counts_disagree_is_refused() {
+        let dir = tmp("frame-counts");
+        let mut idx = index(false);
+        idx.clips.push(ClipEntry { file: "shard-00000.safetensors".into(), episode: 0, frames: vec![0; 5], task: String::new() });
+        for (bad, said) in [
+            (CacheIndex { pixel_frames: 9, ..idx.clone() }, "pixel_frames 9 must be 1 (x0) + history_frames 0 + future_frames 4"),
+            (CacheIndex { latent_shape: vec![4, 0, 2, 3], ..idx.clone() }, "latent_shape [4, 0, 2, 3] must be [C, F, h, w] of positive sizes"),
+        ] {
+            std::fs::write(dir.join(INDEX_FILE), serde_json::to_string(&bad).unwrap()).unwrap();
+            let e = LatentCache::open(&dir).err().expect("a bad index opened").to_string();
+            assert!(e.contains(said), "{e}");
+        }
     }
 
     #[test]

@@ -160,6 +160,25 @@ impl LeRobotWriter {
             features.size.1,
             features.size.0
         );
+        // The episodes written so far are relabelled by the metadata this run writes: their actions'
+        // meaning and frame rate must be this run's.
+        let fps = info["fps"].as_f64();
+        ensure!(
+            fps == Some(features.fps),
+            "{}: its episodes are at {} fps, this run writes {} fps",
+            root.display(),
+            fps.map_or("unknown".into(), |f| f.to_string()),
+            features.fps
+        );
+        for (key, asked) in [("action", &features.action_names), ("observation.state", &features.state_names)] {
+            let stored = &info["features"][key]["names"];
+            ensure!(
+                stored == &json!(asked),
+                "{}: its '{key}' values are {stored}, this run writes {}",
+                root.display(),
+                json!(asked)
+            );
+        }
         let tasks: Vec<String> = read("tasks.jsonl")?.iter().map(|t| t["task"].as_str().unwrap_or_default().to_string()).collect();
         let episodes = read("episodes.jsonl")?
             .iter()
@@ -475,6 +494,12 @@ mod tests {
         // Asked for video, the dataset's image features are named; left unset, they are kept.
         let err = LeRobotWriter::resume(&root, features(Some(FrameStorage::Video))).err().expect("video storage accepted on an image dataset");
         assert!(err.to_string().contains("stored as image features"), "{err:#}");
+        // Another frame rate or other actions would relabel the episodes written: refused.
+        let err = LeRobotWriter::resume(&root, DatasetFeatures { fps: 20.0, ..features(None) }).err().expect("another frame rate accepted");
+        assert!(err.to_string().contains("at 10 fps, this run writes 20 fps"), "{err:#}");
+        let other = DatasetFeatures { action_names: vec!["y".into(), "g".into()], ..features(None) };
+        let err = LeRobotWriter::resume(&root, other).err().expect("other action names accepted");
+        assert!(err.to_string().contains(r#"its 'action' values are ["x","g"], this run writes ["y","g"]"#), "{err:#}");
         let mut w = LeRobotWriter::resume(&root, features(None)).unwrap();
         assert_eq!(w.storage(), FrameStorage::Image);
         w.add_episode(&frames[..2], &rows[..2], &rows[..2], "open").unwrap();

@@ -34,13 +34,19 @@ impl ActionStats {
             format!("{}: no statistics group '{group}' (groups: {})", path.display(), groups.join(", "))
         })?;
         let stats: Self = serde_json::from_value(entry.clone()).with_context(|| format!("{}: group '{group}'", path.display()))?;
-        let d = stats.p01.len();
-        ensure!(
-            [&stats.min, &stats.max, &stats.p99, &stats.mean, &stats.std].iter().all(|v| v.len() == d),
-            "{}: group '{group}' has fields of different lengths",
-            path.display()
-        );
+        stats.check().with_context(|| format!("{}: group '{group}'", path.display()))?;
         Ok(stats)
+    }
+
+    /// Every per-dimension field holds one value per dimension (statistics read from a file or a
+    /// weights' contract are checked so before they normalize anything).
+    pub fn check(&self) -> Result<()> {
+        let d = self.p01.len();
+        ensure!(d > 0, "statistics of no dimensions");
+        for (name, v) in [("min", &self.min), ("max", &self.max), ("p99", &self.p99), ("mean", &self.mean), ("std", &self.std)] {
+            ensure!(v.len() == d, "'{name}' has {} values, 'p01' {d}", v.len());
+        }
+        Ok(())
     }
 
     pub fn dim(&self) -> usize {
@@ -312,6 +318,9 @@ mod tests {
         let x = [0.25f32, 0.75];
         let back = s.denormalize(&s.normalize(&x));
         assert!(back.iter().zip(&x).all(|(a, b)| (a - b).abs() < 1e-6), "{back:?}");
+        s.check().unwrap();
+        let short = ActionStats { p99: vec![1.0], ..s };
+        assert_eq!(short.check().unwrap_err().to_string(), "'p99' has 1 values, 'p01' 2");
     }
 
     #[test]

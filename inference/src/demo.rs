@@ -32,6 +32,15 @@ pub fn run(args: &DemoOptions) -> Result<()> {
     let ds = BwmDataset::open(&args.data)?;
     let spec = ActionSpec::eef_abs();
     let stats = ActionStats::read(&ds.root.join("stat.json"), &spec.stats_group)?;
+    ensure!(
+        stats.dim() == spec.dim(),
+        "{}: group '{}' has statistics of {} values, the {} actions {}",
+        ds.root.join("stat.json").display(),
+        spec.stats_group,
+        stats.dim(),
+        spec.column,
+        spec.dim()
+    );
     println!("dataset {}: {} episodes", ds.root.display(), ds.episodes.len());
     for (i, ep) in ds.episodes.iter().enumerate() {
         println!("  [{i}] {} frames, task {}, {}", ep.length, ep.task, ep.action);

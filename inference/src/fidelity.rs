@@ -94,17 +94,7 @@ pub fn run(options: &WorldModelOptions, a: &FidelityOptions) -> Result<()> {
     // are kept, not rolled out again.
     let run_key = json!({
         "data": a.data.display().to_string(),
-        "checkpoint": options.checkpoint,
-        "random_weights": options.random_weights,
-        "lora": options.lora,
-        "model_preset": options.model_preset,
-        "vae": options.vae,
-        "stats": options.stats,
-        "stats_group": options.stats_group,
-        "dtype": options.dtype,
-        "residual": format!("{:?}", options.residual),
-        "fp8": options.fp8.map(|s| s.to_string()),
-        "shift": wm.spec.shift,
+        "model": options.identity(&wm.spec),
         "actions": reading.actions,
         "camera": reading.cameras,
         "resolution": format!("{}x{}", size.0, size.1),
@@ -112,7 +102,6 @@ pub fn run(options: &WorldModelOptions, a: &FidelityOptions) -> Result<()> {
         "max_frames": a.max_frames,
         "episodes": episodes,
         "predictors": PREDICTORS,
-        "spec": { "history": wm.spec.history, "future": wm.spec.future, "steps": wm.spec.steps, "solver": wm.spec.solver.to_string(), "guidance": wm.spec.guidance, "seed": wm.spec.seed, "history_sigma": wm.spec.history_sigma },
     });
     let episodes_path = a.out.join("episodes.jsonl");
     let mut done = earlier_episodes(&a.out, &run_key)?;

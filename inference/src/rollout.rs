@@ -83,6 +83,10 @@ pub struct RolloutOptions {
     pub frame_storage: Option<FrameStorage>,
 }
 
+/// The record of what a rollout's output folder holds (its weights, episodes and settings), which
+/// `--resume` compares.
+const RUN_KEY_FILE: &str = "rollout.key.json";
+
 /// One episode to generate.
 struct Job {
     name: String,
@@ -149,12 +153,40 @@ pub fn run(options: &WorldModelOptions, a: &RolloutOptions) -> Result<()> {
         robot_type: "bwm_world_model".into(),
         storage: a.frame_storage,
     };
+    // What the episodes in `out` are, in order: a resumed run continues where its list of
+    // episodes begins with those written, from the same weights and settings.
+    let run_key = serde_json::json!({
+        "settings": {
+            "model": options.identity(&wm.spec),
+            "drive": format!("{:?}", a.drive),
+            "perturb_std": a.perturb_std,
+            "normalized": a.normalized,
+            "reading": format!("{:?}", a.reading),
+        },
+        "episodes": jobs.iter().map(|j| serde_json::json!([j.name, j.task, j.normalized.size()[0]])).collect::<Vec<_>>(),
+    });
     let mut writer = if a.resume { LeRobotWriter::resume(&a.out, features)? } else { LeRobotWriter::create(&a.out, features)? };
     println!("rollout: frames stored as {} features", writer.storage().dtype());
     let done = writer.len();
     if done > 0 {
+        let key_path = a.out.join(RUN_KEY_FILE);
+        let earlier = std::fs::read_to_string(&key_path).ok().and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok());
+        let written = |key: &serde_json::Value| key["episodes"].as_array().filter(|e| e.len() >= done).map(|e| e[..done].to_vec());
+        let same = earlier.as_ref().is_some_and(|e| e["settings"] == run_key["settings"] && written(e).is_some() && written(e) == written(&run_key));
+        ensure!(
+            same,
+            "{}: its {done} episodes were rolled out {} (compare {}); remove the folder or choose another --out",
+            a.out.display(),
+            if earlier.is_some() {
+                "from other weights or settings than this run's, or are not the first episodes this run lists"
+            } else {
+                "by a run that left no record of its settings"
+            },
+            key_path.display()
+        );
         println!("rollout: {} episodes already in {}; continuing", done, a.out.display());
     }
+    bwm_data::latent_cache::write_atomically(&a.out, RUN_KEY_FILE, serde_json::to_string_pretty(&run_key)?.as_bytes())?;
     let compare_dir = a.out.join("compare");
     let start = Instant::now();
     let mut metrics = Vec::new();

@@ -27,7 +27,7 @@ use std::sync::mpsc::{self, Sender};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use anyhow::{anyhow, Context, Result};
+use anyhow::{anyhow, ensure, Context, Result};
 use bytes::Bytes;
 use bwm_model::sampler::{Denoiser, Eager};
 use bwm_model::BwmModel;
@@ -191,9 +191,15 @@ struct Shared {
     jobs: Sender<Job>,
 }
 
+/// The longest timeout taken (about 31 years): a deadline further ahead would overflow the clock.
+const MAX_TIMEOUT_S: u64 = 1_000_000_000;
+
 /// Loads the model, listens, and serves until SIGTERM or SIGINT (then finishes the requests in
 /// flight). Prints `serve: listening on http://ADDR` once it accepts connections.
 pub fn serve(wm: &WorldModelOptions, a: &ServeOptions) -> Result<()> {
+    for (flag, s) in [("--read-timeout-s", a.read_timeout_s), ("--request-timeout-s", a.request_timeout_s)] {
+        ensure!(s <= MAX_TIMEOUT_S, "{flag} {s}: at most {MAX_TIMEOUT_S} seconds (0 = no limit where the flag allows it)");
+    }
     let model = match (&wm.checkpoint, &wm.random_weights) {
         (Some(c), _) => c.clone(),
         (None, Some(p)) => format!("random weights ({p})"),
@@ -882,6 +888,17 @@ fn generate(wm: &WorldModel, req: &ChunkRequest, queued: f64, watch: Watch) -> R
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_timeout_past_the_clock_is_refused_before_the_model_loads() {
+        for (flag, a) in [
+            ("--read-timeout-s", ServeOptions { read_timeout_s: u64::MAX, ..Default::default() }),
+            ("--request-timeout-s", ServeOptions { request_timeout_s: MAX_TIMEOUT_S + 1, ..Default::default() }),
+        ] {
+            let e = serve(&WorldModelOptions::default(), &a).unwrap_err().to_string();
+            assert!(e.starts_with(flag) && e.contains("at most 1000000000 seconds"), "{e}");
+        }
+    }
 
     pub(super) fn info() -> ModelInfo {
         ModelInfo {

@@ -185,7 +185,66 @@ pub struct EpisodeReading {
     pub resize: ResizeMode,
 }
 
+/// A file's size and modification time (nanoseconds since the epoch), or those of a folder's
+/// files by path inside it (two levels down: an export's component folders); null where `path` is
+/// not on this machine (a Hub id).
+fn file_version(path: &Path) -> serde_json::Value {
+    fn one(m: &std::fs::Metadata) -> serde_json::Value {
+        let modified = m.modified().ok().and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok()).map(|d| d.as_nanos().to_string());
+        serde_json::json!([m.len(), modified])
+    }
+    fn walk(dir: &Path, prefix: &str, depth: usize, files: &mut serde_json::Map<String, serde_json::Value>) {
+        for entry in std::fs::read_dir(dir).into_iter().flatten().flatten() {
+            let name = format!("{prefix}{}", entry.file_name().to_string_lossy());
+            match entry.metadata() {
+                Ok(m) if m.is_file() => {
+                    files.insert(name, one(&m));
+                }
+                Ok(m) if m.is_dir() && depth > 0 => walk(&entry.path(), &format!("{name}/"), depth - 1, files),
+                _ => {}
+            }
+        }
+    }
+    match std::fs::metadata(path) {
+        Ok(m) if m.is_dir() => {
+            let mut files = serde_json::Map::new();
+            walk(path, "", 1, &mut files);
+            serde_json::Value::Object(files)
+        }
+        Ok(m) => one(&m),
+        Err(_) => serde_json::Value::Null,
+    }
+}
+
 impl WorldModelOptions {
+    /// What decides the frames these options generate with a loaded model's resolved `spec`: the
+    /// weights, VAE, decoder and statistics by path and by the version of the files there (each
+    /// file's size and modification time, a folder's files one level down), so that weights
+    /// trained again at the same path are not taken for the earlier ones; and the numeric settings.
+    /// Commands that resume a run into the same folder (`fidelity`, `rollout --resume`) compare it.
+    pub fn identity(&self, spec: &RolloutSpec) -> serde_json::Value {
+        let path = |p: Option<&Path>| p.map(|p| serde_json::json!({ "path": p.display().to_string(), "version": file_version(p) }));
+        serde_json::json!({
+            "checkpoint": path(self.checkpoint.as_deref().map(Path::new)),
+            "lora": path(self.lora.as_deref()),
+            "random_weights": self.random_weights,
+            "model_preset": self.model_preset,
+            "vae": path(self.vae.as_deref()),
+            "light_decoder": path(self.light_decoder.as_deref()),
+            "random_light_decoder": self.random_light_decoder,
+            "stats": path(self.stats.as_deref()),
+            "dataset_stats": path(self.dataset_stats.as_deref()),
+            "stats_group": self.stats_group,
+            "dtype": self.dtype,
+            "residual": format!("{:?}", self.residual),
+            "fp8": self.fp8.map(|s| s.to_string()),
+            "spec": {
+                "history": spec.history, "future": spec.future, "steps": spec.steps, "shift": spec.shift,
+                "solver": spec.solver.to_string(), "guidance": spec.guidance, "seed": spec.seed, "history_sigma": spec.history_sigma,
+            },
+        })
+    }
+
     /// These options, with the `stat.json` beside `dataset` (when it exists) as the statistics of
     /// last resort: used when neither `--stats` nor the weights' contract gives any.
     pub fn with_stats_beside(&self, dataset: Option<&Path>) -> WorldModelOptions {

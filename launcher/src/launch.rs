@@ -105,16 +105,32 @@ struct Plan {
     grace: Duration,
 }
 
-impl Plan {
-    /// Starts this node's ranks; attempts after the first resume the run (`--resume auto`).
-    fn spawn(&self, attempt: u32) -> Result<Ranks> {
-        let mut command = self.command.clone();
-        if attempt > 0
-            && command.first().map(String::as_str) == Some("train")
-            && !command.iter().any(|c| c == "--resume")
-        {
-            command.extend(["--resume".to_string(), "auto".to_string()]);
+/// `command` (a `train` command line) with `--resume auto` in place of any `--resume VALUE` or
+/// `--resume=VALUE`.
+fn resuming(command: &[String]) -> Vec<String> {
+    let mut out = Vec::with_capacity(command.len() + 2);
+    let mut words = command.iter();
+    while let Some(w) = words.next() {
+        if w == "--resume" {
+            words.next();
+        } else if !w.starts_with("--resume=") {
+            out.push(w.clone());
         }
+    }
+    out.extend(["--resume".to_string(), "auto".to_string()]);
+    out
+}
+
+impl Plan {
+    /// Starts this node's ranks; attempts after the first resume the run from its latest
+    /// checkpoint (`--resume auto`, in place of any `--resume` the command gave: a fixed
+    /// checkpoint would redo the work since it, and may have been pruned).
+    fn spawn(&self, attempt: u32) -> Result<Ranks> {
+        let command = if attempt > 0 && self.command.first().map(String::as_str) == Some("train") {
+            resuming(&self.command)
+        } else {
+            self.command.clone()
+        };
         eprintln!(
             "launch: node {}, {} ranks here, world {}, master {}:{} (attempt {})",
             self.node_rank,
@@ -471,6 +487,19 @@ fn nccl_library_path() -> (String, Option<tempfile::TempDir>) {
                 std::env::temp_dir().display()
             );
             (current, None)
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_restart_resumes_from_the_latest_checkpoint_whatever_resume_was_given() {
+        let words = |s: &str| s.split(' ').map(String::from).collect::<Vec<_>>();
+        for given in ["train --config c.toml", "train --resume runs/x/checkpoints/step-00000100 --config c.toml", "train --resume=auto --config c.toml"] {
+            assert_eq!(resuming(&words(given)), words("train --config c.toml --resume auto"), "{given}");
         }
     }
 }

@@ -20,7 +20,8 @@ pub struct SubmitArgs {
     /// Ranks per node (default: --gpus-per-node, or 1 without GPUs).
     #[arg(long)]
     nproc_per_node: Option<usize>,
-    /// CPUs for each node's task (the launcher and its ranks).
+    /// CPUs for each node's task (the launcher and its ranks); without it the cluster's default
+    /// for a task, often one CPU (said when submitting).
     #[arg(long)]
     cpus_per_task: Option<usize>,
     #[arg(long)]
@@ -38,8 +39,8 @@ pub struct SubmitArgs {
     /// Restarts of the whole group within one job run (`bwm launch --max-restarts`).
     #[arg(long, default_value_t = 0)]
     max_restarts: u32,
-    /// Rank 0's port on the first node (default: 29500 + job id mod 10000, so that jobs sharing a
-    /// node differ); the launchers' agent store uses the next one.
+    /// Rank 0's port on the first node (default: 29500 + 2 x (job id mod 5000), so that jobs
+    /// sharing a node differ); the launchers' agent store uses the next one.
     #[arg(long)]
     master_port: Option<u16>,
     /// Seconds before the time limit at which Slurm warns the job (default 180, or a third of
@@ -65,6 +66,11 @@ pub fn run(a: SubmitArgs) -> Result<()> {
         cwd.join(&a.output_dir)
     };
     let text = script(&a, &exe, &cwd, &out)?;
+    if a.cpus_per_task.is_none() {
+        eprintln!(
+            "bwm submit: no --cpus-per-task: each node's task (the launcher, its ranks and their data loading) gets the CPUs the cluster gives a task by default, often one; set it to the node's cores"
+        );
+    }
     if a.dry_run {
         print!("{text}");
         return Ok(());
@@ -239,7 +245,10 @@ fn script(a: &SubmitArgs, exe: &Path, cwd: &Path, out: &Path) -> Result<String> 
     );
     let job_name = directive_value("--job-name", &a.job_name)?;
     let mut command = a.command.clone();
-    if command.first().map(String::as_str) == Some("train") {
+    // Only a training run continues where it stopped: it alone is stopped before the time limit
+    // and requeued. Another command runs once, to its end or the limit.
+    let requeues = command.first().map(String::as_str) == Some("train");
+    if requeues {
         // Every start of the job, the first and each requeue, continues the run.
         match command
             .iter()
@@ -281,8 +290,10 @@ fn script(a: &SubmitArgs, exe: &Path, cwd: &Path, out: &Path) -> Result<String> 
     if let Some(t) = &a.time {
         directive(format!("--time={}", directive_value("--time", t)?));
     }
-    directive("--requeue".into());
-    directive(format!("--signal=B:USR1@{signal_before}"));
+    if requeues {
+        directive("--requeue".into());
+        directive(format!("--signal=B:USR1@{signal_before}"));
+    }
     directive("--open-mode=append".into());
     directive(format!(
         "--output={}/%x-%j.out",
@@ -301,9 +312,11 @@ fn script(a: &SubmitArgs, exe: &Path, cwd: &Path, out: &Path) -> Result<String> 
     s.push_str("MASTER_ADDR=\"$(scontrol show hostnames \"$SLURM_JOB_NODELIST\" | head -n1)\"\n");
     match a.master_port {
         Some(p) => s.push_str(&format!("MASTER_PORT={p}\n")),
-        None => s.push_str("MASTER_PORT=$((29500 + SLURM_JOB_ID % 10000))\n"),
+        // Two ports a job (the master's and, one above, the launchers' agent store): consecutive
+        // job ids on one host do not collide.
+        None => s.push_str("MASTER_PORT=$((29500 + 2 * (SLURM_JOB_ID % 5000)))\n"),
     }
-    s.push_str(
+    s.push_str(if requeues {
         "\n# Slurm's warning before the time limit (USR1, to this shell only): SIGTERM to every process of\n\
          # the job's steps (`scancel --signal` leaves the batch shell out), on which the ranks checkpoint\n\
          # and stop and the launchers exit 0; then the job requeues itself. (srun itself is not signalled:\n\
@@ -311,8 +324,12 @@ fn script(a: &SubmitArgs, exe: &Path, cwd: &Path, out: &Path) -> Result<String> 
          # processes itself; this shell then keeps waiting for the checkpoint.\n\
          requeue=0\n\
          trap 'requeue=1; scancel --signal=TERM \"$SLURM_JOB_ID\"' USR1\n\
-         trap 'true' TERM\n",
-    );
+         trap 'true' TERM\n"
+    } else {
+        "\n# Not a training run: it runs once, to its end or the time limit (it cannot continue where it\n\
+         # stopped, so it is not requeued). On scancel or preemption this shell waits for it to stop.\n\
+         trap 'true' TERM\n"
+    });
     let mut srun = vec![
         "srun".to_string(),
         format!("--nodes={}", a.nodes),
@@ -355,13 +372,17 @@ fn script(a: &SubmitArgs, exe: &Path, cwd: &Path, out: &Path) -> Result<String> 
          # `wait` returns early when a trapped signal arrives; wait again until the step has exited.\n\
          while kill -0 \"$step\" 2>/dev/null; do wait \"$step\"; done\n\
          wait \"$step\"\n\
-         status=$?\n\
-         if [ \"$requeue\" = 1 ]; then\n  \
-           echo \"bwm submit: requeueing job $SLURM_JOB_ID before its time limit; it resumes from the last checkpoint\"\n  \
-           scontrol requeue \"$SLURM_JOB_ID\"\n\
-         fi\n\
-         exit \"$status\"\n",
+         status=$?\n",
     );
+    if requeues {
+        s.push_str(
+            "if [ \"$requeue\" = 1 ]; then\n  \
+               echo \"bwm submit: requeueing job $SLURM_JOB_ID before its time limit; it resumes from the last checkpoint\"\n  \
+               scontrol requeue \"$SLURM_JOB_ID\"\n\
+             fi\n",
+        );
+    }
+    s.push_str("exit \"$status\"\n");
     Ok(s)
 }
 
@@ -431,7 +452,7 @@ mod tests {
             "#SBATCH --chdir=/home/u/bwm\n",
             "LOGS=/home/u/bwm/runs/slurm/wan5b-\"$SLURM_JOB_ID\"\n",
             "MASTER_ADDR=\"$(scontrol show hostnames \"$SLURM_JOB_NODELIST\" | head -n1)\"\n",
-            "MASTER_PORT=$((29500 + SLURM_JOB_ID % 10000))\n",
+            "MASTER_PORT=$((29500 + 2 * (SLURM_JOB_ID % 5000)))\n",
             "srun --nodes=2 --ntasks-per-node=1 --cpus-per-task=64 --kill-on-bad-exit=1 --output=\"$LOGS/node-%n.out\" bash -c \\\n",
             "  'exec \"$0\" launch --nnodes \"$SLURM_NNODES\" --node-rank \"$SLURM_NODEID\" \"$@\"' \\\n  /opt/bwm/bwm \\\n  --nproc-per-node 8 \\\n",
             "  --max-restarts 2 --grace-period 120 \\\n",
@@ -487,6 +508,17 @@ mod tests {
             "{s}"
         );
         assert_eq!(s.matches("--resume").count(), 1, "{s}");
+    }
+
+    #[test]
+    fn a_command_that_cannot_resume_is_not_requeued() {
+        let s = render(&["--gpus-per-node", "1", "--time", "04:00:00", "--", "train-vae", "--data", "d", "--out", "v.safetensors"]).unwrap();
+        assert!(!s.contains("--requeue") && !s.contains("USR1") && !s.contains("scontrol requeue"), "{s}");
+        assert!(s.contains("-- train-vae --data d --out v.safetensors \\\n") && !s.contains("--resume"), "{s}");
+        assert!(s.contains("trap 'true' TERM\n"), "{s}");
+        let dir = bwm_testdir::TestDir::new("submit-once");
+        std::fs::write(dir.join("job.sh"), &s).unwrap();
+        assert!(Command::new("bash").arg("-n").arg(dir.join("job.sh")).status().unwrap().success(), "{s}");
     }
 
     #[test]

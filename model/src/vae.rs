@@ -886,16 +886,30 @@ impl WanVae {
         (self.mean.flatten(0, -1), self.inv_std.reciprocal().flatten(0, -1))
     }
 
+    /// The config of the VAE file `load_any` would load, read without its weights (a `bwm
+    /// train-vae` output's own, else the published Wan2.2 VAE's).
+    pub fn config_of(path: &std::path::Path) -> Result<VaeConfig> {
+        Ok(Self::config_and_metadata(path)?.0)
+    }
+
+    fn config_and_metadata(path: &std::path::Path) -> Result<(VaeConfig, std::collections::BTreeMap<String, String>)> {
+        let is_safetensors = path.extension().and_then(|e| e.to_str()) == Some("safetensors");
+        let meta = if is_safetensors { crate::weights::safetensors_metadata(path)? } else { Default::default() };
+        let cfg = match meta.get(TRAINED_CONFIG_KEY) {
+            Some(cfg_json) => serde_json::from_str(cfg_json)
+                .map_err(|e| anyhow::anyhow!("{}: metadata {TRAINED_CONFIG_KEY} is not a VAE config: {e}", path.display()))?,
+            None => VaeConfig::wan22(),
+        };
+        Ok((cfg, meta))
+    }
+
     /// Loads any VAE file this project reads: a `bwm train-vae` output (config, latent statistics
     /// and training clip length inside), else the published Wan2.2 VAE as `.pth` or safetensors.
     pub fn load_any(path: &std::path::Path, kind: Kind, device: tch::Device) -> Result<Self> {
-        let is_safetensors = path.extension().and_then(|e| e.to_str()) == Some("safetensors");
-        let meta = if is_safetensors { crate::weights::safetensors_metadata(path)? } else { Default::default() };
-        let Some(cfg_json) = meta.get(TRAINED_CONFIG_KEY) else {
-            return Self::load(path, &VaeConfig::wan22(), kind, device);
-        };
-        let cfg: VaeConfig = serde_json::from_str(cfg_json)
-            .map_err(|e| anyhow::anyhow!("{}: metadata {TRAINED_CONFIG_KEY} is not a VAE config: {e}", path.display()))?;
+        let (cfg, meta) = Self::config_and_metadata(path)?;
+        if !meta.contains_key(TRAINED_CONFIG_KEY) {
+            return Self::load(path, &cfg, kind, device);
+        }
         let file = crate::weights::SafetensorsSource::open(path)?;
         let stats = |name: &str| crate::weights::WeightSource::load(&file, name, Kind::Float, device);
         let (mean, std) = (stats("latents_mean")?, stats("latents_std")?);

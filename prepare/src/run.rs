@@ -163,7 +163,18 @@ pub fn run(a: &PrepareOptions) -> Result<()> {
     }
     let ts = vae_cfg.temporal_stride() as usize;
     ensure!((clip.frames_per_clip() - 1).is_multiple_of(ts), "clips of 1 + {} frames do not fit the VAE's temporal stride {ts}", a.history + a.future);
+    // One frame rate for the cache (and the weights' contract): episodes at another would be
+    // trained on as if they were at it.
     let fps = source.fps(plan.episodes[0].episode).context("the frame rate of the first episode")?;
+    for e in &plan.episodes[1..] {
+        let other = source.fps(e.episode).with_context(|| format!("the frame rate of episode {}", e.info.index))?;
+        ensure!(
+            (other - fps).abs() <= 1e-6 * fps.abs().max(1.0),
+            "episode {} is at {other} fps, episode {} at {fps}: a cache holds episodes of one frame rate (prepare the episodes of each rate into a cache of their own)",
+            e.info.index,
+            plan.episodes[0].info.index
+        );
+    }
     let latent_shape = vae_cfg.latent_shape(clip.frames_per_clip() as i64, size.1 as i64, size.0 as i64);
     let index = CacheIndex {
         has_frames: a.keep_frames || a.raw,

@@ -11,10 +11,10 @@ use bwm_checkpoints::optimizer_shards::OptimizerState;
 use bwm_checkpoints::run_dir::RunLock;
 use bwm_checkpoints::{write_tensors, CheckpointRoot};
 use bwm_checkpoints::contract::InputContract;
-use bwm_data::latent_cache::{clip_for_sample, global_sample_index, Clip, LatentCache};
+use bwm_data::latent_cache::{clip_for_sample, global_sample_index, CacheIndex, Clip, LatentCache};
 use bwm_data::prefetch::{load_clips, ClipBatch, Prefetcher};
 use bwm_model::lora::LoraState;
-use bwm_model::vae::WanVae;
+use bwm_model::vae::{VaeConfig, WanVae};
 use bwm_model::weights::{SafetensorsSource, WeightSource};
 use bwm_model::{BwmModel, ModelConfig, ParamStore};
 use serde::{Deserialize, Serialize};
@@ -266,6 +266,15 @@ impl Trainer {
         let append = |name: &str| -> Result<Option<LineLog>> { if lead { LineLog::open(&out_dir.join(name)).map(Some) } else { Ok(None) } };
         let (metrics_file, loss_file) = (append("metrics.jsonl")?, append(crate::run_log::LOSSES_FILE)?);
         Ok(Self { cfg, model, lora, opt, objective, cache, contract, clip_encoder, loader: Default::default(), train_clips, device, state, out_dir, checkpoints, events, metrics_file, negligible_action_gaps: 0, loss_file, comm, run_lock, history: Vec::new(), block_params, graph, distill })
+    }
+
+    /// Checks the VAE that validation and the end-of-run rollout decode the cache's latents with
+    /// (`validation.vae`, where set) before training starts, not at the first validation steps
+    /// into the run.
+    pub fn check_validation_vae(&self) -> Result<()> {
+        let Some(path) = &self.cfg.validation.vae else { return Ok(()) };
+        let vae = WanVae::config_of(path).with_context(|| format!("validation.vae {}", path.display()))?;
+        check_vae_fits(&vae, &self.cache.index, &self.cache.dir, &format!("validation.vae {}", path.display()))
     }
 
     /// Trains to `train.steps`, checkpointing and validating as configured.
@@ -765,17 +774,23 @@ fn clip_encoder(cfg: &RunConfig, cache: &LatentCache, device: Device) -> Result<
         bail!("{} holds raw clips (bwm prepare --raw): set data.vae to the VAE that encodes them", cache.dir.display())
     };
     let vae = WanVae::load_any(path, cfg.model.dtype.kind(), device).with_context(|| format!("data.vae {}", path.display()))?;
+    check_vae_fits(&vae.cfg, index, &cache.dir, &format!("data.vae {}", path.display()))?;
+    Ok(Some(vae))
+}
+
+/// Checks that a VAE of config `vae` encodes the cache's clips to the latents it holds, and so
+/// decodes those back to its frames (`what` names the VAE in the error).
+fn check_vae_fits(vae: &VaeConfig, index: &CacheIndex, cache_dir: &Path, what: &str) -> Result<()> {
     let [w, h] = index.resolution;
     let frames = index.pixel_frames as i64;
-    let gives = vae.cfg.latent_shape(frames, h as i64, w as i64);
+    let gives = vae.latent_shape(frames, h as i64, w as i64);
     ensure!(
-        (frames - 1) % vae.cfg.temporal_stride() == 0 && gives == index.latent_shape,
-        "data.vae {} encodes clips of {frames} frames of {w}x{h} to latents {gives:?}; the cache {} expects {:?}",
-        path.display(),
-        cache.dir.display(),
+        (frames - 1) % vae.temporal_stride() == 0 && gives == index.latent_shape,
+        "{what} encodes clips of {frames} frames of {w}x{h} to latents {gives:?}; the cache {} holds {:?}",
+        cache_dir.display(),
         index.latent_shape
     );
-    Ok(Some(vae))
+    Ok(())
 }
 
 /// The checkpoint folder a run starts from (None: fresh), or why it cannot start.
@@ -887,4 +902,19 @@ fn restore(dir: &Path, cfg: &RunConfig, opt: &mut AdamW, trainable: &[String], c
         weights.names().len()
     );
     Ok(state)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_vae_that_does_not_give_the_caches_latents_is_refused() {
+        let cfg = VaeConfig::with_width(16, 16);
+        let index = CacheIndex::new(cfg.latent_shape(9, 32, 64), 4, 4, 4, [64, 32], 10.0, "vae");
+        check_vae_fits(&cfg, &index, Path::new("cache"), "validation.vae v").unwrap();
+        let other = cfg.with_spatial_stride(8).unwrap();
+        let e = check_vae_fits(&other, &index, Path::new("cache"), "validation.vae v").unwrap_err().to_string();
+        assert!(e.starts_with("validation.vae v encodes clips of 9 frames of 64x32") && e.contains("the cache cache holds"), "{e}");
+    }
 }

@@ -95,8 +95,12 @@ impl FrameSets {
             let all: Vec<usize> = (0..n).collect();
             let videos = episode_videos(source, &all, &s.cameras, s.size, s.resize)?;
             let (mut train, mut holdout) = (Vec::new(), Vec::new());
-            for v in videos {
+            for (episode, v) in videos.into_iter().enumerate() {
                 let f = v.size()[1];
+                ensure!(
+                    f >= 2,
+                    "episode {episode} has {f} frame(s): --holdout-tail holds out the end of every episode, which needs 2 frames or more (hold out whole episodes with --holdout)"
+                );
                 let held = ((f as f64 * s.holdout_tail).round() as i64).clamp(1, f - 1);
                 train.push(v.narrow(1, 0, f - held));
                 holdout.push(v.narrow(1, f - held, held));
@@ -131,8 +135,12 @@ impl FrameSets {
         let mut named = Tensor::read_safetensors(path).with_context(|| format!("reading {}", path.display()))?;
         named.sort_by(|a, b| a.0.cmp(&b.0));
         let mut data = FrameSets { train: vec![], holdout: vec![] };
+        let mut size = None;
         for (name, t) in named {
             ensure!(t.kind() == Kind::Uint8 && t.dim() == 4 && t.size()[0] == 3, "{}: '{name}' is not a [3, F, H, W] u8 video", path.display());
+            let hw = (t.size()[2], t.size()[3]);
+            let first = size.get_or_insert_with(|| (hw, name.clone())).clone();
+            ensure!(hw == first.0, "{}: '{name}' has {}x{} (HxW) frames, '{}' {}x{}: one size for all", path.display(), hw.0, hw.1, first.1, first.0 .0, first.0 .1);
             let v = t.to_kind(Kind::Float) / 127.5 - 1.0;
             match name.split('.').next() {
                 Some("train") => data.train.push(v),
@@ -142,6 +150,12 @@ impl FrameSets {
         }
         ensure!(!data.train.is_empty() && !data.holdout.is_empty(), "{}: needs training and held-out videos", path.display());
         Ok(data)
+    }
+
+    /// The frames' (width, height), one for all videos.
+    pub fn size(&self) -> (u32, u32) {
+        let s = self.train[0].size();
+        (s[3] as u32, s[2] as u32)
     }
 }
 
@@ -179,6 +193,10 @@ mod tests {
         Tensor::write_safetensors(&[("train.0000", Tensor::zeros([3, 2, 4, 4], (Kind::Uint8, tch::Device::Cpu)))], &path)?;
         let err = FrameSets::read(&path).unwrap_err().to_string();
         assert!(err.contains("needs training and held-out videos"), "{err}");
+        let u8s = |h: i64| Tensor::zeros([3, 2, h, 4], (Kind::Uint8, tch::Device::Cpu));
+        Tensor::write_safetensors(&[("train.0000", u8s(4)), ("holdout.0000", u8s(6))], &path)?;
+        let err = FrameSets::read(&path).unwrap_err().to_string();
+        assert!(err.contains("'train.0000' has 4x4 (HxW) frames, 'holdout.0000' 6x4: one size for all"), "{err}");
         Ok(())
     }
 }

@@ -382,7 +382,7 @@ impl EvalConfig {
     pub fn validate(&self) -> Result<()> {
         ensure!(self.horizon > 0, "horizon must be at least 1 frame");
         let (_, height) = self.frame_size()?;
-        ensure!(self.timeout_s > 0.0, "timeout_s must be positive");
+        ensure!(self.timeout_s > 0.0 && self.timeout_s < 1e9, "timeout_s {} must be a positive number of seconds below 1e9", self.timeout_s);
         if let Some(fps) = self.fps {
             ensure!(fps > 0.0 && fps.is_finite(), "fps {fps} must be positive");
         }
@@ -483,8 +483,9 @@ impl EvalConfig {
                     "judge.threshold must lie in [0, 1]"
                 );
                 ensure!(
-                    self.judge.timeout_s > 0.0,
-                    "judge.timeout_s must be positive"
+                    self.judge.timeout_s > 0.0 && self.judge.timeout_s < 1e9,
+                    "judge.timeout_s {} must be a positive number of seconds below 1e9",
+                    self.judge.timeout_s
                 );
                 ensure!(
                     self.judge.max_frames != Some(0),

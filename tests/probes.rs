@@ -106,7 +106,7 @@ fn evaluate_counts_a_policy_that_refuses_connections_as_an_episode_error() {
     let mut stats: serde_json::Value = serde_json::from_str(&text).unwrap();
     stats["state_pose"]["p99"].as_array_mut().unwrap().truncate(3);
     std::fs::write(dir.join("short.json"), stats.to_string()).unwrap();
-    fails_naming(&evaluate("short.json"), &["short.json", "different lengths"]);
+    fails_naming(&evaluate("short.json"), &["short.json", "group 'state_pose'", "has 3 values, 'p01' 14"]);
     assert!(!dir.join("out").exists(), "nothing written for a refused start");
 
     // The results are written, and the run fails: its one episode ended on a connection error.

@@ -373,6 +373,19 @@ fn a_lora_run_exports_and_rolls_out_through_the_cli() {
     assert!(merged.join("transformer").is_dir() && merged.join("config.json").is_file(), "{text}");
     let (ok, text) = export(&["--merge-lora", "--push", "someone/model", "--out", dir.join("x").to_str().unwrap()]);
     assert!(!ok, "{text}");
+    // `bwm push` uploads a finished export alone (a failed push is retried without exporting
+    // again): a folder that is not a complete export, a bad repo id and a missing token are each
+    // refused before anything is sent.
+    let push = |args: &[&str]| {
+        let out = Command::new(bwm()).arg("push").args(args).env_remove("HF_TOKEN").env("HF_HOME", dir.join("no-hf-home")).output().unwrap();
+        (out.status.success(), String::from_utf8_lossy(&out.stderr).into_owned())
+    };
+    let (ok, text) = push(&["--dir", dir.join("cache").to_str().unwrap(), "--repo", "someone/model"]);
+    assert!(!ok && text.contains("not a complete `bwm export` folder"), "{text}");
+    let (ok, text) = push(&["--dir", merged.to_str().unwrap(), "--repo", "someone"]);
+    assert!(!ok && text.contains("--repo expects OWNER/NAME"), "{text}");
+    let (ok, text) = push(&["--dir", merged.to_str().unwrap(), "--repo", "someone/model"]);
+    assert!(!ok && text.contains("HF_TOKEN"), "{text}");
 
     // The world-model commands take the LoRA checkpoint folder, or the base plus the adapters.
     let roll = |args: &[&str]| {

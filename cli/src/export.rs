@@ -147,28 +147,67 @@ pub fn run(args: ExportArgs) -> Result<()> {
         println!("{} frozen tensors the checkpoint lacks were taken from the base weights", report.from_base);
     }
     if let Some(repo) = &args.push {
-        let push = PushOptions::new(repo, args.private, &env);
-        let mut last_pct = std::collections::BTreeMap::new();
-        let pushed = push_folder(&args.out, &push, &mut |e| match e {
-            PushEvent::RepoReady { url, created } => eprintln!("{} {url}", if *created { "created" } else { "using existing" }),
-            PushEvent::Hashed { path, bytes } => eprintln!("hashed {path} ({})", human_bytes(*bytes)),
-            PushEvent::Uploading { path, sent, total } => {
-                let pct = if *total == 0 { 100 } else { sent * 100 / total };
-                if last_pct.insert(path.clone(), pct) != Some(pct) {
-                    eprintln!("uploading {path}: {pct}% of {}", human_bytes(*total));
-                }
-            }
-            PushEvent::AlreadyOnHub { path } => eprintln!("{path}: already on the Hub"),
-            PushEvent::Deleting { paths } => eprintln!("deleting {} files of an earlier push that this export does not hold: {}", paths.len(), paths.join(", ")),
-            PushEvent::Committing { files } => eprintln!("committing {files} files"),
+        push(&args.out, repo, args.private, &env).with_context(|| {
+            format!(
+                "the export in {} is complete; retry the upload alone with `bwm push --dir {} --repo {repo}{}`",
+                args.out.display(),
+                args.out.display(),
+                if args.private { " --private" } else { "" }
+            )
         })?;
-        println!(
-            "pushed to {} ({} LFS files, {} regular){}",
-            pushed.repo_url,
-            pushed.lfs_files,
-            pushed.regular_files,
-            pushed.commit_url.map(|u| format!(": {u}")).unwrap_or_default()
-        );
     }
+    Ok(())
+}
+
+/// `bwm push`: uploads a finished export folder, as `bwm export --push` does after exporting (to
+/// retry a push that failed without exporting again).
+#[derive(Args)]
+pub struct PushArgs {
+    /// The export folder (`bwm export --out`).
+    #[arg(long)]
+    dir: PathBuf,
+    /// The Hub model repo (OWNER/NAME); token from HF_TOKEN, endpoint from HF_ENDPOINT. The repo's
+    /// files become the folder's: files of an earlier push that the folder does not hold are
+    /// deleted (the Hub's .gitattributes stays).
+    #[arg(long, value_name = "OWNER/NAME")]
+    repo: String,
+    /// Create the repo private (an existing public repo is refused).
+    #[arg(long)]
+    private: bool,
+}
+
+pub fn run_push(args: PushArgs) -> Result<()> {
+    let env = HubEnv::from_env();
+    anyhow::ensure!(bwm_checkpoints::hub::is_repo_id(&args.repo) && !args.repo.contains('@'), "--repo expects OWNER/NAME, got '{}'", args.repo);
+    // Only what loads: a complete export (config.json, every shard its index names), not a folder
+    // an export left cut short.
+    bwm_checkpoints::open::open_local(&args.dir).with_context(|| format!("{}: not a complete `bwm export` folder", args.dir.display()))?;
+    push(&args.dir, &args.repo, args.private, &env)
+}
+
+/// Pushes `dir` to `repo`, printing progress.
+fn push(dir: &std::path::Path, repo: &str, private: bool, env: &HubEnv) -> Result<()> {
+    let opts = PushOptions::new(repo, private, env);
+    let mut last_pct = std::collections::BTreeMap::new();
+    let pushed = push_folder(dir, &opts, &mut |e| match e {
+        PushEvent::RepoReady { url, created } => eprintln!("{} {url}", if *created { "created" } else { "using existing" }),
+        PushEvent::Hashed { path, bytes } => eprintln!("hashed {path} ({})", human_bytes(*bytes)),
+        PushEvent::Uploading { path, sent, total } => {
+            let pct = if *total == 0 { 100 } else { sent * 100 / total };
+            if last_pct.insert(path.clone(), pct) != Some(pct) {
+                eprintln!("uploading {path}: {pct}% of {}", human_bytes(*total));
+            }
+        }
+        PushEvent::AlreadyOnHub { path } => eprintln!("{path}: already on the Hub"),
+        PushEvent::Deleting { paths } => eprintln!("deleting {} files of an earlier push that this export does not hold: {}", paths.len(), paths.join(", ")),
+        PushEvent::Committing { files } => eprintln!("committing {files} files"),
+    })?;
+    println!(
+        "pushed to {} ({} LFS files, {} regular){}",
+        pushed.repo_url,
+        pushed.lfs_files,
+        pushed.regular_files,
+        pushed.commit_url.map(|u| format!(": {u}")).unwrap_or_default()
+    );
     Ok(())
 }

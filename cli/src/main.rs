@@ -102,6 +102,9 @@ enum Command {
     /// Export a training checkpoint as a Hugging Face model repo folder (config, shards, action
     /// encoder, action stats, model card); --push uploads it.
     Export(export::ExportArgs),
+    /// Upload a finished export folder to a Hugging Face model repo (what `export --push` does
+    /// after exporting; retries a failed push without exporting again).
+    Push(export::PushArgs),
     /// Convert DiT weights between the wan, diffusers and bwm-release layouts, or a VAE .pth to safetensors.
     Convert(convert::ConvertArgs),
     /// Print the CLI reference (docs/cli.md) or the run-config reference (docs/config.md), both
@@ -142,6 +145,7 @@ fn main() {
         Command::BenchRollout(a) => bench::rollout(a),
         Command::BenchTrain(a) => bench_train::run(a),
         Command::Export(a) => export::run(a),
+        Command::Push(a) => export::run_push(a),
         Command::Convert(a) => convert::run(a),
         Command::Reference(a) => reference::run(a),
     };

@@ -322,6 +322,12 @@ fn one() -> usize {
 }
 
 /// Names become file names: letters, digits, `_`, `-` and `.` only.
+/// A timeout the clock can hold: a positive number of seconds below 1e9 (NaN and infinity refused).
+fn check_timeout(key: &str, seconds: f64) -> Result<()> {
+    ensure!(seconds > 0.0 && seconds < 1e9, "{key} {seconds} must be a positive number of seconds below 1e9");
+    Ok(())
+}
+
 fn check_name(what: &str, name: &str) -> Result<()> {
     ensure!(
         !name.is_empty()
@@ -382,7 +388,7 @@ impl EvalConfig {
     pub fn validate(&self) -> Result<()> {
         ensure!(self.horizon > 0, "horizon must be at least 1 frame");
         let (_, height) = self.frame_size()?;
-        ensure!(self.timeout_s > 0.0 && self.timeout_s < 1e9, "timeout_s {} must be a positive number of seconds below 1e9", self.timeout_s);
+        check_timeout("timeout_s", self.timeout_s)?;
         if let Some(fps) = self.fps {
             ensure!(fps > 0.0 && fps.is_finite(), "fps {fps} must be positive");
         }
@@ -482,11 +488,7 @@ impl EvalConfig {
                     (0.0..=1.0).contains(&self.judge.threshold),
                     "judge.threshold must lie in [0, 1]"
                 );
-                ensure!(
-                    self.judge.timeout_s > 0.0 && self.judge.timeout_s < 1e9,
-                    "judge.timeout_s {} must be a positive number of seconds below 1e9",
-                    self.judge.timeout_s
-                );
+                check_timeout("judge.timeout_s", self.judge.timeout_s)?;
                 ensure!(
                     self.judge.max_frames != Some(0),
                     "judge.max_frames must be at least 1"
